@@ -1,0 +1,300 @@
+"""Typed, validated configuration for CDM: one home and one documented default per hyperparameter.
+
+Each group is a frozen pydantic model with ``extra="forbid"``, so an unknown key or a value of the
+wrong type or range fails at load time with a message naming the dotted field (``priors.lambda_3d``).
+Defaults are the paper's (CDM, CVPR 2025) or PC²'s where the paper is silent; units are stated per
+field. Sizes that differ between a laptop and the paper live in sweep profiles, not here.
+
+Use :func:`load_config` for a YAML file or nested dict plus ``key=value`` overrides.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+__all__ = [
+    "Config",
+    "ConfigError",
+    "DataConfig",
+    "DiffusionConfig",
+    "EvalConfig",
+    "ModelConfig",
+    "PriorsConfig",
+    "TrainConfig",
+    "apply_overrides",
+    "config_field_paths",
+    "load_config",
+    "parse_override",
+]
+
+
+class ConfigError(ValueError):
+    """A configuration value or key is invalid; the message names the dotted field."""
+
+
+class _Group(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class DataConfig(_Group):
+    """What the model trains and evaluates on."""
+
+    kind: Literal["procedural", "meshes"] = "procedural"
+    """Data-set kind, a key of ``cdm.data.DATASETS``. ``procedural`` is the embedded default (no files)."""
+    root: str | None = None
+    """Folder of the data set on disk (``meshes``: one sub-folder per category). Unused by ``procedural``."""
+    categories: tuple[str, ...] = ()
+    """Categories to use; empty = every category the data set has."""
+    num_points: int = Field(4096, ge=16)
+    """Points per ground-truth cloud (paper: 4,096 on ShapeNet, 16,384 on Co3D)."""
+    image_size: int = Field(224, ge=16, le=1024)
+    """Side of the square input image and of every rendering, in pixels (paper: 224)."""
+    train_objects: int = Field(512, ge=1)
+    """Objects per category in the training split (procedural; meshes use what is on disk)."""
+    val_objects: int = Field(16, ge=1)
+    """Held-out objects per category used for evaluation."""
+    seed: int = 0
+    """Seed of the procedural generator and of the object/split assignment."""
+
+
+class ModelConfig(_Group):
+    """Image encoder, projection conditioning and point-voxel denoiser (PC² architecture)."""
+
+    encoder: Literal["cnn"] = "cnn"
+    """Image encoder: a small trainable CNN (PC² uses a frozen ViT-S/16; see ``cdm.model.encoder``)."""
+    feature_dim: int = Field(32, ge=1)
+    """Channels of the per-pixel image feature map projected onto points (PC² ViT-S: 384)."""
+    raster_radius: float = Field(0.0075, gt=0.0, le=1.0)
+    """Point radius in NDC units of the hard rasterizer used for projection conditioning (PC²: 0.0075)."""
+    widths: tuple[int, ...] = (64, 128, 256)
+    """Channels of the denoiser's point-voxel blocks (PC²-like: 64/128/256)."""
+    voxel_resolutions: tuple[int, ...] = (32, 16, 16)
+    """Voxel grid side of each block, same length as ``widths`` (PVCNN: 32/16/8)."""
+    voxel_backend: Literal["auto", "dense", "sparse"] = "auto"
+    """Voxel branch: dense ``Conv3d`` or submanifold convolution on occupied voxels only."""
+    devoxelize: Literal["trilinear", "nearest"] = "trilinear"
+    """How voxel features return to points."""
+    time_embed_dim: int = Field(64, ge=4)
+    """Sinusoidal timestep embedding size (PC²: 64)."""
+    global_feature: Literal["none", "concat", "cross_attention"] = "none"
+    """Global image embedding added to every point (supplementary Table 7); ``none`` in the paper's CDM."""
+
+    @model_validator(mode="after")
+    def _check_blocks(self) -> ModelConfig:
+        if len(self.widths) != len(self.voxel_resolutions) or not self.widths:
+            raise ValueError(
+                f"model.widths {self.widths} and model.voxel_resolutions {self.voxel_resolutions} "
+                "must be non-empty and of the same length"
+            )
+        if min(self.widths) < 8 or min(self.voxel_resolutions) < 2:
+            raise ValueError("model.widths must be >= 8 and model.voxel_resolutions >= 2")
+        return self
+
+
+class DiffusionConfig(_Group):
+    """Forward process, training target and sampler (DDPM as in PC²)."""
+
+    num_steps: int = Field(1000, ge=2)
+    """Diffusion steps T (PC²: 1000)."""
+    beta_start: float = Field(1e-5, gt=0.0, lt=1.0)
+    """First beta of the linear schedule (PC²: 1e-5)."""
+    beta_end: float = Field(8e-3, gt=0.0, lt=1.0)
+    """Last beta of the linear schedule (PC²: 8e-3)."""
+    prediction: Literal["eps", "x0", "v"] = "eps"
+    """What the network predicts: ε as in the paper (Eq. 2–3), x₀, or v = √ᾱ ε − √(1−ᾱ) x₀."""
+    sampler: Literal["ddim", "ddpm"] = "ddim"
+    """Evaluation sampler: DDIM (η=0) over ``sample_steps`` or full ancestral DDPM."""
+    sample_steps: int = Field(50, ge=1)
+    """Steps of the DDIM sampler."""
+    clip_x0: float | None = Field(1.0, gt=0.0)
+    """Clamp x̂₀ to [-clip_x0, clip_x0] while sampling (data are normalised into [-1, 1]); null = off."""
+
+    @model_validator(mode="after")
+    def _check_schedule(self) -> DiffusionConfig:
+        if self.beta_end <= self.beta_start:
+            raise ValueError("diffusion.beta_end must be greater than diffusion.beta_start")
+        if self.sample_steps > self.num_steps:
+            raise ValueError("diffusion.sample_steps must be <= diffusion.num_steps")
+        return self
+
+
+class PriorsConfig(_Group):
+    """The paper's two kinds of priors (§3.2 3D prior constraint, §3.3 2D priors)."""
+
+    prior_3d: bool = True
+    """Add the 3D prior constraint (Eq. 6) to the loss."""
+    lambda_3d: float = Field(1.0, ge=0.0)
+    """λ, weight of the 3D prior constraint (Eq. 4–6)."""
+    num_views: int = Field(10, ge=0)
+    """H, views rendered for the constraint, evenly spaced from the input view (Table 5: 10 best)."""
+    point_size: float = Field(0.04, gt=0.0, le=1.0)
+    """Rendered point radius of the constraint, NDC units (paper: 0.04)."""
+    render_kind: Literal["depth", "planar"] = "depth"
+    """Constraint images: soft depth maps (Co3D) or planar point images (ShapeNet), Fig. 3."""
+    render_size: int = Field(224, ge=8, le=1024)
+    """Side of the constraint renderings in pixels (paper: 224)."""
+    target: Literal["x0_hat", "x_t_literal"] = "x0_hat"
+    """Cloud compared with x₀: the predicted clean cloud x̂₀ (trainable) or x_t as Eq. 6 is written."""
+    prior_2d: Literal["none", "contour", "depth"] = "contour"
+    """2D prior concatenated with the image features (Eq. 7): contour (ShapeNet) or depth (Co3D)."""
+
+    @model_validator(mode="after")
+    def _check_views(self) -> PriorsConfig:
+        if self.prior_3d and self.num_views < 1:
+            raise ValueError("priors.num_views (H) must be >= 1 when priors.prior_3d is on")
+        return self
+
+
+class TrainConfig(_Group):
+    """Optimiser and loop (PC²: AdamW 1e-3, cosine with 2k warm-up, 100k steps, clip 50, batch 8)."""
+
+    steps: int = Field(100_000, ge=1)
+    """Optimiser steps."""
+    batch_size: int = Field(8, ge=1)
+    """Objects per step (paper: 8)."""
+    lr: float = Field(1e-3, gt=0.0)
+    """Peak AdamW learning rate."""
+    weight_decay: float = Field(1e-6, ge=0.0)
+    """AdamW weight decay."""
+    betas: tuple[float, float] = (0.95, 0.999)
+    """AdamW betas."""
+    warmup_steps: int = Field(2000, ge=0)
+    """Linear warm-up steps before the cosine decay to zero."""
+    grad_clip: float = Field(50.0, gt=0.0)
+    """Max global gradient norm."""
+    ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
+    """Exponential moving average of weights used for evaluation; null = off."""
+    eval_every: int = Field(5000, ge=1)
+    """Evaluate (and checkpoint) every this many steps, and at the end."""
+    log_every: int = Field(50, ge=1)
+    """Report the running training loss every this many steps."""
+    seed: int = 0
+    """Seed of weights, batches and noise."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Where to train; ``auto`` takes CUDA when present."""
+    threads: int | None = Field(None, ge=1)
+    """CPU threads for torch; null = torch's default."""
+    out_dir: str = "runs/cdm"
+    """Folder for checkpoints and evaluation outputs."""
+
+
+class EvalConfig(_Group):
+    """Held-out evaluation (BDM's metric protocol, NOTES §4)."""
+
+    num_objects: int = Field(16, ge=1)
+    """Held-out objects per category evaluated at each evaluation."""
+    num_points: int = Field(4096, ge=16)
+    """Points sampled from prediction and ground truth before the metrics (BDM: 4,096)."""
+    f1_threshold: float = Field(0.01, gt=0.0)
+    """F-score threshold applied to squared nearest-neighbour distance (BDM: 0.01)."""
+    seed: int = 1234
+    """Sampling seed, identical across runs so cells are compared on the same noise."""
+    save_clouds: int = Field(4, ge=0)
+    """Reconstructions written as PLY per evaluation."""
+
+
+class Config(_Group):
+    """The whole resolved configuration of one training run."""
+
+    data: DataConfig = DataConfig()
+    model: ModelConfig = ModelConfig()
+    diffusion: DiffusionConfig = DiffusionConfig()
+    priors: PriorsConfig = PriorsConfig()
+    train: TrainConfig = TrainConfig()
+    eval: EvalConfig = EvalConfig()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Nested plain-python dict (tuples as lists), loadable again by :func:`load_config`."""
+        return self.model_dump(mode="json")
+
+    def flat(self) -> dict[str, Any]:
+        """Flat ``{"priors.lambda_3d": 1.0, ...}`` view, e.g. for tracking params."""
+        out: dict[str, Any] = {}
+        for group, values in self.to_dict().items():
+            for key, value in values.items():
+                out[f"{group}.{key}"] = value
+        return out
+
+
+def _format_errors(err: ValidationError) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"])
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            parent = ".".join(str(p) for p in e["loc"][:-1])
+            allowed = config_field_paths(parent) if parent else list(Config.model_fields)
+            msg = f"unknown key; allowed: {', '.join(a.split('.')[-1] for a in allowed)}"
+        elif e["type"] == "literal_error":
+            msg = f"{msg} (got {e['input']!r})"
+        lines.append(f"{loc}: {msg}" if loc else msg)
+    return "; ".join(lines)
+
+
+def config_field_paths(group: str | None = None) -> list[str]:
+    """Dotted names of every config field (``["data.kind", ...]``), optionally of one group."""
+    paths = []
+    for gname, ginfo in Config.model_fields.items():
+        if group is not None and gname != group:
+            continue
+        for fname in ginfo.annotation.model_fields:
+            paths.append(f"{gname}.{fname}")
+    return paths
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """Parse ``key=value`` where value is YAML (``priors.point_size=0.04``, ``data.categories=[a,b]``)."""
+    if "=" not in text:
+        raise ConfigError(f"override {text!r} must look like key=value, e.g. priors.lambda_3d=0.5")
+    key, raw = text.split("=", 1)
+    try:
+        value = yaml.safe_load(raw)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{key}: cannot parse value {raw!r}: {exc}") from None
+    return key.strip(), value
+
+
+def apply_overrides(tree: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """Return a copy of nested ``tree`` with dotted-key ``overrides`` set; unknown paths are errors."""
+    known = set(config_field_paths())
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in tree.items()}
+    for key, value in overrides.items():
+        if key not in known:
+            raise ConfigError(f"{key}: unknown config field; see `python -m cdm fields` for the list")
+        group, name = key.split(".", 1)
+        section = out.setdefault(group, {})
+        if not isinstance(section, dict):
+            raise ConfigError(f"{group}: must be a mapping")
+        section[name] = value
+    return out
+
+
+def load_config(source: str | Path | dict[str, Any] | None = None, overrides: dict[str, Any] | None = None) -> Config:
+    """Build a validated :class:`Config` from a YAML path or nested dict plus dotted overrides.
+
+    Raises:
+        ConfigError: unreadable file, unknown key or bad value; the message names the field.
+    """
+    if source is None:
+        tree: dict[str, Any] = {}
+    elif isinstance(source, dict):
+        tree = source
+    else:
+        path = Path(source)
+        try:
+            tree = yaml.safe_load(path.read_text()) or {}
+        except OSError as exc:
+            raise ConfigError(f"config file {path}: cannot read ({exc.strerror})") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"config file {path}: not valid YAML: {exc}") from None
+    if not isinstance(tree, dict):
+        raise ConfigError("config: top level must be a mapping of groups (data, model, ...)")
+    tree = apply_overrides(tree, overrides or {})
+    try:
+        return Config.model_validate(tree)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(exc)) from None

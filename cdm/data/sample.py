@@ -1,0 +1,91 @@
+"""The common sample format every data set produces, and its batched form.
+
+Images are channel-first float tensors in [0, 1] at ``S × S`` (``data.image_size``), in the pixel
+layout of :mod:`cdm.cameras` (row 0 at the top, column 0 at NDC +X). Points are world coordinates
+of the normalised object (centred, inside [-1, 1]³).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from cdm.cameras import Cameras
+
+__all__ = ["Batch", "Sample", "collate"]
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One object seen from one input view.
+
+    Attributes:
+        image: ``(3, S, S)`` RGB in [0, 1].
+        mask: ``(1, S, S)`` foreground in {0, 1}.
+        depth: ``(1, S, S)`` view depth (world units, 0 on background), or None when unknown.
+        prior_2d: ``(C2, S, S)`` 2D-prior channels (contour or depth, Eq. 7); ``C2 = 0`` for none.
+        camera: input camera, batch shape ``()``.
+        view_cameras: the H prior-view cameras (batch shape ``(H,)``), view 0 = input view.
+        points: ``(N, 3)`` ground-truth cloud, world units.
+        category: category name.
+        object_id: stable id of the object (same across its views and runs).
+    """
+
+    image: Tensor
+    mask: Tensor
+    depth: Tensor | None
+    prior_2d: Tensor
+    camera: Cameras
+    view_cameras: Cameras
+    points: Tensor
+    category: str
+    object_id: str
+
+
+@dataclass(frozen=True)
+class Batch:
+    """``B`` samples stacked; tensor shapes gain a leading ``B``; cameras are ``(B,)`` and ``(B, H)``."""
+
+    image: Tensor
+    mask: Tensor
+    depth: Tensor | None
+    prior_2d: Tensor
+    camera: Cameras
+    view_cameras: Cameras
+    points: Tensor
+    category: tuple[str, ...]
+    object_id: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return self.points.shape[0]
+
+    def to(self, device: torch.device | str) -> Batch:
+        return Batch(
+            image=self.image.to(device),
+            mask=self.mask.to(device),
+            depth=None if self.depth is None else self.depth.to(device),
+            prior_2d=self.prior_2d.to(device),
+            camera=self.camera.to(device),
+            view_cameras=self.view_cameras.to(device),
+            points=self.points.to(device),
+            category=self.category,
+            object_id=self.object_id,
+        )
+
+
+def collate(samples: list[Sample]) -> Batch:
+    """Stack samples into a :class:`Batch` (use as a DataLoader ``collate_fn``)."""
+    depths = [s.depth for s in samples]
+    return Batch(
+        image=torch.stack([s.image for s in samples]),
+        mask=torch.stack([s.mask for s in samples]),
+        depth=None if any(d is None for d in depths) else torch.stack(depths),
+        prior_2d=torch.stack([s.prior_2d for s in samples]),
+        camera=Cameras.stack([s.camera for s in samples]),
+        view_cameras=Cameras.stack([s.view_cameras for s in samples]),
+        points=torch.stack([s.points for s in samples]),
+        category=tuple(s.category for s in samples),
+        object_id=tuple(s.object_id for s in samples),
+    )

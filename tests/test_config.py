@@ -1,0 +1,63 @@
+"""Loading and validation of cdm.config."""
+
+import pytest
+
+from cdm.config import Config, ConfigError, apply_overrides, config_field_paths, load_config, parse_override
+
+
+def test_defaults_are_the_papers():
+    c = Config()
+    assert c.priors.point_size == 0.04 and c.priors.num_views == 10 and c.priors.target == "x0_hat"
+    assert c.model.raster_radius == 0.0075 and c.diffusion.num_steps == 1000
+    assert (c.diffusion.beta_start, c.diffusion.beta_end) == (1e-5, 8e-3)
+    assert c.train.lr == 1e-3 and c.train.batch_size == 8 and c.data.image_size == 224
+
+
+def test_yaml_file_and_overrides(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("priors:\n  lambda_3d: 0.5\nmodel:\n  widths: [16, 32]\n  voxel_resolutions: [8, 4]\n")
+    c = load_config(path, overrides=dict([parse_override("priors.num_views=4"), parse_override("data.categories=[chair, mug]")]))
+    assert c.priors.lambda_3d == 0.5 and c.priors.num_views == 4
+    assert c.model.widths == (16, 32) and c.data.categories == ("chair", "mug")
+    assert load_config(c.to_dict()) == c
+    assert c.flat()["priors.num_views"] == 4
+
+
+@pytest.mark.parametrize(
+    "tree,field",
+    [
+        ({"priors": {"lamda_3d": 1.0}}, "priors.lamda_3d"),
+        ({"priors": {"lambda_3d": -1.0}}, "priors.lambda_3d"),
+        ({"priors": {"num_views": 0}}, "priors.num_views"),
+        ({"priors": {"render_kind": "mesh"}}, "priors.render_kind"),
+        ({"model": {"widths": [16], "voxel_resolutions": [8, 4]}}, "model.widths"),
+        ({"train": {"steps": "many"}}, "train.steps"),
+        ({"optimizer": {}}, "optimizer"),
+    ],
+)
+def test_bad_values_name_the_field(tree, field):
+    with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
+        load_config(tree)
+
+
+def test_prior_off_allows_zero_views():
+    assert load_config({"priors": {"prior_3d": False, "num_views": 0}}).priors.num_views == 0
+
+
+def test_unknown_override_and_bad_file(tmp_path):
+    with pytest.raises(ConfigError, match="priors.size"):
+        apply_overrides({}, {"priors.size": 1})
+    with pytest.raises(ConfigError, match="key=value"):
+        parse_override("priors.point_size")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("priors: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_field_paths_cover_every_group():
+    paths = config_field_paths()
+    assert "priors.point_size" in paths and "model.global_feature" in paths and "eval.f1_threshold" in paths
+    assert all(p.split(".")[0] in Config.model_fields for p in paths)

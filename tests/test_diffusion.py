@@ -1,0 +1,76 @@
+"""Schedule, target conversions and samplers of cdm.diffusion."""
+
+import pytest
+import torch
+
+from cdm.diffusion import GaussianDiffusion
+
+
+@pytest.mark.parametrize("prediction", ["eps", "x0", "v"])
+def test_targets_round_trip_to_x0(prediction):
+    d = GaussianDiffusion(1000, 1e-5, 8e-3, prediction)
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.rand(4, 64, 3, generator=g, dtype=torch.float64) * 2 - 1
+    noise = torch.randn(4, 64, 3, generator=g, dtype=torch.float64)
+    t = torch.tensor([0, 10, 500, 999])
+    x_t = d.q_sample(x0, t, noise)
+    target = d.target(x0, noise, t)
+    assert torch.allclose(d.predict_x0(x_t, t, target), x0, atol=1e-9)
+    assert torch.allclose(d.eps_from_x0(x_t, t, x0), noise, atol=1e-6)
+
+
+def test_forward_process_matches_closed_form_statistics():
+    d = GaussianDiffusion(1000, 1e-5, 8e-3, "eps")
+    a = d.alphas_cumprod
+    assert a[0].item() == pytest.approx(1 - 1e-5)
+    # ᾱ_T for a linear schedule: prod(1 - β), computed independently in log space.
+    betas = torch.linspace(1e-5, 8e-3, 1000, dtype=torch.float64)
+    assert a[-1].item() == pytest.approx(torch.exp(torch.log1p(-betas).sum()).item(), rel=1e-12)
+    x0 = torch.full((1, 20000, 3), 0.5, dtype=torch.float64)
+    t = torch.tensor([999])
+    x_t = d.q_sample(x0, t, torch.randn(1, 20000, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64))
+    assert x_t.mean().item() == pytest.approx(0.5 * a[-1].sqrt().item(), abs=0.01)
+    assert x_t.std().item() == pytest.approx((1 - a[-1]).sqrt().item(), abs=0.01)
+
+
+def analytic_model(d: GaussianDiffusion, target_cloud: torch.Tensor):
+    """The exact optimum when the data is one fixed cloud: x̂₀ is that cloud at every t."""
+
+    def fn(x_t, t):
+        eps = d.eps_from_x0(x_t, t, target_cloud.expand_as(x_t))
+        return d.target(target_cloud.expand_as(x_t), eps, t)
+
+    return fn
+
+
+@pytest.mark.parametrize("prediction", ["eps", "x0", "v"])
+@pytest.mark.parametrize("sampler,steps", [("ddim", 20), ("ddpm", 1000)])
+def test_samplers_recover_the_single_data_point(prediction, sampler, steps):
+    d = GaussianDiffusion(1000, 1e-4, 2e-2, prediction)
+    cloud = torch.rand(1, 32, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
+    out = d.sample(analytic_model(d, cloud), (2, 32, 3), generator=torch.Generator().manual_seed(4),
+                   sampler=sampler, steps=steps, clip_x0=None)
+    assert torch.allclose(out, cloud.expand(2, -1, -1), atol=1e-4)
+
+
+def test_ddim_is_deterministic_given_the_generator_and_clips():
+    d = GaussianDiffusion(100, 1e-4, 2e-2, "x0")
+    calls = []
+
+    def wild(x_t, t):
+        calls.append(int(t[0]))
+        return torch.full_like(x_t, 5.0)
+
+    a = d.sample(wild, (1, 8, 3), generator=torch.Generator().manual_seed(0), steps=10, clip_x0=1.0)
+    b = d.sample(wild, (1, 8, 3), generator=torch.Generator().manual_seed(0), steps=10, clip_x0=1.0)
+    assert torch.equal(a, b)
+    assert torch.all(a == 1.0)  # the last DDIM step returns the clipped x̂₀
+    assert calls[:10] == sorted(set(calls[:10]), reverse=True) and calls[0] == 99 and calls[9] == 0
+
+
+def test_loss_is_zero_at_target_and_positive_elsewhere():
+    d = GaussianDiffusion(1000, 1e-5, 8e-3, "v")
+    x0, noise = torch.rand(2, 10, 3), torch.randn(2, 10, 3)
+    t = torch.tensor([3, 900])
+    assert d.loss(d.target(x0, noise, t), x0, noise, t).item() == pytest.approx(0.0, abs=1e-12)
+    assert d.loss(torch.zeros_like(x0), x0, noise, t).item() > 0.1
