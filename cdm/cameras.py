@@ -149,8 +149,8 @@ def look_at_cameras(elev_deg: Tensor, azim_deg: Tensor, dist: Tensor, focal: flo
     y_axis = torch.cross(z_axis, x_axis, dim=-1)
     R = torch.stack([x_axis, y_axis, z_axis], dim=-1)  # columns are the view axes in world coords
     T = -(center[..., None, :] @ R)[..., 0, :]
-    focal_t = torch.as_tensor(focal, dtype=torch.float32).expand(dist.shape).clone()
-    principal = torch.zeros(*dist.shape, 2)
+    focal_t = torch.as_tensor(focal, dtype=torch.float32, device=dist.device).expand(dist.shape).clone()
+    principal = torch.zeros(*dist.shape, 2, device=dist.device)
     return Cameras(R, T, focal_t, principal)
 
 
@@ -160,11 +160,11 @@ def orbit_cameras(elev_deg: Tensor, azim_deg: Tensor, dist: Tensor, num_views: i
     The stand-in for "evenly spaced frames of the object's sequence" on data without a sequence.
     Inputs ``(B,)``; returns cameras of batch shape ``(B, H)``; view 0 is the input camera.
     """
-    steps = torch.arange(num_views, dtype=torch.float32) * (360.0 / num_views)
+    steps = torch.arange(num_views, dtype=torch.float32, device=azim_deg.device) * (360.0 / num_views)
     azim = azim_deg.float()[:, None] + steps[None, :]
     elev = elev_deg.float()[:, None].expand_as(azim)
     d = dist.float()[:, None].expand_as(azim)
-    f = torch.as_tensor(focal, dtype=torch.float32)
+    f = torch.as_tensor(focal, dtype=torch.float32, device=azim_deg.device)
     f = f[:, None].expand_as(azim) if f.ndim == 1 else f.expand_as(azim)
     return look_at_cameras(elev, azim, d, f)
 

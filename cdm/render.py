@@ -1,0 +1,239 @@
+"""Point-cloud rendering in pure PyTorch: a hard z-buffer rasterizer and a differentiable soft splat.
+
+- :func:`rasterize_points` answers "which point sees which pixel" for PC²'s projection conditioning
+  (radius 0.0075 NDC at 224²) and renders dense surface samples into images on the data side. It
+  has no gradient.
+- :func:`splat_points` renders soft depth maps or planar point images for the 3D prior constraint
+  (paper Eq. 6, point size 0.04 NDC, 224²). It is differentiable in the point coordinates.
+
+Cameras, axes and pixel layout are those of :mod:`cdm.cameras` (PyTorch3D NDC: +X left, +Y up,
+pixel ``[row, col]`` centred at ``x = 1 − (2·col + 1)/S``, ``y = 1 − (2·row + 1)/S``). A point is in
+front of the camera when its view depth ``z`` exceeds :data:`Z_NEAR`; points behind are never drawn.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal, NamedTuple
+
+import torch
+from torch import Tensor
+
+from cdm.cameras import Cameras, ndc_to_pixel, project_points
+
+__all__ = [
+    "SPLAT_DEPTH_EPS",
+    "Z_NEAR",
+    "Fragments",
+    "rasterize_points",
+    "splat_points",
+]
+
+Z_NEAR = 1e-6
+"""View depth (world units) at or below which a point counts as behind the camera."""
+
+SPLAT_DEPTH_EPS = 0.1
+"""Added to the splat weight in the soft depth's denominator, ``Σwz / (Σw + eps)``.
+
+With 1e-3 the thin weight at a splat's edge gave spiky gradients (~10× a dense Gaussian splat's);
+0.1 fixed it (NOTES §6). It biases an isolated point's depth by ``1/(1 + eps)`` at its centre, and
+by much less inside a dense cloud where ``Σw`` is tens.
+"""
+
+class Fragments(NamedTuple):
+    """Output of :func:`rasterize_points`; pixels are ``[row, col]`` as in :mod:`cdm.cameras`.
+
+    Attributes:
+        idx: ``(B, S, S)`` long, index in ``[0, N)`` of the front-most point covering each pixel,
+            -1 where none.
+        zbuf: ``(B, S, S)`` view depth (world units) of that point, 0.0 where none.
+        pixel: ``(B, N)`` long, flat index ``row·S + col`` of the pixel containing each point's
+            projection, -1 if outside the image or behind the camera.
+        visible: ``(B, N)`` bool, the point is the front-most point at its own pixel.
+    """
+
+    idx: Tensor
+    zbuf: Tensor
+    pixel: Tensor
+    visible: Tensor
+
+
+def _validate(points: Tensor, cameras: Cameras, image_size: int, size: float, size_name: str) -> None:
+    if points.ndim != 3 or points.shape[-1] != 3:
+        raise ValueError(f"points must be (B, N, 3) world coordinates, got shape {tuple(points.shape)}")
+    if cameras.batch_shape != points.shape[:1]:
+        raise ValueError(
+            f"cameras must have batch shape (B,) = {tuple(points.shape[:1])}, got {tuple(cameras.batch_shape)}; "
+            "use Cameras.flatten() and repeat the points per view"
+        )
+    if image_size < 1:
+        raise ValueError(f"image_size must be >= 1 pixel, got {image_size}")
+    if not size >= 0.0:
+        raise ValueError(f"{size_name} must be >= 0 (NDC units), got {size}")
+
+
+def _containing_pixel(col: Tensor, row: Tensor, image_size: int, margin: int) -> tuple[Tensor, Tensor]:
+    """Integer (col, row) of the pixel containing continuous pixel coords; clamped to ``margin`` outside
+    the image so far-off points cannot overflow (their windows then miss the image anyway)."""
+    lo, hi = -margin - 1, image_size + margin
+    return torch.floor(col + 0.5).clamp(lo, hi).long(), torch.floor(row + 0.5).clamp(lo, hi).long()
+
+
+@torch.no_grad()
+def rasterize_points(points: Tensor, cameras: Cameras, image_size: int, radius: float) -> Fragments:
+    """Hard z-buffer rasterization of points as discs of radius ``radius`` (one point per pixel).
+
+    A point covers every pixel whose centre lies within ``radius`` (NDC) of its projection, and
+    always the pixel containing its projection (so thin radii never drop points). Each pixel keeps
+    the covering point of least view depth; depth ties go to the smaller point index.
+
+    Args:
+        points: ``(B, N, 3)`` world coordinates.
+        cameras: batch ``(B,)``.
+        image_size: ``S``, side of the square image in pixels.
+        radius: disc radius in NDC units (one pixel is ``2/S``); PC² uses 0.0075 at 224².
+    Returns:
+        :class:`Fragments`. No gradient flows.
+
+    Work and memory grow with ``B·N·(2k+1)²``, ``k = ceil(radius·S/2)``: meant for radii of a few
+    pixels (B=8, N=4,096, 224², k=1: ~7 ms on one CPU thread); for wide soft discs use
+    :func:`splat_points`.
+    """
+    _validate(points, cameras, image_size, radius, "radius")
+    b, n, _ = points.shape
+    s = image_size
+    device = points.device
+    proj = project_points(points, cameras, eps=Z_NEAR)
+    xy, z = proj[..., :2], proj[..., 2]
+    front = z > Z_NEAR
+    pix = ndc_to_pixel(xy, s)
+    k = math.ceil(radius * s / 2.0)
+    col0, row0 = _containing_pixel(pix[..., 0], pix[..., 1], s, k)
+
+    inside = front & (col0 >= 0) & (col0 < s) & (row0 >= 0) & (row0 < s)
+    pixel = torch.where(inside, row0 * s + col0, torch.full_like(col0, -1))
+
+    # Candidate pixels: the (2k+1)² window around each point's own pixel. The disc test runs on
+    # the whole (B, N, W) window in float; integer pixel indices only for the covering candidates.
+    offsets = torch.arange(-k, k + 1, device=device)
+    dr, dc = (o.reshape(-1) for o in torch.meshgrid(offsets, offsets, indexing="ij"))
+    ex = (1.0 - (2.0 * col0.to(xy.dtype) + 1.0) / s) - xy[..., 0]  # own pixel centre − projection, NDC
+    ey = (1.0 - (2.0 * row0.to(xy.dtype) + 1.0) / s) - xy[..., 1]
+    dist2 = (ex[..., None] - (2.0 / s) * dc.to(xy.dtype)) ** 2 + (ey[..., None] - (2.0 / s) * dr.to(xy.dtype)) ** 2
+    covers = (dist2 <= radius**2) | ((dr == 0) & (dc == 0))
+    covers &= front[..., None]
+    bi, ni, wi = covers.nonzero(as_tuple=True)
+    pi = bi * n + ni  # flat point index: 1-D index_select is much faster than 2-D indexing on CPU
+    rows = row0.view(-1).index_select(0, pi) + dr.index_select(0, wi)
+    cols = col0.view(-1).index_select(0, pi) + dc.index_select(0, wi)
+    on_image = (rows >= 0) & (rows < s) & (cols >= 0) & (cols < s)
+    dump = b * s * s  # one extra slot collects candidates off the image
+    flat = torch.where(on_image, bi * (s * s) + rows * s + cols, dump)
+    cand_z = z.reshape(-1).index_select(0, pi)
+
+    zbuf = torch.full((dump + 1,), math.inf, dtype=z.dtype, device=device)
+    zbuf.scatter_reduce_(0, flat, cand_z, reduce="amin")
+    winner = cand_z == zbuf[flat]
+    idx = torch.full((dump + 1,), n, dtype=torch.long, device=device)
+    idx.scatter_reduce_(0, flat, torch.where(winner, ni, n), reduce="amin")
+    idx, zbuf = idx[:dump], zbuf[:dump]
+
+    empty = idx == n
+    idx = idx.masked_fill(empty, -1).view(b, s, s)
+    zbuf = zbuf.masked_fill(empty, 0.0).view(b, s, s)
+    seen = idx.view(b, -1).gather(1, pixel.clamp(min=0))
+    visible = inside & (seen == torch.arange(n, device=device))
+    return Fragments(idx=idx, zbuf=zbuf, pixel=pixel, visible=visible)
+
+
+def _gaussian_taps(sigma_px: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(2h+1,)`` unnormalised Gaussian, peak 1, cut at ``h = floor(2σ)`` pixels."""
+    half = math.floor(2.0 * sigma_px)
+    d = torch.arange(-half, half + 1, dtype=dtype, device=device)
+    return torch.exp(-0.5 * (d / sigma_px) ** 2)
+
+
+def _blur_and_crop(canvas: Tensor, taps: Tensor) -> Tensor:
+    """Separable blur of ``(M, C, S+2h, S+2h)`` canvases with ``(2h+1,)`` taps → ``(M, C, S, S)``.
+
+    Valid (unpadded) filtering of a canvas that already holds an ``h``-pixel margin, so points just
+    off the image still blur into it. Written as a banded (Toeplitz) matrix product
+    ``A · canvas · Aᵀ`` with ``A[i, i + j] = taps[j]``: on CPU (torch 2.13, 1 thread, M=80, C=2,
+    fwd+bwd) it beat a depthwise ``conv2d`` at every size measured, 7–15× from 32² to 224²
+    (113 vs 1,072 ms at 224²), and it is a plain GEMM on GPUs.
+    """
+    width = taps.shape[0]
+    side = canvas.shape[-1]
+    out_size = side - width + 1
+    rows = torch.arange(out_size, device=canvas.device)[:, None]
+    cols = rows + torch.arange(width, device=canvas.device)[None, :]
+    band = canvas.new_zeros(out_size, side).scatter_(1, cols, taps.expand(out_size, width).contiguous())
+    return band @ canvas @ band.T
+
+
+def splat_points(
+    points: Tensor,
+    cameras: Cameras,
+    image_size: int,
+    point_size: float,
+    kind: Literal["depth", "planar"],
+) -> Tensor:
+    """Differentiable soft splatting of points into depth maps or planar point images (Eq. 6, Fig. 3).
+
+    Each in-front point deposits weight ``w`` (and ``w·z``) on the 4 pixels around its projection
+    with bilinear weights, then both accumulators are blurred by a separable Gaussian of
+    ``σ = point_size`` (in pixels: ``point_size · S/2``), peak 1, cut at 2σ. This equals splatting
+    a Gaussian disc per point up to the bilinear step, at a fraction of the cost (NOTES §6).
+
+    - ``"depth"``: ``Σwz / (Σw + SPLAT_DEPTH_EPS)``, view depth in world units, falling smoothly to
+      ~0 on the background. Overlapping points average their depths by weight (no z-test: a soft
+      z-test stalled optimisation, NOTES §6).
+    - ``"planar"``: soft coverage ``1 − exp(−Σw)`` in ``[0, 1)``: ~0.63 at an isolated point's
+      centre, → 1 inside a dense cloud, never saturated flat, so every covered pixel has gradient.
+
+    Args:
+        points: ``(B, N, 3)`` world coordinates.
+        cameras: batch ``(B,)``.
+        image_size: ``S``, side of the square image in pixels.
+        point_size: Gaussian σ in NDC units (paper: 0.04).
+        kind: ``"depth"`` or ``"planar"``.
+    Returns:
+        ``(B, S, S)`` image, differentiable w.r.t. ``points``. Points behind the camera add nothing.
+    """
+    _validate(points, cameras, image_size, point_size, "point_size")
+    if kind not in ("depth", "planar"):
+        raise ValueError(f"kind must be 'depth' or 'planar', got {kind!r}")
+    b, n, _ = points.shape
+    s = image_size
+    proj = project_points(points, cameras, eps=Z_NEAR)
+    z = proj[..., 2]
+    front = (z > Z_NEAR).to(points.dtype)
+    pix = ndc_to_pixel(proj[..., :2], s)
+
+    sigma_px = point_size * s / 2.0
+    taps = _gaussian_taps(sigma_px, points.dtype, points.device) if sigma_px > 0 else None
+    half = 0 if taps is None else (taps.shape[0] - 1) // 2
+    side = s + 2 * half  # canvas with a blur-wide margin
+
+    col, row = pix[..., 0] + half, pix[..., 1] + half
+    col0, row0 = torch.floor(col).detach(), torch.floor(row).detach()
+    fc, fr = col - col0, row - row0
+    values = []
+    indices = []
+    for dr, wr in ((0, 1.0 - fr), (1, fr)):
+        for dc, wc in ((0, 1.0 - fc), (1, fc)):
+            r, c = row0 + dr, col0 + dc
+            on_canvas = ((r >= 0) & (r < side) & (c >= 0) & (c < side)).to(points.dtype)
+            values.append(wr * wc * front * on_canvas)
+            indices.append((r.clamp(0, side - 1) * side + c.clamp(0, side - 1)).long())
+    w = torch.cat(values, dim=1)  # (B, 4N)
+    flat = torch.cat(indices, dim=1)
+    z4 = z.repeat(1, 4)
+    canvas = points.new_zeros(b, 2, side * side)
+    canvas = canvas.scatter_add(2, flat[:, None, :].expand(b, 2, 4 * n), torch.stack([w * z4, w], dim=1))
+    canvas = canvas.view(b, 2, side, side)
+    acc = canvas if taps is None else _blur_and_crop(canvas, taps)
+    wz, wsum = acc[:, 0], acc[:, 1]
+    if kind == "depth":
+        return wz / (wsum + SPLAT_DEPTH_EPS)
+    return 1.0 - torch.exp(-wsum)

@@ -1,0 +1,204 @@
+"""Tests for cdm.render: hand-computed projections, a naive rasterizer reference, splat gradchecks."""
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from cdm.cameras import Cameras, look_at_cameras, orbit_cameras, pixel_centers_ndc, project_points
+from cdm.render import SPLAT_DEPTH_EPS, rasterize_points, splat_points
+
+
+def _front_camera(dist: float = 3.0, batch: int = 1) -> Cameras:
+    """Camera on world +Z at ``dist`` looking at the origin, focal 2, batch ``(batch,)``."""
+    return look_at_cameras(torch.zeros(batch), torch.zeros(batch), torch.full((batch,), dist))
+
+
+def _unproject(ndc_xy: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> torch.Tensor:
+    """``(B, N, 2)`` NDC and ``(B, N)`` view depth → ``(B, N, 3)`` world points (test helper)."""
+    f, p = cameras.focal[:, None, None], cameras.principal[:, None, :]
+    view = torch.cat([(ndc_xy - p) * depth[..., None] / f, depth[..., None]], dim=-1)
+    return (view - cameras.T[:, None, :]) @ cameras.R.transpose(1, 2)
+
+
+def _naive_rasterize(points, cameras, image_size, radius):
+    """Loop reference: per pixel, the covering point of least depth, ties to the smaller index."""
+    b, n, _ = points.shape
+    s = image_size
+    proj = project_points(points, cameras)
+    centres = pixel_centers_ndc(s).to(points.dtype)
+    idx = torch.full((b, s, s), -1, dtype=torch.long)
+    zbuf = torch.zeros(b, s, s, dtype=points.dtype)
+    for bi in range(b):
+        for i in range(s):
+            for j in range(s):
+                best = None
+                for k in range(n):
+                    x, y, z = proj[bi, k].tolist()
+                    if z <= 1e-6:
+                        continue
+                    own = math.floor((1 - x) * s / 2) == j and math.floor((1 - y) * s / 2) == i
+                    cx, cy = centres[i, j].tolist()
+                    if (cx - x) ** 2 + (cy - y) ** 2 <= radius**2 or own:
+                        if best is None or z < best[0]:
+                            best = (z, k)
+                if best is not None:
+                    zbuf[bi, i, j], idx[bi, i, j] = best
+    return idx, zbuf
+
+
+def test_known_points_land_on_hand_computed_pixels():
+    cam = _front_camera(3.0)
+    # From test_cameras: (0.45, 0.75, 0) → NDC (−0.3, 0.5) → (row 2, col 6) at S = 10, depth 3;
+    # (−0.45, −0.75, 0) → (row 7, col 3).
+    points = torch.tensor([[[0.45, 0.75, 0.0], [-0.45, -0.75, 0.0]]])
+    frags = rasterize_points(points, cam, 10, radius=0.0)
+    assert frags.pixel.tolist() == [[2 * 10 + 6, 7 * 10 + 3]]
+    assert frags.visible.tolist() == [[True, True]]
+    expected_idx = torch.full((1, 10, 10), -1)
+    expected_idx[0, 2, 6], expected_idx[0, 7, 3] = 0, 1
+    torch.testing.assert_close(frags.idx, expected_idx)
+    assert frags.zbuf[0, 2, 6] == pytest.approx(3.0) and frags.zbuf[0, 7, 3] == pytest.approx(3.0)
+    assert frags.zbuf.abs().sum() == pytest.approx(6.0)
+
+
+def test_nearer_point_wins_regardless_of_index_and_ties_go_to_the_smaller_index():
+    cam = _front_camera(3.0)
+    far = [0.45, 0.75, 0.0]  # depth 3, NDC (−0.3, 0.5)
+    near = [0.3, 0.5, 1.0]  # depth 2, same ray
+    for order, winner in (([far, near], 1), ([near, far], 0)):
+        frags = rasterize_points(torch.tensor([order]), cam, 10, radius=0.0)
+        assert frags.idx[0, 2, 6] == winner
+        assert frags.zbuf[0, 2, 6] == pytest.approx(2.0)
+        assert frags.visible[0].tolist() == [winner == 0, winner == 1]
+        assert frags.pixel[0].tolist() == [26, 26]
+    tied = rasterize_points(torch.tensor([[far, near, near]]), cam, 10, radius=0.0)
+    assert tied.idx[0, 2, 6] == 1 and tied.visible[0].tolist() == [False, True, False]
+
+
+def test_points_behind_the_camera_or_off_image_are_not_drawn():
+    cam = _front_camera(3.0)
+    points = torch.tensor([[[0.0, 0.0, 4.0], [5.0, 0.0, 0.0], [0.1, 0.1, 0.0]]])  # behind, off-image, drawn
+    frags = rasterize_points(points, cam, 16, radius=0.05)
+    assert frags.pixel[0, :2].tolist() == [-1, -1]
+    assert frags.visible[0].tolist() == [False, False, True]
+    assert set(frags.idx.unique().tolist()) == {-1, 2}
+
+
+@pytest.mark.parametrize("radius", [0.0, 0.1, 0.3])
+def test_rasterizer_matches_naive_loop_reference(radius):
+    gen = torch.Generator().manual_seed(3)
+    b, n, s = 2, 12, 10
+    cams = look_at_cameras(torch.tensor([15.0, -30.0]), torch.tensor([40.0, 200.0]), torch.tensor([2.2, 2.6]))
+    points = (torch.rand(b, n, 3, generator=gen, dtype=torch.float64) * 2.0 - 1.0) * 1.1  # some off-image
+    points[0, 0] = torch.tensor([-2.0, 0.5, 3.0], dtype=torch.float64) * 2.0  # behind camera 0
+    cams = Cameras(cams.R.double(), cams.T.double(), cams.focal.double(), cams.principal.double())
+    frags = rasterize_points(points, cams, s, radius)
+    idx, zbuf = _naive_rasterize(points, cams, s, radius)
+    torch.testing.assert_close(frags.idx, idx)
+    torch.testing.assert_close(frags.zbuf, zbuf)
+    assert (frags.idx >= 0).sum() == (idx >= 0).sum()  # coverage count
+    own_only = rasterize_points(points, cams, s, 0.0).idx >= 0
+    assert ((frags.idx >= 0) | ~own_only).all()  # a disc always covers its own pixel
+    if radius >= 2.0 / s:  # at least a pixel: discs reach beyond their own pixels
+        assert (frags.idx >= 0).sum() > own_only.sum()
+    own = frags.pixel >= 0
+    seen = idx.view(b, -1).gather(1, frags.pixel.clamp(min=0))
+    assert frags.visible.tolist() == (own & (seen == torch.arange(n))).tolist()
+
+
+def test_rasterizer_is_batched_per_camera():
+    points = torch.tensor([[0.45, 0.75, 0.0]]).expand(2, 1, 3)
+    cams = look_at_cameras(torch.zeros(2), torch.tensor([0.0, 180.0]), torch.tensor([3.0, 3.0]))
+    frags = rasterize_points(points, cams, 10, radius=0.0)
+    # Seen from behind (azimuth 180°) world +X is on the image's left: NDC x = +0.3 → col 3.
+    assert frags.pixel.tolist() == [[26], [23]]
+
+
+def test_rasterizer_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="batch shape"):
+        rasterize_points(torch.zeros(2, 4, 3), _front_camera(), 8, 0.01)
+    with pytest.raises(ValueError, match=r"\(B, N, 3\)"):
+        rasterize_points(torch.zeros(4, 3), _front_camera(), 8, 0.01)
+
+
+def _double(cams: Cameras) -> Cameras:
+    return Cameras(cams.R.double(), cams.T.double(), cams.focal.double(), cams.principal.double())
+
+
+@pytest.mark.parametrize("kind", ["depth", "planar"])
+def test_splat_gradcheck_float64(kind):
+    gen = torch.Generator().manual_seed(0)
+    cams = _double(look_at_cameras(torch.tensor([20.0]), torch.tensor([35.0]), torch.tensor([2.5])))
+    points = (torch.rand(1, 3, 3, generator=gen, dtype=torch.float64) - 0.5).requires_grad_()
+
+    def render(p):
+        return splat_points(p, cams, 8, 0.4, kind)  # σ = 1.6 px
+
+    assert torch.autograd.gradcheck(render, (points,), eps=1e-6, atol=1e-5)
+
+
+def test_splat_depth_equals_hard_zbuf_at_isolated_points():
+    """An isolated point's soft depth is z·Σw/(Σw + eps) exactly; planar gives Σw = −log(1 − image)."""
+    gen = torch.Generator().manual_seed(1)
+    cams = _double(look_at_cameras(torch.tensor([10.0, 30.0]), torch.tensor([0.0, 120.0]), torch.tensor([3.0, 2.5])))
+    s, size = 32, 0.06  # σ ≈ 1 px, cut at 2 px; points ≥ 6 px apart
+    grid = torch.tensor([(r, c) for r in (4, 12, 20, 28) for c in (5, 13, 21)], dtype=torch.float64)
+    pix = grid + torch.rand(2, 12, 2, generator=gen, dtype=torch.float64) - 0.5
+    ndc = 1.0 - (2.0 * pix.flip(-1) + 1.0) / s  # (col, row) → (x, y)
+    depth = 2.0 + torch.rand(2, 12, generator=gen, dtype=torch.float64)
+    points = _unproject(ndc, depth, cams)
+    frags = rasterize_points(points, cams, s, radius=0.0)
+    assert frags.visible.all()
+    soft = splat_points(points, cams, s, size, "depth").view(2, -1).gather(1, frags.pixel)
+    wsum = -torch.log1p(-splat_points(points, cams, s, size, "planar")).view(2, -1).gather(1, frags.pixel)
+    hard = frags.zbuf.view(2, -1).gather(1, frags.pixel)
+    torch.testing.assert_close(hard, depth)
+    torch.testing.assert_close(soft * (wsum + SPLAT_DEPTH_EPS) / wsum, hard)
+    # A point exactly on a pixel centre has Σw = 1 there: depth z/(1 + eps).
+    centred = _unproject(ndc.new_tensor([[[1.0 - 25.0 / s, 1.0 - 9.0 / s]]]), depth.new_tensor([[2.5]]), cams[:1])
+    img = splat_points(centred, cams[:1], s, size, "depth")
+    assert img[0, 4, 12].item() == pytest.approx(2.5 / (1.0 + SPLAT_DEPTH_EPS), rel=1e-6)
+
+
+def test_splat_depth_is_nearly_unbiased_inside_a_dense_cloud():
+    cam = _front_camera(3.0)
+    lin = torch.linspace(-0.5, 0.5, 48)
+    y, x = torch.meshgrid(lin, lin, indexing="ij")
+    plane = torch.stack([x, y, torch.full_like(x, 0.5)], dim=-1).view(1, -1, 3)  # view depth 2.5
+    depth = splat_points(plane, cam, 32, 0.1, "depth")
+    planar = splat_points(plane, cam, 32, 0.1, "planar")
+    frags = rasterize_points(plane, cam, 32, radius=0.1)
+    covered = (frags.idx >= 0).to(plane.dtype)[None]
+    inner = (-F.max_pool2d(-covered, 7, stride=1, padding=3) > 0.5)[0, 0]  # covered with a 3-px margin
+    assert inner.sum() >= 64
+    assert (depth[0][inner] - 2.5).abs().max() < 0.01 * 2.5
+    assert planar[0][inner].min() > 0.99
+    assert depth[0, 0, 0] < 1e-3 and planar[0, 0, 0] < 1e-3  # background corner
+
+
+def test_splat_ignores_points_behind_the_camera_and_blurs_in_from_off_image():
+    cam = _front_camera(3.0)
+    base = torch.tensor([[[0.2, -0.1, 0.0]]])
+    behind = torch.tensor([[[0.2, -0.1, 3.5]]], requires_grad=True)
+    both = torch.cat([base, behind], dim=1)
+    for kind in ("depth", "planar"):
+        torch.testing.assert_close(splat_points(both, cam, 16, 0.2, kind), splat_points(base, cam, 16, 0.2, kind))
+        splat_points(both, cam, 16, 0.2, kind).sum().backward()
+        assert behind.grad.abs().max() == 0
+    # Projected one pixel past the left edge (NDC x = 1 + 1/S): σ = 1.6 px still reaches column 0.
+    off = _unproject(torch.tensor([[[1.0 + 1.0 / 16, 0.0]]]), torch.tensor([[3.0]]), cam)
+    img = splat_points(off, cam, 16, 0.2, "planar")
+    assert img[0, :, 0].max() > 0.1 and img[0, :, 0].max() > img[0, :, 1].max()
+
+
+def test_splat_is_batched_and_validates_kind():
+    gen = torch.Generator().manual_seed(2)
+    points = torch.rand(3, 20, 3, generator=gen) - 0.5
+    cams = orbit_cameras(torch.tensor([15.0]), torch.tensor([0.0]), torch.tensor([2.5]), 3).flatten()
+    together = splat_points(points, cams, 24, 0.05, "depth")
+    apart = torch.cat([splat_points(points[i : i + 1], cams[i : i + 1], 24, 0.05, "depth") for i in range(3)])
+    torch.testing.assert_close(together, apart)
+    with pytest.raises(ValueError, match="kind"):
+        splat_points(points, cams, 24, 0.05, "silhouette")
