@@ -1,0 +1,127 @@
+"""A folder of meshes as a data set: one sub-folder per category, any of .obj .ply .off .stl .glb.
+
+Layout: ``<data.root>/<category>/**/<name>.<ext>`` (files may sit in nested folders, e.g. ShapeNet's
+``<model>/models/model_normalized.obj``). Multi-part files (a glTF scene) are merged into one mesh
+with their node transforms applied. Each mesh is normalised, sampled and rendered exactly as the
+procedural shapes are (:mod:`cdm.data.views`); it gets the main colour of its palette.
+
+Split: per category, files are ranked by a hash of their path inside the category folder and the
+first 10 % (at least one) are held out. The split depends on file names only — not on
+``data.seed`` or on the other files — so a file stays in its split when the folder grows.
+Every mesh of the split is loaded once when the data set is built, so a broken file fails at once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import struct
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from cdm.config import Config
+from cdm.data.views import ObjectDataset, Shape, Split, interleave, select_categories
+
+__all__ = ["MESH_SUFFIXES", "VAL_FRACTION", "MeshFolderDataset", "load_mesh"]
+
+MESH_SUFFIXES = (".glb", ".obj", ".off", ".ply", ".stl")
+"""File types read (case-insensitive), all through trimesh."""
+
+VAL_FRACTION = 0.1
+"""Share of each category's meshes held out (at least one)."""
+
+# What trimesh's loaders raise on malformed files (parsers index, unpack and decode blindly).
+_LOAD_ERRORS = (ValueError, IndexError, KeyError, TypeError, EOFError, OSError, struct.error)
+
+
+def load_mesh(path: Path) -> trimesh.Trimesh:
+    """Read one mesh file as a single triangle mesh (scenes concatenated, transforms applied).
+
+    Raises:
+        ValueError: the file cannot be parsed or holds no triangles with area; names the file.
+    """
+    try:
+        mesh = trimesh.load_mesh(path)
+    except _LOAD_ERRORS as exc:
+        raise ValueError(f"data.root: cannot read mesh {path}: {type(exc).__name__}: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ValueError(f"data.root: {path} holds no triangles (empty, corrupt or a point cloud); remove or fix it")
+    if not (np.all(np.isfinite(mesh.vertices)) and mesh.area > 0):
+        raise ValueError(f"data.root: {path} has non-finite vertices or zero surface area; remove or fix it")
+    return mesh
+
+
+def _root(cfg: Config) -> Path:
+    if cfg.data.root is None:
+        raise ValueError("data.root must name a folder of meshes (one sub-folder per category) when data.kind='meshes'")
+    root = Path(cfg.data.root).expanduser()
+    if not root.is_dir():
+        raise ValueError(
+            f"data.root: {root} is not a readable folder; point it at a folder with one sub-folder per category"
+        )
+    return root
+
+
+def _mesh_files(folder: Path) -> list[Path]:
+    try:
+        return sorted(p for p in folder.rglob("*") if p.suffix.lower() in MESH_SUFFIXES and p.is_file())
+    except OSError as exc:
+        raise ValueError(f"data.root: cannot list {folder}: {exc.strerror}") from None
+
+
+def _held_out(files: list[Path], folder: Path) -> set[Path]:
+    ranked = sorted(files, key=lambda p: hashlib.sha256(p.relative_to(folder).as_posix().encode()).hexdigest())
+    return set(ranked[: max(1, math.floor(VAL_FRACTION * len(files) + 0.5))])
+
+
+class MeshFolderDataset(ObjectDataset):
+    """Meshes under ``data.root``; object ids ``meshes/<category>/<path inside the category folder>``."""
+
+    kind = "meshes"
+
+    def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
+        root = _root(cfg)
+        self._files: dict[str, Path] = {}
+        per_category = []
+        for category in self.categories(cfg):
+            folder = root / category
+            files = _mesh_files(folder)
+            if len(files) < 2:
+                raise ValueError(
+                    f"data.root: category folder {folder} has {len(files)} mesh file(s); each category needs at "
+                    "least 2 (one per split)"
+                )
+            held_out = _held_out(files, folder)
+            chosen = [p for p in files if (p in held_out) == (split == "val")]
+            refs = [(category, f"meshes/{category}/{p.relative_to(folder).as_posix()}") for p in chosen]
+            self._files.update({object_id: path for (_, object_id), path in zip(refs, chosen, strict=True)})
+            per_category.append(refs)
+        self._per_category = per_category
+        super().__init__(cfg, split, cache_bytes)
+        for index in range(len(self)):
+            self.surface(index)
+
+    @classmethod
+    def categories(cls, cfg: Config) -> tuple[str, ...]:
+        """Sub-folders of ``data.root`` that hold mesh files, filtered by ``data.categories``."""
+        root = _root(cfg)
+        try:
+            folders = sorted(p for p in root.iterdir() if p.is_dir())
+        except OSError as exc:
+            raise ValueError(f"data.root: cannot list {root}: {exc.strerror}") from None
+        found = tuple(p.name for p in folders if _mesh_files(p))
+        if not found:
+            raise ValueError(
+                f"data.root: {root} has no category sub-folder with mesh files ({', '.join(MESH_SUFFIXES)}); "
+                "expected <root>/<category>/<mesh files>"
+            )
+        return select_categories(cfg.data.categories, found, f"data.root {root}")
+
+    def _object_ids(self) -> list[tuple[str, str]]:
+        return interleave(self._per_category)
+
+    def _shape(self, index: int, rng: np.random.Generator) -> Shape:
+        mesh = load_mesh(self._files[self.objects[index].object_id])
+        return Shape(mesh, np.zeros(len(mesh.faces), dtype=np.int64))

@@ -1,0 +1,259 @@
+"""Held-out evaluation: sample reconstructions, score them, and score trivial baselines beside them.
+
+A number without a baseline says little on small local runs (NOTES §6), so every evaluation also
+scores, on the same objects and with the same metric:
+
+- ``sphere``: points on a sphere centred at the origin with the ground truth's mean radius;
+- ``gaussian``: an axis-aligned Gaussian with the ground truth's per-axis standard deviation;
+- ``category_mean``: the category's mean training shape — the medoid (under Chamfer distance) of a
+  few training clouds of that category. It knows the true category: an oracle.
+
+Baselines are computed once per evaluation set (they do not depend on the model).
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from cdm.cameras import Cameras, orbit_cameras, project_points
+from cdm.config import Config
+from cdm.data.sample import Batch, Sample, collate
+from cdm.diffusion import GaussianDiffusion
+from cdm.metrics import chamfer_f1
+from cdm.model import CDMNetwork
+
+__all__ = [
+    "BASELINES",
+    "EvalSet",
+    "EvalOutput",
+    "baseline_clouds",
+    "build_eval_set",
+    "reconstruct",
+    "run_evaluation",
+    "save_panel",
+    "write_ply",
+]
+
+BASELINES = ("sphere", "gaussian", "category_mean")
+
+
+@dataclass
+class EvalSet:
+    """The fixed objects every evaluation of a run (and every cell of a sweep) is scored on."""
+
+    batches: list[Batch]
+    baseline_metrics: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def object_ids(self) -> list[str]:
+        return [oid for b in self.batches for oid in b.object_id]
+
+
+@dataclass
+class EvalOutput:
+    """Metrics (``eval/cd``, ``eval/f1``, per category, baselines), per-object rows and written files."""
+
+    metrics: dict[str, float]
+    rows: list[dict[str, object]]
+    files: list[Path]
+
+
+def build_eval_set(cfg: Config, val: Sequence[Sample], train: Sequence[Sample], seed: int) -> EvalSet:
+    """Take the first ``eval.num_objects`` held-out objects of each category and score the baselines.
+
+    ``train`` supplies the clouds for the category-mean oracle (up to 16 per category).
+    """
+    per_cat: dict[str, list[Sample]] = {}
+    for i in range(len(val)):
+        s = val[i]
+        if len(per_cat.setdefault(s.category, [])) < cfg.eval.num_objects:
+            per_cat[s.category].append(s)
+    chosen = [s for cat in sorted(per_cat) for s in per_cat[cat]]
+    bs = cfg.train.batch_size
+    batches = [collate(chosen[i : i + bs]) for i in range(0, len(chosen), bs)]
+    eval_set = EvalSet(batches)
+    means = _category_medoids(train, set(per_cat), cfg.eval.num_points)
+    gen = torch.Generator().manual_seed(seed)
+    scores: dict[str, list[tuple[str, float, float]]] = {name: [] for name in BASELINES}
+    for batch in batches:
+        clouds = baseline_clouds(batch.points, batch.category, means, gen)
+        for name, cloud in clouds.items():
+            m = chamfer_f1(_subsample(cloud, cfg.eval.num_points, gen), _subsample(batch.points, cfg.eval.num_points, gen), cfg.eval.f1_threshold)
+            scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
+    for name, rows in scores.items():
+        eval_set.baseline_metrics.update(_summarise(rows, f"baseline/{name}"))
+    return eval_set
+
+
+def baseline_clouds(gt: Tensor, categories: Sequence[str], category_means: dict[str, Tensor], gen: torch.Generator) -> dict[str, Tensor]:
+    """Baseline predictions for a batch of GT clouds ``(B, N, 3)``; each value ``(B, N, 3)``."""
+    b, n, _ = gt.shape
+    centred = gt - gt.mean(1, keepdim=True)
+    radius = centred.norm(dim=-1).mean(1)  # (B,)
+    directions = torch.nn.functional.normalize(torch.randn(b, n, 3, generator=gen), dim=-1)
+    std = centred.std(dim=1)  # (B, 3)
+    gaussian = torch.randn(b, n, 3, generator=gen) * std[:, None, :]
+    mean_shape = torch.stack([_resize(category_means[c], n, gen) for c in categories])
+    return {"sphere": directions * radius[:, None, None], "gaussian": gaussian, "category_mean": mean_shape}
+
+
+def _category_medoids(train: Sequence[Sample], categories: set[str], num_points: int, per_category: int = 16) -> dict[str, Tensor]:
+    clouds: dict[str, list[Tensor]] = {c: [] for c in categories}
+    for i in range(len(train)):
+        if all(len(v) >= per_category for v in clouds.values()):
+            break
+        s = train[i]
+        if s.category in clouds and len(clouds[s.category]) < per_category:
+            clouds[s.category].append(s.points)
+    medoids = {}
+    for cat, members in clouds.items():
+        if not members:
+            raise ValueError(f"data: category {cat!r} has held-out objects but no training objects")
+        pts = torch.stack([m[: min(num_points, m.shape[0])] for m in members])  # (K, n, 3)
+        k = pts.shape[0]
+        left = pts.repeat_interleave(k, 0)
+        right = pts.repeat(k, 1, 1)
+        cd = chamfer_f1(left, right).cd.view(k, k)
+        medoids[cat] = members[int(cd.sum(1).argmin())]
+    return medoids
+
+
+def _resize(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
+    idx = torch.randint(cloud.shape[0], (n,), generator=gen) if cloud.shape[0] < n else torch.randperm(cloud.shape[0], generator=gen)[:n]
+    return cloud[idx]
+
+
+def _subsample(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
+    """BDM samples a fixed number of points from each cloud before scoring; keep all if fewer."""
+    if cloud.shape[1] <= n:
+        return cloud
+    idx = torch.randperm(cloud.shape[1], generator=gen)[:n]
+    return cloud[:, idx.to(cloud.device)]
+
+
+def _summarise(rows: list[tuple[str, float, float]], prefix: str) -> dict[str, float]:
+    out = {f"{prefix}/cd": float(np.mean([r[1] for r in rows])), f"{prefix}/f1": float(np.mean([r[2] for r in rows]))}
+    for cat in sorted({r[0] for r in rows}):
+        sel = [r for r in rows if r[0] == cat]
+        out[f"{prefix}/cd/{cat}"] = float(np.mean([r[1] for r in sel]))
+        out[f"{prefix}/f1/{cat}"] = float(np.mean([r[2] for r in sel]))
+    return out
+
+
+@torch.no_grad()
+def reconstruct(
+    network: CDMNetwork,
+    diffusion: GaussianDiffusion,
+    batch: Batch,
+    cfg: Config,
+    generator: torch.Generator,
+    progress: Callable[[int, int], None] | None = None,
+) -> Tensor:
+    """Sample one reconstruction ``(B, N, 3)`` per input image of ``batch`` (already on the device)."""
+    context = network.encode(batch)
+    shape = (len(batch), cfg.data.num_points, 3)
+    return diffusion.sample(
+        lambda x, t: network(x, t, context, batch.camera),
+        shape,
+        generator=generator,
+        device=batch.points.device,
+        sampler=cfg.diffusion.sampler,
+        steps=cfg.diffusion.sample_steps,
+        clip_x0=cfg.diffusion.clip_x0,
+        progress=progress,
+    )
+
+
+def run_evaluation(
+    network: CDMNetwork,
+    diffusion: GaussianDiffusion,
+    eval_set: EvalSet,
+    cfg: Config,
+    device: torch.device,
+    out_dir: Path | None,
+) -> EvalOutput:
+    """Reconstruct every object of ``eval_set`` with a fixed seed and score it (CD ×1000, F1).
+
+    Writes ``objects.csv`` (one row per object), PLY clouds and PNG panels of the first
+    ``eval.save_clouds`` objects into ``out_dir`` when given.
+    """
+    network.eval()
+    sample_gen = torch.Generator(device=device).manual_seed(cfg.eval.seed)
+    metric_gen = torch.Generator().manual_seed(cfg.eval.seed + 1)
+    rows: list[dict[str, object]] = []
+    files: list[Path] = []
+    for batch in eval_set.batches:
+        batch_d = batch.to(device)
+        pred = reconstruct(network, diffusion, batch_d, cfg, sample_gen).cpu()
+        m = chamfer_f1(_subsample(pred, cfg.eval.num_points, metric_gen), _subsample(batch.points, cfg.eval.num_points, metric_gen), cfg.eval.f1_threshold)
+        for j in range(len(batch)):
+            rows.append({"object_id": batch.object_id[j], "category": batch.category[j], "cd": m.cd[j].item(), "f1": m.f1[j].item()})
+            if out_dir is not None and len(rows) <= cfg.eval.save_clouds:
+                stem = batch.object_id[j].replace("/", "_")
+                files.append(write_ply(out_dir / f"{stem}.ply", pred[j]))
+                files.append(save_panel(out_dir / f"{stem}.png", batch, j, pred[j], m.cd[j].item(), m.f1[j].item()))
+    network.train()
+    metrics = _summarise([(r["category"], r["cd"], r["f1"]) for r in rows], "eval")
+    metrics.update(eval_set.baseline_metrics)
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        table = out_dir / "objects.csv"
+        with table.open("w", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=["object_id", "category", "cd", "f1"])
+            writer.writeheader()
+            writer.writerows(rows)
+        files.append(table)
+    return EvalOutput(metrics, rows, files)
+
+
+def write_ply(path: Path, points: Tensor) -> Path:
+    """Write an ``(N, 3)`` cloud as ASCII PLY."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pts = points.detach().cpu().numpy()
+    header = f"ply\nformat ascii 1.0\nelement vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    with path.open("w") as fh:
+        fh.write(header)
+        np.savetxt(fh, pts, fmt="%.6f")
+    return path
+
+
+def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: float) -> Path:
+    """PNG: input image, its 2D prior, prediction and ground truth each seen from 3 views."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cam: Cameras = batch.camera[j : j + 1]
+    elev = torch.tensor([20.0])
+    views = orbit_cameras(elev, torch.tensor([30.0]), torch.tensor([3.5]), 3, focal=cam.focal)[0]
+    fig, axes = plt.subplots(1, 8, figsize=(16, 2.4))
+    axes[0].imshow(batch.image[j].permute(1, 2, 0).cpu().numpy())
+    axes[0].set_title("input")
+    prior = batch.prior_2d[j]
+    axes[1].imshow(prior[0].cpu().numpy() if prior.shape[0] else np.zeros(batch.image.shape[-2:]), cmap="gray")
+    axes[1].set_title("2D prior")
+    for k, (cloud, label) in enumerate([(pred, "pred"), (batch.points[j].cpu(), "GT")]):
+        for v in range(3):
+            ax = axes[2 + 3 * k + v]
+            xy = project_points(cloud[None].float(), views[v : v + 1])[0, :, :2]
+            ax.scatter(-xy[:, 0].numpy(), xy[:, 1].numpy(), s=0.3, c="tab:blue" if k == 0 else "tab:green")
+            ax.set_xlim(-1, 1)
+            ax.set_ylim(-1, 1)
+            ax.set_title(f"{label} view {v}")
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_aspect("equal")
+    fig.suptitle(f"{batch.object_id[j]}  CD×1000 {cd:.2f}  F1 {f1:.3f}", fontsize=9)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -1,0 +1,99 @@
+"""PC² projection conditioning: lift per-pixel image channels onto the points of ``x_t``.
+
+Per image, once: the conditioning map stacks ``[image features, 2D prior (Eq. 7), RGB, mask, mask
+distance transform]`` into ``(B, C, S, S)`` (:func:`conditioning_map`). Per diffusion step: the
+points of ``x_t`` are rasterized from the input camera with a hard z-buffer (one point per pixel,
+radius 0.0075 NDC in PC²); each point that is front-most at the pixel containing its projection
+gets that pixel's channels, every hidden or off-image point gets zeros (:func:`project_conditioning`).
+The denoiser appends xyz.
+
+Pixel layout and NDC conventions are those of :mod:`cdm.cameras` / :mod:`cdm.render`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from cdm.cameras import Cameras
+from cdm.render import rasterize_points
+
+__all__ = ["conditioning_channels", "conditioning_map", "mask_distance_transform", "project_conditioning"]
+
+def conditioning_channels(feature_dim: int, prior_2d_channels: int) -> int:
+    """Channels of :func:`conditioning_map`: features + 2D prior + RGB (3) + mask (1) + distance (1)."""
+    return feature_dim + prior_2d_channels + 5
+
+
+@torch.no_grad()
+def mask_distance_transform(mask: Tensor) -> Tensor:
+    """Exact Euclidean distance from each pixel to the nearest foreground pixel, divided by ``S``.
+
+    PC² feeds this channel (OpenCV's ``distanceTransform`` of the background) so points just outside
+    the silhouette know how far out they are. Computed in pure torch in two exact passes: along rows
+    by cumulative max/min of foreground column indices, then ``d²(i, j) = min_k (i − k)² + g(k, j)²``
+    over rows (``O(S³)`` per image, once per image: ~1.5 ms at 64², ~0.1 s at 224² for B = 8 on one
+    CPU thread — cache it with the data if that matters).
+
+    Args:
+        mask: ``(B, 1, S, S)`` foreground where ``> 0.5``.
+    Returns:
+        ``(B, 1, S, S)``: 0 on the foreground, ``distance_in_pixels / S`` elsewhere; an image without
+        foreground gets ``√2`` everywhere (beyond any distance inside the image). No gradient.
+    """
+    if mask.ndim != 4 or mask.shape[1] != 1 or mask.shape[2] != mask.shape[3]:
+        raise ValueError(f"mask must be (B, 1, S, S), got shape {tuple(mask.shape)}")
+    fg = mask[:, 0] > 0.5
+    s = fg.shape[-1]
+    idx = torch.arange(s, device=mask.device)
+    far = 2 * s  # farther than any distance inside the image
+    left = torch.where(fg, idx, -far).cummax(dim=2).values  # last foreground column <= j
+    right = torch.where(fg, idx, s + far).flip(2).cummin(dim=2).values.flip(2)  # first one >= j
+    g2 = torch.minimum(idx - left, right - idx).to(torch.float32).square()  # (B, S_k, S_j)
+    di2 = (idx[:, None] - idx[None, :]).to(torch.float32).square()  # (S_i, S_k)
+    # A running minimum over source rows k keeps the temporaries at (B, S, S); materialising the
+    # (B, S_i, S_k, S_j) sums was 3-9x slower on CPU.
+    d2 = g2.clone()
+    candidate = torch.empty_like(g2)
+    for k in range(s):
+        torch.add(g2[:, k : k + 1, :], di2[None, :, k : k + 1], out=candidate)
+        torch.minimum(d2, candidate, out=d2)
+    dist = torch.where(d2 >= far * far, math.sqrt(2.0) * s, d2.sqrt()) / s
+    return dist[:, None].to(mask.dtype)
+
+
+def conditioning_map(features: Tensor, prior_2d: Tensor, image: Tensor, mask: Tensor) -> Tensor:
+    """Stack the per-pixel conditioning channels, once per image.
+
+    Args:
+        features: ``(B, F, S, S)`` image features (encoder output).
+        prior_2d: ``(B, C2, S, S)`` 2D-prior channels (contour or depth, Eq. 7).
+        image: ``(B, 3, S, S)`` RGB in [0, 1].
+        mask: ``(B, 1, S, S)`` foreground in {0, 1}.
+    Returns:
+        ``(B, F + C2 + 5, S, S)``: ``[features, prior_2d, RGB, mask, distance transform]``.
+    """
+    return torch.cat([features, prior_2d, image, mask, mask_distance_transform(mask)], dim=1)
+
+
+def project_conditioning(cond_map: Tensor, points: Tensor, cameras: Cameras, radius: float) -> Tensor:
+    """Gather each visible point's conditioning channels at its own pixel; zeros for hidden points.
+
+    Runs every diffusion step on ``x_t``: one hard rasterization (no gradient) and one gather
+    (differentiable w.r.t. ``cond_map``, so a trainable encoder learns through it).
+
+    Args:
+        cond_map: ``(B, C, S, S)`` from :func:`conditioning_map`.
+        points: ``(B, N, 3)`` world coordinates (``x_t``).
+        cameras: input cameras, batch ``(B,)``.
+        radius: rasterization radius, NDC units (``model.raster_radius``; PC²: 0.0075).
+    Returns:
+        ``(B, N, C)`` per-point conditioning.
+    """
+    b, c, s, _ = cond_map.shape
+    frags = rasterize_points(points.detach(), cameras, s, radius)
+    index = frags.pixel.clamp(min=0)[:, None, :].expand(b, c, -1)
+    gathered = cond_map.flatten(2).gather(2, index).transpose(1, 2)  # (B, N, C)
+    return gathered * frags.visible[..., None].to(gathered.dtype)

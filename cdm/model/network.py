@@ -1,0 +1,121 @@
+"""The CDM network: image encoder → projection conditioning → point-voxel denoiser (PC² architecture).
+
+Usage: ``context = net.encode(batch)`` once per image (encoder, conditioning map, global features),
+then ``net(x_t, t, context, batch.camera)`` at every diffusion step — it rasterizes ``x_t`` from the
+input camera, lifts the conditioning map onto the visible points and denoises.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn as nn
+from torch import Tensor
+
+from cdm.cameras import Cameras
+from cdm.config import ModelConfig
+from cdm.data.sample import Batch
+from cdm.model.conditioning import conditioning_channels, conditioning_map, project_conditioning
+from cdm.model.encoder import ImageEncoder
+from cdm.model.global_features import global_embedding, image_tokens
+from cdm.model.pvcnn import PVCNNDenoiser
+from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
+
+__all__ = ["CDMNetwork", "ImageContext"]
+
+
+class ImageContext(NamedTuple):
+    """Everything the denoiser needs from the input image; computed once, reused by every step.
+
+    Attributes:
+        pixel: ``(B, C, S, S)`` conditioning map ``[features, 2D prior, RGB, mask, distance]``.
+        embedding: ``(B, F)`` global embedding (``global_feature == "concat"``), else ``None``.
+        tokens: ``(B, 64, F)`` image tokens (``global_feature == "cross_attention"``), else ``None``.
+    """
+
+    pixel: Tensor
+    embedding: Tensor | None
+    tokens: Tensor | None
+
+
+class CDMNetwork(nn.Module):
+    """Conditional denoiser ``(x_t, t, image) → (B, N, 3)``.
+
+    Args:
+        cfg: the model config group.
+        prior_2d_channels: ``C2`` of ``batch.prior_2d`` (0 when ``priors.prior_2d`` is ``none``).
+        device: where the model will run; only resolves ``voxel_backend="auto"`` (``None``: CUDA if
+            available). Move the module yourself.
+        encoder: replaces the default :class:`~cdm.model.encoder.ImageEncoder`, e.g. a
+            :class:`~cdm.model.encoder.FrozenEncoder`; its ``out_channels`` must equal ``cfg.feature_dim``.
+
+    Attributes:
+        voxel_backend: the resolved back-end, ``dense`` or ``sparse``. Record it with a checkpoint and
+            rebuild with ``cfg.model_copy(update={"voxel_backend": ...})``: the two compute different
+            functions with the same parameters.
+    """
+
+    def __init__(
+        self,
+        cfg: ModelConfig,
+        prior_2d_channels: int,
+        *,
+        device: torch.device | str | None = None,
+        encoder: nn.Module | None = None,
+    ):
+        super().__init__()
+        self.voxel_backend: VoxelBackend = resolve_voxel_backend(cfg.voxel_backend, device)
+        self.prior_2d_channels = prior_2d_channels
+        self.raster_radius = cfg.raster_radius
+        self.global_feature = cfg.global_feature
+        self.encoder = encoder if encoder is not None else ImageEncoder(prior_2d_channels, cfg.feature_dim)
+        if self.encoder.out_channels != cfg.feature_dim:
+            raise ValueError(
+                f"encoder gives {self.encoder.out_channels} channels but model.feature_dim is {cfg.feature_dim}"
+            )
+        cond = conditioning_channels(cfg.feature_dim, prior_2d_channels)
+        self.denoiser = PVCNNDenoiser(
+            in_channels=cond + (cfg.feature_dim if cfg.global_feature == "concat" else 0),
+            widths=cfg.widths,
+            resolutions=cfg.voxel_resolutions,
+            time_embed_dim=cfg.time_embed_dim,
+            voxel_backend=self.voxel_backend,
+            devoxelize=cfg.devoxelize,
+            token_channels=cfg.feature_dim if cfg.global_feature == "cross_attention" else None,
+        )
+
+    def encode(self, batch: Batch) -> ImageContext:
+        """Per-image work: encoder features, conditioning map and global features."""
+        if batch.prior_2d.shape[1] != self.prior_2d_channels:
+            raise ValueError(
+                f"batch.prior_2d has {batch.prior_2d.shape[1]} channels, the network expects "
+                f"{self.prior_2d_channels}; build it with the data's priors.prior_2d"
+            )
+        features = self.encoder(batch.image, batch.mask, batch.prior_2d)
+        pixel = conditioning_map(features, batch.prior_2d, batch.image, batch.mask)
+        embedding = global_embedding(features) if self.global_feature == "concat" else None
+        tokens = image_tokens(features) if self.global_feature == "cross_attention" else None
+        return ImageContext(pixel, embedding, tokens)
+
+    def forward(self, x_t: Tensor, t: Tensor, context: ImageContext, camera: Cameras) -> Tensor:
+        """One denoiser evaluation.
+
+        Args:
+            x_t: ``(B, N, 3)`` noisy points, world frame of the normalised object.
+            t: ``(B,)`` long timesteps in ``[0, T)``.
+            context: from :meth:`encode` for the same ``B`` images.
+            camera: input cameras, batch ``(B,)``.
+        Returns:
+            ``(B, N, 3)`` raw network output.
+        """
+        if x_t.ndim != 3 or x_t.shape[-1] != 3:
+            raise ValueError(f"x_t must be (B, N, 3), got shape {tuple(x_t.shape)}")
+        if t.shape != x_t.shape[:1] or context.pixel.shape[0] != x_t.shape[0]:
+            raise ValueError(
+                f"t {tuple(t.shape)} and context (batch {context.pixel.shape[0]}) must match x_t's batch {x_t.shape[0]}"
+            )
+        cond = project_conditioning(context.pixel, x_t, camera, self.raster_radius)
+        if context.embedding is not None:
+            cond = torch.cat([cond, context.embedding[:, None, :].expand(-1, x_t.shape[1], -1)], dim=-1)
+        return self.denoiser(x_t, cond, t, context.tokens)

@@ -1,0 +1,301 @@
+"""The CDM training loop, readable top to bottom: ``fit(config, callbacks)``.
+
+One step (paper Eq. 6): draw t and ε, noise the GT cloud, predict, take the diffusion loss, and —
+with ``priors.prior_3d`` — add λ × the 3D prior constraint between renderings of the predicted clean
+cloud x̂₀ (or x_t, ``priors.target``) and of x₀ from the H prior views.
+
+The loop talks to the outside only through :class:`Callback` (sweeps/ hooks Ray and MLflow in
+there). Checkpoints carry the resolved config, the step, the voxel back-end and every RNG state, so
+``fit(config, resume_from=dir)`` continues with exactly the step the interrupted run would have taken.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from cdm.config import Config
+from cdm.data import build_dataset
+from cdm.data.sample import Batch, collate
+from cdm.diffusion import GaussianDiffusion
+from cdm.evaluate import BASELINES, EvalSet, build_eval_set, run_evaluation
+from cdm.model import CDMNetwork
+from cdm.priors import PRIOR_2D_CHANNELS, prior_3d_loss
+
+__all__ = ["Callback", "FitResult", "TrainingDiverged", "fit", "load_checkpoint", "metric_names", "resolve_device"]
+
+CHECKPOINT_FILE = "checkpoint.pt"
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss became NaN or infinite; the message says at which step and which term."""
+
+
+class Callback:
+    """Hooks of :func:`fit`; every method is a no-op here. Subclass and override what you need."""
+
+    def on_step(self, step: int, metrics: dict[str, float]) -> None:
+        """Every ``train.log_every`` steps: ``train/*`` running means since the last call."""
+
+    def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
+        """After each evaluation: ``eval/*`` and ``baseline/*`` metrics, PLY/PNG/CSV files written."""
+
+    def on_checkpoint(self, step: int, path: Path) -> None:
+        """A complete checkpoint directory (holding ``checkpoint.pt``) was written at ``path``."""
+
+    def should_stop(self) -> bool:
+        """Polled every step; ``True`` ends training after the current step (no final evaluation)."""
+        return False
+
+
+@dataclass
+class FitResult:
+    """Where training ended: last step, last evaluation's metrics and the last checkpoint."""
+
+    step: int
+    metrics: dict[str, float]
+    checkpoint_dir: Path | None
+
+
+def metric_names(config: Config, categories: Sequence[str] = ()) -> list[str]:
+    """Every metric name :func:`fit` can report (per-category names for the given categories)."""
+    names = ["train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/steps_per_s", "train/elapsed_s"]
+    for prefix in ["eval"] + [f"baseline/{b}" for b in BASELINES]:
+        names += [f"{prefix}/cd", f"{prefix}/f1"]
+        names += [f"{prefix}/{m}/{c}" for c in categories for m in ("cd", "f1")]
+    return names
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("train.device: cuda requested but no CUDA device is available; use auto or cpu")
+    return torch.device(name)
+
+
+def lr_factor(step: int, warmup: int, total: int) -> float:
+    """Linear warm-up then cosine decay to 0 (PC²'s schedule)."""
+    if step < warmup:
+        return (step + 1) / warmup
+    progress = (step - warmup) / max(1, total - warmup)
+    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
+
+
+def batch_indices(step: int, batch_size: int, size: int, seed: int) -> list[tuple[int, int]]:
+    """``(epoch, index)`` pairs of the batch at ``step``.
+
+    A pure function of the step, so a resumed run sees the same data; the epoch doubles as the
+    view round, so each object is seen from a fresh camera every epoch.
+    """
+    out = []
+    for k in range(step * batch_size, (step + 1) * batch_size):
+        epoch, pos = divmod(k, size)
+        perm = torch.randperm(size, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
+        out.append((epoch, int(perm[pos])))
+    return out
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint file or directory safely (``weights_only=True``: tensors and plain data only)."""
+    path = Path(path)
+    file = path / CHECKPOINT_FILE if path.is_dir() else path
+    if not file.is_file():
+        raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
+    return torch.load(file, map_location="cpu", weights_only=True)
+
+
+def _check_compatible(state: dict, config: Config, network: CDMNetwork) -> None:
+    if state["voxel_backend"] != network.voxel_backend:
+        raise ValueError(
+            f"resume: checkpoint trained with voxel back-end {state['voxel_backend']!r}, this run resolves to "
+            f"{network.voxel_backend!r}; set model.voxel_backend={state['voxel_backend']} (the back-ends compute different functions)"
+        )
+    if state["config"]["model"] != config.to_dict()["model"]:
+        raise ValueError("resume: the checkpoint's model config differs from this run's; resume with the same model.* settings")
+
+
+class _Trainer:
+    """State of one run; :func:`fit` drives it."""
+
+    def __init__(self, config: Config):
+        self.cfg = config
+        self.device = resolve_device(config.train.device)
+        if config.train.threads is not None:
+            torch.set_num_threads(config.train.threads)
+        torch.manual_seed(config.train.seed)
+        self.train_set = build_dataset(config, "train")
+        self.val_set = build_dataset(config, "val")
+        self.network = CDMNetwork(config.model, PRIOR_2D_CHANNELS[config.priors.prior_2d], device=self.device).to(self.device)
+        self.ema = _ema_copy(self.network) if config.train.ema_decay is not None else None
+        self.diffusion = GaussianDiffusion.from_config(config.diffusion)
+        t = config.train
+        self.optimizer = torch.optim.AdamW(self.network.parameters(), lr=t.lr, weight_decay=t.weight_decay, betas=t.betas)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_factor(s, t.warmup_steps, t.steps))
+        self.generator = torch.Generator(device=self.device).manual_seed(t.seed)
+        self.step = 0
+        self.out_dir = Path(config.train.out_dir)
+        self._eval_set: EvalSet | None = None
+
+    def state(self) -> dict:
+        return {
+            "config": self.cfg.to_dict(),
+            "step": self.step,
+            "voxel_backend": self.network.voxel_backend,
+            "model": self.network.state_dict(),
+            "ema": None if self.ema is None else self.ema.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "generator": self.generator.get_state(),
+            "torch_rng": torch.get_rng_state(),
+        }
+
+    def restore(self, state: dict) -> None:
+        _check_compatible(state, self.cfg, self.network)
+        self.network.load_state_dict(state["model"])
+        if self.ema is not None and state["ema"] is not None:
+            self.ema.load_state_dict(state["ema"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        self.step = int(state["step"])
+
+    def next_batch(self) -> Batch:
+        idx = batch_indices(self.step, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed)
+        return collate([self.train_set.sample(i, epoch) for epoch, i in idx]).to(self.device)
+
+    def losses(self, batch: Batch) -> tuple[Tensor, Tensor, Tensor]:
+        """Total loss, diffusion term and 3D prior term (Eq. 6) for one batch."""
+        x0 = batch.points
+        b = x0.shape[0]
+        t = torch.randint(0, self.diffusion.num_steps, (b,), generator=self.generator, device=self.device)
+        noise = torch.randn(x0.shape, generator=self.generator, device=self.device)
+        x_t = self.diffusion.q_sample(x0, t, noise)
+        context = self.network.encode(batch)
+        output = self.network(x_t, t, context, batch.camera)
+        loss_diff = self.diffusion.loss(output, x0, noise, t)
+        if not torch.isfinite(loss_diff):
+            raise self._diverged(loss_diff, "diffusion")
+        p = self.cfg.priors
+        if not p.prior_3d or p.lambda_3d == 0.0:
+            return loss_diff, loss_diff, torch.zeros((), device=self.device)
+        # As written, Eq. 6 compares x_t with x₀: x_t does not depend on θ, so that term carries no
+        # gradient. The default compares the network's clean estimate x̂₀ instead (NOTES §1).
+        cloud = self.diffusion.predict_x0(x_t, t, output) if p.target == "x0_hat" else x_t
+        loss_prior = prior_3d_loss(cloud, x0, batch.view_cameras, p.render_size, p.point_size, p.render_kind).loss
+        return loss_diff + p.lambda_3d * loss_prior, loss_diff, loss_prior
+
+    def _diverged(self, loss: Tensor, term: str) -> TrainingDiverged:
+        return TrainingDiverged(
+            f"loss became {loss.item()} at step {self.step} ({term} term); lower train.lr (now {self.cfg.train.lr}) "
+            f"or priors.lambda_3d (now {self.cfg.priors.lambda_3d})"
+        )
+
+    def train_step(self, batch: Batch) -> tuple[float, float, float]:
+        loss, loss_diff, loss_prior = self.losses(batch)
+        if not torch.isfinite(loss):
+            raise self._diverged(loss, "3D prior")
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.network.parameters(), self.cfg.train.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        if self.ema is not None:
+            _ema_update(self.ema, self.network, self.cfg.train.ema_decay)
+        self.step += 1
+        return loss.item(), loss_diff.item(), loss_prior.item()
+
+    def evaluate(self) -> tuple[dict[str, float], list[Path]]:
+        if self._eval_set is None:
+            self._eval_set = build_eval_set(self.cfg, self.val_set, self.train_set, self.cfg.eval.seed)
+        network = self.ema if self.ema is not None else self.network
+        out = run_evaluation(network, self.diffusion, self._eval_set, self.cfg, self.device, self.out_dir / "eval" / f"step_{self.step:07d}")
+        return out.metrics, out.files
+
+    def save_checkpoint(self, keep: int = 2) -> Path:
+        root = self.out_dir / "checkpoints"
+        final = root / f"step_{self.step:07d}"
+        tmp = root / f".tmp_step_{self.step:07d}"
+        tmp.mkdir(parents=True, exist_ok=True)
+        torch.save(self.state(), tmp / CHECKPOINT_FILE)
+        if final.exists():
+            shutil.rmtree(final)
+        tmp.rename(final)  # a checkpoint directory is either complete or absent
+        for old in sorted(root.glob("step_*"))[:-keep]:
+            shutil.rmtree(old)
+        return final
+
+
+def _ema_copy(network: CDMNetwork) -> CDMNetwork:
+    ema = copy.deepcopy(network)
+    ema.requires_grad_(False)
+    return ema
+
+
+@torch.no_grad()
+def _ema_update(ema: torch.nn.Module, network: torch.nn.Module, decay: float) -> None:
+    for e, p in zip(ema.parameters(), network.parameters()):
+        e.lerp_(p, 1.0 - decay)
+    for e, b in zip(ema.buffers(), network.buffers()):
+        e.copy_(b)
+
+
+def fit(config: Config, callbacks: Sequence[Callback] = (), resume_from: str | Path | None = None) -> FitResult:
+    """Train CDM per ``config``; evaluate and checkpoint every ``train.eval_every`` steps and at the end.
+
+    Args:
+        config: the resolved configuration.
+        callbacks: hooks receiving metrics, evaluation files and checkpoints.
+        resume_from: a checkpoint directory written by an earlier run; training continues from its step.
+    Raises:
+        ValueError: bad data set or incompatible checkpoint (before any training).
+        TrainingDiverged: the loss became NaN or infinite.
+    """
+    state = load_checkpoint(resume_from) if resume_from is not None else None
+    trainer = _Trainer(config)
+    if state is not None:
+        trainer.restore(state)
+    t_cfg = config.train
+    metrics: dict[str, float] = {}
+    checkpoint: Path | None = None
+    sums = [0.0, 0.0, 0.0]
+    window = 0
+    start = time.perf_counter()
+    window_start = start
+    while trainer.step < t_cfg.steps:
+        losses = trainer.train_step(trainer.next_batch())
+        sums = [s + v for s, v in zip(sums, losses)]
+        window += 1
+        stop = any(cb.should_stop() for cb in callbacks)
+        if trainer.step % t_cfg.log_every == 0 or trainer.step == t_cfg.steps:
+            now = time.perf_counter()
+            logged = {
+                "train/loss": sums[0] / window,
+                "train/loss_diffusion": sums[1] / window,
+                "train/loss_prior_3d": sums[2] / window,
+                "train/lr": trainer.scheduler.get_last_lr()[0],
+                "train/steps_per_s": window / max(now - window_start, 1e-9),
+                "train/elapsed_s": now - start,
+            }
+            for cb in callbacks:
+                cb.on_step(trainer.step, logged)
+            sums, window, window_start = [0.0, 0.0, 0.0], 0, now
+        if stop:
+            break
+        if trainer.step % t_cfg.eval_every == 0 or trainer.step == t_cfg.steps:
+            metrics, files = trainer.evaluate()
+            for cb in callbacks:
+                cb.on_eval(trainer.step, metrics, files)
+            checkpoint = trainer.save_checkpoint()
+            for cb in callbacks:
+                cb.on_checkpoint(trainer.step, checkpoint)
+    return FitResult(trainer.step, metrics, checkpoint)

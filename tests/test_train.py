@@ -1,0 +1,96 @@
+"""End-to-end training on the embedded data: the loss falls, checkpoints resume exactly, callbacks fire."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from cdm.train import Callback, TrainingDiverged, batch_indices, fit, load_checkpoint, lr_factor, metric_names
+from tests.conftest import tiny_config
+
+
+class Recorder(Callback):
+    def __init__(self):
+        self.steps: dict[int, dict[str, float]] = {}
+        self.evals: list[tuple[int, dict[str, float], list]] = []
+        self.checkpoints = []
+
+    def on_step(self, step, metrics):
+        self.steps[step] = metrics
+
+    def on_eval(self, step, metrics, files):
+        self.evals.append((step, metrics, files))
+
+    def on_checkpoint(self, step, path):
+        self.checkpoints.append((step, path))
+
+
+def test_loss_falls_over_a_few_hundred_steps(tmp_path):
+    cfg = tiny_config(tmp_path, **{"train.steps": 300, "train.eval_every": 300, "train.log_every": 50})
+    rec = Recorder()
+    result = fit(cfg, [rec])
+    losses = [rec.steps[s]["train/loss"] for s in sorted(rec.steps)]
+    assert result.step == 300 and len(losses) == 6
+    assert losses[-1] < 0.85 * losses[0], losses  # measured: 2.61 -> 1.95 at seed 0
+    assert all(math.isfinite(v) for v in losses)
+    step, metrics, files = rec.evals[-1]
+    assert step == 300
+    for name in ("eval/cd", "eval/f1", "eval/cd/chair", "baseline/sphere/cd", "baseline/category_mean/f1"):
+        assert name in metrics and math.isfinite(metrics[name])
+    assert set(metrics) <= set(metric_names(cfg, ["chair", "mug"]))
+    assert any(f.suffix == ".ply" for f in files) and any(f.suffix == ".png" for f in files)
+
+
+def test_resume_gives_the_identical_next_step_loss(tmp_path):
+    cfg = tiny_config(tmp_path, **{"train.steps": 12, "train.eval_every": 6, "train.log_every": 1})
+    full = Recorder()
+    fit(cfg, [full])
+    six = [p for s, p in full.checkpoints if s == 6]
+    assert six, full.checkpoints
+    state = load_checkpoint(six[0])
+    assert state["step"] == 6 and state["config"] == cfg.to_dict()
+    # Keep only the step-6 checkpoint, as a killed run would have.
+    cfg2 = tiny_config(tmp_path / "again", **{"train.steps": 12, "train.eval_every": 6, "train.log_every": 1})
+    resumed = Recorder()
+    fit(cfg2, [resumed], resume_from=six[0])
+    assert min(resumed.steps) == 7
+    assert resumed.steps[7]["train/loss"] == full.steps[7]["train/loss"]
+    assert resumed.steps[12]["train/loss"] == full.steps[12]["train/loss"]
+
+
+def test_resume_with_another_voxel_backend_is_refused(tmp_path):
+    cfg = tiny_config(tmp_path, **{"train.steps": 2, "train.eval_every": 2, "model.voxel_backend": "sparse"})
+    result = fit(cfg)
+    other = tiny_config(tmp_path, **{"train.steps": 4, "model.voxel_backend": "dense"})
+    with pytest.raises(ValueError, match="voxel"):
+        fit(other, resume_from=result.checkpoint_dir)
+
+
+def test_nan_loss_raises_a_readable_error(tmp_path):
+    cfg = tiny_config(tmp_path, **{"train.lr": 1e30, "train.warmup_steps": 0, "train.steps": 50, "train.grad_clip": 1e30})
+    with pytest.raises(TrainingDiverged, match="train.lr"):
+        fit(cfg)
+
+
+def test_schedule_and_batch_order():
+    assert lr_factor(0, 10, 100) == pytest.approx(0.1)
+    assert lr_factor(10, 10, 100) == pytest.approx(1.0)
+    assert lr_factor(100, 10, 100) == pytest.approx(0.0, abs=1e-12)
+    seen = [pair for s in range(3) for pair in batch_indices(s, 4, 12, seed=0)]
+    assert sorted(i for _, i in seen) == list(range(12)) and {e for e, _ in seen} == {0}  # one epoch, every object once
+    assert {e for e, _ in batch_indices(3, 4, 12, seed=0)} == {1}
+    assert batch_indices(5, 4, 12, 0) == batch_indices(5, 4, 12, 0)
+
+
+def test_should_stop_ends_early(tmp_path):
+    class StopAt3(Callback):
+        def __init__(self):
+            self.n = 0
+
+        def should_stop(self):
+            self.n += 1
+            return self.n >= 3
+
+    result = fit(tiny_config(tmp_path), [StopAt3()])
+    assert result.step == 3
