@@ -1,0 +1,47 @@
+"""Shared helpers for benchmarks: paired timing (ratios measured side by side) and fixtures.
+
+These machines are shared and noisy: absolute times drift ±10 % between blocks, so every comparison
+alternates its variants in one process and reports the median of paired ratios (NOTES §6).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+__all__ = ["Paired", "paired", "timed"]
+
+
+@dataclass
+class Paired:
+    """Median seconds of each variant and the median of per-pair ratios ``b / a``."""
+
+    a_s: float
+    b_s: float
+    ratio: float
+
+
+def timed(fn: Callable[[], object]) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def paired(a: Callable[[], object], b: Callable[[], object], repeats: int, warmup: int = 1) -> Paired:
+    """Alternate ``a`` and ``b`` ``repeats`` times after ``warmup`` untimed rounds."""
+    for _ in range(warmup):
+        a()
+        b()
+    times_a, times_b = [], []
+    for i in range(repeats):
+        # Alternate which variant goes first so drift does not favour one.
+        if i % 2:
+            times_b.append(timed(b))
+            times_a.append(timed(a))
+        else:
+            times_a.append(timed(a))
+            times_b.append(timed(b))
+    ratios = [tb / ta for ta, tb in zip(times_a, times_b)]
+    return Paired(statistics.median(times_a), statistics.median(times_b), statistics.median(ratios))

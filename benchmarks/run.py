@@ -1,0 +1,59 @@
+"""Run the benchmarks and print one Markdown table; write the rows as JSON.
+
+    python benchmarks/run.py [--quick] [--only NAME ...] [--out DIR]
+
+Every row compares two variants measured side by side in this process (see benchmarks/common.py):
+``a`` and ``b`` are median seconds, ``ratio`` the median of per-pair ratios ``b / a``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
+from benchmarks.training_step import prior_overhead, voxel_backends  # noqa: E402
+
+BENCHMARKS = {
+    "metrics": lambda quick, out: metrics_vs_scipy(quick),
+    "prior_overhead": prior_overhead,
+    "voxel_backends": voxel_backends,
+}
+
+
+def to_markdown(rows: list[dict]) -> str:
+    lines = ["| benchmark | case | a (s) | b (s) | ratio | target |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['benchmark']} | {r['case']} | {r['without_s']:.4f} | {r['with_s']:.4f} | {r['ratio']:.3f} | {r['target']} |")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (about a minute)")
+    parser.add_argument("--only", nargs="*", choices=sorted(BENCHMARKS), help="run only these")
+    parser.add_argument("--out", default="benchmarks/out", help="folder for results.json")
+    args = parser.parse_args()
+    torch.set_num_threads(1)  # figures are per CPU thread, comparable across machines
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        for name in args.only or BENCHMARKS:
+            print(f"running {name} ...", flush=True)
+            rows += BENCHMARKS[name](args.quick, scratch)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(rows, indent=2))
+    print(to_markdown(rows))
+    print(f"\nrows written to {out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
