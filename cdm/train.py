@@ -184,26 +184,28 @@ class _Trainer:
         output = self.network(x_t, t, context, batch.camera)
         loss_diff = self.diffusion.loss(output, x0, noise, t)
         if not torch.isfinite(loss_diff):
-            raise self._diverged(loss_diff, "diffusion")
+            raise self._diverged("the diffusion loss")
         p = self.cfg.priors
         if not p.prior_3d or p.lambda_3d == 0.0:
             return loss_diff, loss_diff, torch.zeros((), device=self.device)
         # As written, Eq. 6 compares x_t with x₀: x_t does not depend on θ, so that term carries no
         # gradient. The default compares the network's clean estimate x̂₀ instead (NOTES §1).
         cloud = self.diffusion.predict_x0(x_t, t, output) if p.target == "x0_hat" else x_t
+        if not torch.isfinite(cloud).all():
+            raise self._diverged("the predicted clean cloud x̂₀")
         loss_prior = prior_3d_loss(cloud, x0, batch.view_cameras, p.render_size, p.point_size, p.render_kind).loss
         return loss_diff + p.lambda_3d * loss_prior, loss_diff, loss_prior
 
-    def _diverged(self, loss: Tensor, term: str) -> TrainingDiverged:
+    def _diverged(self, what: str) -> TrainingDiverged:
         return TrainingDiverged(
-            f"loss became {loss.item()} at step {self.step} ({term} term); lower train.lr (now {self.cfg.train.lr}) "
+            f"{what} became NaN or infinite at step {self.step}; lower train.lr (now {self.cfg.train.lr}) "
             f"or priors.lambda_3d (now {self.cfg.priors.lambda_3d})"
         )
 
     def train_step(self, batch: Batch) -> tuple[float, float, float]:
         loss, loss_diff, loss_prior = self.losses(batch)
         if not torch.isfinite(loss):
-            raise self._diverged(loss, "3D prior")
+            raise self._diverged("the 3D prior loss")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(self.network.parameters(), self.cfg.train.grad_clip)

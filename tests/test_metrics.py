@@ -19,12 +19,13 @@ def reference(pred: np.ndarray, gt: np.ndarray, tau: float) -> tuple[float, floa
     return 1000.0 * (d_pred.mean() + d_gt.mean()), f1, p, r
 
 
+@pytest.mark.parametrize("search", ["brute", "kdtree"])
 @pytest.mark.parametrize("n,m", [(500, 500), (300, 700), (1, 50)])
-def test_matches_scipy_on_random_clouds(n, m):
+def test_matches_scipy_on_random_clouds(n, m, search):
     g = torch.Generator().manual_seed(n + m)
     pred = torch.rand(3, n, 3, generator=g, dtype=torch.float64) * 0.6
     gt = torch.rand(3, m, 3, generator=g, dtype=torch.float64) * 0.6 + 0.05
-    out = chamfer_f1(pred, gt, threshold=0.01, chunk=128)
+    out = chamfer_f1(pred, gt, threshold=0.01, chunk=128, search=search)
     for b in range(3):
         cd, f1, p, r = reference(pred[b].numpy(), gt[b].numpy(), 0.01)
         assert abs(out.cd[b].item() - cd) <= 1e-5 * max(1.0, cd)
@@ -33,11 +34,12 @@ def test_matches_scipy_on_random_clouds(n, m):
         assert out.recall[b].item() == pytest.approx(r, abs=1e-5)
 
 
-def test_float32_values_match_scipy_to_rounding():
+@pytest.mark.parametrize("search", ["brute", "kdtree"])
+def test_float32_values_match_scipy_to_rounding(search):
     g = torch.Generator().manual_seed(0)
     pred = torch.randn(2, 2000, 3, generator=g) * 0.3
     gt = torch.randn(2, 1500, 3, generator=g) * 0.3
-    out = chamfer_f1(pred, gt)
+    out = chamfer_f1(pred, gt, search=search)
     for b in range(2):
         cd, f1, _, _ = reference(pred[b].double().numpy(), gt[b].double().numpy(), 0.01)
         assert out.cd[b].item() == pytest.approx(cd, rel=1e-5)
@@ -63,10 +65,12 @@ def test_known_golden_value():
     assert chamfer_f1(pred, gt, threshold=0.009).f1.item() == 0.0
 
 
-def test_nearest_sq_dist_chunking_is_invariant():
+def test_nearest_sq_dist_chunking_and_search_agree():
     g = torch.Generator().manual_seed(2)
     a, b = torch.rand(2, 333, 3, generator=g), torch.rand(2, 444, 3, generator=g)
-    assert torch.allclose(nearest_sq_dist(a, b, chunk=7), nearest_sq_dist(a, b, chunk=4096))
+    small = nearest_sq_dist(a, b, chunk=7, search="brute")
+    assert torch.allclose(small, nearest_sq_dist(a, b, chunk=4096, search="brute"))
+    assert torch.allclose(small, nearest_sq_dist(a, b, search="kdtree"), atol=1e-7)
 
 
 def test_bad_shapes_are_rejected():
