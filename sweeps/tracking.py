@@ -1,0 +1,186 @@
+"""MLflow tracking of a sweep: one parent run per sweep, one child run per trial.
+
+The driver opens the parent run (spec, expanded grid and results table as artifacts) and closes
+each child with Tune's verdict (finished, stopped early, failed + reason). The child run itself is
+written from exactly one place — the trial's rank-0 training process, as a :class:`cdm.train.Callback`
+— because SQLite locks under many writers (NOTES §5). A child is found again by its ``trial_id`` tag,
+so a resumed trial continues its own run and skips steps it had already logged: no duplicates.
+
+All calls go through an explicit :class:`mlflow.MlflowClient` (no global active run), so a Ray actor
+reused for the next trial carries nothing over.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import yaml
+from mlflow import MlflowClient
+from mlflow.entities import Metric, Param
+
+from cdm.config import Config
+from cdm.train import Callback
+
+__all__ = ["SweepRun", "TrialRun", "find_trial_run", "resolve_tracking_uri", "ui_command"]
+
+_BATCH = 100  # MLflow's limit of params per log_batch call
+
+
+def resolve_tracking_uri(cli: str | None, cwd: Path | None = None) -> str:
+    """``--tracking-uri``, else ``MLFLOW_TRACKING_URI``, else ``sqlite:///<cwd>/mlflow.db``; always absolute.
+
+    A relative SQLite path would resolve inside each Ray trial's own directory (NOTES §5), so it is
+    made absolute against ``cwd`` here, on the driver.
+    """
+    cwd = (cwd or Path.cwd()).resolve()
+    uri = cli or os.environ.get("MLFLOW_TRACKING_URI") or "sqlite:///mlflow.db"
+    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
+        uri = f"sqlite:///{cwd / uri.removeprefix('sqlite:///')}"
+    return uri
+
+
+def ui_command(uri: str) -> str:
+    """The command that shows this tracking store in a browser, bound to loopback only."""
+    if uri.startswith("sqlite:"):
+        return f"mlflow ui --backend-store-uri {uri} --host 127.0.0.1 --port 5000"
+    return f"open {uri} in a browser"
+
+
+def _experiment(client: MlflowClient, name: str, uri: str) -> str:
+    found = client.get_experiment_by_name(name)
+    if found is not None:
+        return found.experiment_id
+    location = None
+    if uri.startswith("sqlite:///"):
+        # Keep artifacts beside the database rather than in whatever directory the driver ran from.
+        location = (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
+    return client.create_experiment(name, artifact_location=location)
+
+
+def _params(values: dict[str, Any]) -> list[Param]:
+    return [Param(k, str(v)) for k, v in values.items()]
+
+
+def find_trial_run(client: MlflowClient, experiment_id: str, parent_run_id: str, trial_id: str) -> str | None:
+    """Run id of the child run of ``trial_id`` under ``parent_run_id``, or None."""
+    runs = client.search_runs(
+        [experiment_id],
+        filter_string=f"tags.trial_id = '{trial_id}' and tags.mlflow.parentRunId = '{parent_run_id}'",
+        max_results=2,
+    )
+    return runs[0].info.run_id if runs else None
+
+
+class SweepRun:
+    """The parent run of one sweep, driven from the Ray driver."""
+
+    def __init__(self, uri: str, experiment_id: str, run_id: str):
+        self.uri, self.experiment_id, self.run_id = uri, experiment_id, run_id
+        self.client = MlflowClient(uri)
+
+    @classmethod
+    def start(cls, uri: str, experiment: str, run_name: str, tags: dict[str, str], params: dict[str, Any]) -> SweepRun:
+        """Create the experiment if needed and open a new parent run."""
+        client = MlflowClient(uri)
+        experiment_id = _experiment(client, experiment, uri)
+        run = client.create_run(experiment_id, run_name=run_name, tags={"kind": "sweep", **tags})
+        client.log_batch(run.info.run_id, params=_params(params))
+        return cls(uri, experiment_id, run.info.run_id)
+
+    @classmethod
+    def reopen(cls, uri: str, run_id: str) -> SweepRun:
+        """The parent run of an interrupted sweep, marked running again."""
+        client = MlflowClient(uri)
+        run = client.get_run(run_id)
+        client.update_run(run_id, status="RUNNING")
+        return cls(uri, run.info.experiment_id, run_id)
+
+    def __getstate__(self) -> dict[str, str]:
+        # Tune pickles its callbacks into the experiment state; the client reconnects after a restore.
+        return {"uri": self.uri, "experiment_id": self.experiment_id, "run_id": self.run_id}
+
+    def __setstate__(self, state: dict[str, str]) -> None:
+        self.__init__(state["uri"], state["experiment_id"], state["run_id"])
+
+    def log_artifacts(self, paths: Iterable[Path]) -> None:
+        for path in paths:
+            self.client.log_artifact(self.run_id, str(path))
+
+    def close_trial(self, trial_id: str, run_name: str, status: str, error: str | None = None, stopped_early: bool = False) -> None:
+        """Set a child run's final status from Tune's verdict; creates the run if the trial died before opening it.
+
+        Args:
+            status: ``FINISHED`` or ``FAILED``.
+        """
+        run_id = find_trial_run(self.client, self.experiment_id, self.run_id, trial_id)
+        if run_id is None:
+            run_id = self.client.create_run(
+                self.experiment_id, run_name=run_name,
+                tags={"mlflow.parentRunId": self.run_id, "trial_id": trial_id}).info.run_id
+        if error:
+            self.client.set_tag(run_id, "error", error[-5000:])
+        if stopped_early:
+            self.client.set_tag(run_id, "stopped_early", "true")
+        self.client.set_terminated(run_id, status=status)
+
+    def end(self, status: str = "FINISHED") -> None:
+        self.client.set_terminated(self.run_id, status=status)
+
+
+class TrialRun(Callback):
+    """The child run of one trial, fed by :func:`cdm.train.fit`'s callbacks (rank 0 only).
+
+    Opens the run on construction — or reopens the trial's earlier run after a resume, logging only
+    steps past what that run already holds.
+    """
+
+    def __init__(
+        self,
+        uri: str,
+        experiment_id: str,
+        parent_run_id: str,
+        trial_id: str,
+        run_name: str,
+        tags: dict[str, str],
+        config: Config,
+    ):
+        self.client = MlflowClient(uri)
+        found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
+        self.logged_until = -1
+        if found is None:
+            run = self.client.create_run(
+                experiment_id, run_name=run_name,
+                tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, **tags})
+            self.run_id = run.info.run_id
+            params = _params(config.flat())
+            for i in range(0, len(params), _BATCH):
+                self.client.log_batch(self.run_id, params=params[i:i + _BATCH])
+            self.client.log_text(self.run_id, yaml.safe_dump(config.to_dict(), sort_keys=False), "config.yaml")
+        else:
+            self.run_id = found
+            self.client.update_run(found, status="RUNNING")
+            history = [m.step for key in ("train/loss", "eval/cd") for m in self.client.get_metric_history(found, key)]
+            self.logged_until = max(history, default=-1)
+
+    def _log(self, step: int, metrics: dict[str, float]) -> None:
+        if step <= self.logged_until:
+            return
+        now = int(time.time() * 1000)
+        self.client.log_batch(self.run_id, metrics=[Metric(k, float(v), now, step) for k, v in metrics.items()])
+
+    def on_step(self, step: int, metrics: dict[str, float]) -> None:
+        self._log(step, metrics)
+
+    def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
+        if step <= self.logged_until:
+            return
+        self._log(step, metrics)
+        for path in files:
+            self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}")
+
+    def on_checkpoint(self, step: int, path: Path) -> None:
+        self.client.set_tag(self.run_id, "checkpoint", str(path))

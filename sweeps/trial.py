@@ -1,0 +1,328 @@
+"""Ray glue of a sweep: the Tune trainable, the Ray Train loop around ``cdm.train.fit``, and the Tuner.
+
+Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (the Train V2 pattern, NOTES §5) whose
+loop is :func:`train_loop`. ``resources.workers_per_trial`` picks how:
+
+- ``0`` — Train's local mode: the loop runs inside the trial's own actor. On 2 CPUs a nested
+  one-worker ``TorchTrainer`` costs 12–25 s of start-up per trial (controller, worker group, sync
+  actors; no supported way keeps a worker group alive between trials; NOTES §5), local mode with
+  reused actors ~2 s including the MLflow run's set-up (measured with the smoke profile: trial
+  ≈ fit + 2 s here, fit + 12.5 s with one worker). So small machines run local mode, the default
+  of the smoke and local profiles.
+- ``>= 1`` — real Train workers (DDP over gloo on CPU, NCCL on GPU), what scales on a cluster.
+
+Local mode only accepts ``ray.tune.report``/``ray.tune.get_checkpoint`` and real workers only
+``ray.train.report``/``ray.train.get_checkpoint``; :class:`_RayReporter` picks the pair once.
+Concurrency comes from the cluster's resources (:func:`sweeps.spec.plan_concurrency`), so trials
+never wait on each other for CPUs.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import ray
+import ray.train
+import ray.tune
+from ray.train.torch import TorchTrainer
+
+from cdm.config import load_config
+from cdm.train import Callback, fit
+from sweeps.results import TrialOutcome
+from sweeps.spec import Cell, SweepPlan, plan_concurrency
+from sweeps.tracking import SweepRun, TrialRun
+
+__all__ = ["TrialSetup", "connect", "error_summary", "run_sweep", "run_trial", "train_loop"]
+
+
+@dataclass(frozen=True)
+class TrialSetup:
+    """Everything a trial needs besides its Tune config; shipped once with ``tune.with_parameters``."""
+
+    plan: SweepPlan
+    sweep_dir: str
+    tracking_uri: str
+    experiment_id: str
+    parent_run_id: str
+
+
+class _RayReporter(Callback):
+    """Reports each evaluation to Ray together with the checkpoint ``fit`` writes right after it."""
+
+    def __init__(self, local: bool, rank: int):
+        self.local, self.rank = local, rank
+        self.last_train: dict[str, float] = {}
+        self.last_eval: dict[str, float] = {}
+
+    def on_step(self, step: int, metrics: dict[str, float]) -> None:
+        self.last_train = metrics
+
+    def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
+        self.last_eval = metrics
+
+    def on_checkpoint(self, step: int, path: Path) -> None:
+        # fit() evaluates, then checkpoints, at the same step: one report carries both.
+        metrics = {**self.last_train, **self.last_eval, "step": step}
+        if self.local:
+            ray.tune.report(metrics, checkpoint=ray.tune.Checkpoint.from_directory(path))
+        else:
+            ckpt = ray.train.Checkpoint.from_directory(path) if self.rank == 0 else None
+            ray.train.report(metrics, checkpoint=ckpt)
+
+
+class _Progress(Callback):
+    """One line per log interval and evaluation; Ray forwards it to the driver's terminal."""
+
+    def __init__(self, label: str, steps: int, metric: str):
+        self.label, self.steps, self.metric = label, steps, metric
+
+    def on_step(self, step: int, metrics: dict[str, float]) -> None:
+        print(f"[{self.label}] step {step}/{self.steps}  loss {metrics['train/loss']:.4f}  "
+              f"{metrics['train/steps_per_s']:.2f} steps/s", flush=True)
+
+    def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
+        keys = dict.fromkeys(("eval/cd", "eval/f1", self.metric))
+        shown = "  ".join(f"{k} {metrics[k]:.4g}" for k in keys if k in metrics)
+        print(f"[{self.label}] eval at step {step}: {shown}", flush=True)
+
+
+def train_loop(loop_config: dict[str, Any]) -> None:
+    """Ray Train loop (local mode or each worker): rebuild the config, resume if Ray has a checkpoint, fit."""
+    local = loop_config["local"]
+    rank = 0 if local else ray.train.get_context().get_world_rank()
+    overrides = dict(loop_config["overrides"])
+    if rank > 0:  # workers on one node must not overwrite rank 0's checkpoints and evaluation files
+        overrides["train.out_dir"] = str(Path(overrides["train.out_dir"]) / f"rank_{rank}")
+    config = load_config(None, overrides)
+    callbacks: list[Callback] = [_RayReporter(local, rank)]
+    if rank == 0:
+        t = loop_config["tracking"]
+        callbacks += [
+            _Progress(loop_config["label"], config.train.steps, loop_config["metric"]),
+            TrialRun(t["uri"], t["experiment_id"], t["parent_run_id"], loop_config["trial_id"],
+                     loop_config["label"], loop_config["tags"], config),
+        ]
+    checkpoint = ray.tune.get_checkpoint() if local else ray.train.get_checkpoint()
+    with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
+        if resume_from is not None:
+            print(f"[{loop_config['label']}] resuming from {resume_from}", flush=True)
+        fit(config, callbacks, resume_from=resume_from)
+
+
+def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
+    """Tune function trainable: one trial = one ``TorchTrainer.fit`` of :func:`train_loop`."""
+    plan = setup.plan
+    cell = plan.trial(tune_config)
+    ctx = ray.tune.get_context()
+    trial_id = ctx.get_trial_id()
+    r = plan.profile.resources
+    out_dir = Path(ctx.get_trial_dir()) / "cdm"
+    tags = {
+        "cell": cell.name, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
+        "categories": ",".join(cell.config.data.categories) or "all", "tune_trial_dir": ctx.get_trial_dir(),
+    }
+    loop_config = {
+        "local": r.workers_per_trial == 0,
+        "overrides": {**cell.overrides, "train.out_dir": str(out_dir)},
+        "label": cell.label,
+        "trial_id": trial_id,
+        "metric": plan.spec.metric.name,
+        "tags": tags,
+        "tracking": {"uri": setup.tracking_uri, "experiment_id": setup.experiment_id, "parent_run_id": setup.parent_run_id},
+    }
+    per_worker = {"CPU": r.cpus_per_worker, **({"GPU": r.gpus_per_worker} if r.gpus_per_worker else {})}
+    trainer = TorchTrainer(
+        train_loop,
+        train_loop_config=loop_config,
+        scaling_config=ray.train.ScalingConfig(
+            num_workers=r.workers_per_trial,
+            use_gpu=r.gpus_per_worker > 0,
+            resources_per_worker=per_worker if r.workers_per_trial else None,
+        ),
+        run_config=ray.train.RunConfig(
+            # Named after the trial so a restored trial resumes its own Train run (NOTES §5).
+            name=f"trial_{trial_id}",
+            storage_path=str(Path(setup.sweep_dir) / "train"),
+            failure_config=ray.train.FailureConfig(max_failures=plan.spec.failure.max_retries),
+            callbacks=_tune_report_callbacks() if r.workers_per_trial else None,
+        ),
+    )
+    trainer.fit()
+
+
+def _tune_report_callbacks() -> list:
+    from ray.tune.integration.ray_train import TuneReportCallback
+
+    return [TuneReportCallback()]
+
+
+def error_summary(text: str) -> str:
+    """The exception line of a (Ray-wrapped) traceback, e.g. ``TrainingDiverged: loss became nan …``."""
+    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
+    for line in reversed(lines):
+        if "Error" in line.split(":")[0] or "Diverged" in line.split(":")[0]:
+            return line
+    return lines[-1] if lines else text
+
+
+class _TrialCloser(ray.tune.Callback):
+    """Driver side: closes each child MLflow run with Tune's verdict and prints one line per trial."""
+
+    def __init__(self, plan: SweepPlan, sweep_run: SweepRun):
+        self.plan, self.sweep_run = plan, sweep_run
+
+    def _cell(self, trial) -> Cell:
+        return self.plan.trial(trial.config)
+
+    def _count(self, trials, ending=None) -> str:
+        # Counted from Tune's trial list, so trials finished before a resume count too.
+        done = {t.trial_id for t in trials if t.status in ("TERMINATED", "ERROR")} | ({ending.trial_id} if ending else set())
+        return f"{len(done)}/{self.plan.num_trials} trials done"
+
+    def on_trial_start(self, iteration, trials, trial, **info) -> None:
+        print(f"▶ started [{self._cell(trial).label}] ({self._count(trials)})", flush=True)
+
+    def on_trial_complete(self, iteration, trials, trial, **info) -> None:
+        cell = self._cell(trial)
+        step = trial.last_result.get("step", 0)
+        early = step < self.plan.profile.steps
+        self.sweep_run.close_trial(trial.trial_id, cell.label, "FINISHED", stopped_early=early)
+        value = trial.last_result.get(self.plan.spec.metric.name)
+        shown = "no evaluation" if value is None else f"{self.plan.spec.metric.name} {value:.4g}"
+        print(f"{'■ stopped early' if early else '✓ finished'} [{cell.label}] at step {step}: {shown} "
+              f"({self._count(trials, trial)})", flush=True)
+
+    def on_trial_error(self, iteration, trials, trial, **info) -> None:
+        cell = self._cell(trial)
+        # Tune has just written the traceback to the trial's local error file (before syncing it).
+        reason = error_summary(Path(trial.error_file).read_text()) if trial.error_file else "unknown error"
+        self.sweep_run.close_trial(trial.trial_id, cell.label, "FAILED", error=reason)
+        print(f"✗ failed [{cell.label}]: {reason} ({self._count(trials, trial)})", flush=True)
+
+
+def connect(address: str | None) -> bool:
+    """Join the Ray cluster at ``address``/``RAY_ADDRESS``, or start a local one bound to loopback.
+
+    Returns:
+        True when this call connected (the caller disconnects with ``ray.shutdown()``); False when
+        the process was already connected (a test session, a notebook).
+    """
+    if ray.is_initialized():
+        return False
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        ray.init(address=address, logging_level="WARNING")
+    else:
+        ray.init(_node_ip_address="127.0.0.1", include_dashboard=False, logging_level="WARNING")
+    return True
+
+
+def _search(plan: SweepPlan) -> tuple[dict[str, Any], Any, int]:
+    """Tune param space, search algorithm and sample count: grid cells by label, or Optuna's space."""
+    s = plan.spec.search
+    if s.kind == "grid":
+        return {"cell": ray.tune.grid_search([c.label for c in plan.cells])}, None, 1
+    import optuna
+    from ray.tune.search.optuna import OptunaSearch
+
+    dists = {}
+    for key, p in s.space.items():
+        if p.type == "categorical":
+            dists[key] = optuna.distributions.CategoricalDistribution(p.choices)
+        elif p.type == "int":
+            dists[key] = optuna.distributions.IntDistribution(int(p.low), int(p.high), step=int(p.step or 1))
+        else:
+            dists[key] = optuna.distributions.FloatDistribution(p.low, p.high, log=p.type == "log_float", step=p.step)
+    sampler = (optuna.samplers.TPESampler if s.sampler == "tpe" else optuna.samplers.RandomSampler)(seed=s.seed)
+    study = f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # unique per sweep (NOTES §5)
+    # Given its own space, OptunaSearch never receives TuneConfig's metric/mode: pass them here too.
+    searcher = OptunaSearch(space=dists, metric=plan.spec.metric.name, mode=plan.spec.metric.mode, sampler=sampler,
+                            study_name=study)
+    return {}, searcher, plan.num_trials
+
+
+def _scheduler(plan: SweepPlan):
+    sch = plan.spec.scheduler
+    if sch.kind == "none":
+        return None
+    from ray.tune.schedulers import ASHAScheduler
+
+    # Time axis = the trainer's step (reported with every evaluation), which survives a resume.
+    return ASHAScheduler(time_attr="step", max_t=plan.profile.steps, grace_period=sch.grace_evals * plan.profile.eval_every,
+                         reduction_factor=sch.reduction_factor, brackets=1)
+
+
+def _outcome(plan: SweepPlan, result) -> TrialOutcome:
+    cell = plan.trial(result.config)
+    metrics = {k: float(v) for k, v in (result.metrics or {}).items() if "/" in k and isinstance(v, (int, float))}
+    if result.error is not None:
+        status, error = "failed", error_summary(str(result.error))
+    else:
+        error = None
+        step = (result.metrics or {}).get("step")
+        status = "pending" if step is None else ("stopped" if step < plan.profile.steps else "ok")
+    return TrialOutcome(cell.label, cell.name, status, metrics, cell.paper_label, cell.paper, error)
+
+
+def run_sweep(plan: SweepPlan, sweep_dir: Path, sweep_run: SweepRun, resume: bool) -> list[TrialOutcome]:
+    """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
+
+    ``sweep_dir`` is Tune's experiment folder. Resume re-runs only unfinished trials, each from its
+    last checkpoint; errored trials stay failed.
+    """
+    # Snapshot the experiment state every second (and sync it to storage as often, below), so a
+    # killed driver resumes trials from their checkpoints instead of from step 0 (NOTES §5).
+    os.environ["TUNE_GLOBAL_CHECKPOINT_S"] = "1"
+    os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
+    cluster = ray.cluster_resources()
+    conc = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
+    setup = TrialSetup(plan, str(sweep_dir), sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id)
+    trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
+    print(f"cluster: {cluster.get('CPU', 0):g} CPUs, {cluster.get('GPU', 0):g} GPUs → up to {conc.max_concurrent} "
+          f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)", flush=True)
+    if resume:
+        tuner = ray.tune.Tuner.restore(str(sweep_dir), trainable=trainable, resume_unfinished=True,
+                                       resume_errored=False, restart_errored=False)
+    else:
+        param_space, search_alg, num_samples = _search(plan)
+        tuner = ray.tune.Tuner(
+            trainable,
+            param_space=param_space,
+            tune_config=ray.tune.TuneConfig(
+                metric=plan.spec.metric.name,
+                mode=plan.spec.metric.mode,
+                search_alg=search_alg,
+                scheduler=_scheduler(plan),
+                num_samples=num_samples,
+                max_concurrent_trials=conc.max_concurrent,
+                reuse_actors=True,
+                trial_name_creator=lambda t: plan.trial(t.config).label,
+                trial_dirname_creator=lambda t: f"trial_{t.trial_id}",
+            ),
+            run_config=ray.tune.RunConfig(
+                name=sweep_dir.name,
+                storage_path=str(sweep_dir.parent),
+                failure_config=ray.tune.FailureConfig(max_failures=plan.spec.failure.max_retries),
+                checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=2),
+                sync_config=ray.tune.SyncConfig(sync_period=1),
+                callbacks=[_TrialCloser(plan, sweep_run)],
+                # Tune's own tables list every reported metric (dozens, per category); the trials'
+                # step/eval lines and _TrialCloser's lines are the progress display instead.
+                verbose=0,
+            ),
+        )
+    grid = tuner.fit()
+    outcomes = [_outcome(plan, r) for r in grid]
+    if plan.spec.search.kind == "grid":
+        # Trials Tune had not created yet when the sweep was interrupted still get their row.
+        seen = {o.label for o in outcomes}
+        outcomes += [TrialOutcome(c.label, c.name, "pending", {}, c.paper_label, c.paper) for c in plan.cells if c.label not in seen]
+        order = {c.label: i for i, c in enumerate(plan.cells)}
+        return sorted(outcomes, key=lambda o: order[o.label])
+    sign = 1 if plan.spec.metric.mode == "min" else -1
+    return sorted(outcomes, key=lambda o: sign * o.metrics.get(plan.spec.metric.name, sign * float("inf")))

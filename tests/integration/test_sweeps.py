@@ -1,0 +1,167 @@
+"""End-to-end sweeps on a real local Ray cluster, real Optuna and a real MLflow SQLite store.
+
+One Ray session serves the whole module (start-up is the slow part on 2 CPUs); every sweep uses the
+smoke profile, shrunk further by the test specs. The interrupted-sweep test runs its first driver as
+a separate process joined to that cluster, kills it with SIGKILL, and resumes in-process.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import ray
+from mlflow import MlflowClient
+
+from sweeps import run
+
+pytestmark = [pytest.mark.ray, pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    ray.init(_node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
+    yield ray.get_runtime_context().gcs_address
+    ray.shutdown()
+
+
+def _sweep(tmp_path: Path, body: str, *extra: str) -> tuple[list[str], str]:
+    """Write the spec; the runner's argv (smoke profile, storage and MLflow under tmp_path) and MLflow URI."""
+    spec = tmp_path / "spec.yaml"
+    spec.write_text(body)
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    argv = [str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri, *extra]
+    return argv, uri
+
+
+def _children(uri: str, experiment: str):
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        return client, [], []
+    runs = client.search_runs([exp.experiment_id])
+    parents = [r for r in runs if r.data.tags.get("kind") == "sweep"]
+    children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    return client, parents, children
+
+
+def test_grid_of_two_cells_end_to_end(cluster, tmp_path, capsys):
+    argv, uri = _sweep(tmp_path, "name: e2e\ngrid: {priors.point_size: [0.02, 0.04]}\n"
+                          "paper: {table: T5, rows: [{label: size 0.04, when: {priors.point_size: 0.04}, values: {eval/f1: 0.461}}]}\n")
+    t0 = time.perf_counter()
+    assert run.main(argv) == 0
+    wall = time.perf_counter() - t0
+    out = capsys.readouterr().out
+    assert "profile in force: smoke" in out
+    assert f"mlflow ui --backend-store-uri {uri} --host 127.0.0.1" in out
+    table = out[out.index("e2e — profile smoke"):]
+    assert "point_size=0.02" in table and "point_size=0.04" in table and "0.461" in table and "baseline: sphere" in table
+    folder = tmp_path / "results" / "e2e" / "smoke"
+    assert (folder / "results.md").read_text().count("| point_size=0.0") == 2
+    assert (folder / "results.csv").read_text().splitlines()[0].startswith("cell,")
+
+    client, parents, children = _children(uri, "e2e")
+    assert len(parents) == 1 and len(children) == 2
+    parent = parents[0]
+    assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"spec.yaml", "plan.json", "results.md", "results.csv"}
+    assert sorted(r.info.run_name for r in children) == ["point_size=0.02 · seed 0", "point_size=0.04 · seed 0"]
+    for child in children:
+        assert child.info.status == "FINISHED"
+        assert child.data.tags["mlflow.parentRunId"] == parent.info.run_id
+        assert child.data.tags["profile"] == "smoke" and child.data.tags["seed"] == "0"
+        assert child.data.params["priors.point_size"] in ("0.02", "0.04") and child.data.params["train.steps"] == "20"
+        loss = client.get_metric_history(child.info.run_id, "train/loss")
+        assert [m.step for m in sorted(loss, key=lambda m: m.step)] == [5, 10, 15, 20]
+        assert [m.step for m in client.get_metric_history(child.info.run_id, "eval/f1/chair")] in ([10, 20], [20, 10])
+        files = [a.path for a in client.list_artifacts(child.info.run_id, "eval/step_0000020")]
+        assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
+        assert "config.yaml" in {a.path for a in client.list_artifacts(child.info.run_id)}
+    print(f"\n2-cell smoke grid: {wall:.1f} s wall")
+
+
+def test_optuna_search_with_asha_stops_a_trial(cluster, tmp_path):
+    # train/loss grows with λ (it includes λ × the prior term), so ASHA has a clear loser to stop.
+    argv, uri = _sweep(tmp_path, """
+name: opt
+search:
+  kind: optuna
+  num_samples: 5
+  seed: 3
+  space: {priors.lambda_3d: {type: log_float, low: 1.0e-3, high: 30.0}}
+metric: {name: train/loss, mode: min}
+scheduler: {kind: asha, grace_evals: 1, reduction_factor: 2}
+""")
+    assert run.main(argv) == 0
+    client, _, children = _children(uri, "opt")
+    assert len(children) == 5
+    lambdas = {c.data.params["priors.lambda_3d"] for c in children}
+    assert len(lambdas) == 5 and all(1e-3 <= float(v) <= 30.0 for v in lambdas)
+    assert len({c.data.tags["trial_id"] for c in children}) == 5
+    stopped = [c for c in children if c.data.tags.get("stopped_early") == "true"]
+    assert stopped, [(c.info.run_name, c.data.tags) for c in children]
+    for c in stopped:
+        assert max(m.step for m in client.get_metric_history(c.info.run_id, "train/loss")) < 20
+
+
+def test_a_diverging_trial_fails_with_its_reason_and_the_sweep_goes_on(cluster, tmp_path, capsys):
+    argv, uri = _sweep(tmp_path, "name: nan\ngrid: {train.lr: [1.0e-3, 1.0e+30]}\n")
+    assert run.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "✗ failed [lr=1e+30 · seed 0]: cdm.train.TrainingDiverged: " in out and "NaN or infinite" in out
+    assert "0/1 (1 failed)" in out
+    _, _, children = _children(uri, "nan")
+    status = {c.info.run_name: (c.info.status, c.data.tags.get("error", "")) for c in children}
+    assert status["lr=0.001 · seed 0"][0] == "FINISHED"
+    assert status["lr=1e+30 · seed 0"][0] == "FAILED" and "TrainingDiverged" in status["lr=1e+30 · seed 0"][1]
+    csv = (tmp_path / "results" / "nan" / "smoke" / "results.csv").read_text()
+    assert "lr=1e+30" in csv and ",1," in csv.splitlines()[2]
+
+
+def test_killed_driver_resumes_each_trial_exactly_once(cluster, tmp_path, capfd):
+    argv, uri = _sweep(tmp_path, """
+name: kill
+grid: {priors.point_size: [0.01, 0.02, 0.04]}
+resources: {max_concurrent_trials: 1}
+profiles: {smoke: {budget: {steps: 200, eval_every: 20}}}
+""")
+    log = (tmp_path / "driver.log").open("w")
+    driver = subprocess.Popen([sys.executable, str(ROOT / "sweeps" / "run.py"), *argv, "--address", cluster],
+                              cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
+    folder = tmp_path / "results" / "kill" / "smoke"
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and driver.poll() is None:
+        # sweep.json appears once the driver has created the database; reading earlier races its migration.
+        _, _, children = _children(uri, "kill") if (folder / "sweep.json").exists() else (None, [], [])
+        finished = [c for c in children if c.info.status == "FINISHED"]
+        # Kill once the second trial has checkpointed a few times (Tune snapshots its state each second).
+        first_dir = finished[0].data.tags["tune_trial_dir"].split("/")[-1] if finished else None
+        second = [int(c.name.split("_")[-1]) for t in folder.glob("trial_*") if t.name != first_dir for c in t.glob("checkpoint_*")]
+        if finished and max(second, default=-1) >= 2:
+            break
+        time.sleep(0.2)
+    assert driver.poll() is None, (tmp_path / "driver.log").read_text()[-3000:]
+    os.kill(driver.pid, signal.SIGKILL)
+    driver.wait()
+    first_label = finished[0].info.run_name
+    capfd.readouterr()
+
+    assert run.main([*argv, "--resume"]) == 0
+    out = capfd.readouterr().out
+    assert f"▶ started [{first_label}]" not in out  # the finished trial is not re-run
+    assert "resuming from" in out  # the interrupted trial continues from its checkpoint
+    client, parents, children = _children(uri, "kill")
+    assert len(parents) == 1 and len(children) == 3
+    assert len({c.data.tags["trial_id"] for c in children}) == 3
+    for child in children:
+        assert child.info.status == "FINISHED"
+        steps = [m.step for m in client.get_metric_history(child.info.run_id, "train/loss")]
+        assert sorted(steps) == list(range(5, 201, 5)), (child.info.run_name, steps)
+    table = out[out.index("kill — profile smoke"):]
+    assert table.count(" 1/1 ") == 3 and "(3/3 trials done)" in out

@@ -1,0 +1,201 @@
+"""Sweep specs: every shipped spec expands, resolution order holds, bad specs fail before Ray with code 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from sweeps import run
+from sweeps.spec import (
+    Resources,
+    Spec,
+    SpecError,
+    expand,
+    load_profiles,
+    load_spec,
+    plan_concurrency,
+)
+
+SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
+SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
+
+EXPECTED_TRIALS = {  # cells × seeds per shipped spec (Optuna: num_samples of the profile)
+    "point_size": 5, "frames": 7, "frames_point_size": 3, "priors_2d_3d": 4, "prior_type": 2,
+    "global_features": 3, "conditions": 1, "lambda": {"smoke": 4, "local": 8, "paper": 32},
+}
+
+
+def test_the_eight_specs_of_the_issue_are_shipped():
+    assert {p.stem for p in SHIPPED} == set(EXPECTED_TRIALS)
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
+@pytest.mark.parametrize("profile", ["smoke", "local", "paper"])
+def test_every_shipped_spec_expands_in_every_profile(path, profile):
+    plan = expand(load_spec(path), profile)
+    want = EXPECTED_TRIALS[path.stem]
+    assert plan.num_trials == (want[profile] if isinstance(want, dict) else want)
+    assert len({c.label for c in plan.cells}) == len(plan.cells)
+    for cell in plan.cells:
+        assert cell.config.train.steps == plan.profile.steps
+        for key, value in cell.values.items():
+            assert cell.config.flat()[key] == (list(value) if isinstance(value, (list, tuple)) else value)
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
+def test_dry_run_lists_every_trial_and_writes_nothing(path, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert run.main([str(path), "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    plan = expand(load_spec(path), "local")
+    for cell in plan.cells:
+        assert cell.label in out
+    for key in plan.spec.search.space:
+        assert key in out
+    assert "concurrent trials" in out and "profile local" in out
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_profiles_differ_in_size_and_the_paper_profile_has_the_paper_settings():
+    spec = load_spec(SWEEPS / "point_size.yaml")
+    smoke, local, paper = (expand(spec, p).cells[0].config for p in ("smoke", "local", "paper"))
+    assert smoke.data.image_size < local.data.image_size < paper.data.image_size == 224
+    assert (paper.data.num_points, paper.train.batch_size, paper.train.steps) == (4096, 8, 100_000)
+    assert paper.diffusion.prediction == "eps"
+    co3d = expand(load_spec(SWEEPS / "priors_2d_3d.yaml"), "paper").cells[0].config
+    assert co3d.data.num_points == 16384  # the spec's own patch of the paper profile
+
+
+SHARED = load_profiles()
+
+
+def _spec(**fields) -> Spec:
+    return Spec.model_validate({"name": "t", **fields})
+
+
+def test_resolution_order_profile_base_spec_profile_budget_cell_seed_set():
+    shared = {"p": SHARED["smoke"]}
+    spec = _spec(
+        base={"priors.lambda_3d": 0.5, "train.lr": 0.01, "eval.num_objects": 3},
+        grid={"priors.point_size": [0.02, 0.04]},
+        seeds=[3, 4],
+        profiles={"p": {"overrides": {"train.lr": 0.02}, "budget": {"steps": 7}}},
+    )
+    plan = expand(spec, "p", {"eval.num_objects": 2}, shared=shared)
+    assert [c.label for c in plan.cells] == [
+        "point_size=0.02 · seed 3", "point_size=0.02 · seed 4", "point_size=0.04 · seed 3", "point_size=0.04 · seed 4"]
+    cfg = plan.cells[3].config
+    assert cfg.data.image_size == 32  # shared profile
+    assert cfg.priors.lambda_3d == 0.5  # spec base
+    assert cfg.train.lr == 0.02  # spec profile beats base
+    assert (cfg.train.steps, cfg.train.eval_every) == (7, 10)  # budget patched, eval_every inherited
+    assert cfg.priors.point_size == 0.04 and cfg.train.seed == 4  # cell and seed
+    assert cfg.eval.num_objects == 2  # --set wins
+    assert cfg.train.threads == 1  # = CPUs per worker
+
+
+def test_exclude_and_explicit_cells_and_paper_rows():
+    spec = _spec(
+        grid={"priors.num_views": [4, 10], "priors.point_size": [0.0075, 0.04]},
+        exclude=[{"priors.num_views": 4, "priors.point_size": 0.0075}],
+        cells=[{"label": "A", "set": {"priors.lambda_3d": 0.1}}, {"label": "B"}],
+        paper={"table": "T5", "rows": [{"label": "10+0.04", "when": {"priors.num_views": 10, "priors.point_size": 0.04},
+                                         "values": {"eval/f1": 0.461}}]},
+    )
+    plan = expand(spec, "smoke", shared=SHARED)
+    names = [c.name for c in plan.cells]
+    assert names == [f"{x} · H={h} · point_size={s}" for x in "AB" for h, s in ((4, 0.04), (10, 0.0075), (10, 0.04))]
+    assert [c.config.priors.lambda_3d for c in plan.cells] == [0.1] * 3 + [1.0] * 3
+    assert [c.paper.get("eval/f1") for c in plan.cells] == [None, None, 0.461] * 2
+    assert plan.cells[2].paper_label == "10+0.04"
+
+
+def test_optuna_trial_from_sampled_values():
+    spec = _spec(search={"kind": "optuna", "num_samples": 3,
+                         "space": {"priors.lambda_3d": {"type": "log_float", "low": 1e-3, "high": 10}}})
+    plan = expand(spec, "smoke", shared=SHARED)
+    assert plan.cells == () and plan.num_trials == 3
+    cell = plan.trial({"priors.lambda_3d": 0.0123456})
+    assert cell.label == "λ=0.01235 · seed 0"
+    assert cell.config.priors.lambda_3d == 0.0123456 and cell.config.train.steps == 20
+
+
+@pytest.mark.parametrize(
+    ("body", "needle"),
+    [
+        ("name: t\ngird: {priors.point_size: [0.04]}\n", "gird: unknown key; allowed: name, description"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: zero\n", "seeds: Input should be a valid list"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nresources: {cpus_per_worker: many}\n", "resources.cpus_per_worker"),
+        ("name: t\ngrid: {}\n", "grid: empty"),
+        ("name: t\ngrid: {priors.point_size: []}\n", "grid.priors.point_size: empty list"),
+        ("name: t\ngrid: {priors.pointsize: [0.04]}\n", "grid.priors.pointsize: unknown config field"),
+        ("name: t\ngrid: {priors.point_size: [2.0]}\n", "priors.point_size: Input should be less than or equal to 1"),
+        ("name: t\ngrid: {priors.render_kind: [sparkly]}\n", "priors.render_kind"),
+        ("name: t\nsearch: {kind: optuna, space: {priors.lambda_3d: {type: log_float, low: 10, high: 1}}}\n",
+         "search.space.priors.lambda_3d: low (10.0) must be < high (1.0)"),
+        ("name: t\nsearch: {kind: optuna, space: {priors.point_size: {type: float, low: 0.01, high: 3}}}\n",
+         "search.space.priors.point_size=3.0"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nmetric: {name: eval/iou}\n", "metric.name: 'eval/iou' is not reported"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nmetric: {name: eval/f1/teddybear}\n", "metric.name"),
+        ("name: t\ngrid: {train.steps: [10]}\n", "grid.train.steps: set it through the profile's budget.steps"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nexclude: [{priors.point_size: 0.05}]\n", "exclude[0].priors.point_size"),
+        ("name: t\n- not a mapping\n", "not valid YAML"),
+    ],
+)
+def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    spec = tmp_path / "bad.yaml"
+    spec.write_text(body)
+    assert run.main([str(spec), "--smoke"]) == 2
+    err = capsys.readouterr().err
+    assert needle in err, err
+    assert err.startswith("error: ") and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.yaml"]
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--set", "priors.pointsize=0.1"], "--set priors.pointsize: unknown config field"),
+        (["--set", "priors.point_size=0.1"], "--set priors.point_size: this spec sweeps it"),
+        (["--set", "train.lr"], "must look like key=value"),
+        (["--profile", "huge"], "profile 'huge': unknown; available: local, paper, smoke"),
+        (["--profile", "local", "--smoke"], "--smoke means --profile smoke"),
+        (["--resume"], "holds no sweep to resume"),
+    ],
+)
+def test_bad_command_line_exits_2(argv, needle, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert run.main([str(SWEEPS / "point_size.yaml"), *argv]) == 2
+    assert needle in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_finished_sweep_folder_is_not_overwritten(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "results" / "point_size" / "smoke").mkdir(parents=True)
+    assert run.main([str(SWEEPS / "point_size.yaml"), "--smoke"]) == 2
+    assert "pass --resume" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("resources", "cpus", "gpus", "trials", "want"),
+    [
+        ({}, 2, 0, 5, (1.0, 2)),  # local mode: the trial's actor trains on its one CPU
+        ({}, 2, 0, 1, (1.0, 1)),  # never more than the trials
+        ({"max_concurrent_trials": 1}, 16, 0, 5, (1.0, 1)),
+        ({"workers_per_trial": 1}, 2, 0, 5, (1.01, 1)),  # worker + the trial's token CPU: 2 would deadlock
+        ({"workers_per_trial": 1, "cpus_per_worker": 0.5}, 2, 0, 5, (0.51, 3)),
+        ({"workers_per_trial": 2, "cpus_per_worker": 4, "gpus_per_worker": 1}, 64, 4, 9, (8.01, 2)),
+    ],
+)
+def test_concurrency_fits_the_cluster(resources, cpus, gpus, trials, want):
+    conc = plan_concurrency(Resources(**resources), cpus, gpus, trials)
+    assert (round(conc.cpus_per_trial, 6), conc.max_concurrent) == want
+    assert conc.max_concurrent * conc.cpus_per_trial <= cpus
+
+
+def test_a_trial_larger_than_the_cluster_is_refused():
+    with pytest.raises(SpecError, match="one trial needs 4 CPUs and 1 GPUs but the cluster has 2 and 0"):
+        plan_concurrency(Resources(cpus_per_worker=4, gpus_per_worker=1), 2, 0, 3)

@@ -1,0 +1,64 @@
+"""MLflow adapter on a real SQLite store: absolute URIs, one child per trial, resume without duplicates."""
+
+from __future__ import annotations
+
+import pickle
+
+from mlflow import MlflowClient
+
+from cdm.config import load_config
+from sweeps.tracking import (
+    SweepRun,
+    TrialRun,
+    find_trial_run,
+    resolve_tracking_uri,
+    ui_command,
+)
+
+
+def test_tracking_uri_is_absolute_and_overridable(tmp_path, monkeypatch):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    assert resolve_tracking_uri(None, tmp_path) == f"sqlite:///{tmp_path.resolve()}/mlflow.db"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///sub/x.db")
+    assert resolve_tracking_uri(None, tmp_path) == f"sqlite:///{tmp_path.resolve()}/sub/x.db"
+    assert resolve_tracking_uri("http://10.0.0.5:5000", tmp_path) == "http://10.0.0.5:5000"
+    assert resolve_tracking_uri("sqlite:////abs/m.db", tmp_path) == "sqlite:////abs/m.db"
+    assert ui_command("sqlite:////abs/m.db") == "mlflow ui --backend-store-uri sqlite:////abs/m.db --host 127.0.0.1 --port 5000"
+
+
+def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={"profile": "smoke"}, params={"trials": 2})
+    assert pickle.loads(pickle.dumps(sweep)).run_id == sweep.run_id  # Tune pickles it with its callbacks
+    cfg = load_config(None, {"priors.point_size": 0.02})
+    first = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg)
+    panel = tmp_path / "obj.png"
+    panel.write_bytes(b"\x89PNG")
+    for step in (5, 10):
+        first.on_step(step, {"train/loss": 1.0 / step})
+    first.on_eval(10, {"eval/cd": 50.0, "eval/f1": 0.3}, [panel])
+    first.on_checkpoint(10, tmp_path / "ckpt")
+
+    again = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg)
+    assert again.run_id == first.run_id and again.logged_until == 10
+    for step in (5, 10, 15):  # a resumed fit repeats the steps after its last checkpoint
+        again.on_step(step, {"train/loss": 2.0 / step})
+    again.on_eval(10, {"eval/cd": 99.0}, [panel])
+
+    client = MlflowClient(uri)
+    history = [(m.step, m.value) for m in client.get_metric_history(first.run_id, "train/loss")]
+    assert sorted(history) == [(5, 0.2), (10, 0.1), (15, 2.0 / 15)]
+    assert [m.value for m in client.get_metric_history(first.run_id, "eval/cd")] == [50.0]
+    run = client.get_run(first.run_id)
+    assert run.data.params["priors.point_size"] == "0.02" and len(run.data.params) == len(cfg.flat())
+    assert run.data.tags["mlflow.parentRunId"] == sweep.run_id and run.data.tags["checkpoint"] == str(tmp_path / "ckpt")
+    assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval"}
+    assert [a.path for a in client.list_artifacts(first.run_id, "eval/step_0000010")] == ["eval/step_0000010/obj.png"]
+
+    sweep.close_trial("t0", "point_size=0.02 · seed 0", "FAILED", error="TrainingDiverged: loss became nan")
+    sweep.close_trial("t1", "point_size=0.04 · seed 0", "FAILED", error="died before training")
+    t1 = find_trial_run(client, sweep.experiment_id, sweep.run_id, "t1")
+    assert client.get_run(first.run_id).info.status == "FAILED" and client.get_run(t1).info.status == "FAILED"
+    assert client.get_run(first.run_id).data.tags["error"] == "TrainingDiverged: loss became nan"
+    children = client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")
+    assert sorted(r.info.run_name for r in children) == ["point_size=0.02 · seed 0", "point_size=0.04 · seed 0"]
