@@ -131,6 +131,33 @@ class SweepRun:
         self.client.set_terminated(self.run_id, status=status)
 
 
+def learning_curve_png(client: MlflowClient, run_id: str, folder: Path) -> Path:
+    """Plot the run's training loss and evaluation CD against wall-clock minutes, from its MLflow history.
+
+    Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    loss = client.get_metric_history(run_id, "train/loss")
+    cd = client.get_metric_history(run_id, "eval/cd")
+    t0 = min(m.timestamp for m in loss + cd)
+    fig, ax = plt.subplots(figsize=(6, 3.2))
+    ax.plot([(m.timestamp - t0) / 60000 for m in loss], [m.value for m in loss], color="tab:blue")
+    ax.set_xlabel("wall-clock minutes")
+    ax.set_ylabel("train/loss", color="tab:blue")
+    ax2 = ax.twinx()
+    ax2.plot([(m.timestamp - t0) / 60000 for m in cd], [m.value for m in cd], "o-", color="tab:red")
+    ax2.set_ylabel("eval/cd (×1000)", color="tab:red")
+    fig.tight_layout()
+    path = folder / "learning_curve.png"
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return path
+
+
 class TrialRun(Callback):
     """The child run of one trial, fed by :func:`cdm.train.fit`'s callbacks (rank 0 only).
 
@@ -181,6 +208,8 @@ class TrialRun(Callback):
         self._log(step, metrics)
         for path in files:
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}")
+        if files:
+            self.client.log_artifact(self.run_id, str(learning_curve_png(self.client, self.run_id, files[0].parent)))
 
     def on_checkpoint(self, step: int, path: Path) -> None:
         self.client.set_tag(self.run_id, "checkpoint", str(path))

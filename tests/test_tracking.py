@@ -11,6 +11,7 @@ from sweeps.tracking import (
     SweepRun,
     TrialRun,
     find_trial_run,
+    learning_curve_png,
     resolve_tracking_uri,
     ui_command,
 )
@@ -52,8 +53,11 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     run = client.get_run(first.run_id)
     assert run.data.params["priors.point_size"] == "0.02" and len(run.data.params) == len(cfg.flat())
     assert run.data.tags["mlflow.parentRunId"] == sweep.run_id and run.data.tags["checkpoint"] == str(tmp_path / "ckpt")
-    assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval"}
+    assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval", "learning_curve.png"}
     assert [a.path for a in client.list_artifacts(first.run_id, "eval/step_0000010")] == ["eval/step_0000010/obj.png"]
+
+    curve = learning_curve_png(client, first.run_id, tmp_path)
+    assert curve.read_bytes()[:4] == b"\x89PNG" and curve.stat().st_size > 2000
 
     sweep.close_trial("t0", "point_size=0.02 · seed 0", "FAILED", error="TrainingDiverged: loss became nan")
     sweep.close_trial("t1", "point_size=0.04 · seed 0", "FAILED", error="died before training")
