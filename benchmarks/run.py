@@ -3,7 +3,8 @@
     python benchmarks/run.py [--quick] [--only NAME ...] [--out DIR]
 
 Every row compares two variants measured side by side in this process (see benchmarks/common.py):
-``a`` and ``b`` are median seconds, ``ratio`` the median of per-pair ratios ``b / a``.
+``a`` and ``b`` are median seconds, ``ratio`` the median of per-pair ratios ``b / a`` (the quality rows
+hold CD×1000 values instead: ``a`` the baseline's, ``b`` the model's).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
+from benchmarks.quality import quick_config_quality  # noqa: E402
 from benchmarks.training_step import prior_overhead, voxel_backends  # noqa: E402
 
 BENCHMARKS = {
@@ -26,6 +28,8 @@ BENCHMARKS = {
     "prior_overhead": prior_overhead,
     "voxel_backends": voxel_backends,
 }
+# Minutes-long training runs: only with --only.
+SLOW = {"quality": quick_config_quality}
 
 
 def to_markdown(rows: list[dict]) -> str:
@@ -38,7 +42,7 @@ def to_markdown(rows: list[dict]) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (about a minute)")
-    parser.add_argument("--only", nargs="*", choices=sorted(BENCHMARKS), help="run only these")
+    parser.add_argument("--only", nargs="*", choices=sorted({**BENCHMARKS, **SLOW}), help="run only these (quality: only this way)")
     parser.add_argument("--out", default="benchmarks/out", help="folder for results.json")
     args = parser.parse_args()
     torch.set_num_threads(1)  # figures are per CPU thread, comparable across machines
@@ -46,7 +50,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as scratch:
         for name in args.only or BENCHMARKS:
             print(f"running {name} ...", flush=True)
-            rows += BENCHMARKS[name](args.quick, scratch)
+            rows += {**BENCHMARKS, **SLOW}[name](args.quick, scratch)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.json").write_text(json.dumps(rows, indent=2))
