@@ -7,6 +7,7 @@ config's full training (about 5–8 minutes on one thread), so it is not part of
 
 from __future__ import annotations
 
+from pathlib import Path
 import time
 
 from cdm.config import load_config
@@ -16,7 +17,7 @@ __all__ = ["quick_config_quality"]
 
 
 def quick_config_quality(quick: bool, out_dir: str) -> list[dict]:
-    cfg = load_config("configs/quick.yaml", {"train.out_dir": f"{out_dir}/quality"})
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "quick.yaml", {"train.out_dir": f"{out_dir}/quality"})
     start = time.perf_counter()
     metrics = fit(cfg).metrics
     minutes = (time.perf_counter() - start) / 60

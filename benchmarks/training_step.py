@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 
 from benchmarks.common import paired
 from cdm.config import Config, load_config
@@ -16,7 +17,7 @@ from cdm.train import _Trainer
 
 __all__ = ["prior_overhead", "voxel_backends"]
 
-QUICK = "configs/quick.yaml"
+QUICK = Path(__file__).resolve().parents[1] / "configs" / "quick.yaml"
 PAPER_SCALE = {"data.image_size": 224, "data.num_points": 4096, "priors.render_size": 224}
 
 

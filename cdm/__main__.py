@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from cdm.config import Config, config_field_paths, load_config, parse_override
+from cdm.train import Callback, TrainingDiverged, fit
 
 __all__ = ["main"]
 
@@ -22,7 +23,7 @@ def _overrides(pairs: list[str]) -> dict:
     return dict(parse_override(p) for p in pairs)
 
 
-class _Progress:
+class _Progress(Callback):
     """Console callback: a tqdm bar over steps and one line per evaluation."""
 
     def __init__(self, total: int, start: int):
@@ -43,12 +44,8 @@ class _Progress:
     def on_checkpoint(self, step: int, path: Path) -> None:
         self.bar.write(f"checkpoint: {path}")
 
-    def should_stop(self) -> bool:
-        return False
-
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from cdm.train import fit
 
     cfg = load_config(args.config, _overrides(args.set))
     print(f"training {cfg.train.steps} steps on data.kind={cfg.data.kind}, output in {cfg.train.out_dir}", flush=True)
@@ -95,6 +92,8 @@ def _load_image(path: Path, size: int) -> tuple[torch.Tensor, torch.Tensor]:
     raw = cv2.resize(raw, (size, size), interpolation=cv2.INTER_AREA)
     if raw.ndim == 2:
         raw = np.repeat(raw[..., None], 3, axis=2)
+    if raw.shape[2] not in (3, 4):
+        raise ValueError(f"--image: {path} has {raw.shape[2]} channels; give a grey, RGB or RGBA image")
     rgb = cv2.cvtColor(raw[..., :3], cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
     if raw.shape[2] == 4:
         mask = (raw[..., 3] > 127).astype(np.float32)
@@ -181,6 +180,9 @@ def main(argv: list[str] | None = None) -> int:
         # ConfigError and the data/checkpoint/image checks: raised at the boundary, before anything is written.
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except TrainingDiverged as exc:
+        print(f"error: training diverged: {exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

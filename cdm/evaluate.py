@@ -24,7 +24,8 @@ from torch import Tensor
 
 from cdm.cameras import Cameras, orbit_cameras, project_points
 from cdm.config import Config
-from cdm.data.sample import Batch, Sample, collate
+from cdm.data.sample import Batch, collate
+from cdm.data.views import ObjectDataset
 from cdm.diffusion import GaussianDiffusion
 from cdm.metrics import chamfer_f1
 from cdm.model import CDMNetwork
@@ -65,17 +66,16 @@ class EvalOutput:
     files: list[Path]
 
 
-def build_eval_set(cfg: Config, val: Sequence[Sample], train: Sequence[Sample], seed: int) -> EvalSet:
+def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: int) -> EvalSet:
     """Take the first ``eval.num_objects`` held-out objects of each category and score the baselines.
 
     ``train`` supplies the clouds for the category-mean oracle (up to 16 per category).
     """
-    per_cat: dict[str, list[Sample]] = {}
-    for i in range(len(val)):
-        s = val[i]
-        if len(per_cat.setdefault(s.category, [])) < cfg.eval.num_objects:
-            per_cat[s.category].append(s)
-    chosen = [s for cat in sorted(per_cat) for s in per_cat[cat]]
+    per_cat: dict[str, list[int]] = {}
+    for i, ref in enumerate(val.objects):
+        if len(per_cat.setdefault(ref.category, [])) < cfg.eval.num_objects:
+            per_cat[ref.category].append(i)
+    chosen = [val[i] for cat in sorted(per_cat) for i in per_cat[cat]]
     bs = cfg.train.batch_size
     batches = [collate(chosen[i : i + bs]) for i in range(0, len(chosen), bs)]
     eval_set = EvalSet(batches)
@@ -104,14 +104,13 @@ def baseline_clouds(gt: Tensor, categories: Sequence[str], category_means: dict[
     return {"sphere": directions * radius[:, None, None], "gaussian": gaussian, "category_mean": mean_shape}
 
 
-def _category_medoids(train: Sequence[Sample], categories: set[str], num_points: int, per_category: int = 16) -> dict[str, Tensor]:
+def _category_medoids(train: ObjectDataset, categories: set[str], num_points: int, per_category: int = 16) -> dict[str, Tensor]:
     clouds: dict[str, list[Tensor]] = {c: [] for c in categories}
-    for i in range(len(train)):
+    for i, ref in enumerate(train.objects):
         if all(len(v) >= per_category for v in clouds.values()):
             break
-        s = train[i]
-        if s.category in clouds and len(clouds[s.category]) < per_category:
-            clouds[s.category].append(s.points)
+        if ref.category in clouds and len(clouds[ref.category]) < per_category:
+            clouds[ref.category].append(train.surface(i).cloud)  # no rendering: only the GT cloud is needed
     medoids = {}
     for cat, members in clouds.items():
         if not members:

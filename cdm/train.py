@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import math
+import pickle
 import shutil
 import time
 from collections.abc import Sequence
@@ -110,7 +111,14 @@ def load_checkpoint(path: str | Path) -> dict:
     file = path / CHECKPOINT_FILE if path.is_dir() else path
     if not file.is_file():
         raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
-    return torch.load(file, map_location="cpu", weights_only=True)
+    try:
+        state = torch.load(file, map_location="cpu", weights_only=True)
+    except (RuntimeError, pickle.UnpicklingError, EOFError) as exc:
+        raise ValueError(f"checkpoint: {file} is not a readable CDM checkpoint ({exc})") from None
+    missing = {"config", "step", "voxel_backend", "model"} - set(state if isinstance(state, dict) else ())
+    if missing:
+        raise ValueError(f"checkpoint: {file} is not a CDM checkpoint (missing {', '.join(sorted(missing))})")
+    return state
 
 
 def _check_compatible(state: dict, config: Config, network: CDMNetwork) -> None:
@@ -119,8 +127,13 @@ def _check_compatible(state: dict, config: Config, network: CDMNetwork) -> None:
             f"resume: checkpoint trained with voxel back-end {state['voxel_backend']!r}, this run resolves to "
             f"{network.voxel_backend!r}; set model.voxel_backend={state['voxel_backend']} (the back-ends compute different functions)"
         )
-    if state["config"]["model"] != config.to_dict()["model"]:
-        raise ValueError("resume: the checkpoint's model config differs from this run's; resume with the same model.* settings")
+    saved, now = state["config"], config.to_dict()
+    # The resolved back-end is compared above; `auto` and its resolution may be written either way.
+    differ = [f"model.{k}" for k in now["model"] if k != "voxel_backend" and saved["model"].get(k) != now["model"][k]]
+    differ += [f"diffusion.{k}" for k in now["diffusion"] if saved["diffusion"].get(k) != now["diffusion"][k]]
+    differ += [f"data.{k}" for k in ("num_points", "image_size") if saved["data"].get(k) != now["data"][k]]
+    if differ:
+        raise ValueError(f"resume: this run's {', '.join(differ)} differ from the checkpoint's; resume with the same settings")
 
 
 class _Trainer:
@@ -161,8 +174,9 @@ class _Trainer:
     def restore(self, state: dict) -> None:
         _check_compatible(state, self.cfg, self.network)
         self.network.load_state_dict(state["model"])
-        if self.ema is not None and state["ema"] is not None:
-            self.ema.load_state_dict(state["ema"])
+        if self.ema is not None:
+            # A checkpoint from a run without EMA starts the average at its weights, not at init.
+            self.ema.load_state_dict(state["ema"] or state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["generator"])
@@ -300,4 +314,5 @@ def fit(config: Config, callbacks: Sequence[Callback] = (), resume_from: str | P
             checkpoint = trainer.save_checkpoint()
             for cb in callbacks:
                 cb.on_checkpoint(trainer.step, checkpoint)
+            window_start = time.perf_counter()  # steps/s measures training, not evaluation
     return FitResult(trainer.step, metrics, checkpoint)

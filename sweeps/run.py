@@ -19,6 +19,8 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from pydantic import ValidationError
+
 from cdm.config import ConfigError, parse_override
 from sweeps.spec import Spec, SpecError, SweepPlan, expand, load_spec, plan_concurrency
 
@@ -101,8 +103,11 @@ def main(argv: list[str] | None = None) -> int:
             if sets:
                 return _fail("--resume continues a sweep with the spec and --set values it started with; drop --set")
             # The spec as it started, even if the file was edited since: trials must stay the same.
-            state = json.loads(state_file.read_text())
-            spec, sets = Spec.model_validate(state["spec"]), state["sets"]
+            try:
+                state = json.loads(state_file.read_text())
+                spec, sets = Spec.model_validate(state["spec"]), state["sets"]
+            except (json.JSONDecodeError, KeyError, ValidationError) as exc:
+                return _fail(f"--resume: {state_file} is damaged ({type(exc).__name__}: {exc}); remove the folder to start over")
         plan = expand(spec, profile, sets)
     except (SpecError, ConfigError) as exc:
         return _fail(str(exc))
@@ -129,7 +134,9 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: Path, state_file:
     from sweeps.tracking import SweepRun, resolve_tracking_uri, ui_command
     from sweeps.trial import connect, run_sweep
 
-    uri = resolve_tracking_uri(args.tracking_uri)
+    # A resumed sweep keeps logging into the store it started with, wherever it is resumed from.
+    stored_uri = json.loads(state_file.read_text()).get("tracking_uri") if args.resume else None
+    uri = resolve_tracking_uri(args.tracking_uri or stored_uri)
     started = connect(args.address)
     try:
         if args.resume:

@@ -106,6 +106,8 @@ class SpaceParam(_Strict):
             raise ValueError(f"low ({self.low}) must be < high ({self.high})")
         if self.type == "log_float" and self.low <= 0:
             raise ValueError(f"log_float needs low > 0 (got {self.low})")
+        if self.type == "log_float" and self.step is not None:
+            raise ValueError("log_float takes no step (Optuna cannot step a log scale); use float with a step")
         if self.type == "int" and (self.low != int(self.low) or self.high != int(self.high)):
             raise ValueError("int needs whole-number low and high")
         return self
@@ -473,8 +475,10 @@ def expand(
     for key in sets:
         if key not in known:
             raise SpecError(f"--set {key}: unknown config field (see `python -m cdm fields`)")
-        if key in spec.grid or key in spec.search.space or key == "train.seed":
-            raise SpecError(f"--set {key}: this spec sweeps it; change the spec's grid, space or seeds instead")
+        if key in _OWNED:
+            raise SpecError(f"--set {key}: set it through {_OWNED[key]} (or --profile) instead")
+        if key in spec.grid or key in spec.search.space or any(key in c.set for c in spec.cells):
+            raise SpecError(f"--set {key}: this spec sweeps it; change the spec's grid, cells or space instead")
     fixed = {**prof.overrides, "train.steps": prof.steps, "train.eval_every": prof.eval_every}
     fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
     _build({**fixed, **sets}, f"profile {profile}")
@@ -494,6 +498,10 @@ def expand(
         for key, param in spec.search.space.items():
             for probe in param.probes():
                 configs.append(_build({**fixed, key: probe, "train.seed": spec.seeds[0], **sets}, f"search.space.{key}={probe!r}"))
+    labels = [c.label for c in cells]
+    if len(set(labels)) != len(labels):
+        twice = sorted({label for label in labels if labels.count(label) > 1})
+        raise SpecError(f"cells: two cells share the name {twice[0]!r}; give explicit cells distinct labels")
     names = _check_metric(spec, configs)
     return SweepPlan(spec, prof, fixed, sets, tuple(cells), names)
 

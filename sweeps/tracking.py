@@ -177,7 +177,9 @@ class TrialRun(Callback):
     ):
         self.client = MlflowClient(uri)
         found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
-        self.logged_until = -1
+        # Last step already in the run, per kind: a crash between a step's log and its evaluation
+        # must not make the re-run evaluation look logged.
+        self.logged_until = {"train": -1, "eval": -1}
         if found is None:
             run = self.client.create_run(
                 experiment_id, run_name=run_name,
@@ -190,20 +192,19 @@ class TrialRun(Callback):
         else:
             self.run_id = found
             self.client.update_run(found, status="RUNNING")
-            history = [m.step for key in ("train/loss", "eval/cd") for m in self.client.get_metric_history(found, key)]
-            self.logged_until = max(history, default=-1)
+            for kind, key in (("train", "train/loss"), ("eval", "eval/cd")):
+                self.logged_until[kind] = max((m.step for m in self.client.get_metric_history(found, key)), default=-1)
 
     def _log(self, step: int, metrics: dict[str, float]) -> None:
-        if step <= self.logged_until:
-            return
         now = int(time.time() * 1000)
         self.client.log_batch(self.run_id, metrics=[Metric(k, float(v), now, step) for k, v in metrics.items()])
 
     def on_step(self, step: int, metrics: dict[str, float]) -> None:
-        self._log(step, metrics)
+        if step > self.logged_until["train"]:
+            self._log(step, metrics)
 
     def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
-        if step <= self.logged_until:
+        if step <= self.logged_until["eval"]:
             return
         self._log(step, metrics)
         for path in files:

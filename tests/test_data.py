@@ -324,3 +324,15 @@ def test_mesh_folder_errors_name_the_problem(tmp_path, case):
         # The bad file sits in one of the two splits (by its name's hash); building both must fail.
         build_dataset(cfg, "train")
         build_dataset(cfg, "val")
+
+
+def test_input_view_does_not_depend_on_the_number_of_prior_views(tmp_path):
+    """Ablations over H or prior_3d must compare the same input images."""
+    base = {"data": {"image_size": 32, "num_points": 64, "train_objects": 2, "val_objects": 1, "categories": ["chair"]}}
+    images = []
+    for priors in ({"num_views": 10}, {"num_views": 3}, {"prior_3d": False, "num_views": 0}):
+        cfg = load_config({**base, "priors": priors})
+        sample = build_dataset(cfg, "val")[0]
+        images.append(sample.image)
+        assert sample.view_cameras.T.shape[0] == max(1, priors["num_views"])
+    assert torch.equal(images[0], images[1]) and torch.equal(images[0], images[2])

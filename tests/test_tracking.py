@@ -41,7 +41,7 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     first.on_checkpoint(10, tmp_path / "ckpt")
 
     again = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg)
-    assert again.run_id == first.run_id and again.logged_until == 10
+    assert again.run_id == first.run_id and again.logged_until == {"train": 10, "eval": 10}
     for step in (5, 10, 15):  # a resumed fit repeats the steps after its last checkpoint
         again.on_step(step, {"train/loss": 2.0 / step})
     again.on_eval(10, {"eval/cd": 99.0}, [panel])

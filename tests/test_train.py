@@ -94,3 +94,20 @@ def test_should_stop_ends_early(tmp_path):
 
     result = fit(tiny_config(tmp_path), [StopAt3()])
     assert result.step == 3
+
+
+def test_resume_accepts_auto_resolved_to_the_same_backend_and_refuses_other_maths(tmp_path):
+    cfg = tiny_config(tmp_path, **{"train.steps": 2, "train.eval_every": 2, "model.voxel_backend": "auto"})
+    result = fit(cfg)
+    same = tiny_config(tmp_path, **{"train.steps": 3, "train.eval_every": 3, "model.voxel_backend": "sparse"})
+    assert fit(same, resume_from=result.checkpoint_dir).step == 3  # auto is sparse on CPU
+    other = tiny_config(tmp_path, **{"train.steps": 4, "diffusion.prediction": "eps"})
+    with pytest.raises(ValueError, match="diffusion.prediction"):
+        fit(other, resume_from=result.checkpoint_dir)
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    bad = tmp_path / "checkpoint.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a readable CDM checkpoint"):
+        load_checkpoint(tmp_path)

@@ -213,15 +213,21 @@ def draw_view(rng: np.random.Generator) -> View:
     )
 
 
+_FIT_AZIMUTHS = 24
+"""Azimuths (15° apart) the focal is fitted over, whatever H is: the input image must not depend on
+the number of prior views or on whether the 3D prior is on, or ablations over H and ``prior_3d``
+would compare differently zoomed images. ``view.fill`` < 1 leaves margin for azimuths in between."""
+
+
 def _fitted_cameras(points: Tensor, view: View, num_views: int) -> Cameras:
     """The ``(H,)`` orbit cameras of ``view`` with the focal that puts the farthest projected point,
-    over all H views, at ``view.fill`` of the half-frame, so the object fits every prior view.
-    ``points`` ``(P, 3)``: a random subset of the surface is enough with ``fill`` < 1 as margin."""
+    over a fixed orbit of :data:`_FIT_AZIMUTHS` views, at ``view.fill`` of the half-frame, so the
+    object fits every prior view. ``points`` ``(P, 3)``: a random subset of the surface is enough."""
     one = torch.ones(1)
-    cams = orbit_cameras(one * view.elev, one * view.azim, one * view.dist, num_views, focal=1.0).flatten()
-    reach = project_points(points.expand(num_views, -1, -1), cams)[..., :2].abs().max()
-    focal = torch.full((num_views,), view.fill / float(reach))
-    return Cameras(cams.R, cams.T, focal, cams.principal)
+    fit = orbit_cameras(one * view.elev, one * view.azim, one * view.dist, _FIT_AZIMUTHS, focal=1.0).flatten()
+    reach = project_points(points.expand(_FIT_AZIMUTHS, -1, -1), fit)[..., :2].abs().max()
+    focal = view.fill / float(reach)
+    return orbit_cameras(one * view.elev, one * view.azim, one * view.dist, num_views, focal=focal).flatten()
 
 
 def render_view(surface: ObjectSurface, view: View, image_size: int, num_views: int) -> Rendering:

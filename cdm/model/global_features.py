@@ -13,7 +13,6 @@ feature map instead: the mean for ``concat``, an 8×8 average-pooled token grid 
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import torch
 import torch.nn as nn
@@ -22,9 +21,8 @@ from torch import Tensor
 
 from cdm.model.voxels import norm_groups
 
-__all__ = ["TOKEN_GRID", "GlobalFeatureMode", "PointCrossAttention", "global_embedding", "image_tokens"]
+__all__ = ["TOKEN_GRID", "PointCrossAttention", "global_embedding", "image_tokens"]
 
-GlobalFeatureMode = Literal["none", "concat", "cross_attention"]
 
 TOKEN_GRID = 8
 """Side of the token grid for ``cross_attention``: ``TOKEN_GRID²`` tokens per image."""
