@@ -4,7 +4,7 @@
 
 Every row compares two variants measured side by side in this process (see benchmarks/common.py):
 ``a`` and ``b`` are median seconds, ``ratio`` the median of per-pair ratios ``b / a`` (the quality rows
-hold CD×1000 values instead: ``a`` the baseline's, ``b`` the model's).
+hold CD×1000 values instead: ``a`` the baseline's, ``b`` the model's; the memory rows peak RSS in MB).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.memory import peak_rss  # noqa: E402
 from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
 from benchmarks.quality import quick_config_quality  # noqa: E402
 from benchmarks.training_step import prior_overhead, voxel_backends  # noqa: E402
@@ -27,6 +28,7 @@ BENCHMARKS = {
     "metrics": lambda quick, out: metrics_vs_scipy(quick),
     "prior_overhead": prior_overhead,
     "voxel_backends": voxel_backends,
+    "memory": peak_rss,
 }
 # Minutes-long training runs: only with --only.
 SLOW = {"quality": quick_config_quality}

@@ -22,7 +22,8 @@ PAPER_SCALE = {"data.image_size": 224, "data.num_points": 4096, "priors.render_s
 
 
 def _step_fn(cfg: Config, out_dir: str):
-    trainer = _Trainer(cfg.model_copy(update={"train": cfg.train.model_copy(update={"out_dir": out_dir})}))
+    """One training step on a fixed batch, on one torch thread (figures are per thread)."""
+    trainer = _Trainer(cfg.model_copy(update={"train": cfg.train.model_copy(update={"out_dir": out_dir, "threads": 1})}))
     batch = trainer.next_batch()
     return lambda: trainer.train_step(batch)
 

@@ -12,6 +12,7 @@ there). Checkpoints carry the resolved config, the step, the voxel back-end and 
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import pickle
 import shutil
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+import torch.distributed
 from torch import Tensor
 
 from cdm.config import Config
@@ -34,6 +36,7 @@ from cdm.priors import PRIOR_2D_CHANNELS, prior_3d_loss
 __all__ = ["Callback", "FitResult", "TrainingDiverged", "fit", "load_checkpoint", "metric_names", "resolve_device"]
 
 CHECKPOINT_FILE = "checkpoint.pt"
+log = logging.getLogger(__name__)
 
 
 class TrainingDiverged(RuntimeError):
@@ -148,12 +151,21 @@ class _Trainer:
         self.train_set = build_dataset(config, "train")
         self.val_set = build_dataset(config, "val")
         self.network = CDMNetwork(config.model, PRIOR_2D_CHANNELS[config.priors.prior_2d], device=self.device).to(self.device)
+        log.info(
+            "voxel back-end: %s (model.voxel_backend=%s, device %s)",
+            self.network.voxel_backend, config.model.voxel_backend, self.device,
+        )
         self.ema = _ema_copy(self.network) if config.train.ema_decay is not None else None
         self.diffusion = GaussianDiffusion.from_config(config.diffusion)
         t = config.train
         self.optimizer = torch.optim.AdamW(self.network.parameters(), lr=t.lr, weight_decay=t.weight_decay, betas=t.betas)
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_factor(s, t.warmup_steps, t.steps))
-        self.generator = torch.Generator(device=self.device).manual_seed(t.seed)
+        # Data-parallel when a process group exists (Ray Train's TorchTrainer sets one up): each rank
+        # draws its own batch and noise, and gradients are averaged before the optimiser step.
+        distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
+        self.rank = torch.distributed.get_rank() if distributed else 0
+        self.world = torch.distributed.get_world_size() if distributed else 1
+        self.generator = torch.Generator(device=self.device).manual_seed(t.seed + 7919 * self.rank)
         self.step = 0
         self.out_dir = Path(config.train.out_dir)
         self._eval_set: EvalSet | None = None
@@ -184,7 +196,7 @@ class _Trainer:
         self.step = int(state["step"])
 
     def next_batch(self) -> Batch:
-        idx = batch_indices(self.step, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed)
+        idx = batch_indices(self.step * self.world + self.rank, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed)
         return collate([self.train_set.sample(i, epoch) for epoch, i in idx]).to(self.device)
 
     def losses(self, batch: Batch) -> tuple[Tensor, Tensor, Tensor]:
@@ -222,6 +234,8 @@ class _Trainer:
             raise self._diverged("the 3D prior loss")
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if self.world > 1:
+            self._average_gradients()
         torch.nn.utils.clip_grad_norm_(self.network.parameters(), self.cfg.train.grad_clip)
         self.optimizer.step()
         self.scheduler.step()
@@ -229,6 +243,17 @@ class _Trainer:
             _ema_update(self.ema, self.network, self.cfg.train.ema_decay)
         self.step += 1
         return loss.item(), loss_diff.item(), loss_prior.item()
+
+    def _average_gradients(self) -> None:
+        """Mean of every gradient over ranks: the same update everywhere, as DDP would make it."""
+        grads = [p.grad for p in self.network.parameters() if p.grad is not None]
+        flat = torch.cat([g.reshape(-1) for g in grads])
+        torch.distributed.all_reduce(flat)
+        flat /= self.world
+        offset = 0
+        for g in grads:
+            g.copy_(flat[offset : offset + g.numel()].view_as(g))
+            offset += g.numel()
 
     def evaluate(self) -> tuple[dict[str, float], list[Path]]:
         if self._eval_set is None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 
 from cdm.train import Callback, TrainingDiverged, batch_indices, fit, load_checkpoint, lr_factor, metric_names
 from tests.conftest import tiny_config
@@ -111,3 +112,33 @@ def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     bad.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="not a readable CDM checkpoint"):
         load_checkpoint(tmp_path)
+
+
+def _ddp_worker(rank: int, world: int, init_file: str, out_dir: str, results) -> None:
+    import torch.distributed as dist
+
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world)
+    torch.set_num_threads(1)
+    from pathlib import Path
+
+    cfg = tiny_config(Path(out_dir) / f"rank{rank}", **{"train.steps": 3, "train.eval_every": 3})
+    from cdm.train import _Trainer
+
+    trainer = _Trainer(cfg)
+    batch_ids = trainer.next_batch().object_id
+    for _ in range(3):
+        trainer.train_step(trainer.next_batch())
+    results[rank] = (batch_ids, torch.cat([p.detach().reshape(-1) for p in trainer.network.parameters()]))
+    dist.destroy_process_group()
+
+
+def test_data_parallel_ranks_see_different_batches_and_stay_in_sync(tmp_path):
+    """With a process group (as Ray Train sets up), gradients are averaged: weights stay identical."""
+    import torch.multiprocessing as mp
+
+    with mp.Manager() as manager:
+        results = manager.dict()
+        mp.spawn(_ddp_worker, args=(2, str(tmp_path / "init"), str(tmp_path), results), nprocs=2, join=True)
+        (ids0, w0), (ids1, w1) = results[0], results[1]
+    assert ids0 != ids1
+    assert torch.equal(w0, w1)
