@@ -1,7 +1,9 @@
 """Peak memory (RSS) of training steps, dense vs sparse voxel back-end, at paper widths on CPU.
 
 Each variant runs in its own process (peak RSS is per process and never goes down), takes three
-training steps at B=8, and reports ``ru_maxrss``. Issue 13: sparse must not need more than dense.
+training steps at B=8, and reports ``VmHWM`` from ``/proc/self/status`` — not ``ru_maxrss``, which Linux
+carries over from the forking parent across ``exec`` and so reported the benchmark driver's own peak.
+Issue 13: sparse must not need more than dense. Linux only.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ __all__ = ["peak_rss"]
 ROOT = Path(__file__).resolve().parents[1]
 
 _CHILD = """
-import json, resource, sys, torch
+import json, re, sys, torch
 sys.path.insert(0, {root!r})
 torch.set_num_threads(1)
 from benchmarks.training_step import QUICK, _step_fn
@@ -25,7 +27,8 @@ cfg = load_config(QUICK, {overrides!r})
 step = _step_fn(cfg, {out!r})
 for _ in range(3):
     step()
-print(json.dumps({{"peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}}))
+hwm_kb = int(re.search(r"VmHWM:\\s+(\\d+) kB", open("/proc/self/status").read()).group(1))
+print(json.dumps({{"peak_rss_mb": hwm_kb / 1024}}))
 """
 
 

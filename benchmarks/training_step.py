@@ -18,7 +18,8 @@ from cdm.train import _Trainer
 __all__ = ["prior_overhead", "voxel_backends"]
 
 QUICK = Path(__file__).resolve().parents[1] / "configs" / "quick.yaml"
-PAPER_SCALE = {"data.image_size": 224, "data.num_points": 4096, "priors.render_size": 224}
+PAPER_SCALE = {"data.image_size": 224, "data.num_points": 4096, "priors.render_size": 224,
+               "model.widths": [64, 128, 256], "model.voxel_resolutions": [32, 16, 16]}
 
 
 def _step_fn(cfg: Config, out_dir: str):
@@ -30,7 +31,7 @@ def _step_fn(cfg: Config, out_dir: str):
 
 def prior_overhead(quick: bool, out_dir: str) -> list[dict]:
     rows = []
-    scales = [("quick config (64², N=512)", {})] + ([] if quick else [("paper scale (224², N=4096)", PAPER_SCALE)])
+    scales = [("quick config (64², N=512)", {})] + ([] if quick else [("paper scale (224², N=4096, widths 64/128/256, sparse)", PAPER_SCALE)])
     for label, extra in scales:
         on = load_config(QUICK, {**extra, "priors.prior_3d": True, "priors.num_views": 10, "priors.point_size": 0.04})
         off = load_config(QUICK, {**extra, "priors.prior_3d": False})
