@@ -27,8 +27,10 @@ class Recorder(Callback):
         self.checkpoints.append((step, path))
 
 
-def test_loss_falls_over_a_few_hundred_steps(tmp_path):
-    cfg = tiny_config(tmp_path, **{"train.steps": 300, "train.eval_every": 300, "train.log_every": 50})
+@pytest.mark.parametrize("backend", ["sparse", "dense"])
+def test_loss_falls_over_a_few_hundred_steps(tmp_path, backend):
+    cfg = tiny_config(tmp_path, **{"train.steps": 300, "train.eval_every": 300, "train.log_every": 50,
+                                   "model.voxel_backend": backend})
     rec = Recorder()
     result = fit(cfg, [rec])
     losses = [rec.steps[s]["train/loss"] for s in sorted(rec.steps)]
