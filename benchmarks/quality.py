@@ -7,8 +7,8 @@ config's full training (about 5–8 minutes on one thread), so it is not part of
 
 from __future__ import annotations
 
-from pathlib import Path
 import time
+from pathlib import Path
 
 from cdm.config import load_config
 from cdm.train import fit

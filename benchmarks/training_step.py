@@ -9,9 +9,10 @@
 
 from __future__ import annotations
 
+import statistics
 from pathlib import Path
 
-from benchmarks.common import paired
+from benchmarks.common import paired, timed
 from cdm.config import Config, load_config
 from cdm.train import _Trainer
 
@@ -52,9 +53,9 @@ def voxel_backends(quick: bool, out_dir: str) -> list[dict]:
         result = paired(_step_fn(sparse, out_dir), _step_fn(dense, out_dir), repeats=2 if quick else 4)
         rows.append({"benchmark": "dense / sparse step", "case": f"paper widths, N={n}", "without_s": result.a_s,
                      "with_s": result.b_s, "ratio": result.ratio, "target": target})
-    local = load_config(QUICK)
-    step = _step_fn(local, out_dir)
-    times = paired(step, step, repeats=5)
-    rows.append({"benchmark": "quick config step", "case": "B=8, 1 thread, with 3D prior", "without_s": times.a_s,
-                 "with_s": times.b_s, "ratio": times.a_s, "target": "<= 0.25 s"})
+    step = _step_fn(load_config(QUICK), out_dir)
+    step()
+    seconds = statistics.median(timed(step) for _ in range(10))
+    rows.append({"benchmark": "quick config step", "case": "B=8, 1 thread, with 3D prior", "without_s": seconds,
+                 "with_s": seconds, "ratio": seconds / 0.25, "target": "<= 1.0 (step / 0.25 s)"})
     return rows

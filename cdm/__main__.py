@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from cdm.config import Config, config_field_paths, load_config, parse_override
+from cdm.evaluate import BASELINES
 from cdm.train import Callback, TrainingDiverged, fit
 
 __all__ = ["main"]
@@ -38,7 +39,7 @@ class _Progress(Callback):
     def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
         self.bar.write(
             f"step {step}: CD×1000 {metrics['eval/cd']:.2f}  F1 {metrics['eval/f1']:.3f}   baselines CD: "
-            + "  ".join(f"{b} {metrics[f'baseline/{b}/cd']:.2f}" for b in ("sphere", "gaussian", "category_mean"))
+            + "  ".join(f"{b} {metrics[f'baseline/{b}/cd']:.2f}" for b in BASELINES)
         )
 
     def on_checkpoint(self, step: int, path: Path) -> None:

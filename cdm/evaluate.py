@@ -27,7 +27,7 @@ from cdm.config import Config
 from cdm.data.sample import Batch, collate
 from cdm.data.views import ObjectDataset
 from cdm.diffusion import GaussianDiffusion
-from cdm.metrics import chamfer_f1
+from cdm.metrics import ChamferF1, chamfer_f1
 from cdm.model import CDMNetwork
 
 __all__ = [
@@ -51,10 +51,6 @@ class EvalSet:
 
     batches: list[Batch]
     baseline_metrics: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def object_ids(self) -> list[str]:
-        return [oid for b in self.batches for oid in b.object_id]
 
 
 @dataclass
@@ -85,7 +81,7 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
     for batch in batches:
         clouds = baseline_clouds(batch.points, batch.category, means, gen)
         for name, cloud in clouds.items():
-            m = chamfer_f1(_subsample(cloud, cfg.eval.num_points, gen), _subsample(batch.points, cfg.eval.num_points, gen), cfg.eval.f1_threshold)
+            m = _score(cloud, batch.points, cfg, gen)
             scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
     for name, rows in scores.items():
         eval_set.baseline_metrics.update(_summarise(rows, f"baseline/{name}"))
@@ -135,6 +131,11 @@ def _subsample(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
         return cloud
     idx = torch.randperm(cloud.shape[1], generator=gen)[:n]
     return cloud[:, idx.to(cloud.device)]
+
+
+def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator) -> ChamferF1:
+    """BDM's protocol: ``eval.num_points`` from each cloud, then CD and F1 at ``eval.f1_threshold``."""
+    return chamfer_f1(_subsample(pred, cfg.eval.num_points, gen), _subsample(gt, cfg.eval.num_points, gen), cfg.eval.f1_threshold)
 
 
 def _summarise(rows: list[tuple[str, float, float]], prefix: str) -> dict[str, float]:
@@ -191,7 +192,7 @@ def run_evaluation(
     for batch in eval_set.batches:
         batch_d = batch.to(device)
         pred = reconstruct(network, diffusion, batch_d, cfg, sample_gen).cpu()
-        m = chamfer_f1(_subsample(pred, cfg.eval.num_points, metric_gen), _subsample(batch.points, cfg.eval.num_points, metric_gen), cfg.eval.f1_threshold)
+        m = _score(pred, batch.points, cfg, metric_gen)
         for j in range(len(batch)):
             rows.append({"object_id": batch.object_id[j], "category": batch.category[j], "cd": m.cd[j].item(), "f1": m.f1[j].item()})
             if out_dir is not None and len(rows) <= cfg.eval.save_clouds:
