@@ -1,6 +1,6 @@
 """Run the benchmarks and print one Markdown table; write the rows as JSON.
 
-    python benchmarks/run.py [--quick] [--only NAME ...] [--out DIR]
+    python benchmarks/run.py [--quick] [--only NAME ...] [--device cpu|cuda] [--out DIR]
 
 Every row compares two variants measured side by side in this process (see benchmarks/common.py):
 ``a`` and ``b`` are median seconds, ``ratio`` the median of per-pair ratios ``b / a`` (the quality rows
@@ -19,9 +19,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.blend import blend_overhead  # noqa: E402
 from benchmarks.memory import peak_rss  # noqa: E402
 from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
 from benchmarks.quality import quick_config_quality  # noqa: E402
+from benchmarks.throughput import throughput  # noqa: E402
 from benchmarks.training_step import prior_overhead, voxel_backends  # noqa: E402
 
 BENCHMARKS = {
@@ -29,9 +31,12 @@ BENCHMARKS = {
     "prior_overhead": prior_overhead,
     "voxel_backends": voxel_backends,
     "memory": peak_rss,
+    "blend": blend_overhead,
 }
 # Minutes-long training runs: only with --only.
 SLOW = {"quality": quick_config_quality}
+# Run on --device (the others measure CPU costs per thread).
+ON_DEVICE = {"throughput": throughput}
 
 
 def to_markdown(rows: list[dict]) -> str:
@@ -44,17 +49,25 @@ def to_markdown(rows: list[dict]) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer sizes and repeats (about a minute)")
-    parser.add_argument("--only", nargs="*", choices=sorted({**BENCHMARKS, **SLOW}), help="run only these (quality: only this way)")
-    parser.add_argument("--out", default="benchmarks/out", help="folder for results.json")
+    parser.add_argument("--only", nargs="*", choices=sorted({**BENCHMARKS, **SLOW, **ON_DEVICE}),
+                        help="run only these (quality: only this way)")
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="device of the throughput benchmark")
+    parser.add_argument("--out", default="benchmarks/out", help="folder for results.json (and gpu_costs.json on cuda)")
     args = parser.parse_args()
+    if args.device == "cuda" and not torch.cuda.is_available():
+        print("error: --device cuda: no CUDA device is available", file=sys.stderr)
+        return 2
     torch.set_num_threads(1)  # figures are per CPU thread, comparable across machines
-    rows = []
-    with tempfile.TemporaryDirectory() as scratch:
-        for name in args.only or BENCHMARKS:
-            print(f"running {name} ...", flush=True)
-            rows += {**BENCHMARKS, **SLOW}[name](args.quick, scratch)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as scratch:
+        for name in args.only or [*BENCHMARKS, *ON_DEVICE]:
+            print(f"running {name} ...", flush=True)
+            if name in ON_DEVICE:
+                rows += ON_DEVICE[name](args.quick, str(out), args.device)
+            else:
+                rows += {**BENCHMARKS, **SLOW}[name](args.quick, scratch)
     (out / "results.json").write_text(json.dumps(rows, indent=2))
     print(to_markdown(rows))
     print(f"\nrows written to {out / 'results.json'}")

@@ -195,6 +195,8 @@ class EvalConfig(_Group):
     """Sampling seed, identical across runs so cells are compared on the same noise."""
     save_clouds: int = Field(4, ge=0)
     """Reconstructions written as PLY per evaluation."""
+    retrieval_bank: int = Field(64, ge=1)
+    """Training images per category searched by the nearest-image retrieval baseline."""
 
 
 class Config(_Group):

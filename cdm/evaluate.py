@@ -7,13 +7,20 @@ scores, on the same objects and with the same metric:
 - ``gaussian``: an axis-aligned Gaussian with the ground truth's per-axis standard deviation;
 - ``category_mean``: the category's mean training shape — the medoid (under Chamfer distance) of a
   few training clouds of that category. It knows the true category: an oracle.
+- ``retrieval``: the cloud of the nearest training image, by L2 distance between the input
+  silhouettes (masks, area-resampled to 32×32) over ``eval.retrieval_bank`` training images per
+  category. Silhouettes rather than RGB because the embedded data set varies colour and lighting per
+  image, which would dominate an RGB distance; it does not see the category.
 
-Baselines are computed once per evaluation set (they do not depend on the model).
+Baselines are computed once per evaluation set (they do not depend on the model), per object, so a
+cell can be compared with each of them pairwise on the same objects.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
+import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,8 +39,9 @@ from cdm.model import CDMNetwork
 
 __all__ = [
     "BASELINES",
-    "EvalSet",
     "EvalOutput",
+    "EvalSet",
+    "RetrievalBank",
     "baseline_clouds",
     "build_eval_set",
     "reconstruct",
@@ -42,7 +50,9 @@ __all__ = [
     "write_ply",
 ]
 
-BASELINES = ("sphere", "gaussian", "category_mean")
+BASELINES = ("sphere", "gaussian", "category_mean", "retrieval")
+RETRIEVAL_SIZE = 32
+"""Side of the resampled silhouettes the retrieval baseline compares, in pixels."""
 
 
 @dataclass
@@ -50,7 +60,11 @@ class EvalSet:
     """The fixed objects every evaluation of a run (and every cell of a sweep) is scored on."""
 
     batches: list[Batch]
+    fingerprint: str
+    """Hash of the objects, their views and the scoring settings: equal fingerprints, comparable runs."""
     baseline_metrics: dict[str, float] = field(default_factory=dict)
+    baseline_rows: dict[str, dict[str, float]] = field(default_factory=dict)
+    """Per object id: ``{"baseline/<name>/cd": …, "baseline/<name>/f1": …}``."""
 
 
 @dataclass
@@ -65,7 +79,8 @@ class EvalOutput:
 def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: int) -> EvalSet:
     """Take the first ``eval.num_objects`` held-out objects of each category and score the baselines.
 
-    ``train`` supplies the clouds for the category-mean oracle (up to 16 per category).
+    ``train`` supplies the clouds for the category-mean oracle (up to 16 per category) and the
+    retrieval baseline's bank.
     """
     per_cat: dict[str, list[int]] = {}
     for i, ref in enumerate(val.objects):
@@ -74,18 +89,57 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
     chosen = [val[i] for cat in sorted(per_cat) for i in per_cat[cat]]
     bs = cfg.train.batch_size
     batches = [collate(chosen[i : i + bs]) for i in range(0, len(chosen), bs)]
-    eval_set = EvalSet(batches)
+    identity = {"data": [cfg.data.kind, cfg.data.root, cfg.data.seed, cfg.data.num_points, cfg.data.image_size],
+                "objects": [s.object_id for s in chosen],
+                "scoring": [cfg.eval.seed, cfg.eval.num_points, cfg.eval.f1_threshold]}
+    fingerprint = hashlib.sha256(json.dumps(identity).encode()).hexdigest()[:16]
+    eval_set = EvalSet(batches, fingerprint)
     means = _category_medoids(train, set(per_cat), cfg.eval.num_points)
+    bank = RetrievalBank.build(train, set(per_cat), cfg.eval.retrieval_bank)
     gen = torch.Generator().manual_seed(seed)
     scores: dict[str, list[tuple[str, float, float]]] = {name: [] for name in BASELINES}
     for batch in batches:
-        clouds = baseline_clouds(batch.points, batch.category, means, gen)
-        for name, cloud in clouds.items():
-            m = _score(cloud, batch.points, cfg, gen)
+        clouds = {**baseline_clouds(batch.points, batch.category, means, gen), "retrieval": bank.nearest(batch.mask)}
+        for name in BASELINES:
+            m = _score(clouds[name], batch.points, cfg, gen)
             scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
+            for oid, cd, f1 in zip(batch.object_id, m.cd.tolist(), m.f1.tolist()):
+                eval_set.baseline_rows.setdefault(oid, {}).update({f"baseline/{name}/cd": cd, f"baseline/{name}/f1": f1})
     for name, rows in scores.items():
         eval_set.baseline_metrics.update(_summarise(rows, f"baseline/{name}"))
     return eval_set
+
+
+@dataclass
+class RetrievalBank:
+    """Training silhouettes and their clouds for the nearest-image baseline (category-blind)."""
+
+    keys: Tensor
+    """``(K, RETRIEVAL_SIZE²)`` resampled training masks."""
+    clouds: list[Tensor]
+    """The ``K`` training clouds, each ``(N, 3)``."""
+
+    @classmethod
+    def build(cls, train: ObjectDataset, categories: set[str], per_category: int) -> RetrievalBank:
+        """The first ``per_category`` training objects of each category, each in its first view."""
+        counts = dict.fromkeys(categories, 0)
+        keys, clouds = [], []
+        for i, ref in enumerate(train.objects):
+            if ref.category in counts and counts[ref.category] < per_category:
+                counts[ref.category] += 1
+                sample = train.sample(i, 0)
+                keys.append(_silhouette(sample.mask[None])[0])
+                clouds.append(sample.points)
+        return cls(torch.stack(keys), clouds)
+
+    def nearest(self, masks: Tensor) -> Tensor:
+        """For input masks ``(B, 1, H, W)``, the clouds ``(B, N, 3)`` of the nearest bank images."""
+        idx = torch.cdist(_silhouette(masks), self.keys).argmin(dim=1)
+        return torch.stack([self.clouds[int(i)] for i in idx])
+
+
+def _silhouette(masks: Tensor) -> Tensor:
+    return torch.nn.functional.adaptive_avg_pool2d(masks.float(), RETRIEVAL_SIZE).flatten(1)
 
 
 def baseline_clouds(gt: Tensor, categories: Sequence[str], category_means: dict[str, Tensor], gen: torch.Generator) -> dict[str, Tensor]:
@@ -181,7 +235,7 @@ def run_evaluation(
 ) -> EvalOutput:
     """Reconstruct every object of ``eval_set`` with a fixed seed and score it (CD ×1000, F1).
 
-    Writes ``objects.csv`` (one row per object), PLY clouds and PNG panels of the first
+    Writes ``objects.csv`` (one row per object: ours and every baseline), PLY clouds and PNG panels of the first
     ``eval.save_clouds`` objects into ``out_dir`` when given.
     """
     network.eval()
@@ -194,7 +248,9 @@ def run_evaluation(
         pred = reconstruct(network, diffusion, batch_d, cfg, sample_gen).cpu()
         m = _score(pred, batch.points, cfg, metric_gen)
         for j in range(len(batch)):
-            rows.append({"object_id": batch.object_id[j], "category": batch.category[j], "cd": m.cd[j].item(), "f1": m.f1[j].item()})
+            oid = batch.object_id[j]
+            rows.append({"object_id": oid, "category": batch.category[j], "eval_set": eval_set.fingerprint,
+                         "cd": m.cd[j].item(), "f1": m.f1[j].item(), **eval_set.baseline_rows[oid]})
             if out_dir is not None and len(rows) <= cfg.eval.save_clouds:
                 stem = batch.object_id[j].replace("/", "_")
                 files.append(write_ply(out_dir / f"{stem}.ply", pred[j]))
@@ -206,7 +262,7 @@ def run_evaluation(
         out_dir.mkdir(parents=True, exist_ok=True)
         table = out_dir / "objects.csv"
         with table.open("w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=["object_id", "category", "cd", "f1"])
+            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
             writer.writeheader()
             writer.writerows(rows)
         files.append(table)

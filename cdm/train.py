@@ -32,8 +32,9 @@ from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import BASELINES, EvalSet, build_eval_set, run_evaluation
 from cdm.model import CDMNetwork
 from cdm.priors import PRIOR_2D_CHANNELS, prior_3d_loss
+from cdm.provenance import run_record
 
-__all__ = ["Callback", "FitResult", "TrainingDiverged", "fit", "load_checkpoint", "metric_names", "resolve_device"]
+__all__ = ["Callback", "FitResult", "Trainer", "TrainingDiverged", "fit", "load_checkpoint", "metric_names", "resolve_device"]
 
 CHECKPOINT_FILE = "checkpoint.pt"
 log = logging.getLogger(__name__)
@@ -45,6 +46,9 @@ class TrainingDiverged(RuntimeError):
 
 class Callback:
     """Hooks of :func:`fit`; every method is a no-op here. Subclass and override what you need."""
+
+    def on_start(self, record: dict[str, str]) -> None:
+        """Once, before the first step: the reproducibility record (:func:`cdm.provenance.run_record`)."""
 
     def on_step(self, step: int, metrics: dict[str, float]) -> None:
         """Every ``train.log_every`` steps: ``train/*`` running means since the last call."""
@@ -139,8 +143,9 @@ def _check_compatible(state: dict, config: Config, network: CDMNetwork) -> None:
         raise ValueError(f"resume: this run's {', '.join(differ)} differ from the checkpoint's; resume with the same settings")
 
 
-class _Trainer:
-    """State of one run; :func:`fit` drives it."""
+class Trainer:
+    """State of one run: data, network, optimiser, RNGs and step. :func:`fit` drives it; benchmarks and
+    the sweep runner's cost estimate time its steps directly."""
 
     def __init__(self, config: Config):
         self.cfg = config
@@ -302,9 +307,12 @@ def fit(config: Config, callbacks: Sequence[Callback] = (), resume_from: str | P
         TrainingDiverged: the loss became NaN or infinite.
     """
     state = load_checkpoint(resume_from) if resume_from is not None else None
-    trainer = _Trainer(config)
+    trainer = Trainer(config)
     if state is not None:
         trainer.restore(state)
+    record = run_record(config, trainer.train_set, trainer.val_set, trainer.device)
+    for cb in callbacks:
+        cb.on_start(record)
     t_cfg = config.train
     metrics: dict[str, float] = {}
     checkpoint: Path | None = None

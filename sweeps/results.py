@@ -3,7 +3,11 @@
 Knows nothing of Ray or MLflow: the runner turns finished trials into :class:`TrialOutcome` s and
 this module aggregates and formats them — plain text for the terminal, Markdown and CSV for the
 sweep folder. Trivial baselines the trainer reports (``baseline/<name>/<metric>``: sphere, Gaussian,
-category mean) get their own rows, so a local result is never read without them (NOTES §6).
+category mean, retrieval) get their own rows, so a local result is never read without them (NOTES §6).
+
+When trials carry their per-object scores, every cell (and every baseline) is also compared pairwise
+with a reference cell (:mod:`sweeps.paired`): mean difference, 95% bootstrap interval and a verdict,
+plus which baselines the cell beats with an interval that excludes 0.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
+
+from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
 
 __all__ = ["ResultsTable", "TrialOutcome", "build_table"]
 
@@ -35,6 +41,8 @@ class TrialOutcome:
     paper_label: str | None = None
     paper: dict[str, float] = field(default_factory=dict)
     error: str | None = None
+    objects: tuple[dict[str, object], ...] = ()
+    """Per-object rows of the last evaluation (``object_id``, ``category``, ``cd``, ``f1``, ``baseline/…``)."""
 
 
 @dataclass(frozen=True)
@@ -73,7 +81,10 @@ class ResultsTable:
 
     def text(self) -> str:
         widths = [max(len(r[i]) for r in [self.header, *self.rows]) for i in range(len(self.header))]
-        line = lambda cells: "  ".join(c.ljust(w) for c, w in zip(cells, widths)).rstrip()
+
+        def line(cells: list[str]) -> str:
+            return "  ".join(c.ljust(w) for c, w in zip(cells, widths)).rstrip()
+
         out = [self.title, line(self.header), "  ".join("-" * w for w in widths)]
         out += [line(r) for r in self.rows] + self.notes
         return "\n".join(out)
@@ -112,14 +123,87 @@ def _categories(outcomes: Sequence[TrialOutcome], metric: str) -> list[str]:
     return sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
 
 
+def _finished(group: Sequence[TrialOutcome]) -> list[TrialOutcome]:
+    return [o for o in group if o.status in ("ok", "stopped")]
+
+
+def _object_column(metric: str) -> tuple[str, str | None] | None:
+    """``eval/cd`` → (``cd``, None), ``eval/f1/chair`` → (``f1``, ``chair``): where ``objects.csv`` holds it."""
+    parts = metric.split("/")
+    if parts[0] != "eval" or len(parts) not in (2, 3) or parts[1] not in ("cd", "f1"):
+        return None
+    return parts[1], parts[2] if len(parts) == 3 else None
+
+
+def _object_scores(group: Sequence[TrialOutcome], key: str, category: str | None) -> dict[str, float]:
+    """``object_id →`` score under ``key`` of a cell's finished trials, seeds averaged per object."""
+    trials = [[r for r in o.objects if category is None or r["category"] == category] for o in _finished(group) if o.objects]
+    return per_object_means(trials, key) if trials and all(key in r for t in trials for r in t) else {}
+
+
+@dataclass
+class _Pairing:
+    """Paired differences of every cell and baseline against the reference cell, per shown metric."""
+
+    reference: str
+    diffs: dict[tuple[str, str], PairedDifference | str]
+    """``(row name, metric) →`` the difference, or why there is none."""
+    beats: dict[str, list[str]]
+    """Cell → baselines it beats on the table's metric (interval excluding 0)."""
+    notes: list[str]
+
+    @classmethod
+    def build(cls, cells: dict[str, list[TrialOutcome]], reference: str, shown: list[str], metric: str,
+              mode: Literal["min", "max"], baselines: list[str]) -> _Pairing:
+        pairing = cls(reference, {}, {}, [])
+        for m in shown:
+            column, category = _object_column(m)  # type: ignore[misc]
+            scores = {name: _object_scores(group, column, category) for name, group in cells.items()}
+            # Baselines depend on the evaluation set only: the reference cell's rows carry them.
+            scores |= {f"baseline: {b}": _object_scores(cells[reference], f"baseline/{b}/{column}", category) for b in baselines}
+            for name, values in scores.items():
+                if name == reference or not values:
+                    continue
+                try:
+                    pairing.diffs[(name, m)] = compare(values, scores[reference], (name, reference))
+                except UnpairedError as exc:
+                    pairing.diffs[(name, m)] = "not paired"
+                    pairing.notes += [f"not paired: {exc}"] if m == metric else []
+            if m != metric:
+                continue
+            for name in cells:
+                for b in baselines:
+                    ours, theirs = scores[name], scores[f"baseline: {b}"]
+                    if ours and set(ours) == set(theirs) and compare(ours, theirs, (name, b)).verdict(mode) == "better":
+                        pairing.beats.setdefault(name, []).append(b)
+        return pairing
+
+    def columns(self, name: str, shown: list[str], metric: str, mode: Literal["min", "max"], is_cell: bool) -> list[str]:
+        """Δ per shown metric, verdict, and (cells only) the baselines beaten."""
+        out = []
+        for m in shown:
+            d = self.diffs.get((name, m))
+            out.append("reference" if name == self.reference else d.text() if isinstance(d, PairedDifference) else d or "–")
+        d = self.diffs.get((name, metric))
+        out.append(d.verdict(mode) if isinstance(d, PairedDifference) else "")
+        out.append((", ".join(self.beats.get(name, [])) or "none") if is_cell else "")
+        return out
+
+
 def build_table(
     outcomes: Sequence[TrialOutcome],
     metric: str,
     mode: Literal["min", "max"],
     title: str,
     paper_note: str = "",
+    compare_to: str | None = None,
 ) -> ResultsTable:
-    """Aggregate trials per cell (in first-seen order) and mark the best cell by ``metric``/``mode``."""
+    """Aggregate trials per cell (in first-seen order) and mark the best cell by ``metric``/``mode``.
+
+    With per-object rows on the trials, every cell and baseline is paired with ``compare_to``
+    (default: the first cell): mean difference and 95% bootstrap interval for each shown metric, a
+    verdict by ``metric``, and the baselines the cell beats.
+    """
     cells: dict[str, list[TrialOutcome]] = {}
     for o in outcomes:
         cells.setdefault(o.cell, []).append(o)
@@ -127,10 +211,17 @@ def build_table(
     shown = [m for m in (metric, partner) if m is not None]
     categories = _categories(outcomes, metric)
     has_paper_label = any(o.paper_label for o in outcomes)
+    baselines = sorted({k.split("/")[1] for o in outcomes for k in o.metrics if k.startswith("baseline/")})
+    reference = compare_to or next(iter(cells), None)
+    pairing = None
+    if _object_column(metric) is not None and reference in cells and any(o.objects for o in _finished(cells[reference])):
+        pairing = _Pairing.build(cells, reference, shown, metric, mode, baselines)
     header = ["cell"] + (["paper setting"] if has_paper_label else []) + ["trials"]
     for m in shown:
         header += [m, f"paper {m}"]
     header += [f"{metric}/{c}" for c in categories]
+    if pairing:
+        header += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in shown] + ["verdict", "beats baselines"]
 
     stats = {name: _Stat.of([o.metrics[metric] for o in group if o.status in ("ok", "stopped") and metric in o.metrics])
              for name, group in cells.items()}
@@ -157,11 +248,13 @@ def build_table(
                 row.append(text + ("" if paper is None else f" ({_num(paper)})"))
             record.update({f"{m} mean": stat.mean if stat else None, f"{m} std": stat.std if stat else None,
                            f"{m} paper": paper})
+        if pairing:
+            row += pairing.columns(name, shown, metric, mode, is_cell=True)
+            record.update(_paired_record(pairing, name, shown, metric, mode))
         rows.append(row)
         records.append(record)
 
     suffix = metric.removeprefix("eval/") if metric.startswith("eval/") else None
-    baselines = sorted({k.split("/")[1] for o in outcomes for k in o.metrics if k.startswith("baseline/")})
     for b in baselines if suffix else []:
         done = [o for o in outcomes if o.status in ("ok", "stopped")]
         # Baselines depend on the evaluation data only, not on the cell: their mean is the number.
@@ -172,6 +265,9 @@ def build_table(
             stat = _Stat.of([o.metrics[key] for o in done if key in o.metrics])
             row += [_num(stat.mean) if stat else "–"] + ([""] if m in shown else [])
             record.update({f"{m} mean": stat.mean if stat else None})
+        if pairing:
+            row += pairing.columns(f"baseline: {b}", shown, metric, mode, is_cell=False)
+            record.update(_paired_record(pairing, f"baseline: {b}", shown, metric, mode))
         rows.append(row)
         records.append(record)
 
@@ -182,5 +278,22 @@ def build_table(
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
     if best is not None:
         notes.append(f"★ best cell by {metric} ({mode}); ± is the standard deviation over seeds")
+    if pairing:
+        notes.append(f"Δ: mean over the same objects of (row − {reference}), seeds averaged per object, with a 95% "
+                     f"paired bootstrap interval; verdict and beats baselines by {metric} ({mode}), interval excluding 0")
+        notes += pairing.notes
     notes += [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
     return ResultsTable(title, header, rows, records, notes, best)
+
+
+def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str, mode: Literal["min", "max"]) -> dict[str, object]:
+    record: dict[str, object] = {}
+    for m in shown:
+        d = pairing.diffs.get((name, m))
+        ok = isinstance(d, PairedDifference)
+        record.update({f"{m} delta": d.mean if ok else None, f"{m} delta low": d.low if ok else None,
+                       f"{m} delta high": d.high if ok else None})
+    d = pairing.diffs.get((name, metric))
+    record["verdict"] = d.verdict(mode) if isinstance(d, PairedDifference) else ""
+    record["beats baselines"] = ";".join(pairing.beats.get(name, []))
+    return record

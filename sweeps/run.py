@@ -1,5 +1,6 @@
 """Run a sweep: ``python sweeps/run.py SPEC [--profile smoke|local|paper] [--smoke] [--resume] [--dry-run]
-[--address ADDR] [--set key=value ...] [--storage PATH] [--tracking-uri URI]``.
+[--address ADDR] [--set key=value ...] [--storage PATH] [--tracking-uri URI]``, or re-run one finished
+trial from its MLflow record: ``python sweeps/run.py --rerun RUN_ID [--force]``.
 
 The spec is expanded and every cell's config validated before Ray starts; a bad spec exits with
 code 2 and one message naming the field, having written nothing. Then the trials run on Ray (a local
@@ -31,7 +32,7 @@ STATE_FILE = "sweep.json"
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sweeps/run.py", description=__doc__.split("\n\n")[1])
-    p.add_argument("spec", type=Path, help="sweep spec, e.g. sweeps/point_size.yaml")
+    p.add_argument("spec", type=Path, nargs="?", help="sweep spec, e.g. sweeps/point_size.yaml")
     p.add_argument("--profile", default=None, help="profile in sweeps/profiles.yaml or the spec (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials")
@@ -40,6 +41,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every trial")
     p.add_argument("--storage", type=Path, default=Path("results"), help="parent folder of sweep folders (default: ./results)")
     p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
+    p.add_argument("--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record")
+    p.add_argument("--force", action="store_true", help="with --rerun: run even if the code or config differs from the record")
     return p
 
 
@@ -89,6 +92,16 @@ def _fail(message: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if (args.spec is None) == (args.rerun is None):
+        return _fail("give a sweep spec (e.g. sweeps/point_size.yaml) or --rerun RUN_ID, not both or neither")
+    if args.rerun is not None:
+        from sweeps.rerun import RerunError, rerun
+        from sweeps.tracking import resolve_tracking_uri
+
+        try:
+            return rerun(args.rerun, resolve_tracking_uri(args.tracking_uri), (args.storage / "reruns").resolve(), args.force)
+        except RerunError as exc:
+            return _fail(str(exc))
     if args.smoke and args.profile not in (None, "smoke"):
         return _fail(f"--smoke means --profile smoke; got --profile {args.profile} too")
     profile = "smoke" if args.smoke else (args.profile or "local")
@@ -115,8 +128,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.dry_run:
         import torch
 
+        from sweeps.estimate import estimate
+
         local = args.address is None and "RAY_ADDRESS" not in os.environ
-        print(describe(plan, os.cpu_count() if local else None, torch.cuda.device_count() if local else None))
+        cpus, gpus = (os.cpu_count() or 1, torch.cuda.device_count()) if local else (None, None)
+        print(describe(plan, cpus, gpus), flush=True)
+        if cpus is None:
+            print("estimate: run --dry-run on the cluster's head (without --address) to size it")
+            return 0
+        try:
+            concurrent = plan_concurrency(plan.profile.resources, cpus, gpus, plan.num_trials).max_concurrent
+        except SpecError:
+            return 0  # describe() has said why this machine cannot run it
+        print("calibrating (a few training steps and one evaluation) ...", flush=True)
+        print(estimate(plan, cpus, concurrent).text())
         return 0
     if not args.resume and sweep_dir.exists():
         return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
@@ -128,8 +153,11 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: Path, state_file:
     # Read when ray is imported: progress lines of concurrent trials differ only in numbers, and
     # Ray's log de-duplication would fold them into "[repeated 3x]".
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    # The results table downloads each trial's per-object scores: no progress bar per small file.
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     import ray
 
+    from sweeps.estimate import estimate
     from sweeps.results import build_table
     from sweeps.tracking import SweepRun, resolve_tracking_uri, ui_command
     from sweeps.trial import connect, run_sweep
@@ -159,10 +187,19 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: Path, state_file:
                 indent=2, default=str))
             sweep_run.log_artifacts([args.spec.resolve(), plan_file])
         print(f"profile in force: {plan.profile.name}; MLflow: {uri} (parent run {sweep_run.run_id})", flush=True)
+        predicted = None
+        if not args.resume:  # a resumed sweep has only its unfinished trials left: the estimate would not apply
+            cluster = ray.cluster_resources()
+            conc = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
+            predicted = estimate(plan, cluster.get("CPU", 1.0), conc.max_concurrent)
+            print(predicted.text(), flush=True)
+        started_at = time.perf_counter()
         outcomes = run_sweep(plan, sweep_dir, sweep_run, args.resume)
+        took = time.perf_counter() - started_at
         table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,
                             f"{plan.spec.name} — profile {plan.profile.name}",
-                            f"{plan.spec.paper.table}: {plan.spec.paper.note}" if plan.spec.paper else "")
+                            f"{plan.spec.paper.table}: {plan.spec.paper.note}" if plan.spec.paper else "",
+                            compare_to=plan.spec.compare_to)
         md, csv = table.write(sweep_dir)
         sweep_run.log_artifacts([md, csv])
         unfinished = any(o.status == "pending" for o in outcomes)
@@ -171,6 +208,9 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: Path, state_file:
         if started:
             ray.shutdown()
     print("\n" + table.text() + "\n")
+    if predicted is not None:
+        print(f"time: estimated ~{predicted.wall_s / 60:.1f} min, took {took / 60:.1f} min "
+              f"(actual / estimate = {took / predicted.wall_s:.2f})")
     print(f"results: {md} and {csv}")
     print(f"MLflow: {ui_command(uri)}   (then open http://127.0.0.1:5000)")
     if unfinished:

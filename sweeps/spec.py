@@ -200,6 +200,8 @@ class Spec(_Strict):
     resources: Resources = Resources()
     failure: Failure = Failure()
     profiles: dict[str, Profile] = {}
+    compare_to: str | None = None
+    """Cell every other cell is paired with in the results table (default: the first cell)."""
 
     @model_validator(mode="after")
     def _check(self) -> Spec:
@@ -502,6 +504,9 @@ def expand(
     if len(set(labels)) != len(labels):
         twice = sorted({label for label in labels if labels.count(label) > 1})
         raise SpecError(f"cells: two cells share the name {twice[0]!r}; give explicit cells distinct labels")
+    if spec.compare_to is not None and spec.compare_to not in {c.name for c in cells}:
+        known = ", ".join(dict.fromkeys(c.name for c in cells))
+        raise SpecError(f"compare_to: {spec.compare_to!r} is not a cell of this spec; cells: {known}")
     names = _check_metric(spec, configs)
     return SweepPlan(spec, prof, fixed, sets, tuple(cells), names)
 

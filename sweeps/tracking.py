@@ -12,7 +12,9 @@ reused for the next trial carries nothing over.
 
 from __future__ import annotations
 
+import csv
 import os
+import tempfile
 import time
 from collections.abc import Iterable
 from pathlib import Path
@@ -20,7 +22,7 @@ from typing import Any
 
 import yaml
 from mlflow import MlflowClient
-from mlflow.entities import Metric, Param
+from mlflow.entities import Metric, Param, RunTag
 
 from cdm.config import Config
 from cdm.train import Callback
@@ -127,8 +129,27 @@ class SweepRun:
             self.client.set_tag(run_id, "stopped_early", "true")
         self.client.set_terminated(run_id, status=status)
 
+    def trial_objects(self, trial_id: str) -> list[dict[str, object]]:
+        """Per-object rows (``objects.csv``) of the trial's last logged evaluation; empty if none."""
+        run_id = find_trial_run(self.client, self.experiment_id, self.run_id, trial_id)
+        return [] if run_id is None else last_objects(self.client, run_id)
+
     def end(self, status: str = "FINISHED") -> None:
         self.client.set_terminated(self.run_id, status=status)
+
+
+def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
+    """Rows of ``eval/step_<last>/objects.csv`` in a child run (numbers as floats); empty if absent."""
+    steps = sorted(a.path for a in client.list_artifacts(run_id, "eval") if a.is_dir)
+    tables = [a.path for step in steps[-1:] for a in client.list_artifacts(run_id, step) if a.path.endswith("/objects.csv")]
+    if not tables:  # no evaluation logged yet, or one interrupted before its table
+        return []
+    with tempfile.TemporaryDirectory() as tmp:
+        local = client.download_artifacts(run_id, tables[0], tmp)
+        with open(local, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    text = ("object_id", "category", "eval_set")
+    return [{k: (v if k in text else float(v)) for k, v in row.items()} for row in rows]
 
 
 def learning_curve_png(client: MlflowClient, run_id: str, folder: Path) -> Path:
@@ -199,6 +220,9 @@ class TrialRun(Callback):
         now = int(time.time() * 1000)
         self.client.log_batch(self.run_id, metrics=[Metric(k, float(v), now, step) for k, v in metrics.items()])
 
+    def on_start(self, record: dict[str, str]) -> None:
+        self.client.log_batch(self.run_id, tags=[RunTag(f"repro.{k}", v) for k, v in record.items()])
+
     def on_step(self, step: int, metrics: dict[str, float]) -> None:
         if step > self.logged_until["train"]:
             self._log(step, metrics)
@@ -207,6 +231,10 @@ class TrialRun(Callback):
         if step <= self.logged_until["eval"]:
             return
         self._log(step, metrics)
+        for path in files:
+            if path.name == "objects.csv":
+                with path.open(newline="") as fh:
+                    self.client.set_tag(self.run_id, "eval_set", next(csv.DictReader(fh))["eval_set"])
         for path in files:
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}")
         if files:

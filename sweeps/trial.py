@@ -32,12 +32,14 @@ import ray.tune
 from ray.train.torch import TorchTrainer
 
 from cdm.config import load_config
+from cdm.prior_model import ensure_priors
+from cdm.provenance import code_version
 from cdm.train import Callback, fit
 from sweeps.results import TrialOutcome
 from sweeps.spec import Cell, SweepPlan, plan_concurrency
 from sweeps.tracking import SweepRun, TrialRun
 
-__all__ = ["TrialSetup", "connect", "error_summary", "run_sweep", "run_trial", "train_loop"]
+__all__ = ["TrialProgress", "TrialSetup", "connect", "error_summary", "run_sweep", "run_trial", "train_loop"]
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,8 @@ class TrialSetup:
     tracking_uri: str
     experiment_id: str
     parent_run_id: str
+    code: dict[str, str]
+    """The driver's :func:`cdm.provenance.code_version` (trials may run on a copy without git)."""
 
 
 class _RayReporter(Callback):
@@ -75,7 +79,7 @@ class _RayReporter(Callback):
             ray.train.report(metrics, checkpoint=ckpt)
 
 
-class _Progress(Callback):
+class TrialProgress(Callback):
     """One line per log interval and evaluation; Ray forwards it to the driver's terminal."""
 
     def __init__(self, label: str, steps: int, metric: str):
@@ -99,11 +103,14 @@ def train_loop(loop_config: dict[str, Any]) -> None:
     if rank > 0:  # workers on one node must not overwrite rank 0's checkpoints and evaluation files
         overrides["train.out_dir"] = str(Path(overrides["train.out_dir"]) / f"rank_{rank}")
     config = load_config(None, overrides)
+    # sampling.blend.prior_checkpoint: auto — one category prior per category, trained once per sweep
+    # in its folder (the first trial to need it trains it, the others wait on its lock).
+    config = ensure_priors(config, loop_config["prior_dir"], lambda line: print(f"[{loop_config['label']}] {line}", flush=True))
     callbacks: list[Callback] = [_RayReporter(local, rank)]
     if rank == 0:
         t = loop_config["tracking"]
         callbacks += [
-            _Progress(loop_config["label"], config.train.steps, loop_config["metric"]),
+            TrialProgress(loop_config["label"], config.train.steps, loop_config["metric"]),
             TrialRun(t["uri"], t["experiment_id"], t["parent_run_id"], loop_config["trial_id"],
                      loop_config["label"], loop_config["tags"], config),
         ]
@@ -125,6 +132,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     tags = {
         "cell": cell.name, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
         "categories": ",".join(cell.config.data.categories) or "all", "tune_trial_dir": ctx.get_trial_dir(),
+        **{f"repro.{k}": v for k, v in setup.code.items()},
     }
     loop_config = {
         "local": r.workers_per_trial == 0,
@@ -133,6 +141,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         "trial_id": trial_id,
         "metric": plan.spec.metric.name,
         "tags": tags,
+        "prior_dir": str(Path(setup.sweep_dir) / "priors"),
         "tracking": {"uri": setup.tracking_uri, "experiment_id": setup.experiment_id, "parent_run_id": setup.parent_run_id},
     }
     per_worker = {"CPU": r.cpus_per_worker, **({"GPU": r.gpus_per_worker} if r.gpus_per_worker else {})}
@@ -257,8 +266,9 @@ def _scheduler(plan: SweepPlan):
                          reduction_factor=sch.reduction_factor, brackets=1)
 
 
-def _outcome(plan: SweepPlan, result) -> TrialOutcome:
+def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
     cell = plan.trial(result.config)
+    trial_id = (result.metrics or {}).get("trial_id")
     metrics = {k: float(v) for k, v in (result.metrics or {}).items() if "/" in k and isinstance(v, (int, float))}
     if result.error is not None:
         status, error = "failed", error_summary(str(result.error))
@@ -266,7 +276,8 @@ def _outcome(plan: SweepPlan, result) -> TrialOutcome:
         error = None
         step = (result.metrics or {}).get("step")
         status = "pending" if step is None else ("stopped" if step < plan.profile.steps else "ok")
-    return TrialOutcome(cell.label, cell.name, status, metrics, cell.paper_label, cell.paper, error)
+    objects = tuple(sweep_run.trial_objects(trial_id)) if trial_id and status != "failed" else ()
+    return TrialOutcome(cell.label, cell.name, status, metrics, cell.paper_label, cell.paper, error, objects)
 
 
 def run_sweep(plan: SweepPlan, sweep_dir: Path, sweep_run: SweepRun, resume: bool) -> list[TrialOutcome]:
@@ -281,7 +292,7 @@ def run_sweep(plan: SweepPlan, sweep_dir: Path, sweep_run: SweepRun, resume: boo
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
     cluster = ray.cluster_resources()
     conc = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
-    setup = TrialSetup(plan, str(sweep_dir), sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id)
+    setup = TrialSetup(plan, str(sweep_dir), sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version())
     trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
     print(f"cluster: {cluster.get('CPU', 0):g} CPUs, {cluster.get('GPU', 0):g} GPUs → up to {conc.max_concurrent} "
           f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)", flush=True)
@@ -317,7 +328,7 @@ def run_sweep(plan: SweepPlan, sweep_dir: Path, sweep_run: SweepRun, resume: boo
             ),
         )
     grid = tuner.fit()
-    outcomes = [_outcome(plan, r) for r in grid]
+    outcomes = [_outcome(plan, r, sweep_run) for r in grid]
     if plan.spec.search.kind == "grid":
         # Trials Tune had not created yet when the sweep was interrupted still get their row.
         seen = {o.label for o in outcomes}

@@ -6,6 +6,7 @@ import csv
 import statistics
 
 import pytest
+import torch
 
 from sweeps.results import TrialOutcome, build_table
 
@@ -61,3 +62,42 @@ def test_markdown_and_csv_written(tmp_path):
     assert float(rows[0]["eval/f1 paper"]) == 0.461
     assert rows[1]["failed"] == "1" and rows[0]["best"] == "True"
     assert float(rows[3]["eval/cd mean"]) == pytest.approx(90.6666666)
+
+
+def _objects(path) -> tuple[dict, ...]:
+    text = ("object_id", "category", "eval_set")
+    return tuple({k: v if k in text else float(v) for k, v in r.items()} for r in csv.DictReader(path.open()))
+
+
+def test_a_trained_model_is_marked_better_than_its_reset_copy(tmp_path):
+    from cdm.data import build_dataset
+    from cdm.diffusion import GaussianDiffusion
+    from cdm.evaluate import build_eval_set, run_evaluation
+    from cdm.model import CDMNetwork
+    from cdm.priors import PRIOR_2D_CHANNELS
+    from cdm.train import fit
+    from tests.conftest import tiny_config
+
+    cfg = tiny_config(tmp_path, **{"train.steps": 120, "train.eval_every": 120, "data.val_objects": 6,
+                                   "eval.num_objects": 6, "eval.retrieval_bank": 4})
+    fit(cfg)
+    trained = _objects(tmp_path / "run" / "eval" / "step_0000120" / "objects.csv")
+    eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
+    torch.manual_seed(cfg.train.seed)
+    reset = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d])
+    diffusion = GaussianDiffusion.from_config(cfg.diffusion)
+    rows = {}
+    for seed in (1234, 99):  # the same untrained model sampled with two seeds
+        out = run_evaluation(reset, diffusion, eval_set, cfg.model_copy(update={"eval": cfg.eval.model_copy(update={"seed": seed})}),
+                             torch.device("cpu"), None)
+        rows[seed] = tuple(out.rows)
+    outcomes = [TrialOutcome("reset · seed 0", "reset", "ok", {"eval/cd": 1.0}, objects=rows[1234]),
+                TrialOutcome("trained · seed 0", "trained", "ok", {"eval/cd": 1.0}, objects=trained),
+                TrialOutcome("reset again · seed 0", "reset again", "ok", {"eval/cd": 1.0}, objects=rows[99])]
+    table = build_table(outcomes, "eval/cd", "min", "t")
+    verdict = table.header.index("verdict")
+    delta = table.records[1]
+    assert table.rows[1][verdict] == "better" and delta["eval/cd delta high"] < 0
+    assert table.rows[2][verdict] == "no clear difference"
+    assert delta["eval/cd delta low"] <= delta["eval/cd delta"] <= delta["eval/cd delta high"]
+    assert len({r["eval_set"] for r in trained + rows[99]}) == 1  # the runner pairs only the same evaluation set

@@ -124,9 +124,9 @@ def _ddp_worker(rank: int, world: int, init_file: str, out_dir: str, results) ->
     from pathlib import Path
 
     cfg = tiny_config(Path(out_dir) / f"rank{rank}", **{"train.steps": 3, "train.eval_every": 3})
-    from cdm.train import _Trainer
+    from cdm.train import Trainer
 
-    trainer = _Trainer(cfg)
+    trainer = Trainer(cfg)
     batch_ids = trainer.next_batch().object_id
     for _ in range(3):
         trainer.train_step(trainer.next_batch())

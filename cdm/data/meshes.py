@@ -122,6 +122,11 @@ class MeshFolderDataset(ObjectDataset):
     def _object_ids(self) -> list[tuple[str, str]]:
         return interleave(self._per_category)
 
+    def _content_version(self) -> str:
+        # Sizes and modification times: cheap, and they change when a mesh file is replaced.
+        stats = [(oid, p.stat().st_size, p.stat().st_mtime_ns) for oid, p in sorted(self._files.items())]
+        return hashlib.sha256(repr(stats).encode()).hexdigest()
+
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:
         mesh = load_mesh(self._files[self.objects[index].object_id])
         return Shape(mesh, np.zeros(len(mesh.faces), dtype=np.int64))

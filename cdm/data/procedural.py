@@ -399,6 +399,10 @@ def make_shape(category: str, rng: np.random.Generator) -> Shape:
     return Shape(mesh, material)
 
 
+GENERATOR_VERSION = 2
+"""Raised whenever a change to this module changes the objects a seed produces (recorded with each run)."""
+
+
 class ProceduralDataset(ObjectDataset):
     """``data.train_objects`` (or ``data.val_objects``) objects per category, categories interleaved.
 
@@ -421,3 +425,6 @@ class ProceduralDataset(ObjectDataset):
 
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:
         return make_shape(self.objects[index].category, rng)
+
+    def _content_version(self) -> str:
+        return f"generator {GENERATOR_VERSION}"

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import colorsys
 import hashlib
+import json
 from abc import ABC, abstractmethod
 from collections import OrderedDict
 from typing import ClassVar, Literal, NamedTuple
@@ -328,6 +329,20 @@ class ObjectDataset(Dataset, ABC):
     @abstractmethod
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:
         """Build or load object ``index`` (``rng`` is its own shape stream)."""
+
+    def fingerprint(self) -> str:
+        """Short hash naming the exact objects this split yields, for reproducibility records.
+
+        Covers the kind, the ``data`` config, the object ids and :meth:`_content_version` (what else
+        decides the objects' content: the generator's version, the files' sizes).
+        """
+        identity = [self.kind, self.split, self.cfg.data.model_dump(mode="json"), [list(o) for o in self.objects],
+                    self._content_version()]
+        return hashlib.sha256(json.dumps(identity).encode()).hexdigest()[:16]
+
+    def _content_version(self) -> str:
+        """Subclasses whose content is not fixed by their object ids and config say what fixes it."""
+        return ""
 
     def __len__(self) -> int:
         return len(self.objects)

@@ -165,3 +165,27 @@ profiles: {smoke: {budget: {steps: 200, eval_every: 20}}}
         assert sorted(steps) == list(range(5, 201, 5)), (child.info.run_name, steps)
     table = out[out.index("kill — profile smoke"):]
     assert table.count(" 1/1 ") == 3 and "(3/3 trials done)" in out
+
+
+def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(cluster, tmp_path, capsys):
+    argv, uri = _sweep(tmp_path, "name: again\ngrid: {priors.point_size: [0.04]}\n")
+    assert run.main(argv) == 0
+    client, _, children = _children(uri, "again")
+    child = children[0]
+    tags = child.data.tags
+    assert tags["repro.git_commit"] and tags["repro.config_hash"] and tags["repro.version_torch"]
+    assert tags["repro.data_fingerprint"].startswith("train ") and tags["eval_set"]
+    capsys.readouterr()
+    rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--storage", str(tmp_path / "results")]
+    assert run.main(rerun_argv) == 0
+    out = capsys.readouterr().out
+    assert "reproduced exactly" in out and "DIFFERENT" not in out
+    again = [r for r in client.search_runs([child.info.experiment_id]) if r.data.tags.get("rerun_of") == child.info.run_id]
+    assert len(again) == 1
+    assert again[0].data.metrics["eval/cd"] == child.data.metrics["eval/cd"]
+    assert again[0].data.metrics["eval/f1"] == child.data.metrics["eval/f1"]
+
+    client.set_tag(child.info.run_id, "repro.git_commit", "0" * 40)
+    assert run.main(rerun_argv) == 2
+    err = capsys.readouterr().err
+    assert f"recorded commit {'0' * 40}" in err and "--force" in err

@@ -1,0 +1,73 @@
+"""Training throughput and peak memory of the paper-scale model, on CPU or CUDA.
+
+Batch 8, 224² images, the CDM step with the 3D prior constraint (H=10, point size 0.04), at 4,096
+points (ShapeNet) and 16,384 (Co3D). Each row: ``a`` = seconds per training step, ``b`` = seconds per
+sampling step (one denoiser forward on the batch, what evaluation repeats ``diffusion.sample_steps``
+times), ``ratio`` = training samples per second. On CUDA it also writes ``gpu_costs.json`` (the
+4,096-point figures), which ``sweeps/estimate.py`` reads for paper-profile GPU-hours when it is copied
+to ``benchmarks/gpu_costs.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from cdm.config import load_config
+from cdm.train import Trainer
+
+__all__ = ["throughput"]
+
+PAPER = {"data.image_size": 224, "priors.render_size": 224, "diffusion.prediction": "eps", "train.batch_size": 8,
+         "priors.prior_3d": True, "priors.num_views": 10, "priors.point_size": 0.04, "data.train_objects": 8,
+         "data.val_objects": 1}
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _median_s(fn, device: torch.device, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        _sync(device)
+        start = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:
+    rows, costs = [], {}
+    dev = torch.device(device)
+    for n in (4096,) if quick and dev.type == "cpu" else (4096, 16384):
+        cfg = load_config(None, {**PAPER, "data.num_points": n, "train.device": device, "train.out_dir": out_dir})
+        trainer = Trainer(cfg)
+        batch = trainer.next_batch()
+        if dev.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(dev)
+        step_s = _median_s(lambda: trainer.train_step(batch), dev, 3 if quick else 6)
+        net = trainer.network
+        with torch.no_grad():
+            context = net.encode(batch)
+            x = torch.randn_like(batch.points)
+            t = torch.full((len(batch),), 500, device=dev)
+            sample_s = _median_s(lambda: net(x, t, context, batch.camera), dev, 3 if quick else 10)
+        memory = (f"peak {torch.cuda.max_memory_allocated(dev) / 2**30:.2f} GiB GPU memory" if dev.type == "cuda"
+                  else "one CPU thread")
+        name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
+        rows.append({"benchmark": f"throughput ({name})", "case": f"B=8, N={n}, 224², H=10; {memory}",
+                     "without_s": step_s, "with_s": sample_s, "ratio": 8 / step_s, "target": "samples/s (report)"})
+        if n == 4096:
+            costs = {"device": name, "date": time.strftime("%Y-%m-%d"), "train_step_s": step_s, "sample_step_s": sample_s}
+    if dev.type == "cuda":
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        (Path(out_dir) / "gpu_costs.json").write_text(json.dumps(costs, indent=2))
+    return rows

@@ -1,0 +1,109 @@
+"""What a sweep will cost, said before it starts: trials, wall time on this machine, paper-profile GPU-hours.
+
+Local time comes from a short calibration in this process: a few training steps of a few cells and one
+evaluation, on one torch thread (how trials run on a small machine). Trials run one thread each, so
+``w`` concurrent trials on ``c`` CPUs share ``min(w, c)`` cores:
+
+    trial ≈ start-up + steps × step + evaluations × evaluation
+    wall  ≈ Σ trials ÷ min(concurrent trials, CPUs)
+
+The paper profile's GPU-hours use per-step GPU figures measured by ``benchmarks/run.py --device cuda``
+(``benchmarks/gpu_costs.json``; absent: not estimated). Estimates assume every cell costs what the
+calibrated cells cost on average.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from cdm.config import Config, load_config
+from cdm.data import list_categories
+from cdm.train import Trainer
+from sweeps.spec import SweepPlan, expand
+
+__all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate"]
+
+GPU_COSTS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_costs.json"
+STARTUP_S = 2.0
+"""Seconds per trial outside training in local mode with reused actors (measured, NOTES §5)."""
+CALIBRATED_CELLS = 3
+
+
+@dataclass(frozen=True)
+class TrialCost:
+    step_s: float
+    """One training step, data included, one thread."""
+    eval_s: float
+    """One evaluation, building the evaluation set included (paid once per trial; counted every time)."""
+
+    def trial_s(self, steps: int, eval_every: int) -> float:
+        return STARTUP_S + steps * self.step_s + math.ceil(steps / eval_every) * self.eval_s
+
+
+@dataclass(frozen=True)
+class Estimate:
+    trials: int
+    trial_s: float
+    concurrent: int
+    wall_s: float
+    gpu_hours: float | None
+    """Paper profile on the GPU of ``benchmarks/gpu_costs.json``; None without figures."""
+    gpu: str
+
+    def text(self) -> str:
+        gpu = (f"{self.gpu_hours:.1f} GPU-hours with the paper profile ({self.gpu})" if self.gpu_hours is not None
+               else "paper-profile GPU-hours: no GPU figures (run benchmarks/run.py --device cuda --only throughput)")
+        return (f"estimate: {self.trials} trials × ~{self.trial_s / 60:.1f} min, {self.concurrent} at a time → "
+                f"~{self.wall_s / 60:.1f} min wall on this machine; {gpu}")
+
+
+def calibrate(config: Config, steps: int = 3) -> TrialCost:
+    """Time ``steps`` training steps (after one warm-up) and one evaluation of ``config``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(config.model_copy(update={"train": config.train.model_copy(update={"out_dir": tmp, "threads": 1})}))
+        trainer.train_step(trainer.next_batch())
+        times = []
+        for _ in range(steps):
+            start = time.perf_counter()
+            trainer.train_step(trainer.next_batch())
+            times.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        trainer.evaluate()
+        return TrialCost(statistics.median(times), time.perf_counter() - start)
+
+
+def _calibration_configs(plan: SweepPlan) -> list[Config]:
+    if not plan.cells:  # Optuna: the spec's fixed settings stand for every sampled trial
+        return [load_config(None, {**plan.fixed, **plan.sets, "train.seed": plan.spec.seeds[0]})]
+    distinct = list({c.name: c.config for c in plan.cells}.values())
+    picks = sorted({round(i * (len(distinct) - 1) / max(1, CALIBRATED_CELLS - 1)) for i in range(CALIBRATED_CELLS)})
+    return [distinct[i] for i in picks]
+
+
+def _paper_gpu_hours(plan: SweepPlan) -> tuple[float | None, str]:
+    if not GPU_COSTS.is_file():
+        return None, ""
+    figures = json.loads(GPU_COSTS.read_text())
+    paper = expand(plan.spec, "paper", plan.sets)
+    cfg = paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
+    objects = cfg.eval.num_objects * len(list_categories(cfg))
+    eval_s = math.ceil(objects / cfg.train.batch_size) * cfg.diffusion.sample_steps * figures["sample_step_s"]
+    per_trial = paper.profile.steps * figures["train_step_s"] + math.ceil(paper.profile.steps / paper.profile.eval_every) * eval_s
+    r = paper.profile.resources
+    gpus = max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0)
+    return paper.num_trials * per_trial * gpus / 3600.0, figures["device"]
+
+
+def estimate(plan: SweepPlan, cpus: float, concurrent: int) -> Estimate:
+    """Calibrate on this machine and estimate the sweep's wall time and paper-profile GPU-hours."""
+    costs = [calibrate(cfg) for cfg in _calibration_configs(plan)]
+    trial_s = statistics.fmean(c.trial_s(plan.profile.steps, plan.profile.eval_every) for c in costs)
+    lanes = max(1.0, min(float(concurrent), cpus))
+    gpu_hours, gpu = _paper_gpu_hours(plan)
+    return Estimate(plan.num_trials, trial_s, concurrent, plan.num_trials * trial_s / lanes, gpu_hours, gpu)

@@ -1,0 +1,101 @@
+"""Re-run one cell of a finished sweep from its MLflow child run: ``python sweeps/run.py --rerun RUN_ID``.
+
+The child run holds the resolved config (``config.yaml``) and the reproducibility record
+(``repro.*`` tags, :mod:`cdm.provenance`). The re-run refuses to start when the checked-out code is not
+the recorded commit or the config no longer hashes the same (the schema changed), unless forced;
+then it trains in this process with the recorded torch thread count, logs a new run tagged
+``rerun_of``, and prints recorded against re-run final metrics. Exit 0 when they are identical.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from mlflow import MlflowClient
+from mlflow.exceptions import MlflowException
+
+from cdm.config import load_config
+from cdm.provenance import code_version, config_hash
+from cdm.train import Callback, fit
+
+__all__ = ["RerunError", "rerun"]
+
+COMPARED = ("eval/cd", "eval/f1")
+
+
+class RerunError(ValueError):
+    """The run cannot be re-run as recorded; the message says why and what to do."""
+
+
+class _Record(Callback):
+    def __init__(self) -> None:
+        self.record: dict[str, str] = {}
+
+    def on_start(self, record: dict[str, str]) -> None:
+        self.record = record
+
+
+def _code_warnings(tags: dict[str, str], force: bool) -> list[str]:
+    """Refuse another commit (unless ``force``); uncommitted changes on either side only warn."""
+    code = code_version()
+    recorded = {k: tags.get(f"repro.{k}", "missing") for k in code}
+    if recorded["git_commit"] != code["git_commit"] and not force:
+        raise RerunError(f"recorded commit {recorded['git_commit']}, checked out {code['git_commit']} — check out the "
+                         "recorded commit, or pass --force to re-run anyway")
+    warnings = []
+    if recorded["git_commit"] != code["git_commit"]:
+        warnings.append(f"recorded commit {recorded['git_commit']}, checked out {code['git_commit']} (--force)")
+    if "true" in (recorded["git_dirty"], code["git_dirty"]):
+        warnings.append(f"uncommitted changes (recorded run: {recorded['git_dirty']}, this checkout: {code['git_dirty']}); "
+                        "the code may differ from the recorded run's")
+    return warnings
+
+
+def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
+    """Re-run child run ``run_id`` of the MLflow store at ``uri``; files go under ``out_root/<run_id>``.
+
+    Raises:
+        RerunError: unknown run, no record, other code or config (without ``force``).
+    """
+    from sweeps.tracking import TrialRun
+    from sweeps.trial import TrialProgress
+
+    client = MlflowClient(uri)
+    try:
+        run = client.get_run(run_id)
+    except MlflowException:
+        raise RerunError(f"--rerun: no run {run_id!r} in {uri}") from None
+    tags = run.data.tags
+    if "repro.config_hash" not in tags:
+        raise RerunError(f"--rerun: run {run_id} has no reproducibility record (repro.* tags); was it a sweep trial?")
+    warnings = _code_warnings(tags, force)
+    with tempfile.TemporaryDirectory() as tmp:
+        config = load_config(client.download_artifacts(run_id, "config.yaml", tmp),
+                             {"train.out_dir": str(out_root / run_id)})
+    if config_hash(config) != tags["repro.config_hash"]:
+        message = f"config hash {config_hash(config)} differs from the recorded {tags['repro.config_hash']} (defaults changed?)"
+        if not force:
+            raise RerunError(message + "; pass --force to re-run anyway")
+        warnings.append(message)
+    for w in warnings:
+        print(f"warning: {w}", flush=True)
+    # Float sums depend on how work is split between threads; the trial's count makes them equal.
+    torch.set_num_threads(int(tags.get("repro.torch_threads", torch.get_num_threads())))
+    name = f"rerun of {run.info.run_name}"
+    tracked = TrialRun(uri, run.info.experiment_id, tags.get("mlflow.parentRunId", ""), f"rerun:{run_id}:{time.time_ns()}",
+                       name, {"rerun_of": run_id}, config)
+    seen = _Record()
+    result = fit(config, [TrialProgress(name, config.train.steps, "eval/cd"), tracked, seen])
+    client.set_terminated(tracked.run_id)
+    rows = [(m, run.data.metrics.get(m), result.metrics.get(m)) for m in COMPARED]
+    rows += [(f"repro.{k}", tags.get(f"repro.{k}"), v) for k, v in seen.record.items() if tags.get(f"repro.{k}") != v]
+    same = all(a == b for _, a, b in rows)
+    width = max(len(r[0]) for r in rows)
+    print(f"\n{'':{width}}  recorded ({run_id[:8]})  re-run ({tracked.run_id[:8]})")
+    for key, recorded, again in rows:
+        print(f"{key:{width}}  {recorded!s:20}  {again!s:20}  {'same' if recorded == again else 'DIFFERENT'}")
+    print("reproduced exactly" if same else "not reproduced: see the rows marked DIFFERENT")
+    return 0 if same else 1
