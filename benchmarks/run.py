@@ -20,9 +20,13 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.blend import blend_overhead  # noqa: E402
+from benchmarks.loader import loader_speed  # noqa: E402
 from benchmarks.memory import peak_rss  # noqa: E402
 from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
 from benchmarks.quality import quick_config_quality  # noqa: E402
+from benchmarks.render import rendering  # noqa: E402
+from benchmarks.scaling import paper_scaling  # noqa: E402
+from benchmarks.sweep_efficiency import sweep_efficiency  # noqa: E402
 from benchmarks.throughput import throughput  # noqa: E402
 from benchmarks.training_step import prior_overhead, voxel_backends  # noqa: E402
 
@@ -31,7 +35,11 @@ BENCHMARKS = {
     "prior_overhead": prior_overhead,
     "voxel_backends": voxel_backends,
     "memory": peak_rss,
+    "render": rendering,
+    "sweep_efficiency": sweep_efficiency,
+    "paper_scaling": paper_scaling,
     "blend": blend_overhead,
+    "loader": loader_speed,
 }
 # Minutes-long training runs: only with --only.
 SLOW = {"quality": quick_config_quality}
@@ -42,7 +50,14 @@ ON_DEVICE = {"throughput": throughput}
 def to_markdown(rows: list[dict]) -> str:
     lines = ["| benchmark | case | a (s) | b (s) | ratio | target |", "|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['benchmark']} | {r['case']} | {r['without_s']:.4f} | {r['with_s']:.4f} | {r['ratio']:.3f} | {r['target']} |")
+        if r["benchmark"] != "paper scaling":
+            lines.append(f"| {r['benchmark']} | {r['case']} | {r['without_s']:.4f} | {r['with_s']:.4f} | {r['ratio']:.3f} | {r['target']} |")
+    scaling = [r for r in rows if r["benchmark"] == "paper scaling"]
+    if scaling:
+        lines += ["", f"Paper profile on {scaling[0]['device']} (benchmarks/scaling.py states the assumptions):", "",
+                  "| spec | trials | GPU-h per trial | wall h, 1 GPU | wall h, 8 GPUs | wall h, 64 GPUs |", "|---|---|---|---|---|---|"]
+        lines += [f"| {r['spec']} | {r['trials']} | {r['trial_gpu_hours']:.2f} | {r['wall_h_1_gpus']:.1f} | "
+                  f"{r['wall_h_8_gpus']:.1f} | {r['wall_h_64_gpus']:.1f} |" for r in scaling]
     return "\n".join(lines)
 
 

@@ -3,9 +3,9 @@
 Batch 8, 224² images, the CDM step with the 3D prior constraint (H=10, point size 0.04), at 4,096
 points (ShapeNet) and 16,384 (Co3D). Each row: ``a`` = seconds per training step, ``b`` = seconds per
 sampling step (one denoiser forward on the batch, what evaluation repeats ``diffusion.sample_steps``
-times), ``ratio`` = training samples per second. On CUDA it also writes ``gpu_costs.json`` (the
-4,096-point figures), which ``sweeps/estimate.py`` reads for paper-profile GPU-hours when it is copied
-to ``benchmarks/gpu_costs.json``.
+times), ``ratio`` = training samples per second. On CUDA it also writes ``gpu_costs.json`` (figures
+per cloud size), which ``sweeps/estimate.py`` reads for paper-profile GPU-hours once copied to
+``benchmarks/gpu_costs.json``.
 """
 
 from __future__ import annotations
@@ -65,8 +65,8 @@ def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:
         name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
         rows.append({"benchmark": f"throughput ({name})", "case": f"B=8, N={n}, 224², H=10; {memory}",
                      "without_s": step_s, "with_s": sample_s, "ratio": 8 / step_s, "target": "samples/s (report)"})
-        if n == 4096:
-            costs = {"device": name, "date": time.strftime("%Y-%m-%d"), "train_step_s": step_s, "sample_step_s": sample_s}
+        costs = {"device": name, "date": time.strftime("%Y-%m-%d"),
+                 "by_points": {**costs.get("by_points", {}), str(n): {"train_step_s": step_s, "sample_step_s": sample_s}}}
     if dev.type == "cuda":
         Path(out_dir).mkdir(parents=True, exist_ok=True)
         (Path(out_dir) / "gpu_costs.json").write_text(json.dumps(costs, indent=2))

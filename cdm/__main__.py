@@ -1,4 +1,4 @@
-"""Command line: ``python -m cdm {train,evaluate,reconstruct,fields}``.
+"""Command line: ``python -m cdm {train,train-prior,evaluate,reconstruct,prepare,fields}``.
 
 Bad input (unknown config key, bad value, missing data or checkpoint) prints one ``error:`` line
 naming the field and exits with status 2 before anything is written.
@@ -53,6 +53,22 @@ def cmd_train(args: argparse.Namespace) -> int:
     result = fit(cfg, [_Progress(cfg.train.steps, 0)], resume_from=args.resume)
     print(f"done at step {result.step}: CD×1000 {result.metrics.get('eval/cd', float('nan')):.2f}, "
           f"F1 {result.metrics.get('eval/f1', float('nan')):.3f}; checkpoint {result.checkpoint_dir}")
+    return 0
+
+
+def cmd_train_prior(args: argparse.Namespace) -> int:
+    from cdm.data import list_categories
+    from cdm.prior_model import prior_config, train_prior
+
+    cfg = prior_config(load_config(args.config, _overrides(args.set)), args.category)
+    list_categories(cfg)  # an unknown category stops here, before anything is written
+    out = Path(args.out) if args.out else Path(cfg.train.out_dir) / f"prior_{args.category}"
+    d = cfg.diffusion
+    print(f"training the {args.category} prior {cfg.train.steps} steps (β {d.beta_start:g} → {d.beta_end:g}, "
+          f"T={d.num_steps}, {d.prediction}), output in {out}", flush=True)
+    result = train_prior(cfg, out, progress=lambda step, loss: print(f"step {step}: loss {loss:.4f}", flush=True))
+    print(f"done in {result.seconds:.1f} s: {result.checkpoint}; blend with --set sampling.blend.enabled=true "
+          f"--set sampling.blend.prior_checkpoint={result.checkpoint}")
     return 0
 
 
@@ -137,6 +153,22 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_prepare(args: argparse.Namespace) -> int:
+    from cdm.data import DATASETS
+    from cdm.data.cache import prepare
+    from cdm.data.captured import CapturedDataset
+
+    preparable = [k for k, cls in DATASETS.items() if issubclass(cls, CapturedDataset)]
+    if args.data_kind not in preparable:
+        raise ValueError(f"--data-kind: {args.data_kind!r} cannot be prepared; choose one of {', '.join(preparable)}")
+    cfg = load_config(None, {**_overrides(args.set), "data.kind": args.data_kind, "data.root": args.root,
+                             "data.image_size": args.image_size})
+    report = prepare(DATASETS[args.data_kind], cfg, Path(args.out))
+    print(f"prepared {report.out}: {report.written} shards written, {report.skipped} already complete; "
+          f"train with --set data.kind={args.data_kind} --set data.root={report.out}")
+    return 0
+
+
 def cmd_fields(args: argparse.Namespace) -> int:
     defaults = Config().flat()
     for path in config_field_paths():
@@ -152,6 +184,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. priors.lambda_3d=0.5")
     p.add_argument("--resume", help="checkpoint directory to continue from")
     p.set_defaults(func=cmd_train)
+    p = sub.add_parser("train-prior", help="train an unconditional category prior for BDM blending (sampling.blend)")
+    p.add_argument("--category", required=True, help="the one category the prior models, e.g. chair")
+    p.add_argument("--config", help="YAML config (data/model/diffusion/train); BDM's prior schedule unless it sets diffusion.beta_*")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. train.steps=2000")
+    p.add_argument("--out", help="folder for checkpoint.pt (default: <train.out_dir>/prior_<category>)")
+    p.set_defaults(func=cmd_train_prior)
     p = sub.add_parser("evaluate", help="score a checkpoint on the held-out split")
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
@@ -168,6 +206,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--focal", type=float, default=2.0, help="focal length, NDC units")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_reconstruct)
+    p = sub.add_parser("prepare", help="convert a data set once into per-object shards that load fast")
+    p.add_argument("--data-kind", required=True, help="data set kind of --root: shapenet_r2n2 or co3d")
+    p.add_argument("--root", required=True, help="the data set as published")
+    p.add_argument("--out", required=True, help="folder for the shards; rerun the same command to resume")
+    p.add_argument("--image-size", type=int, default=224, help="side of the stored crops in pixels (default 224)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]")
+    p.set_defaults(func=cmd_prepare)
     p = sub.add_parser("fields", help="list every config field with its default")
     p.set_defaults(func=cmd_fields)
     return parser

@@ -10,6 +10,8 @@ Use :func:`load_config` for a YAML file or nested dict plus ``key=value`` overri
 
 from __future__ import annotations
 
+import copy
+import itertools
 from pathlib import Path
 from typing import Any, Literal
 
@@ -17,6 +19,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 __all__ = [
+    "BlendConfig",
     "Config",
     "ConfigError",
     "DataConfig",
@@ -24,6 +27,7 @@ __all__ = [
     "EvalConfig",
     "ModelConfig",
     "PriorsConfig",
+    "SamplingConfig",
     "TrainConfig",
     "apply_overrides",
     "config_field_paths",
@@ -43,10 +47,12 @@ class _Group(BaseModel):
 class DataConfig(_Group):
     """What the model trains and evaluates on."""
 
-    kind: Literal["procedural", "meshes"] = "procedural"
+    kind: Literal["procedural", "meshes", "shapenet_r2n2", "co3d"] = "procedural"
     """Data-set kind, a key of ``cdm.data.DATASETS``. ``procedural`` is the embedded default (no files)."""
     root: str | None = None
-    """Folder of the data set on disk (``meshes``: one sub-folder per category). Unused by ``procedural``."""
+    """Folder of the data set on disk (``meshes``: one sub-folder per category; ``shapenet_r2n2``: holds
+    ShapeNetRendering/ and ShapeNetCore.v2.PC15k/; ``co3d``: one folder per category), or a folder
+    written by ``python -m cdm prepare``. Unused by ``procedural``."""
     categories: tuple[str, ...] = ()
     """Categories to use; empty = every category the data set has."""
     num_points: int = Field(4096, ge=16)
@@ -59,6 +65,11 @@ class DataConfig(_Group):
     """Held-out objects per category used for evaluation."""
     seed: int = 0
     """Seed of the procedural generator and of the object/split assignment."""
+    eval_split: Literal["val", "test"] = "val"
+    """Published split held out for evaluation (``shapenet_r2n2``: PC15k's folder; ``co3d``: the
+    ``fewview_dev`` set list, PC²'s protocol: ``val``); training always reads ``train``."""
+    num_workers: int = Field(0, ge=0)
+    """Data-loader worker processes decoding training batches ahead of the step; 0 = in the training process."""
 
 
 class ModelConfig(_Group):
@@ -199,6 +210,59 @@ class EvalConfig(_Group):
     """Training images per category searched by the nearest-image retrieval baseline."""
 
 
+class BlendConfig(_Group):
+    """BDM blending at sampling time (Xu et al., CVPR 2024; the paper's Table 2 "+BDM"); see :mod:`cdm.blend`.
+
+    In each window both this model and an unconditional category prior (:mod:`cdm.prior_model`)
+    denoise the same x_t, then every point is taken from one of the two results at random; between
+    windows this model samples alone. Milestones and windows count timesteps of the T-step schedule.
+    """
+
+    enabled: bool = False
+    """Blend with a category prior while sampling (evaluation and ``reconstruct``); off = plain CDM / PC²."""
+    prior_checkpoint: str | None = None
+    """Prior from ``python -m cdm train-prior``: its folder or file. ``{category}`` in the path becomes each
+    object's category (a path without it serves every object); ``auto``: a sweep trial trains one per
+    category (``cdm.prior_model.ensure_priors``). Required when enabled."""
+    milestones: tuple[int, ...] = (936, 872, 128, 64, 32)
+    """Timesteps where a window starts, BDM's numbering (T = pure noise, 0 = clean), each in
+    [window_steps, T], windows disjoint. BDM's ShapeNet run passes [1000, 968, 936, 872, 128, 64, 32, 0]
+    and its loop blends at these five."""
+    window_steps: int = Field(16, ge=1)
+    """Timesteps per window (BDM's ``roll_step``: 16). A DDIM step belongs to a window when the
+    timesteps it jumps over meet the window's."""
+    select_prob: float = Field(0.5, ge=0.0, le=1.0)
+    """Probability that a point is taken from the prior at the end of a window (BDM: 0.5, a fair coin)."""
+    seed: int = 0
+    """Seed of the per-point selection and of the prior branch's DDPM noise; apart from the sampling
+    seed, so select_prob 0 reproduces the plain sampler exactly."""
+
+    @model_validator(mode="after")
+    def _check_windows(self) -> BlendConfig:
+        if self.enabled and self.prior_checkpoint is None:
+            raise ValueError(
+                "sampling.blend.prior_checkpoint is required when sampling.blend.enabled is true; train one with "
+                "`python -m cdm train-prior --category <name>` (or use auto inside a sweep)"
+            )
+        ordered = sorted(self.milestones, reverse=True)
+        if len(set(ordered)) != len(ordered):
+            raise ValueError(f"sampling.blend.milestones: repeated values in {list(self.milestones)}")
+        close = [(a, b) for a, b in itertools.pairwise(ordered) if a - b < self.window_steps]
+        if close:
+            raise ValueError(
+                f"sampling.blend.milestones: windows of {self.window_steps} steps starting at {close[0][0]} and "
+                f"{close[0][1]} overlap; keep milestones at least sampling.blend.window_steps apart"
+            )
+        return self
+
+
+class SamplingConfig(_Group):
+    """Sampling-time additions to the diffusion sampler (``diffusion.sampler``)."""
+
+    blend: BlendConfig = BlendConfig()
+    """BDM blending with a category prior (paper Table 2)."""
+
+
 class Config(_Group):
     """The whole resolved configuration of one training run."""
 
@@ -208,17 +272,33 @@ class Config(_Group):
     priors: PriorsConfig = PriorsConfig()
     train: TrainConfig = TrainConfig()
     eval: EvalConfig = EvalConfig()
+    sampling: SamplingConfig = SamplingConfig()
+
+    @model_validator(mode="after")
+    def _check_blend_schedule(self) -> Config:
+        blend, t = self.sampling.blend, self.diffusion.num_steps
+        outside = [m for m in blend.milestones if not blend.window_steps <= m <= t]
+        if blend.enabled and outside:
+            raise ValueError(
+                f"sampling.blend.milestones: {outside} outside the schedule; each milestone starts a window of "
+                f"sampling.blend.window_steps={blend.window_steps} timesteps and must lie in "
+                f"[{blend.window_steps}, diffusion.num_steps={t}] ({t} = pure noise, 0 = clean)"
+            )
+        return self
 
     def to_dict(self) -> dict[str, Any]:
         """Nested plain-python dict (tuples as lists), loadable again by :func:`load_config`."""
         return self.model_dump(mode="json")
 
     def flat(self) -> dict[str, Any]:
-        """Flat ``{"priors.lambda_3d": 1.0, ...}`` view, e.g. for tracking params."""
+        """Flat ``{"priors.lambda_3d": 1.0, "sampling.blend.enabled": False, ...}`` view, e.g. for tracking params."""
+        tree = self.to_dict()
         out: dict[str, Any] = {}
-        for group, values in self.to_dict().items():
-            for key, value in values.items():
-                out[f"{group}.{key}"] = value
+        for path in config_field_paths():
+            value: Any = tree
+            for part in path.split("."):
+                value = value[part]
+            out[path] = value
         return out
 
 
@@ -237,15 +317,21 @@ def _format_errors(err: ValidationError) -> str:
     return "; ".join(lines)
 
 
+def _leaf_fields(model: type[BaseModel], prefix: str) -> list[str]:
+    out = []
+    for name, info in model.model_fields.items():
+        if isinstance(info.annotation, type) and issubclass(info.annotation, _Group):
+            out += _leaf_fields(info.annotation, f"{prefix}{name}.")
+        else:
+            out.append(f"{prefix}{name}")
+    return out
+
+
 def config_field_paths(group: str | None = None) -> list[str]:
-    """Dotted names of every config field (``["data.kind", ...]``), optionally of one group."""
-    paths = []
-    for gname, ginfo in Config.model_fields.items():
-        if group is not None and gname != group:
-            continue
-        for fname in ginfo.annotation.model_fields:
-            paths.append(f"{gname}.{fname}")
-    return paths
+    """Dotted names of every config field (``["data.kind", ..., "sampling.blend.enabled", ...]``),
+    optionally of one group (``priors``) or nested group (``sampling.blend``)."""
+    paths = _leaf_fields(Config, "")
+    return paths if group is None else [p for p in paths if p.startswith(f"{group}.")]
 
 
 def parse_override(text: str) -> tuple[str, Any]:
@@ -263,14 +349,16 @@ def parse_override(text: str) -> tuple[str, Any]:
 def apply_overrides(tree: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
     """Return a copy of nested ``tree`` with dotted-key ``overrides`` set; unknown paths are errors."""
     known = set(config_field_paths())
-    out = {k: dict(v) if isinstance(v, dict) else v for k, v in tree.items()}
+    out = copy.deepcopy(tree)  # nested groups too (sampling.blend): the caller's tree stays untouched
     for key, value in overrides.items():
         if key not in known:
             raise ConfigError(f"{key}: unknown config field; see `python -m cdm fields` for the list")
-        group, name = key.split(".", 1)
-        section = out.setdefault(group, {})
-        if not isinstance(section, dict):
-            raise ConfigError(f"{group}: must be a mapping")
+        *groups, name = key.split(".")
+        section = out
+        for i, group in enumerate(groups):
+            section = section.setdefault(group, {})
+            if not isinstance(section, dict):
+                raise ConfigError(f"{'.'.join(groups[: i + 1])}: must be a mapping")
         section[name] = value
     return out
 

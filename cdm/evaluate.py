@@ -210,11 +210,23 @@ def reconstruct(
     generator: torch.Generator,
     progress: Callable[[int, int], None] | None = None,
 ) -> Tensor:
-    """Sample one reconstruction ``(B, N, 3)`` per input image of ``batch`` (already on the device)."""
+    """Sample one reconstruction ``(B, N, 3)`` per input image of ``batch`` (already on the device).
+
+    With ``sampling.blend.enabled``, BDM blending with the category priors (:mod:`cdm.blend`).
+    """
     context = network.encode(batch)
     shape = (len(batch), cfg.data.num_points, 3)
+
+    def model_fn(x: Tensor, t: Tensor) -> Tensor:
+        return network(x, t, context, batch.camera)
+
+    if cfg.sampling.blend.enabled:
+        # Imported here: cdm.blend loads priors through cdm.train, which imports this module.
+        from cdm.blend import blended_reconstruction
+
+        return blended_reconstruction(model_fn, diffusion, batch, cfg, generator, progress).points
     return diffusion.sample(
-        lambda x, t: network(x, t, context, batch.camera),
+        model_fn,
         shape,
         generator=generator,
         device=batch.points.device,

@@ -17,13 +17,14 @@ import math
 import pickle
 import shutil
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 import torch.distributed
 from torch import Tensor
+from torch.utils.data import DataLoader
 
 from cdm.config import Config
 from cdm.data import build_dataset
@@ -143,6 +144,36 @@ def _check_compatible(state: dict, config: Config, network: CDMNetwork) -> None:
         raise ValueError(f"resume: this run's {', '.join(differ)} differ from the checkpoint's; resume with the same settings")
 
 
+class _StepBatches:
+    """Batch sampler of a data loader: the ``(view round, index)`` pairs of steps ``start``…``stop − 1``
+    (:func:`batch_indices`; rank ``rank`` of ``world`` data-parallel ranks)."""
+
+    def __init__(self, start: int, stop: int, world: int, rank: int, batch_size: int, size: int, seed: int):
+        self.start, self.stop, self.world, self.rank = start, stop, world, rank
+        self.batch_size, self.size, self.seed = batch_size, size, seed
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        for step in range(self.start, self.stop):
+            yield batch_indices(step * self.world + self.rank, self.batch_size, self.size, self.seed)
+
+    def __len__(self) -> int:
+        return max(0, self.stop - self.start)
+
+
+class _ByRound(torch.utils.data.Dataset):
+    """A data set indexed by ``(view round, object index)``, as :class:`_StepBatches` yields them."""
+
+    def __init__(self, dataset):
+        self.dataset = dataset
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, key: tuple[int, int]):
+        epoch, index = key
+        return self.dataset.sample(index, epoch)
+
+
 class Trainer:
     """State of one run: data, network, optimiser, RNGs and step. :func:`fit` drives it; benchmarks and
     the sweep runner's cost estimate time its steps directly."""
@@ -174,6 +205,8 @@ class Trainer:
         self.step = 0
         self.out_dir = Path(config.train.out_dir)
         self._eval_set: EvalSet | None = None
+        self._loader: Iterator[Batch] | None = None
+        self._loader_step = 0
 
     def state(self) -> dict:
         return {
@@ -201,8 +234,20 @@ class Trainer:
         self.step = int(state["step"])
 
     def next_batch(self) -> Batch:
-        idx = batch_indices(self.step * self.world + self.rank, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed)
-        return collate([self.train_set.sample(i, epoch) for epoch, i in idx]).to(self.device)
+        if self.cfg.data.num_workers == 0:
+            idx = batch_indices(self.step * self.world + self.rank, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed)
+            return collate([self.train_set.sample(i, epoch) for epoch, i in idx]).to(self.device)
+        # Workers decode the coming steps' batches while this one trains. The batches are the same
+        # function of the step as above, so results do not depend on data.num_workers; a loader is
+        # (re)started at the current step, e.g. after a resume.
+        if self._loader is None or self._loader_step != self.step:
+            sampler = _StepBatches(self.step, self.cfg.train.steps, self.world, self.rank, self.cfg.train.batch_size,
+                                   len(self.train_set), self.cfg.train.seed)
+            self._loader = iter(DataLoader(_ByRound(self.train_set), batch_sampler=sampler, collate_fn=collate,
+                                           num_workers=self.cfg.data.num_workers))
+            self._loader_step = self.step
+        self._loader_step += 1
+        return next(self._loader).to(self.device)
 
     def losses(self, batch: Batch) -> tuple[Tensor, Tensor, Tensor]:
         """Total loss, diffusion term and 3D prior term (Eq. 6) for one batch."""

@@ -4,7 +4,7 @@ Local time comes from a short calibration in this process: a few training steps 
 evaluation, on one torch thread (how trials run on a small machine). Trials run one thread each, so
 ``w`` concurrent trials on ``c`` CPUs share ``min(w, c)`` cores:
 
-    trial ≈ start-up + steps × step + evaluations × evaluation
+    trial ≈ start-up + set-up + steps × step + evaluations × evaluation
     wall  ≈ Σ trials ÷ min(concurrent trials, CPUs)
 
 The paper profile's GPU-hours use per-step GPU figures measured by ``benchmarks/run.py --device cuda``
@@ -24,10 +24,11 @@ from pathlib import Path
 
 from cdm.config import Config, load_config
 from cdm.data import list_categories
-from cdm.train import Trainer
+from cdm.prior_model import ensure_priors
+from cdm.train import Trainer, TrainingDiverged
 from sweeps.spec import SweepPlan, expand
 
-__all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate"]
+__all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate", "paper_trial_gpu_hours"]
 
 GPU_COSTS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_costs.json"
 STARTUP_S = 2.0
@@ -37,13 +38,15 @@ CALIBRATED_CELLS = 3
 
 @dataclass(frozen=True)
 class TrialCost:
+    setup_s: float
+    """Building the data sets and the model (once per trial)."""
     step_s: float
     """One training step, data included, one thread."""
     eval_s: float
     """One evaluation, building the evaluation set included (paid once per trial; counted every time)."""
 
     def trial_s(self, steps: int, eval_every: int) -> float:
-        return STARTUP_S + steps * self.step_s + math.ceil(steps / eval_every) * self.eval_s
+        return STARTUP_S + self.setup_s + steps * self.step_s + math.ceil(steps / eval_every) * self.eval_s
 
 
 @dataclass(frozen=True)
@@ -64,9 +67,15 @@ class Estimate:
 
 
 def calibrate(config: Config, steps: int = 3) -> TrialCost:
-    """Time ``steps`` training steps (after one warm-up) and one evaluation of ``config``."""
+    """Time the set-up, ``steps`` training steps (after one warm-up) and one evaluation of ``config``."""
     with tempfile.TemporaryDirectory() as tmp:
+        # A blended cell (sampling.blend.prior_checkpoint: auto) samples with category priors; one-step
+        # priors on one object sample as fast as trained ones, and are not part of the timed set-up.
+        stub = ensure_priors(load_config(config.to_dict(), {"train.steps": 1, "data.train_objects": 1}), tmp)
+        config = config.model_copy(update={"sampling": stub.sampling})
+        start = time.perf_counter()
         trainer = Trainer(config.model_copy(update={"train": config.train.model_copy(update={"out_dir": tmp, "threads": 1})}))
+        setup_s = time.perf_counter() - start
         trainer.train_step(trainer.next_batch())
         times = []
         for _ in range(steps):
@@ -75,7 +84,7 @@ def calibrate(config: Config, steps: int = 3) -> TrialCost:
             times.append(time.perf_counter() - start)
         start = time.perf_counter()
         trainer.evaluate()
-        return TrialCost(statistics.median(times), time.perf_counter() - start)
+        return TrialCost(setup_s, statistics.median(times), time.perf_counter() - start)
 
 
 def _calibration_configs(plan: SweepPlan) -> list[Config]:
@@ -86,24 +95,41 @@ def _calibration_configs(plan: SweepPlan) -> list[Config]:
     return [distinct[i] for i in picks]
 
 
-def _paper_gpu_hours(plan: SweepPlan) -> tuple[float | None, str]:
+def paper_trial_gpu_hours(plan: SweepPlan) -> tuple[float | None, str]:
+    """GPU-hours of one trial of ``plan``'s spec with the paper profile, and the GPU they were measured on."""
     if not GPU_COSTS.is_file():
         return None, ""
     figures = json.loads(GPU_COSTS.read_text())
     paper = expand(plan.spec, "paper", plan.sets)
     cfg = paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
+    sizes = sorted(int(n) for n in figures["by_points"])
+    # The smallest measured cloud size that holds the config's (else the largest measured).
+    step = figures["by_points"][str(next((n for n in sizes if n >= cfg.data.num_points), sizes[-1]))]
     objects = cfg.eval.num_objects * len(list_categories(cfg))
-    eval_s = math.ceil(objects / cfg.train.batch_size) * cfg.diffusion.sample_steps * figures["sample_step_s"]
-    per_trial = paper.profile.steps * figures["train_step_s"] + math.ceil(paper.profile.steps / paper.profile.eval_every) * eval_s
+    eval_s = math.ceil(objects / cfg.train.batch_size) * cfg.diffusion.sample_steps * step["sample_step_s"]
+    per_trial = paper.profile.steps * step["train_step_s"] + math.ceil(paper.profile.steps / paper.profile.eval_every) * eval_s
     r = paper.profile.resources
     gpus = max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0)
-    return paper.num_trials * per_trial * gpus / 3600.0, figures["device"]
+    return per_trial * gpus / 3600.0, figures["device"]
 
 
 def estimate(plan: SweepPlan, cpus: float, concurrent: int) -> Estimate:
-    """Calibrate on this machine and estimate the sweep's wall time and paper-profile GPU-hours."""
-    costs = [calibrate(cfg) for cfg in _calibration_configs(plan)]
+    """Calibrate on this machine and estimate the sweep's wall time and paper-profile GPU-hours.
+
+    Raises:
+        TrainingDiverged: every calibrated cell diverged in its first steps (the sweep's trials will
+            fail the same way and say so; the caller reports the estimate as unavailable).
+    """
+    costs, diverged = [], None
+    for cfg in _calibration_configs(plan):
+        try:
+            costs.append(calibrate(cfg))
+        except TrainingDiverged as exc:  # a cell meant to diverge (a test of failure handling, a bad lr)
+            diverged = exc
+    if not costs:
+        raise diverged
     trial_s = statistics.fmean(c.trial_s(plan.profile.steps, plan.profile.eval_every) for c in costs)
     lanes = max(1.0, min(float(concurrent), cpus))
-    gpu_hours, gpu = _paper_gpu_hours(plan)
+    trial_hours, gpu = paper_trial_gpu_hours(plan)
+    gpu_hours = None if trial_hours is None else trial_hours * expand(plan.spec, "paper", plan.sets).num_trials
     return Estimate(plan.num_trials, trial_s, concurrent, plan.num_trials * trial_s / lanes, gpu_hours, gpu)

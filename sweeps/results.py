@@ -156,6 +156,7 @@ class _Pairing:
     def build(cls, cells: dict[str, list[TrialOutcome]], reference: str, shown: list[str], metric: str,
               mode: Literal["min", "max"], baselines: list[str]) -> _Pairing:
         pairing = cls(reference, {}, {}, [])
+        unpaired: list[str] = []
         for m in shown:
             column, category = _object_column(m)  # type: ignore[misc]
             scores = {name: _object_scores(group, column, category) for name, group in cells.items()}
@@ -166,16 +167,20 @@ class _Pairing:
                     continue
                 try:
                     pairing.diffs[(name, m)] = compare(values, scores[reference], (name, reference))
-                except UnpairedError as exc:
+                except UnpairedError:
                     pairing.diffs[(name, m)] = "not paired"
-                    pairing.notes += [f"not paired: {exc}"] if m == metric else []
+                    unpaired += [name] if m == metric else []
             if m != metric:
                 continue
-            for name in cells:
+            for name, group in cells.items():
                 for b in baselines:
-                    ours, theirs = scores[name], scores[f"baseline: {b}"]
+                    # The baselines scored on this cell's own objects, whichever objects those are.
+                    ours, theirs = scores[name], _object_scores(group, f"baseline/{b}/{column}", category)
                     if ours and set(ours) == set(theirs) and compare(ours, theirs, (name, b)).verdict(mode) == "better":
                         pairing.beats.setdefault(name, []).append(b)
+        if unpaired:
+            pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
+                                 f"comparison needs the same evaluation set): {', '.join(unpaired)}")
         return pairing
 
     def columns(self, name: str, shown: list[str], metric: str, mode: Literal["min", "max"], is_cell: bool) -> list[str]:
@@ -197,12 +202,14 @@ def build_table(
     title: str,
     paper_note: str = "",
     compare_to: str | None = None,
+    settings: Sequence[str] = (),
 ) -> ResultsTable:
     """Aggregate trials per cell (in first-seen order) and mark the best cell by ``metric``/``mode``.
 
     With per-object rows on the trials, every cell and baseline is paired with ``compare_to``
     (default: the first cell): mean difference and 95% bootstrap interval for each shown metric, a
-    verdict by ``metric``, and the baselines the cell beats.
+    verdict by ``metric``, and the baselines the cell beats. ``settings`` lines (what produced the
+    numbers, e.g. the prediction target) head the notes.
     """
     cells: dict[str, list[TrialOutcome]] = {}
     for o in outcomes:
@@ -271,7 +278,7 @@ def build_table(
         rows.append(row)
         records.append(record)
 
-    notes = []
+    notes = list(settings)
     if paper_note:
         notes.append(f"paper: {paper_note}")
     if categories:

@@ -1,6 +1,7 @@
 """Run a sweep: ``python sweeps/run.py SPEC [--profile smoke|local|paper] [--smoke] [--resume] [--dry-run]
 [--address ADDR] [--set key=value ...] [--storage PATH] [--tracking-uri URI]``, or re-run one finished
-trial from its MLflow record: ``python sweeps/run.py --rerun RUN_ID [--force]``.
+trial from its MLflow record: ``python sweeps/run.py --rerun RUN_ID [--force]``, or rebuild a finished
+sweep's table and plots from MLflow: ``python sweeps/run.py --report EXPERIMENT`` (:mod:`sweeps.report`).
 
 The spec is expanded and every cell's config validated before Ray starts; a bad spec exits with
 code 2 and one message naming the field, having written nothing. Then the trials run on Ray (a local
@@ -13,7 +14,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -39,10 +42,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="print the trials and the resource plan; start nothing")
     p.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every trial")
-    p.add_argument("--storage", type=Path, default=Path("results"), help="parent folder of sweep folders (default: ./results)")
+    p.add_argument("--storage", default="results",
+                   help="parent folder of sweep folders: a path (shared by every node on a cluster) or a URI "
+                        "(s3://, gs://, file://) (default: ./results)")
     p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
     p.add_argument("--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record")
     p.add_argument("--force", action="store_true", help="with --rerun: run even if the code or config differs from the record")
+    p.add_argument("--report", metavar="EXPERIMENT", default=None, help="rebuild the results table and plots of this finished sweep from MLflow")
     return p
 
 
@@ -85,39 +91,108 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None) -> str:
     return "\n".join(out)
 
 
+def _estimate(plan: SweepPlan, cpus: float, concurrent: int):
+    """Print the cost estimate (:mod:`sweeps.estimate`) and return it; None when calibration diverged."""
+    from cdm.train import TrainingDiverged
+    from sweeps.estimate import estimate
+
+    try:
+        predicted = estimate(plan, cpus, concurrent)
+    except TrainingDiverged as exc:
+        print(f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way", flush=True)
+        return None
+    print(predicted.text(), flush=True)
+    return predicted
+
+
+def _settings(plan: SweepPlan) -> list[str]:
+    """What produced the numbers, for the table's notes: budget and the training target of the cells."""
+    targets = sorted({c.config.diffusion.prediction for c in plan.cells}) or [plan.fixed.get("diffusion.prediction", "eps")]
+    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
+    return [f"profile {plan.profile.name}: {plan.profile.steps} steps per trial; prediction target {shown}"]
+
+
 def _fail(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
 
 
+def _is_uri(storage: str) -> bool:
+    """``s3://…``, ``gs://…``, ``file://…``: kept as written and read through pyarrow; else a local path."""
+    return "://" in storage
+
+
+def _sweep_location(storage: str, spec: str, profile: str) -> str:
+    """``<storage>/<spec>/<profile>``: an absolute path, or a URI joined as a string (no Path: it eats ``//``)."""
+    if _is_uri(storage):
+        return f"{storage.rstrip('/')}/{spec}/{profile}"
+    return str((Path(storage) / spec / profile).resolve())
+
+
+def _exists(location: str) -> bool:
+    from pyarrow import fs
+
+    filesystem, path = fs.FileSystem.from_uri(location)
+    return filesystem.get_file_info(path).type != fs.FileType.NotFound
+
+
+def _read_text(location: str) -> str:
+    from pyarrow import fs
+
+    filesystem, path = fs.FileSystem.from_uri(location)
+    with filesystem.open_input_stream(path) as stream:
+        return stream.read().decode()
+
+
+def _publish_files(local: Path, location: str) -> None:
+    """Copy the staging folder ``local`` into the sweep folder ``location`` (a URI; local paths write in place)."""
+    from pyarrow import fs
+
+    filesystem, path = fs.FileSystem.from_uri(location)
+    filesystem.create_dir(path, recursive=True)
+    fs.copy_files(str(local), path, source_filesystem=fs.LocalFileSystem(), destination_filesystem=filesystem)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    if (args.spec is None) == (args.rerun is None):
-        return _fail("give a sweep spec (e.g. sweeps/point_size.yaml) or --rerun RUN_ID, not both or neither")
+    if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
+        return _fail("give one of a sweep spec (e.g. sweeps/point_size.yaml), --rerun RUN_ID or --report EXPERIMENT")
+    if args.report is not None:
+        from sweeps import report
+
+        return report.main([args.report, *(["--tracking-uri", args.tracking_uri] if args.tracking_uri else [])])
     if args.rerun is not None:
         from sweeps.rerun import RerunError, rerun
         from sweeps.tracking import resolve_tracking_uri
 
+        if _is_uri(args.storage):
+            return _fail(f"--rerun trains in this process and writes its files here: give --storage a local folder, not {args.storage}")
         try:
-            return rerun(args.rerun, resolve_tracking_uri(args.tracking_uri), (args.storage / "reruns").resolve(), args.force)
+            return rerun(args.rerun, resolve_tracking_uri(args.tracking_uri), (Path(args.storage) / "reruns").resolve(), args.force)
         except RerunError as exc:
             return _fail(str(exc))
     if args.smoke and args.profile not in (None, "smoke"):
         return _fail(f"--smoke means --profile smoke; got --profile {args.profile} too")
     profile = "smoke" if args.smoke else (args.profile or "local")
+    remote = args.address is not None or "RAY_ADDRESS" in os.environ
+    if remote and not args.dry_run and not _is_uri(args.storage) and not Path(args.storage).is_absolute():
+        # Under `ray job submit` the driver's working directory is the job's temporary copy of the
+        # repository: checkpoints there vanish with the job and other nodes never see them.
+        return _fail(f"--storage {args.storage}: on a cluster give an absolute path that every node shares "
+                     "(e.g. /mnt/shared/results) or an object-store URI (s3://bucket/results)")
     try:
         spec = load_spec(args.spec)
-        sweep_dir = (args.storage / spec.name / profile).resolve()
-        state_file = sweep_dir / STATE_FILE
+        sweep_dir = _sweep_location(args.storage, spec.name, profile)
+        state_file = f"{sweep_dir}/{STATE_FILE}"
         sets = dict(parse_override(text) for text in args.set)
         if args.resume:
-            if not state_file.is_file():
+            if not _exists(state_file):
                 return _fail(f"--resume: {sweep_dir} holds no sweep to resume (no {STATE_FILE})")
             if sets:
                 return _fail("--resume continues a sweep with the spec and --set values it started with; drop --set")
             # The spec as it started, even if the file was edited since: trials must stay the same.
             try:
-                state = json.loads(state_file.read_text())
+                state = json.loads(_read_text(state_file))
                 spec, sets = Spec.model_validate(state["spec"]), state["sets"]
             except (json.JSONDecodeError, KeyError, ValidationError) as exc:
                 return _fail(f"--resume: {state_file} is damaged ({type(exc).__name__}: {exc}); remove the folder to start over")
@@ -128,10 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.dry_run:
         import torch
 
-        from sweeps.estimate import estimate
-
-        local = args.address is None and "RAY_ADDRESS" not in os.environ
-        cpus, gpus = (os.cpu_count() or 1, torch.cuda.device_count()) if local else (None, None)
+        cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
         print(describe(plan, cpus, gpus), flush=True)
         if cpus is None:
             print("estimate: run --dry-run on the cluster's head (without --address) to size it")
@@ -141,15 +213,15 @@ def main(argv: list[str] | None = None) -> int:
         except SpecError:
             return 0  # describe() has said why this machine cannot run it
         print("calibrating (a few training steps and one evaluation) ...", flush=True)
-        print(estimate(plan, cpus, concurrent).text())
+        _estimate(plan, cpus, concurrent)
         return 0
-    if not args.resume and sweep_dir.exists():
+    if not args.resume and _exists(sweep_dir):
         return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
     print(describe(plan, None, None), flush=True)
-    return _run(plan, args, sweep_dir, state_file, sets)
+    return _run(plan, args, sweep_dir, state_file, sets, remote)
 
 
-def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: Path, state_file: Path, sets: dict) -> int:
+def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: str, sets: dict, remote: bool) -> int:
     # Read when ray is imported: progress lines of concurrent trials differ only in numbers, and
     # Ray's log de-duplication would fold them into "[repeated 3x]".
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
@@ -157,62 +229,90 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: Path, state_file:
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     import ray
 
-    from sweeps.estimate import estimate
+    from sweeps.report import publish
     from sweeps.results import build_table
     from sweeps.tracking import SweepRun, resolve_tracking_uri, ui_command
-    from sweeps.trial import connect, run_sweep
+    from sweeps.trial import cluster_capacity, cluster_machines, connect, run_sweep
 
+    # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
+    # in a staging folder, copied at once (sweep.json, so a crashed sweep can be resumed) and at the end.
+    staging = Path(tempfile.mkdtemp(prefix="cdm-sweep-")) if _is_uri(sweep_dir) else Path(sweep_dir)
     # A resumed sweep keeps logging into the store it started with, wherever it is resumed from.
-    stored_uri = json.loads(state_file.read_text()).get("tracking_uri") if args.resume else None
-    uri = resolve_tracking_uri(args.tracking_uri or stored_uri)
+    stored = json.loads(_read_text(state_file)) if args.resume else {}
+    uri = resolve_tracking_uri(args.tracking_uri or stored.get("tracking_uri"))
     started = connect(args.address)
     try:
+        machines = cluster_machines(remote)
+        if uri.startswith("sqlite:") and machines > 1:
+            return _fail(f"MLflow store {uri}: this cluster spans (or may grow to) {machines} machines and trials on the others "
+                         "cannot write a SQLite file here; start an MLflow server every node reaches (`mlflow server "
+                         "--host <private ip> --port 5000 …`, cluster/README.md) and pass --tracking-uri http://<private ip>:5000")
+        capacity = cluster_capacity(remote)
+        try:
+            plan_concurrency(plan.profile.resources, capacity["CPU"], capacity["GPU"], plan.num_trials, remote)
+        except SpecError as exc:
+            return _fail(str(exc))
         if args.resume:
-            sweep_run = SweepRun.reopen(uri, json.loads(state_file.read_text())["parent_run_id"])
+            sweep_run = SweepRun.reopen(uri, stored["parent_run_id"])
         else:
             sweep_run = SweepRun.start(
                 uri, plan.spec.name, f"{plan.spec.name} · {plan.profile.name} · {time.strftime('%Y-%m-%d %H:%M')}",
-                tags={"spec": plan.spec.name, "profile": plan.profile.name, "sweep_dir": str(sweep_dir)},
+                tags={"spec": plan.spec.name, "profile": plan.profile.name, "sweep_dir": sweep_dir},
                 params={"profile": plan.profile.name, "search": plan.spec.search.kind, "trials": plan.num_trials,
                         "metric": plan.spec.metric.name, "steps": plan.profile.steps, "sets": json.dumps(sets)},
             )
-            sweep_dir.mkdir(parents=True)
+            staging.mkdir(parents=True, exist_ok=True)
             state = {"spec": plan.spec.model_dump(mode="json"), "sets": sets, "profile": plan.profile.name,
                      "tracking_uri": uri, "parent_run_id": sweep_run.run_id}
-            state_file.write_text(json.dumps(state, indent=2))
-            plan_file = sweep_dir / "plan.json"
+            (staging / STATE_FILE).write_text(json.dumps(state, indent=2))
+            plan_file = staging / "plan.json"
             plan_file.write_text(json.dumps(
                 {"fixed": plan.fixed, "sets": sets, "cells": [
                     {"label": c.label, "values": c.values, "seed": c.seed, "paper": c.paper} for c in plan.cells]},
                 indent=2, default=str))
+            if _is_uri(sweep_dir):
+                _publish_files(staging, sweep_dir)
             sweep_run.log_artifacts([args.spec.resolve(), plan_file])
         print(f"profile in force: {plan.profile.name}; MLflow: {uri} (parent run {sweep_run.run_id})", flush=True)
         predicted = None
         if not args.resume:  # a resumed sweep has only its unfinished trials left: the estimate would not apply
             cluster = ray.cluster_resources()
-            conc = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
-            predicted = estimate(plan, cluster.get("CPU", 1.0), conc.max_concurrent)
-            print(predicted.text(), flush=True)
+            try:
+                now = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
+            except SpecError:  # remote only (checked above otherwise): no node up fits a trial before the autoscaler adds one
+                now = None
+            if now is None:
+                print("estimate: none — no node up yet fits one trial; trials wait for the autoscaler to add one", flush=True)
+            else:
+                predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent)
         started_at = time.perf_counter()
-        outcomes = run_sweep(plan, sweep_dir, sweep_run, args.resume)
+        outcomes = run_sweep(plan, sweep_dir, sweep_run, args.resume, remote)
         took = time.perf_counter() - started_at
         table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,
                             f"{plan.spec.name} — profile {plan.profile.name}",
                             f"{plan.spec.paper.table}: {plan.spec.paper.note}" if plan.spec.paper else "",
-                            compare_to=plan.spec.compare_to)
-        md, csv = table.write(sweep_dir)
+                            compare_to=plan.spec.compare_to, settings=_settings(plan))
+        md, csv = table.write(staging)
         sweep_run.log_artifacts([md, csv])
+        view = publish(uri, sweep_run.run_id, staging / "plots")
+        if _is_uri(sweep_dir):
+            _publish_files(staging, sweep_dir)
         unfinished = any(o.status == "pending" for o in outcomes)
         sweep_run.end("KILLED" if unfinished else "FINISHED")
     finally:
         if started:
             ray.shutdown()
+        if _is_uri(sweep_dir):
+            shutil.rmtree(staging)
     print("\n" + table.text() + "\n")
     if predicted is not None:
         print(f"time: estimated ~{predicted.wall_s / 60:.1f} min, took {took / 60:.1f} min "
               f"(actual / estimate = {took / predicted.wall_s:.2f})")
-    print(f"results: {md} and {csv}")
-    print(f"MLflow: {ui_command(uri)}   (then open http://127.0.0.1:5000)")
+    print(f"results: {sweep_dir}/{md.name} and {sweep_dir}/{csv.name}")
+    if uri.startswith(("http://", "https://")):
+        print(f"MLflow: open {uri.rstrip('/')}/{view}")
+    else:
+        print(f"MLflow: {ui_command(uri)}   (then open http://127.0.0.1:5000/{view})")
     if unfinished:
         print(f"some trials did not finish; continue with: python sweeps/run.py {args.spec} --profile {plan.profile.name} --resume")
     return 0 if any(o.status in ("ok", "stopped") for o in outcomes) else 1

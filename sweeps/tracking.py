@@ -127,7 +127,26 @@ class SweepRun:
             self.client.set_tag(run_id, "error", error[-5000:])
         if stopped_early:
             self.client.set_tag(run_id, "stopped_early", "true")
+        if status == "FINISHED":
+            self._log_final(run_id)
         self.client.set_terminated(run_id, status=status)
+
+    def _log_final(self, run_id: str) -> None:
+        """Copy the last evaluation's ``eval/cd``, ``eval/f1`` (and ``…/<category>``) to ``final/…``.
+
+        Stable names to sort, search and compare by in the UI (``metrics.`final/f1` > 0.4``), whatever
+        step a trial ended at (ASHA stops some early). Logged here, on the driver, once Tune's verdict
+        is in: the trial itself cannot tell its last evaluation from an intermediate one.
+        """
+        history = self.client.get_metric_history(run_id, "eval/cd")
+        if not history:
+            return
+        step = max(m.step for m in history)
+        now = int(time.time() * 1000)
+        latest = self.client.get_run(run_id).data.metrics
+        final = [Metric("final/" + k.removeprefix("eval/"), v, now, step) for k, v in latest.items()
+                 if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])]
+        self.client.log_batch(run_id, metrics=final)
 
     def trial_objects(self, trial_id: str) -> list[dict[str, object]]:
         """Per-object rows (``objects.csv``) of the trial's last logged evaluation; empty if none."""

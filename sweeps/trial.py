@@ -39,7 +39,10 @@ from sweeps.results import TrialOutcome
 from sweeps.spec import Cell, SweepPlan, plan_concurrency
 from sweeps.tracking import SweepRun, TrialRun
 
-__all__ = ["TrialProgress", "TrialSetup", "connect", "error_summary", "run_sweep", "run_trial", "train_loop"]
+__all__ = [
+    "TrialProgress", "TrialSetup", "cluster_capacity", "cluster_machines", "connect", "error_summary", "run_sweep",
+    "run_trial", "train_loop",
+]
 
 
 @dataclass(frozen=True)
@@ -129,9 +132,12 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     trial_id = ctx.get_trial_id()
     r = plan.profile.resources
     out_dir = Path(ctx.get_trial_dir()) / "cdm"
+    categories = ",".join(cell.config.data.categories) or "all"
     tags = {
         "cell": cell.name, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
-        "categories": ",".join(cell.config.data.categories) or "all", "tune_trial_dir": ctx.get_trial_dir(),
+        # `category` is the short name the UI's search box is documented with (README, Compare in MLflow).
+        "categories": categories, "category": categories, "tune_trial_dir": ctx.get_trial_dir(),
+        "ray_node_id": ray.get_runtime_context().get_node_id(),
         **{f"repro.{k}": v for k, v in setup.code.items()},
     }
     loop_config = {
@@ -141,7 +147,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         "trial_id": trial_id,
         "metric": plan.spec.metric.name,
         "tags": tags,
-        "prior_dir": str(Path(setup.sweep_dir) / "priors"),
+        "prior_dir": _prior_dir(setup.sweep_dir, ctx.get_trial_dir()),
         "tracking": {"uri": setup.tracking_uri, "experiment_id": setup.experiment_id, "parent_run_id": setup.parent_run_id},
     }
     per_worker = {"CPU": r.cpus_per_worker, **({"GPU": r.gpus_per_worker} if r.gpus_per_worker else {})}
@@ -156,12 +162,23 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         run_config=ray.train.RunConfig(
             # Named after the trial so a restored trial resumes its own Train run (NOTES §5).
             name=f"trial_{trial_id}",
-            storage_path=str(Path(setup.sweep_dir) / "train"),
+            storage_path=f"{setup.sweep_dir}/train",
             failure_config=ray.train.FailureConfig(max_failures=plan.spec.failure.max_retries),
             callbacks=_tune_report_callbacks() if r.workers_per_trial else None,
         ),
     )
     trainer.fit()
+
+
+def _prior_dir(sweep_dir: str, trial_dir: str) -> str:
+    """Where ``prior_checkpoint: auto`` caches category priors: the sweep folder, shared by every trial.
+
+    Its lock needs a file system, so with an object-store ``sweep_dir`` (``s3://…``) each node keeps
+    its own cache beside the experiment's local trial folders.
+    """
+    if "://" in sweep_dir:
+        return str(Path(trial_dir).parent / "priors")
+    return str(Path(sweep_dir) / "priors")
 
 
 def _tune_report_callbacks() -> list:
@@ -227,8 +244,31 @@ def connect(address: str | None) -> bool:
     if address:
         ray.init(address=address, logging_level="WARNING")
     else:
-        ray.init(_node_ip_address="127.0.0.1", include_dashboard=False, logging_level="WARNING")
+        # address="local": always a new cluster of our own; plain ray.init() would join any cluster
+        # another process left running on this machine.
+        ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, logging_level="WARNING")
     return True
+
+
+def cluster_capacity(remote: bool) -> dict[str, float]:
+    """CPUs and GPUs for :func:`sweeps.spec.plan_concurrency`: the nodes up now, or, on a ``remote``
+    cluster, the most it could offer — the larger of its nodes and the node-group bounds an
+    autoscaler publishes in the GCS (none on a fixed cluster: then its nodes).
+    """
+    present = ray.cluster_resources()
+    # The record Ray Data sizes itself by (ray.data's cluster_autoscaler); no public API reads it yet.
+    bounds = (ray._private.state.state.get_max_resources_from_cluster_config() or {}) if remote else {}
+    return {k: max(float(present.get(k, 0.0)), float(bounds.get(k, 0))) for k in ("CPU", "GPU")}
+
+
+def cluster_machines(remote: bool) -> int:
+    """Machines the cluster spans (distinct node addresses: nodes of one host share its files), or on a
+    ``remote`` cluster whose autoscaler publishes its bounds, the most it could grow to (unbounded: 2).
+    """
+    hosts = {n["NodeManagerAddress"] for n in ray.nodes() if n["Alive"]}
+    config = ray._private.state.state.get_cluster_config() if remote else None
+    bound = sum(2 if g.max_count == -1 else g.max_count for g in config.node_group_configs) if config else 0
+    return max(len(hosts), bound)
 
 
 def _search(plan: SweepPlan) -> tuple[dict[str, Any], Any, int]:
@@ -280,24 +320,26 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
     return TrialOutcome(cell.label, cell.name, status, metrics, cell.paper_label, cell.paper, error, objects)
 
 
-def run_sweep(plan: SweepPlan, sweep_dir: Path, sweep_run: SweepRun, resume: bool) -> list[TrialOutcome]:
+def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool, remote: bool = False) -> list[TrialOutcome]:
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
-    ``sweep_dir`` is Tune's experiment folder. Resume re-runs only unfinished trials, each from its
-    last checkpoint; errored trials stay failed.
+    ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
+    (``s3://…``, ``file://…``). Resume re-runs only unfinished trials, each from its last
+    checkpoint; errored trials stay failed. ``remote``: the cluster was joined by address and may
+    autoscale (concurrency as :func:`sweeps.spec.plan_concurrency` says).
     """
     # Snapshot the experiment state every second (and sync it to storage as often, below), so a
     # killed driver resumes trials from their checkpoints instead of from step 0 (NOTES §5).
     os.environ["TUNE_GLOBAL_CHECKPOINT_S"] = "1"
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
-    cluster = ray.cluster_resources()
-    conc = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
-    setup = TrialSetup(plan, str(sweep_dir), sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version())
+    cluster = cluster_capacity(remote)
+    conc = plan_concurrency(plan.profile.resources, cluster["CPU"], cluster["GPU"], plan.num_trials, remote)
+    setup = TrialSetup(plan, sweep_dir, sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version())
     trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
-    print(f"cluster: {cluster.get('CPU', 0):g} CPUs, {cluster.get('GPU', 0):g} GPUs → up to {conc.max_concurrent} "
+    print(f"cluster{' (at most)' if remote else ''}: {cluster['CPU']:g} CPUs, {cluster['GPU']:g} GPUs → up to {conc.max_concurrent} "
           f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)", flush=True)
     if resume:
-        tuner = ray.tune.Tuner.restore(str(sweep_dir), trainable=trainable, resume_unfinished=True,
+        tuner = ray.tune.Tuner.restore(sweep_dir, trainable=trainable, resume_unfinished=True,
                                        resume_errored=False, restart_errored=False)
     else:
         param_space, search_alg, num_samples = _search(plan)
@@ -316,8 +358,9 @@ def run_sweep(plan: SweepPlan, sweep_dir: Path, sweep_run: SweepRun, resume: boo
                 trial_dirname_creator=lambda t: f"trial_{t.trial_id}",
             ),
             run_config=ray.tune.RunConfig(
-                name=sweep_dir.name,
-                storage_path=str(sweep_dir.parent),
+                # Split as a string: a URI is no Path (Path("s3://b/x") collapses the "//").
+                name=sweep_dir.rsplit("/", 1)[1],
+                storage_path=sweep_dir.rsplit("/", 1)[0],
                 failure_config=ray.tune.FailureConfig(max_failures=plan.spec.failure.max_retries),
                 checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=2),
                 sync_config=ray.tune.SyncConfig(sync_period=1),
@@ -328,7 +371,8 @@ def run_sweep(plan: SweepPlan, sweep_dir: Path, sweep_run: SweepRun, resume: boo
             ),
         )
     grid = tuner.fit()
-    outcomes = [_outcome(plan, r, sweep_run) for r in grid]
+    # A trial whose worker never started has no config; grid sweeps list it as pending below.
+    outcomes = [_outcome(plan, r, sweep_run) for r in grid if r.config is not None]
     if plan.spec.search.kind == "grid":
         # Trials Tune had not created yet when the sweep was interrupted still get their row.
         seen = {o.label for o in outcomes}

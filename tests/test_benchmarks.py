@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -20,3 +22,28 @@ def test_metrics_benchmark_runs_and_agrees_with_scipy(tmp_path):
     assert {r["benchmark"] for r in rows} == {"chamfer_f1 (kdtree) vs scipy cKDTree", "chamfer_f1 (brute) vs scipy cKDTree"}
     assert all(r["max_abs_cd_diff"] < 1e-3 for r in rows)  # CD×1000 ~ 20: float32 rounding only
     assert "| chamfer_f1 (kdtree) vs scipy cKDTree | B=8, 4096x4096 |" in out.stdout
+
+
+def test_growth_exponent_recovers_a_known_power_law():
+    from benchmarks.render import growth_exponent
+
+    points = [1024, 4096, 16384]
+    assert growth_exponent(points, [3e-6 * n for n in points]) == pytest.approx(1.0)
+    assert growth_exponent(points, [1e-9 * n**2 for n in points]) == pytest.approx(2.0)
+
+
+def test_rendering_and_paper_scaling_rows(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "benchmarks/run.py", "--quick", "--only", "render", "paper_scaling", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    rows = json.loads((tmp_path / "results.json").read_text())
+    growth = {r["benchmark"] for r in rows if r["benchmark"].endswith("growth")}
+    assert growth == {"render: rasterize growth", "render: splat growth"}
+    scaling = {r["spec"]: r for r in rows if r["benchmark"] == "paper scaling"}
+    point_size = scaling["point_size"]
+    assert point_size["trials"] == 5
+    assert point_size["wall_h_1_gpus"] == pytest.approx(5 * point_size["trial_gpu_hours"])
+    assert point_size["wall_h_8_gpus"] == pytest.approx(point_size["trial_gpu_hours"])  # one wave
+    assert "| point_size | 5 |" in out.stdout

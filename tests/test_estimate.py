@@ -8,34 +8,35 @@ from pathlib import Path
 
 import pytest
 
-from sweeps.estimate import GPU_COSTS, STARTUP_S, TrialCost, _paper_gpu_hours, calibrate, estimate
+from sweeps.estimate import GPU_COSTS, STARTUP_S, TrialCost, calibrate, estimate, paper_trial_gpu_hours
 from sweeps.spec import expand, load_spec
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
 
 
 def test_trial_time_counts_steps_and_every_evaluation():
-    cost = TrialCost(step_s=0.5, eval_s=10.0)
-    assert cost.trial_s(steps=800, eval_every=400) == STARTUP_S + 400.0 + 20.0
-    assert cost.trial_s(steps=20, eval_every=15) == STARTUP_S + 10.0 + 20.0  # evaluates at 15 and at the end
+    cost = TrialCost(setup_s=3.0, step_s=0.5, eval_s=10.0)
+    assert cost.trial_s(steps=800, eval_every=400) == STARTUP_S + 3.0 + 400.0 + 20.0
+    assert cost.trial_s(steps=20, eval_every=15) == STARTUP_S + 3.0 + 10.0 + 20.0  # evaluates at 15 and at the end
 
 
 def test_paper_gpu_hours_follow_the_measured_figures():
     figures = json.loads(GPU_COSTS.read_text())
     plan = expand(load_spec(SWEEPS / "point_size.yaml"), "local")
-    hours, device = _paper_gpu_hours(plan)
+    hours, device = paper_trial_gpu_hours(plan)
     cfg = expand(plan.spec, "paper").cells[0].config
     evals = 100_000 // 5_000
     batches = math.ceil(cfg.eval.num_objects * 8 / 8)  # 8 procedural categories, batch 8
-    per_trial = 100_000 * figures["train_step_s"] + evals * batches * cfg.diffusion.sample_steps * figures["sample_step_s"]
-    assert hours == pytest.approx(5 * per_trial / 3600)
+    step = figures["by_points"]["4096"]  # the paper profile's ShapeNet size
+    per_trial = 100_000 * step["train_step_s"] + evals * batches * cfg.diffusion.sample_steps * step["sample_step_s"]
+    assert hours == pytest.approx(per_trial / 3600)
     assert device == figures["device"]
 
 
 def test_calibration_and_wall_time_on_this_machine():
     plan = expand(load_spec(SWEEPS / "point_size.yaml"), "smoke")
     cost = calibrate(plan.cells[0].config)
-    assert 0 < cost.step_s < cost.eval_s
+    assert 0 < cost.step_s < cost.eval_s and cost.setup_s > 0
     est = estimate(plan, cpus=2, concurrent=5)
     assert est.trials == 5 and est.concurrent == 5
     assert est.wall_s == pytest.approx(5 * est.trial_s / 2)  # five one-thread trials share two cores

@@ -22,7 +22,7 @@ SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
 
 EXPECTED_TRIALS = {  # cells × seeds per shipped spec (Optuna: num_samples of the profile)
     "point_size": 5, "frames": 7, "frames_point_size": 3, "priors_2d_3d": 4, "prior_type": 2,
-    "global_features": 3, "conditions": 1, "prediction": 3, "lambda": {"smoke": 4, "local": 8, "paper": 32},
+    "global_features": 3, "conditions": 1, "prediction": 3, "bdm_blend": 20, "lambda": {"smoke": 4, "local": 8, "paper": 32},
 }
 
 
@@ -202,3 +202,27 @@ def test_concurrency_fits_the_cluster(resources, cpus, gpus, trials, want):
 def test_a_trial_larger_than_the_cluster_is_refused():
     with pytest.raises(SpecError, match="one trial needs 4 CPUs and 1 GPUs but the cluster has 2 and 0"):
         plan_concurrency(Resources(cpus_per_worker=4, gpus_per_worker=1), 2, 0, 3)
+
+
+PAPER_RESOURCES = {"workers_per_trial": 1, "cpus_per_worker": 4, "gpus_per_worker": 1}
+
+
+@pytest.mark.parametrize(
+    ("resources", "cpus", "gpus", "trials", "want"),
+    [
+        # An autoscaling GPU cluster that could grow to 8 GPUs: all 12 trials wait; nodes come as they do.
+        (PAPER_RESOURCES, 72, 8, 12, 12),
+        ({**PAPER_RESOURCES, "max_concurrent_trials": 3}, 72, 8, 12, 3),
+        ({}, 2, 0, 5, 5),  # a fixed remote cluster: Tune queues what does not fit, nothing deadlocks in local mode
+    ],
+)
+def test_a_remote_cluster_takes_its_cap_from_the_spec_not_from_the_nodes_up(resources, cpus, gpus, trials, want):
+    assert plan_concurrency(Resources(**resources), cpus, gpus, trials, remote=True).max_concurrent == want
+
+
+def test_a_remote_cluster_that_could_never_fit_a_trial_is_refused():
+    # The same trial is refused locally for the GPUs present and remotely for the GPUs it could ever have.
+    with pytest.raises(SpecError, match="one trial needs 4.01 CPUs and 1 GPUs but the cluster has 16 and 0"):
+        plan_concurrency(Resources(**PAPER_RESOURCES), 16, 0, 3)
+    with pytest.raises(SpecError, match="could offer at most 16 and 0; .* min_workers: 1"):
+        plan_concurrency(Resources(**PAPER_RESOURCES), 16, 0, 3, remote=True)

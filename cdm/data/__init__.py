@@ -8,9 +8,11 @@ Adding a data set (ShapeNet, Co3D) is one module and one entry here (and the nam
 from __future__ import annotations
 
 from cdm.config import Config
+from cdm.data.co3d import Co3DDataset
 from cdm.data.meshes import MeshFolderDataset
 from cdm.data.procedural import ProceduralDataset
 from cdm.data.sample import Batch, Sample, collate
+from cdm.data.shapenet import ShapeNetR2N2Dataset
 from cdm.data.views import ObjectDataset, Split
 
 __all__ = ["DATASETS", "Batch", "Sample", "build_dataset", "collate", "list_categories"]
@@ -18,6 +20,8 @@ __all__ = ["DATASETS", "Batch", "Sample", "build_dataset", "collate", "list_cate
 DATASETS: dict[str, type[ObjectDataset]] = {
     ProceduralDataset.kind: ProceduralDataset,
     MeshFolderDataset.kind: MeshFolderDataset,
+    ShapeNetR2N2Dataset.kind: ShapeNetR2N2Dataset,
+    Co3DDataset.kind: Co3DDataset,
 }
 """Data-set classes by ``data.kind``."""
 

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def cluster():
-    ray.init(_node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
+    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
     yield ray.get_runtime_context().gcs_address
     ray.shutdown()
 
@@ -189,3 +189,7 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(cluster, tm
     assert run.main(rerun_argv) == 2
     err = capsys.readouterr().err
     assert f"recorded commit {'0' * 40}" in err and "--force" in err
+    client.set_tag(child.info.run_id, "repro.git_commit", tags["repro.git_commit"])
+    client.set_tag(child.info.run_id, "repro.config_hash", "0" * 16)
+    assert run.main(rerun_argv) == 2
+    assert f"differs from the recorded {'0' * 16}" in capsys.readouterr().err

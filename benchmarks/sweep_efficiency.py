@@ -1,0 +1,68 @@
+"""Sweep efficiency on this machine: 6 identical short trials of the smoke profile through the real runner.
+
+The runner packs trials in Train's local mode with reused actors (sweeps/trial.py): on 2 CPUs two run
+at a time. From the MLflow child runs (start = the trial opens its run, end = the driver closes it):
+
+- efficiency = Σ in-trial time ÷ (concurrent trials × wall of the trial phase); target ≥ 0.8;
+- gap per trial = (concurrent trials × wall − Σ in-trial time) ÷ trials: scheduling, actor reuse and
+  result handling between trials; target ≤ 5 s;
+- in-trial overhead = in-trial time − training-loop time (data and model set-up, last evaluation,
+  checkpoint, tracking), reported.
+
+A Train worker group per trial (workers_per_trial ≥ 1, what multi-GPU trials need) adds 12–25 s per
+trial here (NOTES §5); that is why small machines use local mode.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+from mlflow import MlflowClient
+
+__all__ = ["sweep_efficiency"]
+
+SPEC = """name: efficiency
+grid: {priors.point_size: [0.04]}
+seeds: [0, 1, 2, 3, 4, 5]
+profiles:
+  smoke: {budget: {steps: %d, eval_every: %d}}
+"""
+
+
+def sweep_efficiency(quick: bool, out_dir: str) -> list[dict]:
+    from sweeps import run
+
+    steps = 40 if quick else 120
+    with tempfile.TemporaryDirectory() as tmp:
+        spec = Path(tmp) / "efficiency.yaml"
+        spec.write_text(SPEC % (steps, steps))
+        uri = f"sqlite:///{tmp}/mlflow.db"
+        start = time.perf_counter()
+        code = run.main([str(spec), "--smoke", "--storage", f"{tmp}/results", "--tracking-uri", uri])
+        total = time.perf_counter() - start
+        if code != 0:
+            raise RuntimeError(f"the efficiency sweep failed (exit {code})")
+        client = MlflowClient(uri)
+        exp = client.get_experiment_by_name("efficiency")
+        children = [r for r in client.search_runs([exp.experiment_id]) if "mlflow.parentRunId" in r.data.tags]
+    spans = [(r.info.start_time / 1000, r.info.end_time / 1000) for r in children]
+    in_trial = [end - begin for begin, end in spans]
+    loop = [r.data.metrics["train/elapsed_s"] for r in children]
+    wall = max(e for _, e in spans) - min(b for b, _ in spans)
+    lanes = 2
+    busy = sum(in_trial)
+    return [
+        {"benchmark": "sweep efficiency", "case": f"6 trials × {steps} steps, smoke, 2 CPUs, local mode",
+         "without_s": busy / lanes, "with_s": wall, "ratio": busy / (lanes * wall), "target": ">= 0.8"},
+        {"benchmark": "sweep gap per trial", "case": "scheduling + actor reuse + result handling",
+         "without_s": (lanes * wall - busy) / len(spans), "with_s": (lanes * wall - busy) / len(spans),
+         "ratio": (lanes * wall - busy) / len(spans) / 5.0, "target": "<= 1.0 (gap / 5 s)"},
+        {"benchmark": "in-trial overhead", "case": "set-up + last evaluation + checkpoint + tracking, per trial",
+         "without_s": statistics.fmean(loop), "with_s": statistics.fmean(in_trial),
+         "ratio": statistics.fmean(in_trial) / statistics.fmean(loop), "target": "report (in-trial / loop)"},
+        {"benchmark": "sweep fixed cost", "case": "Ray start, calibration, table (once per sweep)",
+         "without_s": total - wall, "with_s": total, "ratio": (total - wall) / total, "target": "report"},
+    ]

@@ -1,0 +1,315 @@
+"""Co3D v2 (Common Objects in 3D) as PC² and the paper use it: one object per video sequence.
+
+Layout under ``data.root`` (as published, one folder per category)::
+
+    <category>/frame_annotations.jgz       gzipped JSON list: one entry per frame (image, mask, depth, viewpoint)
+    <category>/sequence_annotations.jgz    gzipped JSON list: one entry per sequence (its point_cloud)
+    <category>/set_lists/set_lists_fewview_dev.json   {"train"|"val"|"test": [[sequence, frame_number, image path], ...]}
+    <category>/<sequence>/images/frame000001.jpg, masks/frame000001.png,
+        depths/frame000001.jpg.geometric.png, pointcloud.ply
+
+Paths inside the annotations are relative to ``data.root``. An object is a sequence with a point
+cloud; its split is the ``fewview_dev`` set list (``train`` for training, ``data.eval_split`` held out),
+and its input views are the frames listed there (held-out input: the first). The prior views are
+H frames evenly spaced through the whole sequence from the input frame (the paper's procedure).
+
+Units and frames. Depth PNGs are 16-bit images whose bits are float16 values; × ``scale_adjustment``
+they are view depths in the sequence's world units, like its cameras and point cloud. The cloud is
+normalised as every data set here (its robust bounding box — 0.5–99.5 % quantiles widened by 10 %,
+points outside dropped as outliers — centred, largest half-extent 1), and ``data.num_points`` are
+drawn from it (the paper: 16,384); cameras and depths follow the same similarity transform.
+
+Cameras. Co3D stores PyTorch3D cameras: ``X_view = X_world @ R + T`` (row vectors), +X left, +Y up,
++Z forward — our convention (:mod:`cdm.cameras`) — with ``focal_length (fx, fy)`` and
+``principal_point`` in NDC of the full, non-square image: ``ndc_isotropic`` (v2) scales both axes by
+half the shorter side, ``ndc_norm_image_bounds`` (v1) each axis by its own half-size. In pixels
+(u right from the left edge, v down from the top), with ``hx, hy`` those half-sizes:
+``u = W/2 − (fx·X/Z + px)·hx`` and ``v = H/2 − (fy·Y/Z + py)·hy``. The input view is cropped around
+the mask's bounding box (side × 1.3, a box of aspect ``fx·hx : fy·hy`` so square pixels come out
+square) and resized to ``S × S``; for a crop ``(left, top, Bw, Bh)`` the square camera is
+``focal = fx·hx·2/Bw`` (= ``fy·hy·2/Bh`` up to rounding; the mean is used),
+``principal = (1 − 2·(u₀ − left)/Bw, 1 − 2·(v₀ − top)/Bh)`` with ``u₀, v₀`` the principal point in
+pixels. Prior-view cameras keep each frame's pose and get the intrinsics of a square crop centred on
+the object that fits its cloud to 90 % of the half-frame (no image is read for them).
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+from collections import defaultdict
+from functools import lru_cache
+from pathlib import Path
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+import trimesh
+
+from cdm.cameras import Cameras
+from cdm.config import Config
+from cdm.data.cache import ObjectRecord, ViewImages
+from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
+from cdm.data.views import Split, interleave
+
+__all__ = ["CROP_MARGIN", "PRIOR_FILL", "SET_LIST", "Co3DDataset", "crop_camera", "load_depth"]
+
+SET_LIST = "set_lists_fewview_dev.json"
+"""The set list read for splits (PC²'s ``fewview_dev``)."""
+CROP_MARGIN = 0.3
+"""The input crop is the mask's bounding box widened by this fraction of its longer side."""
+PRIOR_FILL = 0.9
+"""Share of the half-frame the cloud reaches in a prior view."""
+_ANNOTATIONS = ("frame_annotations.jgz", "sequence_annotations.jgz", f"set_lists/{SET_LIST}")
+
+
+class Frame(NamedTuple):
+    """One frame's annotation: files (relative to ``data.root``), image size and camera as published."""
+
+    number: int
+    image: str
+    size: tuple[int, int]
+    mask: str
+    depth: str | None
+    scale_adjustment: float
+    R: np.ndarray
+    T: np.ndarray
+    focal: tuple[float, float]
+    principal: tuple[float, float]
+    ndc_format: str
+
+
+class Category(NamedTuple):
+    """One category's annotations: frames per sequence (by frame number), point clouds, set lists."""
+
+    frames: dict[str, list[Frame]]
+    clouds: dict[str, str]
+    set_lists: dict[str, list[tuple[str, int]]]
+
+
+def _read_json(path: Path, gzipped: bool):
+    try:
+        raw = gzip.decompress(path.read_bytes()) if gzipped else path.read_bytes()
+        return json.loads(raw)
+    except FileNotFoundError:
+        raise ValueError(f"data.root: annotation file {path} is missing; Co3D v2 has it in every category folder") from None
+    except OSError as exc:  # gzip.BadGzipFile is an OSError
+        raise ValueError(f"data.root: cannot read {path}: {exc}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, EOFError) as exc:
+        raise ValueError(f"data.root: {path} is not {'gzipped ' if gzipped else ''}JSON ({exc})") from None
+
+
+def _frame(entry: dict) -> Frame:
+    depth = entry.get("depth") or {}
+    view = entry["viewpoint"]
+    return Frame(
+        number=int(entry["frame_number"]),
+        image=entry["image"]["path"],
+        size=(int(entry["image"]["size"][0]), int(entry["image"]["size"][1])),
+        mask=entry["mask"]["path"],
+        depth=depth.get("path"),
+        scale_adjustment=float(depth.get("scale_adjustment") or 1.0),
+        R=np.asarray(view["R"], dtype=np.float64).reshape(3, 3),
+        T=np.asarray(view["T"], dtype=np.float64).reshape(3),
+        focal=(float(view["focal_length"][0]), float(view["focal_length"][1])),
+        principal=(float(view["principal_point"][0]), float(view["principal_point"][1])),
+        ndc_format=view.get("intrinsics_format", "ndc_norm_image_bounds"),
+    )
+
+
+@lru_cache(maxsize=8)
+def _category(folder: Path, stamp: tuple[int, ...]) -> Category:
+    """Parse one category's annotations (once per process and file version: ``stamp`` = mtimes)."""
+    files = [folder / name for name in _ANNOTATIONS]
+    frames: dict[str, list[Frame]] = defaultdict(list)
+    for entry in _read_json(files[0], gzipped=True):
+        try:
+            frames[entry["sequence_name"]].append(_frame(entry))
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise ValueError(f"data.root: {files[0]} has a malformed frame entry ({type(exc).__name__}: {exc})") from None
+    for seq in frames.values():
+        seq.sort(key=lambda f: f.number)
+    try:
+        clouds = {s["sequence_name"]: s["point_cloud"]["path"] for s in _read_json(files[1], gzipped=True) if s.get("point_cloud")}
+        lists = {k: [(str(e[0]), int(e[1])) for e in v] for k, v in _read_json(files[2], gzipped=False).items()}
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+        raise ValueError(f"data.root: malformed sequence annotation or set list in {folder} ({type(exc).__name__}: {exc})") from None
+    return Category(dict(frames), clouds, lists)
+
+
+def load_category(folder: Path) -> Category:
+    """The parsed annotations of ``folder`` (a category), from the process cache when unchanged."""
+    stamp = []
+    for name in _ANNOTATIONS:
+        path = folder / name
+        if not path.is_file():
+            raise ValueError(f"data.root: annotation file {path} is missing; expected {Co3DDataset.layout}")
+        stamp.append(path.stat().st_mtime_ns)
+    return _category(folder, tuple(stamp))
+
+
+def load_depth(path: Path) -> np.ndarray:
+    """``(H, W)`` float16 published depth values of a Co3D depth PNG (×``scale_adjustment`` = world units)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
+        raise ValueError(f"data.root: cannot read depth {path} (missing, corrupt or not a 16-bit single-channel PNG)")
+    return raw.view(np.float16)
+
+
+def _half_sizes(frame: Frame) -> tuple[float, float]:
+    h, w = frame.size
+    if frame.ndc_format == "ndc_isotropic":
+        return min(h, w) / 2.0, min(h, w) / 2.0
+    if frame.ndc_format == "ndc_norm_image_bounds":
+        return w / 2.0, h / 2.0
+    raise ValueError(f"data.root: unknown viewpoint.intrinsics_format {frame.ndc_format!r}")
+
+
+def crop_camera(frame: Frame, box: tuple[int, int, int, int]) -> tuple[float, tuple[float, float]]:
+    """NDC focal and principal point of the square camera of crop ``box`` (left, top, width, height; pixels)."""
+    hx, hy = _half_sizes(frame)
+    h, w = frame.size
+    u0, v0 = w / 2.0 - frame.principal[0] * hx, h / 2.0 - frame.principal[1] * hy
+    left, top, bw, bh = box
+    focal = (frame.focal[0] * hx * 2.0 / bw + frame.focal[1] * hy * 2.0 / bh) / 2.0
+    return focal, (1.0 - 2.0 * (u0 - left) / bw, 1.0 - 2.0 * (v0 - top) / bh)
+
+
+def _crop_box(frame: Frame, mask: np.ndarray) -> tuple[int, int, int, int]:
+    """The input crop around the mask (or the whole frame's centre when the mask is empty)."""
+    hx, hy = _half_sizes(frame)
+    aspect = frame.focal[0] * hx / (frame.focal[1] * hy)  # box width / height giving square pixels
+    rows, cols = np.nonzero(mask > 127)
+    h, w = mask.shape
+    if len(rows):
+        cy, cx = (rows.min() + rows.max() + 1) / 2.0, (cols.min() + cols.max() + 1) / 2.0
+        side = max(rows.max() + 1 - rows.min(), (cols.max() + 1 - cols.min()) / aspect) * (1.0 + CROP_MARGIN)
+    else:
+        cy, cx, side = h / 2.0, w / 2.0, float(min(h, w / aspect))
+    bh, bw = max(1, round(side)), max(1, round(side * aspect))
+    return round(cx - bw / 2.0), round(cy - bh / 2.0), bw, bh
+
+
+def _crop(array: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    """``array[top:top+bh, left:left+bw]`` with zeros where the box leaves the image."""
+    left, top, bw, bh = box
+    out = np.zeros((bh, bw, *array.shape[2:]), dtype=array.dtype)
+    y0, x0 = max(top, 0), max(left, 0)
+    y1, x1 = min(top + bh, array.shape[0]), min(left + bw, array.shape[1])
+    if y1 > y0 and x1 > x0:
+        out[y0 - top : y1 - top, x0 - left : x1 - left] = array[y0:y1, x0:x1]
+    return out
+
+
+def _read_cloud(path: Path) -> np.ndarray:
+    try:
+        loaded = trimesh.load(str(path), file_type="ply")
+    except (ValueError, KeyError, IndexError, TypeError, EOFError, OSError) as exc:
+        raise ValueError(f"data.root: cannot read point cloud {path}: {type(exc).__name__}: {exc}") from None
+    points = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 16 or not np.isfinite(points).all():
+        raise ValueError(f"data.root: {path} holds no usable point cloud (expected ≥16 finite xyz vertices)")
+    return points
+
+
+class Co3DDataset(CapturedDataset):
+    """Co3D v2 sequences with point clouds; object ids ``co3d/<category>/<sequence>``."""
+
+    kind = "co3d"
+    layout = "<root>/<category>/{frame_annotations.jgz, sequence_annotations.jgz, set_lists/, <sequence>/...}"
+
+    def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
+        self._sequences: dict[str, tuple[list[Frame], list[int], str]] = {}
+        super().__init__(cfg, split, cache_bytes)
+
+    @classmethod
+    def _raw_categories(cls, root: Path) -> tuple[str, ...]:
+        try:
+            folders = sorted(p for p in root.iterdir() if p.is_dir())
+        except OSError as exc:
+            raise ValueError(f"data.root: cannot list {root}: {exc.strerror}") from None
+        # A category folder is recognised by any of its annotation files, so one missing file is
+        # reported by name rather than hiding the category.
+        found = tuple(p.name for p in folders if any((p / name).exists() for name in _ANNOTATIONS))
+        if not found:
+            raise ValueError(f"data.root: {root} has no Co3D category folder (none holds frame_annotations.jgz); expected {cls.layout}")
+        return found
+
+    def _raw_index(self, categories: tuple[str, ...]) -> list[tuple[str, str]]:
+        per_category = []
+        for name in categories:
+            folder = self.root / name
+            annotations = load_category(folder)
+            if self.published not in annotations.set_lists:
+                raise ValueError(f"data.eval_split: {folder / 'set_lists' / SET_LIST} has no {self.published!r} list "
+                                 f"(it has {sorted(annotations.set_lists)})")
+            listed: dict[str, set[int]] = defaultdict(set)
+            for seq, number in annotations.set_lists[self.published]:
+                listed[seq].add(number)
+            refs = []
+            for seq in sorted(listed):
+                frames = annotations.frames.get(seq, [])
+                views = [i for i, f in enumerate(frames) if f.number in listed[seq]]
+                # Sequences without a point cloud have no ground truth: PC² skips them too.
+                if views and seq in annotations.clouds:
+                    object_id = f"co3d/{name}/{seq}"
+                    self._sequences[object_id] = (frames, views, annotations.clouds[seq])
+                    refs.append((name, object_id))
+            if not refs:
+                raise ValueError(f"data.root: no sequence of {folder} with a point cloud is in the {self.published!r} list of {SET_LIST}")
+            per_category.append(refs)
+        return interleave(per_category)
+
+    def _raw_record(self, index: int) -> ObjectRecord:
+        object_id = self.objects[index].object_id
+        frames, views, cloud_path = self._sequences[object_id]
+        cloud = cap_cloud(_read_cloud(self.root / cloud_path), object_id)
+        lo, hi = np.quantile(cloud, 0.005, axis=0), np.quantile(cloud, 0.995, axis=0)
+        pad = 0.1 * (hi - lo)
+        cloud = cloud[np.all((cloud >= lo - pad) & (cloud <= hi + pad), axis=1)]
+        lo, hi = cloud.min(0), cloud.max(0)
+        centre, scale = (lo + hi) / 2, 1.0 / float((hi - lo).max() / 2)
+        points = torch.from_numpy((cloud - centre) * scale).float().clamp(-1.0, 1.0)
+        R = torch.from_numpy(np.stack([f.R for f in frames])).float()
+        T = normalise_cameras(R, torch.from_numpy(np.stack([f.T for f in frames])).float(), torch.from_numpy(centre).float(), scale)
+        # Prior-view intrinsics: a square crop centred on the object's centre (the origin) that fits the cloud.
+        fit = points[torch.linspace(0, len(points) - 1, min(len(points), 2048)).long()]
+        view = fit[None] @ R + T[:, None, :]
+        ratio = view[..., :2] / view[..., 2:].clamp(min=1e-6)
+        centre_ratio = T[:, :2] / T[:, 2:].clamp(min=1e-6)
+        focal = PRIOR_FILL / (ratio - centre_ratio[:, None, :]).abs().amax(dim=(1, 2))
+        sequence = Cameras(R, T, focal, -focal[:, None] * centre_ratio)
+        return ObjectRecord(points, sequence, torch.tensor(views, dtype=torch.long), scale)
+
+    def _raw_view(self, index: int, record: ObjectRecord, view: int, size: int) -> ViewImages:
+        frames = self._sequences[self.objects[index].object_id][0]
+        position = int(record.views[view])
+        frame = frames[position]
+        path = self.root / frame.image
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError(f"data.root: cannot read image {path} (missing or corrupt); expected a JPEG of {frame.size[1]}×{frame.size[0]}")
+        if bgr.shape[:2] != frame.size:
+            raise ValueError(f"data.root: {path} is {bgr.shape[1]}×{bgr.shape[0]}, its annotation says {frame.size[1]}×{frame.size[0]}")
+        mask = cv2.imread(str(self.root / frame.mask), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise ValueError(f"data.root: cannot read mask {self.root / frame.mask} (missing or corrupt); expected a grey PNG")
+        if mask.shape != frame.size:
+            mask = cv2.resize(mask, frame.size[::-1], interpolation=cv2.INTER_LINEAR)
+        box = _crop_box(frame, mask)
+        shrink = box[2] > size
+        interp = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+        image = cv2.resize(_crop(bgr[..., ::-1], box), (size, size), interpolation=interp)
+        mask = np.where(cv2.resize(_crop(mask, box), (size, size), interpolation=interp) > 127, 255, 0).astype(np.uint8)
+        depth = np.zeros((size, size), dtype=np.float16)  # 0 = unknown, for a frame published without depth
+        if frame.depth is not None:
+            raw = load_depth(self.root / frame.depth)
+            if raw.shape != frame.size:  # nearest: blending would invent depths across edges
+                raw = cv2.resize(raw.astype(np.float32), frame.size[::-1], interpolation=cv2.INTER_NEAREST).astype(np.float16)
+            depth = cv2.resize(_crop(raw, box).astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST).astype(np.float16)
+            depth[mask == 0] = 0  # the sample format: depth 0 off the object
+        focal, principal = crop_camera(frame, box)
+        pose = record.sequence[position]
+        camera = Cameras(pose.R, pose.T, torch.tensor(focal, dtype=torch.float32), torch.tensor(principal, dtype=torch.float32))
+        return ViewImages(np.ascontiguousarray(image), mask, depth, frame.scale_adjustment * record.scale, camera)

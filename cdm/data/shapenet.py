@@ -1,0 +1,172 @@
+"""ShapeNet as the paper uses it: 3D-R2N2 renderings paired with PointFlow's point clouds.
+
+Layout under ``data.root`` (both as published, side by side)::
+
+    ShapeNetRendering/<synset>/<model>/rendering/00.png … 23.png     137×137 RGBA, transparent background
+    ShapeNetRendering/<synset>/<model>/rendering/rendering_metadata.txt   one line per image
+    ShapeNetCore.v2.PC15k/<synset>/{train,val,test}/<model>.npy       (15000, 3) float surface samples
+
+An object is a PC15k model that also has renderings; its split is PC15k's folder (``train`` for
+training, ``data.eval_split`` held out). Categories are the 13 R2N2 classes by name
+(:data:`SYNSETS`; ``data.categories`` also takes synset ids). The held-out input is view 00; training
+draws any of the 24 views per view round. The cloud is normalised like every data set here (bounding
+box centred, largest half-extent 1) and ``data.num_points`` are drawn from it (the paper: 4,096).
+R2N2 renderings have no depth: use ``priors.prior_2d: contour`` (the default) and, as the paper does
+on ShapeNet, ``priors.render_kind: planar``.
+
+Cameras. Each metadata line is ``azimuth elevation in-plane distance-ratio fov`` (degrees, except the
+ratio). R2N2's Blender camera sits at distance ``ratio × 1.75`` looking at the origin with +Y (the
+model's up) up; in the model frame its centre is ``d·(cos e·cos a, sin e, cos e·sin a)``. That is
+:func:`cdm.cameras.look_at_cameras` with ``elev = e`` and ``azim = 90° − a`` (ours puts azimuth 0 on
++Z, R2N2 on +X, and turns the other way). Blender rendered with a 35 mm lens on a 32 mm sensor
+(horizontal fov 49.1°, NDC focal 35/16 = 2.1875) whatever the metadata's fov column says (25 in the
+published files); the image centre is the principal point. PC15k clouds are in the same model frame.
+The prior views are the 24 renderings sorted by azimuth (a turntable sequence).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from cdm.cameras import Cameras, look_at_cameras
+from cdm.config import Config
+from cdm.data.cache import ObjectRecord, ViewImages
+from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
+from cdm.data.views import Split, interleave
+
+__all__ = ["DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras"]
+
+SYNSETS = {
+    "02691156": "airplane", "02828884": "bench", "02933112": "cabinet", "02958343": "car", "03001627": "chair",
+    "03211117": "display", "03636649": "lamp", "03691459": "loudspeaker", "04090263": "rifle", "04256520": "sofa",
+    "04379243": "table", "04401088": "telephone", "04530566": "watercraft",
+}
+"""The 13 R2N2 classes: synset id → category name."""
+_NAMES = {name: synset for synset, name in SYNSETS.items()}
+
+R2N2_FOCAL = 35.0 / 16.0
+"""NDC focal of the R2N2 renderings: 2 × 35 mm lens / 32 mm sensor."""
+DISTANCE_SCALE = 1.75
+"""Camera distance per unit of the metadata's distance ratio (world units of the model frame)."""
+
+_RENDERINGS, _CLOUDS = "ShapeNetRendering", "ShapeNetCore.v2.PC15k"
+
+
+def r2n2_cameras(metadata: np.ndarray) -> torch.Tensor:
+    """``(V, 3)`` (elevation °, azimuth ° in our convention, distance) of metadata rows ``(V, 5)``."""
+    return torch.tensor(np.stack([metadata[:, 1], 90.0 - metadata[:, 0], metadata[:, 3] * DISTANCE_SCALE], 1), dtype=torch.float32)
+
+
+def _read_metadata(path: Path) -> np.ndarray:
+    """``(V, 5)`` rows of ``rendering_metadata.txt``; ValueError naming the file if malformed."""
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"data.root: cannot read {path}: {exc.strerror}; expected 24 lines of 5 numbers") from None
+    try:
+        rows = np.array([[float(x) for x in line.split()] for line in text.splitlines() if line.strip()])
+    except ValueError:
+        rows = np.empty((0, 0))
+    if rows.ndim != 2 or rows.shape[0] == 0 or rows.shape[1] != 5 or not np.isfinite(rows).all():
+        raise ValueError(f"data.root: {path} is malformed; expected one line of 5 numbers per rendering "
+                         "(azimuth elevation in-plane distance-ratio fov)")
+    if np.any(rows[:, 2] != 0):
+        raise ValueError(f"data.root: {path} has a non-zero in-plane rotation, which R2N2 renderings never have")
+    return rows
+
+
+class ShapeNetR2N2Dataset(CapturedDataset):
+    """R2N2 renderings + PC15k clouds; object ids ``shapenet/<category>/<model>``."""
+
+    kind = "shapenet_r2n2"
+    layout = f"<root>/{_RENDERINGS}/<synset>/<model>/rendering/ and <root>/{_CLOUDS}/<synset>/<split>/<model>.npy"
+
+    def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
+        if cfg.priors.prior_2d == "depth":
+            raise ValueError("priors.prior_2d: 'depth' needs depth maps and R2N2 renderings have none; use 'contour' or 'none'")
+        self._models: dict[str, tuple[str, str]] = {}
+        super().__init__(cfg, split, cache_bytes)
+
+    @classmethod
+    def _canonical(cls, names: tuple[str, ...]) -> tuple[str, ...]:
+        return tuple(SYNSETS.get(n, n) for n in names)
+
+    @classmethod
+    def _raw_categories(cls, root: Path) -> tuple[str, ...]:
+        for folder in (root / _RENDERINGS, root / _CLOUDS):
+            if not folder.is_dir():
+                raise ValueError(f"data.root: {folder} is missing; expected {cls.layout}")
+        found = tuple(name for synset, name in SYNSETS.items() if (root / _RENDERINGS / synset).is_dir() and (root / _CLOUDS / synset).is_dir())
+        if not found:
+            raise ValueError(f"data.root: no R2N2 synset folder (e.g. {root / _CLOUDS / '03001627'}) is in both "
+                             f"{_RENDERINGS} and {_CLOUDS} under {root}")
+        return found
+
+    def _raw_index(self, categories: tuple[str, ...]) -> list[tuple[str, str]]:
+        per_category = []
+        for name in categories:
+            synset = _NAMES[name]
+            folder = self.root / _CLOUDS / synset / self.published
+            if not folder.is_dir():
+                raise ValueError(f"data.root: {folder} is missing; PC15k has {{train,val,test}} folders per synset")
+            refs = []
+            for npy in sorted(folder.glob("*.npy")):
+                rendering = self.root / _RENDERINGS / synset / npy.stem / "rendering"
+                # PC15k has models R2N2 never rendered: those have no input image and are skipped.
+                if (rendering / "rendering_metadata.txt").is_file():
+                    object_id = f"shapenet/{name}/{npy.stem}"
+                    self._models[object_id] = (synset, npy.stem)
+                    refs.append((name, object_id))
+            if not refs:
+                raise ValueError(f"data.root: no model of {folder} has renderings in {self.root / _RENDERINGS / synset}")
+            per_category.append(refs)
+        return interleave(per_category)
+
+    def _paths(self, index: int) -> tuple[Path, Path]:
+        synset, model = self._models[self.objects[index].object_id]
+        return self.root / _RENDERINGS / synset / model / "rendering", self.root / _CLOUDS / synset / self.published / f"{model}.npy"
+
+    def _raw_record(self, index: int) -> ObjectRecord:
+        rendering, npy = self._paths(index)
+        metadata = _read_metadata(rendering / "rendering_metadata.txt")
+        try:
+            cloud = np.load(npy, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise ValueError(f"data.root: cannot read point cloud {npy}: {exc}") from None
+        if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or not np.isfinite(cloud).all():
+            raise ValueError(f"data.root: {npy} holds {cloud.shape} values; expected finite (P, 3) points")
+        cloud = cap_cloud(cloud.astype(np.float64), self.objects[index].object_id)
+        lo, hi = cloud.min(0), cloud.max(0)
+        centre, scale = (lo + hi) / 2, 1.0 / float((hi - lo).max() / 2)
+        points = torch.from_numpy((cloud - centre) * scale).float().clamp(-1.0, 1.0)
+        elev, azim, dist = r2n2_cameras(metadata).unbind(-1)
+        cams = look_at_cameras(elev, azim, dist, R2N2_FOCAL)
+        T = normalise_cameras(cams.R, cams.T, torch.from_numpy(centre).float(), scale)
+        # The sequence: renderings sorted by azimuth, starting at view 00 (a turntable from the input view).
+        order = np.argsort((metadata[:, 0] - metadata[0, 0]) % 360.0, kind="stable")
+        position = np.empty_like(order)
+        position[order] = np.arange(len(order))
+        idx = torch.from_numpy(order)
+        sequence = Cameras(cams.R[idx], T[idx], cams.focal[idx], cams.principal[idx])
+        return ObjectRecord(points, sequence, torch.from_numpy(position).long(), scale)
+
+    def _raw_view(self, index: int, record: ObjectRecord, view: int, size: int) -> ViewImages:
+        path = self._paths(index)[0] / f"{view:02d}.png"
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise ValueError(f"data.root: cannot read image {path} (missing or corrupt); expected a 137×137 RGBA PNG")
+        if raw.ndim != 3 or raw.shape[2] != 4 or raw.dtype != np.uint8:
+            raise ValueError(f"data.root: {path} is not an 8-bit RGBA PNG (shape {raw.shape}, {raw.dtype}); R2N2 renderings are")
+        alpha = raw[..., 3:].astype(np.float32) / 255.0
+        # Composite on white, as R2N2 renderings are usually shown; the mask keeps the silhouette.
+        rgb = (raw[..., 2::-1].astype(np.float32) * alpha + 255.0 * (1.0 - alpha)).round().astype(np.uint8)
+        area = size < raw.shape[0]
+        interp = cv2.INTER_AREA if area else cv2.INTER_LINEAR
+        image = cv2.resize(rgb, (size, size), interpolation=interp)
+        mask = np.where(cv2.resize(raw[..., 3], (size, size), interpolation=interp) > 127, 255, 0).astype(np.uint8)
+        return ViewImages(image, mask, None, math.nan, record.sequence[int(record.views[view])])

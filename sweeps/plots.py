@@ -1,0 +1,208 @@
+"""Plots of a sweep for comparing its cells: metric vs swept value, training curves, Optuna's own views.
+
+Knows nothing of MLflow: :mod:`sweeps.report` reads the runs and hands in plain numbers. Every
+function writes one PNG (matplotlib's Agg backend, no display needed) and returns its path.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+__all__ = ["PlotPoint", "metric_vs_value", "optuna_plots", "partner", "read_ply", "training_curves", "view_cloud"]
+
+
+@dataclass(frozen=True)
+class PlotPoint:
+    """One finished trial as the plots see it."""
+
+    cell: str
+    values: dict[str, Any]
+    """Swept config values of the trial (dotted key → value)."""
+    metrics: dict[str, float]
+    paper: dict[str, float] = field(default_factory=dict)
+    """The paper's numbers for this cell, by metric name (``eval/f1``, ``eval/f1/teddybear``)."""
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def partner(metric: str) -> str | None:
+    """``eval/f1`` ↔ ``eval/cd``: the other headline metric (None for any other metric)."""
+    head, _, tail = metric.partition("/")
+    swap = {"cd": "f1", "f1": "cd"}
+    return f"{head}/{swap[tail]}" if head == "eval" and tail in swap else None
+
+
+def _axis(points: Sequence[PlotPoint]) -> tuple[list[str], dict[str, float], str | None]:
+    """Cells in plotting order, their x position, and the x label: the value itself when one numeric
+    field is swept (so spacing means something), else the cell's index with its name as tick label."""
+    cells = list(dict.fromkeys(p.cell for p in points))
+    keys = list(dict.fromkeys(k for p in points for k in p.values))
+    first = {p.cell: p.values for p in reversed(points)}
+    numeric = len(keys) == 1 and all(isinstance(first[c].get(keys[0]), (int, float)) and not isinstance(first[c].get(keys[0]), bool)
+                                     for c in cells)
+    if numeric:
+        x = {c: float(first[c][keys[0]]) for c in cells}
+        return sorted(cells, key=x.__getitem__), x, keys[0]  # left to right, whatever order the trials came in
+    return cells, {c: float(i) for i, c in enumerate(cells)}, None
+
+
+def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: Path) -> Path:
+    """``metric`` (and its CD/F1 partner) against the swept value: mean ± std over seeds per cell, one
+    line for all objects and one per category, and the paper's numbers as stars of the same colour."""
+    plt = _pyplot()
+    shown = [m for m in (metric, partner(metric)) if m is not None]
+    cells, x, xlabel = _axis(points)
+    categories = sorted({k.rsplit("/", 1)[1] for p in points for k in p.metrics if k.startswith(metric + "/")})
+    fig, axes = plt.subplots(1, len(shown), figsize=(5.5 * len(shown), 3.8), squeeze=False)
+    for ax, m in zip(axes[0], shown):
+        for i, series in enumerate(["all", *categories]):
+            key = m if series == "all" else f"{m}/{series}"
+            colour = f"C{i}"
+            xs, means, stds = [], [], []
+            for c in cells:
+                values = [p.metrics[key] for p in points if p.cell == c and key in p.metrics and math.isfinite(p.metrics[key])]
+                if values:
+                    xs.append(x[c])
+                    means.append(statistics.fmean(values))
+                    stds.append(statistics.stdev(values) if len(values) > 1 else 0.0)
+            if xs:
+                ax.errorbar(xs, means, yerr=stds, fmt="o-", color=colour, capsize=3, lw=2 if series == "all" else 1,
+                            label=f"ours: {series}")
+            paper = {p.cell: p.paper[key] for p in points if key in p.paper}
+            if paper:
+                ax.scatter([x[c] for c in paper], list(paper.values()), marker="*", s=160, color=colour,
+                           edgecolor="black", zorder=3, label=f"paper: {series}")
+        if xlabel is None:
+            ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=8)
+        else:
+            ax.set_xlabel(xlabel)
+            positive = [v for v in x.values() if v > 0]
+            if len(positive) == len(x) and max(positive) / min(positive) >= 20:
+                ax.set_xscale("log")
+        ax.set_ylabel(m + (" (×1000, lower is better)" if m.endswith("cd") else " (higher is better)"))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def training_curves(
+    curves: Mapping[str, Mapping[str, Sequence[tuple[int, float]]]], cells: Mapping[str, str], metric: str, title: str, path: Path
+) -> Path:
+    """``train/loss`` and ``metric`` against the training step: one line per trial, one colour per cell
+    (its seeds share it).
+
+    Args:
+        curves: trial label → metric name → ``(step, value)`` pairs (any order).
+        cells: trial label → cell name.
+    """
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    colours = {c: f"C{i % 10}" for i, c in enumerate(dict.fromkeys(cells[label] for label in curves))}
+    labelled: set[tuple[str, str]] = set()
+    for label, history in curves.items():
+        cell = cells[label]
+        for ax, key in zip(axes, ("train/loss", metric)):
+            pts = sorted(history.get(key, ()))
+            if pts:
+                ax.plot(*zip(*pts), "-" if key == "train/loss" else "o-", color=colours[cell],
+                        label=None if (cell, key) in labelled else cell)
+                labelled.add((cell, key))
+    for ax, key in zip(axes, ("train/loss", metric)):
+        ax.set_xlabel("training step")
+        ax.set_ylabel(key)
+        ax.grid(alpha=0.3)
+    if len(colours) <= 12 and labelled:  # beyond that a legend hides the curves
+        axes[1 if any(k == metric for _, k in labelled) else 0].legend(fontsize=7)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def optuna_plots(
+    trials: Sequence[tuple[dict[str, Any], float | None]],
+    distributions: Mapping[str, Any],
+    mode: Literal["min", "max"],
+    metric: str,
+    folder: Path,
+) -> list[Path]:
+    """Optuna's optimisation history and parameter importances for a search rebuilt from its trials.
+
+    Args:
+        trials: per trial, the sampled values and its final ``metric`` (None: failed, not counted).
+        distributions: ``optuna.distributions`` of the search space, by config key.
+    Returns:
+        ``optuna_history.png``, and ``optuna_importance.png`` when two or more trials finished
+        (importances need a spread of finished trials).
+    """
+    import optuna
+    from optuna.visualization import matplotlib as ovm
+
+    plt = _pyplot()
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(direction="minimize" if mode == "min" else "maximize")
+    for values, value in trials:
+        state = optuna.trial.TrialState.COMPLETE if value is not None else optuna.trial.TrialState.FAIL
+        study.add_trial(optuna.trial.create_trial(params=values, distributions=dict(distributions), value=value, state=state))
+    paths = []
+    # Optuna's plots switch the global style to ggplot; the context restores it for every later figure.
+    # Its matplotlib backend is marked experimental, which would warn on every sweep.
+    with plt.rc_context(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        ax = ovm.plot_optimization_history(study, target_name=metric)
+        paths.append(_save(ax.figure, folder / "optuna_history.png"))
+        if sum(v is not None for _, v in trials) >= 2:
+            ax = ovm.plot_param_importances(study, target_name=metric)
+            paths.append(_save(ax.figure, folder / "optuna_importance.png"))
+    return paths
+
+
+def read_ply(path: Path) -> np.ndarray:
+    """The ``(N, 3)`` points of an ASCII PLY as written by :func:`cdm.evaluate.write_ply`."""
+    lines = Path(path).read_text().splitlines()
+    start = lines.index("end_header") + 1
+    return np.loadtxt(lines[start:], dtype=np.float32, ndmin=2)[:, :3]
+
+
+def view_cloud(points: np.ndarray, elevation: float = 20.0, azimuth: float = 30.0, title: str = ""):
+    """A 3D scatter of an ``(N, 3)`` cloud seen from ``elevation``/``azimuth`` degrees; returns the figure.
+
+    The notebook turns it with sliders. Axes follow the data's frame (PyTorch3D world: +Y up), so the
+    cloud is drawn with Y as matplotlib's vertical axis.
+    """
+    plt = _pyplot()
+    fig = plt.figure(figsize=(4.5, 4.5))
+    ax = fig.add_subplot(projection="3d")
+    ax.scatter(points[:, 0], points[:, 2], points[:, 1], s=2, c=points[:, 1], cmap="viridis")
+    ax.view_init(elev=elevation, azim=azimuth)
+    ax.set_xlim(-1, 1)
+    ax.set_ylim(-1, 1)
+    ax.set_zlim(-1, 1)
+    ax.set_xlabel("x")
+    ax.set_ylabel("z")
+    ax.set_zlabel("y (up)")
+    ax.set_title(title, fontsize=8)
+    return fig
+
+
+def _save(fig, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80, bbox_inches="tight")
+    _pyplot().close(fig)
+    return path

@@ -1,0 +1,383 @@
+"""Rebuild a finished sweep's comparison straight from MLflow: results table, the paper's layout, plots, panels.
+
+``python sweeps/report.py EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]``
+(also ``python sweeps/run.py --report EXPERIMENT``) reads the sweep's parent run (its spec file and
+``plan.json``) and its child runs, and writes ``results.{md,csv}`` and the plots into ``--out``
+(default ``results/<experiment>/report``); ``--log`` also logs the plots onto the parent run.
+A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 listing the known ones.
+
+The runner calls :func:`publish` at the end of every sweep, and ``notebooks/compare.ipynb`` is built
+on the functions here. All MLflow reading lives in this module (``cdm`` knows nothing of MLflow).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # `python sweeps/report.py` puts sweeps/ first on sys.path, not the repo root
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from mlflow import MlflowClient
+from mlflow.entities import Run
+
+from sweeps.plots import (
+    PlotPoint,
+    metric_vs_value,
+    optuna_plots,
+    partner,
+    training_curves,
+)
+from sweeps.results import ResultsTable, TrialOutcome, build_table
+from sweeps.spec import SpaceParam, Spec, load_spec
+from sweeps.tracking import last_objects, resolve_tracking_uri
+
+__all__ = [
+    "ReportError",
+    "SweepRecord",
+    "TrialRecord",
+    "UnknownExperimentError",
+    "main",
+    "open_sweep",
+    "panels",
+    "paper_layout",
+    "publish",
+    "results_table",
+    "share_view",
+    "trial_records",
+    "write_plots",
+]
+
+_STATUS = {"FINISHED": "ok", "FAILED": "failed"}
+"""MLflow run status → :class:`TrialOutcome` status; RUNNING, SCHEDULED and KILLED runs never finished: pending."""
+
+
+class ReportError(ValueError):
+    """The experiment exists but holds no sweep this module can read; the message says what is missing."""
+
+
+class UnknownExperimentError(ReportError):
+    def __init__(self, name: str, known: list[str]):
+        super().__init__(f"no MLflow experiment named {name!r}; known: {', '.join(known) or 'none'}")
+        self.known = known
+
+
+@dataclass(frozen=True)
+class SweepRecord:
+    """One sweep as MLflow holds it: the parent run, its spec and plan, its child runs."""
+
+    client: MlflowClient
+    experiment: str
+    experiment_id: str
+    parent: Run
+    spec: Spec
+    plan: dict[str, Any]
+    """``plan.json``: ``fixed`` overrides, ``sets`` and the grid's ``cells`` (label, values, seed, paper)."""
+    children: list[Run]
+
+    @property
+    def profile(self) -> str:
+        return self.parent.data.tags.get("profile", "?")
+
+    @property
+    def title(self) -> str:
+        return f"{self.spec.name} — profile {self.profile}"
+
+
+@dataclass(frozen=True)
+class TrialRecord:
+    """A trial's outcome (as the results table reads it) with what the plots and panels need besides."""
+
+    outcome: TrialOutcome
+    values: dict[str, Any]
+    """Swept config values (grid cell or Optuna sample), dotted keys."""
+    run_id: str | None
+    """Its child run; None for a grid cell that never started."""
+
+
+def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | None = None) -> SweepRecord:
+    """The latest sweep of ``experiment`` (or the sweep whose parent run is ``parent_run_id``).
+
+    Raises:
+        UnknownExperimentError: no experiment of that name (the error lists the known ones).
+        ReportError: the experiment holds no sweep parent run, or the parent lacks its spec/plan.
+    """
+    client = MlflowClient(uri)
+    if parent_run_id is not None:
+        parent = client.get_run(parent_run_id)
+        exp = client.get_experiment(parent.info.experiment_id)
+    else:
+        exp = client.get_experiment_by_name(experiment)
+        if exp is None:
+            raise UnknownExperimentError(experiment, sorted(e.name for e in client.search_experiments()))
+        parents = client.search_runs([exp.experiment_id], filter_string="tags.kind = 'sweep'",
+                                     order_by=["attributes.start_time DESC"], max_results=1)
+        if not parents:
+            raise ReportError(f"experiment {experiment!r} holds no sweep (no run tagged kind=sweep)")
+        parent = parents[0]
+    run_id = parent.info.run_id
+    names = [a.path for a in client.list_artifacts(run_id)]
+    specs = [n for n in names if n.endswith((".yaml", ".yml"))]
+    if not specs or "plan.json" not in names:
+        raise ReportError(f"sweep run {run_id} has no spec file or plan.json artifact (artifacts: {', '.join(names) or 'none'})")
+    with tempfile.TemporaryDirectory() as tmp:
+        spec = load_spec(client.download_artifacts(run_id, specs[0], tmp))
+        plan = json.loads(Path(client.download_artifacts(run_id, "plan.json", tmp)).read_text())
+    children = client.search_runs([exp.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{run_id}'",
+                                  order_by=["attributes.start_time ASC"], max_results=10000)
+    # `run.py --rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
+    children = [r for r in children if "rerun_of" not in r.data.tags]
+    return SweepRecord(client, exp.name, exp.experiment_id, parent, spec, plan, children)
+
+
+def _sampled(run: Run, space: dict[str, SpaceParam]) -> dict[str, Any]:
+    """An Optuna trial's sampled values, cast back from MLflow's string params by the space's types."""
+    out: dict[str, Any] = {}
+    for key, param in space.items():
+        text = run.data.params.get(key)
+        if text is None:
+            continue
+        if param.type == "categorical":
+            out[key] = next((c for c in param.choices or [] if str(c) == text), text)
+        else:
+            out[key] = int(float(text)) if param.type == "int" else float(text)
+    return out
+
+
+def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord]:
+    """Every trial of the sweep in the runner's order (grid: the plan's; Optuna: best first).
+
+    With ``objects``, finished trials carry their last evaluation's per-object rows, so the results
+    table gets its paired columns (one artifact download per trial).
+    """
+    cells = {c["label"]: c for c in record.plan.get("cells", [])}
+    metric, mode = record.spec.metric.name, record.spec.metric.mode
+    out = []
+    for run in record.children:
+        tags, label = run.data.tags, run.info.run_name
+        status = _STATUS.get(run.info.status, "pending")
+        if status == "ok" and tags.get("stopped_early") == "true":
+            status = "stopped"
+        planned = cells.get(label, {})
+        # A trial that died before opening its run has only the name the driver gave it: `<cell> · seed <n>`.
+        cell = tags.get("cell") or label.rsplit(" · seed ", 1)[0]
+        values = planned.get("values") or _sampled(run, record.spec.search.space)
+        metrics = {k: v for k, v in run.data.metrics.items() if "/" in k}
+        rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in ("ok", "stopped") else ()
+        outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
+                               tags.get("error") if status == "failed" else None, rows)
+        out.append(TrialRecord(outcome, values, run.info.run_id))
+    if record.spec.search.kind == "grid":
+        seen = {t.outcome.label for t in out}
+        for label, c in cells.items():
+            if label not in seen:
+                name = label.rsplit(" · seed ", 1)[0]
+                out.append(TrialRecord(TrialOutcome(label, name, "pending", {}, _paper_label(record, c), c.get("paper") or {}),
+                                       c["values"], None))
+        order = {label: i for i, label in enumerate(cells)}
+        return sorted(out, key=lambda t: order.get(t.outcome.label, len(order)))
+    sign = 1 if mode == "min" else -1
+    return sorted(out, key=lambda t: sign * t.outcome.metrics.get(metric, sign * math.inf))
+
+
+def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:
+    """The paper row's label for a planned cell: the row whose numbers it carries."""
+    paper = record.spec.paper
+    if paper is None or not planned.get("paper"):
+        return None
+    return next((r.label for r in paper.rows if r.values == planned["paper"]), None)
+
+
+def _settings(record: SweepRecord) -> list[str]:
+    """The runner's settings note (``sweeps/run.py``'s ``_settings``), from what MLflow recorded: the
+    profile's budget on the parent run and each trial's resolved prediction target in its params."""
+    targets = sorted({r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params})
+    if not targets:
+        plan = record.plan
+        targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", "eps")]
+    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
+    return [f"profile {record.profile}: {record.parent.data.params.get('steps', '?')} steps per trial; prediction target {shown}"]
+
+
+def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTable:
+    """The runner's results table (same columns and notes, paired Δ where per-object rows are present)."""
+    spec = record.spec
+    return build_table([t.outcome for t in trials], spec.metric.name, spec.metric.mode, record.title,
+                       f"{spec.paper.table}: {spec.paper.note}" if spec.paper else "", compare_to=spec.compare_to,
+                       settings=_settings(record))
+
+
+def paper_layout(trials: list[TrialRecord]):
+    """The ablation as the paper prints it: one row per cell, CD and F1 for all objects and per category,
+    ours (mean over finished seeds) beside the paper's number.
+
+    Returns:
+        A ``pandas.DataFrame`` indexed by cell, with two-level columns: ``("", "paper setting")``,
+        ``("", "trials")``, then ``(group, "CD ours" | "CD paper" | "F1 ours" | "F1 paper")`` for
+        group ``all`` and each category we evaluated (the paper's value where it reports that category).
+        Columns empty in every row are left out.
+    """
+    import pandas as pd
+
+    groups = ["all", *sorted({k.split("/")[2] for t in trials for k in t.outcome.metrics if k.startswith("eval/cd/")})]
+    cells: dict[str, list[TrialOutcome]] = {}
+    for t in trials:
+        cells.setdefault(t.outcome.cell, []).append(t.outcome)
+    rows = {}
+    for name, group in cells.items():
+        done = [o for o in group if o.status in ("ok", "stopped")]
+        failed = sum(o.status == "failed" for o in group)
+        row: dict[tuple[str, str], Any] = {("", "paper setting"): group[0].paper_label or "",
+                                           ("", "trials"): f"{len(done)}/{len(group)}" + (f" ({failed} failed)" if failed else "")}
+        for g in groups:
+            for short in ("cd", "f1"):
+                key = f"eval/{short}" + ("" if g == "all" else f"/{g}")
+                values = [o.metrics[key] for o in done if key in o.metrics and math.isfinite(o.metrics[key])]
+                row[(g, f"{short.upper()} ours")] = statistics.fmean(values) if values else math.nan
+                row[(g, f"{short.upper()} paper")] = group[0].paper.get(key, math.nan)
+        rows[name] = row
+    table = pd.DataFrame.from_dict(rows, orient="index")
+    table.columns = pd.MultiIndex.from_tuples(table.columns)
+    table.index.name = "cell"
+    return table.dropna(axis=1, how="all")
+
+
+def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, ...]) -> dict[str, dict[str, list[tuple[int, float]]]]:
+    """Trial label → metric → ``(step, value)`` history, for the trials that logged any of ``keys``."""
+    out = {}
+    for t in trials:
+        if t.run_id is not None:
+            history = {k: [(m.step, m.value) for m in record.client.get_metric_history(t.run_id, k)] for k in keys}
+            if any(history.values()):
+                out[t.outcome.label] = history
+    return out
+
+
+def _distributions(space: dict[str, SpaceParam]) -> dict[str, Any]:
+    import optuna.distributions as od
+
+    out: dict[str, Any] = {}
+    for key, p in space.items():
+        if p.type == "categorical":
+            out[key] = od.CategoricalDistribution(p.choices)
+        elif p.type == "int":
+            out[key] = od.IntDistribution(int(p.low), int(p.high), step=int(p.step or 1))
+        else:
+            out[key] = od.FloatDistribution(p.low, p.high, log=p.type == "log_float", step=p.step)
+    return out
+
+
+def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) -> list[Path]:
+    """``metric_vs_value.png``, ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
+    spec, folder = record.spec, Path(folder)
+    metric = spec.metric.name
+    done = [t for t in trials if t.outcome.status in ("ok", "stopped")]
+    points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper) for t in done]
+    paths = []
+    if points:
+        paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png"))
+    curves = _histories(record, trials, ("train/loss", metric))
+    if curves:
+        cells = {t.outcome.label: t.outcome.cell for t in trials}
+        paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
+    if spec.search.kind == "optuna":
+        searched = [(t.values, t.outcome.metrics.get(metric) if t.outcome.status in ("ok", "stopped") else None)
+                    for t in trials if set(t.values) == set(spec.search.space)]
+        if searched:
+            paths += optuna_plots(searched, _distributions(spec.search.space), spec.metric.mode, metric, folder)
+    return paths
+
+
+def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_trial: int = 2) -> dict[str, list[Path]]:
+    """Download up to ``per_trial`` PNG panels (and their PLY clouds) of each finished trial's last evaluation.
+
+    Returns:
+        Trial label → local PNG paths, the PLY of each beside it under the same stem.
+    """
+    out = {}
+    for t in trials:
+        if t.run_id is None or t.outcome.status not in ("ok", "stopped"):
+            continue
+        steps = sorted(a.path for a in record.client.list_artifacts(t.run_id, "eval") if a.is_dir)
+        files = [a.path for step in steps[-1:] for a in record.client.list_artifacts(t.run_id, step)]
+        pngs = sorted(f for f in files if f.endswith(".png"))[:per_trial]
+        dest = Path(folder) / t.run_id
+        for f in pngs + [p.removesuffix(".png") + ".ply" for p in pngs if p.removesuffix(".png") + ".ply" in files]:
+            record.client.download_artifacts(t.run_id, f, str(dest))
+        out[t.outcome.label] = [dest / Path(f).name for f in pngs]  # download_artifacts keeps only the file name
+    return out
+
+
+def share_view(record: SweepRecord) -> str:
+    """Save an MLflow UI view of this sweep and return its path on the UI server (``#/experiments/…``).
+
+    The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
+    reads) lists the sweep's child runs grouped by cell — the group row averages the seeds — with the
+    swept params, ``final/<metric>`` and seed as columns.
+    """
+    metric = record.spec.metric.name
+    swept = list(dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])]))
+    finals = ["final/" + m.removeprefix("eval/") for m in (metric, partner(metric)) if m and m.startswith("eval/")]
+    state = {
+        "searchFilter": f"tags.mlflow.parentRunId = '{record.parent.info.run_id}'",
+        "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": "cell"}]},
+        "selectedColumns": [f"params.`{k}`" for k in swept] + [f"metrics.`{m}`" for m in finals or [metric]] + ["tags.`seed`"],
+    }
+    key = f"sweep-{record.parent.info.run_id}"
+    record.client.set_experiment_tag(record.experiment_id, f"mlflow.sharedViewState.{key}", json.dumps(state))
+    return f"#/experiments/{record.experiment_id}/runs?viewStateShareKey={key}"
+
+
+def publish(uri: str, parent_run_id: str, folder: Path) -> str:
+    """End of a sweep: plots into ``folder`` and onto the parent run (``plots/``), and the UI view; returns its path."""
+    record = open_sweep(uri, parent_run_id=parent_run_id)
+    for path in write_plots(record, trial_records(record, objects=False), folder):
+        record.client.log_artifact(parent_run_id, str(path), "plots")
+    return share_view(record)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sweeps/report.py", description=__doc__.split("\n\n")[1])
+    p.add_argument("experiment", help="MLflow experiment name (= the spec's name)")
+    p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
+    p.add_argument("--run-id", default=None, help="parent run of the sweep (default: the experiment's latest sweep)")
+    p.add_argument("--out", type=Path, default=None, help="folder for results.{md,csv} and plots (default: results/<experiment>/report)")
+    p.add_argument("--log", action="store_true", help="also log the plots onto the parent run and save the UI view")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    # One small download per trial: no progress bar for each.
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    uri = resolve_tracking_uri(args.tracking_uri)
+    try:
+        record = open_sweep(uri, args.experiment, args.run_id)
+    except ReportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = (args.out or Path("results") / record.experiment / "report").resolve()
+    trials = trial_records(record)
+    table = results_table(record, trials)
+    md, csv = table.write(out)
+    plots = write_plots(record, trials, out)
+    print(table.text() + "\n")
+    print(f"results: {md} and {csv}")
+    print("plots: " + ", ".join(str(p) for p in plots))
+    if args.log:
+        for path in plots:
+            record.client.log_artifact(record.parent.info.run_id, str(path), "plots")
+        print(f"MLflow view of this sweep: <UI address>/{share_view(record)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

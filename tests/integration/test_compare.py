@@ -1,0 +1,238 @@
+"""Comparing a finished sweep, end to end: one real smoke sweep (Ray, MLflow SQLite) serves every test.
+
+What MLflow holds after the runner (tags, final metrics, panels, the parent's table and plots), the
+report rebuilt from it, ``notebooks/compare.ipynb`` executed headlessly, and the MLflow UI in headless
+Chromium (Debian's ``chromium``; ``.ci/run`` installs it). ``CDM_UPDATE_SCREENSHOTS=1`` also writes
+the UI screenshots the README shows into ``docs/``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import tempfile
+import time
+import urllib.parse
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+import nbformat
+import pytest
+import ray
+from mlflow import MlflowClient
+from mlflow.entities import Run
+from nbclient import NotebookClient
+
+from sweeps import report, run
+from sweeps.tracking import last_objects
+from tests.test_report import _overlap, panel_views
+
+pytestmark = [pytest.mark.ray, pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[2]
+
+# eval.save_clouds 2: the smoke profile evaluates one object of each of its 2 categories; draw both.
+SPEC = """name: compare
+paper:
+  table: Table 5
+  note: Co3D teddybear, F1@0.01
+  rows:
+    - {label: "10 frames + 0.02 point size", when: {priors.point_size: 0.02}, values: {eval/f1: 0.451, eval/cd: 101.5}}
+    - {label: "10 frames + 0.04 point size", when: {priors.point_size: 0.04}, values: {eval/f1: 0.461, eval/cd: 99.2}}
+grid: {priors.point_size: [0.02, 0.04]}
+profiles: {smoke: {overrides: {eval.save_clouds: 2}}}
+"""
+PAPER = {"point_size=0.02": (0.451, 101.5), "point_size=0.04": (0.461, 99.2)}
+
+
+@dataclass(frozen=True)
+class Smoke:
+    uri: str
+    folder: Path
+    experiment_id: str
+    parent: Run
+    children: list[Run]
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory) -> Smoke:
+    folder = tmp_path_factory.mktemp("compare")
+    (folder / "spec.yaml").write_text(SPEC)
+    uri = f"sqlite:///{folder}/mlflow.db"
+    # address="local": a cluster of our own even when another one runs on this machine (`ray start`).
+    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
+    try:
+        argv = [str(folder / "spec.yaml"), "--smoke", "--storage", str(folder / "results"), "--tracking-uri", uri]
+        assert run.main(argv) == 0
+    finally:
+        ray.shutdown()  # the notebook and the browser need the CPUs
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name("compare")
+    runs = client.search_runs([exp.experiment_id])
+    parent = next(r for r in runs if r.data.tags.get("kind") == "sweep")
+    children = sorted((r for r in runs if "mlflow.parentRunId" in r.data.tags), key=lambda r: r.info.run_name)
+    return Smoke(uri, folder, exp.experiment_id, parent, children)
+
+
+def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke):
+    client = MlflowClient(smoke.uri)
+    assert [c.info.run_name for c in smoke.children] == ["point_size=0.02 · seed 0", "point_size=0.04 · seed 0"]
+    for child in smoke.children:
+        tags, metrics = child.data.tags, child.data.metrics
+        assert (tags["cell"], tags["seed"], tags["spec"]) == (child.info.run_name.split(" · ")[0], "0", "compare")
+        assert tags["category"] == tags["categories"] == "chair,airplane"
+        assert child.data.params["priors.point_size"] == tags["cell"].removeprefix("point_size=")
+        for name in ("cd", "f1", "cd/chair", "f1/chair", "cd/airplane", "f1/airplane"):
+            assert metrics[f"final/{name}"] == metrics[f"eval/{name}"]
+        assert {m.step for m in client.get_metric_history(child.info.run_id, "final/f1")} == {20}
+        files = [a.path for a in client.list_artifacts(child.info.run_id, "eval/step_0000020")]
+        objects = last_objects(client, child.info.run_id)
+        assert len(objects) == 2
+        for row in objects:
+            stem = f"eval/step_0000020/{str(row['object_id']).replace('/', '_')}"
+            assert f"{stem}.png" in files and f"{stem}.ply" in files
+            png = client.download_artifacts(child.info.run_id, f"{stem}.png", tempfile.mkdtemp(dir=smoke.folder))
+            views = panel_views(Path(png))
+            assert all(v.sum() > 30 for v in views)  # every view draws a cloud
+            # 20 smoke steps reconstruct poorly (CD ×1000 ≫ 0): the prediction views must not redraw the GT's.
+            assert row["cd"] > 50 and max(_overlap(views[k], views[3 + k]) for k in range(3)) < 0.8
+    parent_files = {a.path for a in client.list_artifacts(smoke.parent.info.run_id)}
+    parent_files |= {a.path for a in client.list_artifacts(smoke.parent.info.run_id, "plots")}
+    assert parent_files >= {"results.md", "results.csv", "spec.yaml", "plan.json",
+                            "plots/metric_vs_value.png", "plots/training_curves.png"}
+
+
+def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "report"
+    assert report.main(["compare", "--tracking-uri", smoke.uri, "--out", str(out)]) == 0
+    rebuilt = (out / "results.md").read_text()
+    assert rebuilt == (smoke.folder / "results" / "compare" / "smoke" / "results.md").read_text()
+    assert "Δf1 vs point_size=0.02 [95% CI]" in rebuilt and rebuilt.count("| point_size=0.0") == 2
+    capsys.readouterr()
+    monkeypatch.chdir(tmp_path)  # the default --out is results/<experiment>/report under the working directory
+    assert run.main(["--report", "compare", "--tracking-uri", smoke.uri]) == 0
+    assert (tmp_path / "results" / "compare" / "report" / "results.md").read_text() == rebuilt
+    assert "compare — profile smoke" in capsys.readouterr().out
+
+
+def test_notebook_runs_top_to_bottom_and_shows_the_paper_layout(smoke, tmp_path, monkeypatch):
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", smoke.uri)
+    monkeypatch.setenv("CDM_EXPERIMENT", "compare")
+    monkeypatch.setenv("CDM_COMPARE_OUT", str(tmp_path / "out"))
+    nb = nbformat.read(ROOT / "notebooks" / "compare.ipynb", as_version=4)
+    nb.cells.append(nbformat.v4.new_code_cell('print(table.to_json(orient="split"))'))
+    NotebookClient(nb, timeout=180, kernel_name="python3", resources={"metadata": {"path": str(ROOT / "notebooks")}}).execute()
+    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"]
+    assert not errors
+    table = json.loads(nb.cells[-1].outputs[0]["text"])
+    columns = [tuple(c) for c in table["columns"]]
+    assert table["index"] == ["point_size=0.02", "point_size=0.04"]  # one row per cell
+    by_name = {c.data.tags["cell"]: c.data.metrics for c in smoke.children}
+    for cell, row in zip(table["index"], table["data"]):
+        value = dict(zip(columns, row))
+        assert value[("all", "F1 ours")] == pytest.approx(by_name[cell]["final/f1"])
+        assert value[("all", "CD ours")] == pytest.approx(by_name[cell]["final/cd"])
+        assert (value[("all", "F1 paper")], value[("all", "CD paper")]) == PAPER[cell]
+    images = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if "image/png" in o.get("data", {})]
+    assert len(images) == 2 + 4  # two plots, then 2 panels for each of the 2 trials
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def mlflow_server(smoke, tmp_path):
+    """``mlflow server`` on the smoke store, bound to 127.0.0.1; stopped (its whole process group) also on failure."""
+    port = _free_port()
+    # No background job runner (a pool of worker processes) and one web worker: the UI needs neither.
+    env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    log = (tmp_path / "server.log").open("w")
+    server = subprocess.Popen(["mlflow", "server", "--backend-store-uri", smoke.uri, "--host", "127.0.0.1", "--port", str(port),
+                               "--workers", "1"], env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            try:
+                urllib.request.urlopen(f"{url}/health", timeout=2)
+                break
+            except OSError:
+                assert server.poll() is None and time.monotonic() < deadline, (tmp_path / "server.log").read_text()[-3000:]
+                time.sleep(0.5)
+        yield url
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        try:
+            server.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)
+            server.wait()
+        log.close()
+
+
+def _chromium(chromium: str, url: str, screenshot: Path, profile: Path) -> str:
+    """The DOM of ``url`` once the app has rendered (15 s of virtual time), and a screenshot of it."""
+    cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+           "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars",
+           f"--user-data-dir={profile}", "--virtual-time-budget=15000", "--window-size=1600,800",
+           f"--screenshot={screenshot}", "--dump-dom", url]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=profile, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout
+
+
+def _keep(screenshot: Path, name: str) -> None:
+    """With CDM_UPDATE_SCREENSHOTS=1, a downscaled copy for the README (docs/)."""
+    if os.environ.get("CDM_UPDATE_SCREENSHOTS") != "1":
+        return
+    from PIL import Image
+
+    img = Image.open(screenshot).convert("RGB")
+    img = img.resize((1000, round(img.height * 1000 / img.width)), Image.LANCZOS)
+    img.quantize(colors=64).save(ROOT / "docs" / name, optimize=True)
+
+
+@pytest.fixture(scope="module")  # module scope: checked before the module's smoke sweep, so a skip costs nothing
+def chromium() -> str:
+    found = shutil.which("chromium")
+    if found is None:
+        pytest.skip("Debian's chromium is not installed and .ci/run could not install it (apt-get install chromium)")
+    return found
+
+
+def test_mlflow_ui_shows_the_child_runs_and_swept_params(chromium, smoke, mlflow_server, tmp_path):
+    names = [c.info.run_name for c in smoke.children]
+    view = f"#/experiments/{smoke.experiment_id}/runs?viewStateShareKey=sweep-{smoke.parent.info.run_id}"
+    runs_png = tmp_path / "runs.png"
+    dom = _chromium(chromium, f"{mlflow_server}/{view}", runs_png, tmp_path)
+    # The sweep's view: children grouped by cell, with the swept param and the final metrics as columns.
+    for name in names:
+        assert name in dom
+    assert "Group: point_size=0.02" in dom and "Group: point_size=0.04" in dom
+    assert "priors.point_size" in dom and "final/f1" in dom and "final/cd" in dom
+    ids = json.dumps([c.info.run_id for c in smoke.children], separators=(",", ":"))
+    compare = f"#/compare-runs?runs={urllib.parse.quote(ids)}&experiments={urllib.parse.quote(json.dumps([smoke.experiment_id]))}"
+    compare_png = tmp_path / "compare.png"
+    dom = _chromium(chromium, f"{mlflow_server}/{compare}", compare_png, tmp_path)
+    assert "Comparing 2 Runs" in dom
+    for child in smoke.children:
+        assert child.info.run_name in dom and child.info.run_id in dom
+    assert "priors.point_size 0.02 0.04" in _text(dom)  # the params table: one column per run
+    for png in (runs_png, compare_png):
+        assert png.stat().st_size > 20_000  # a rendered page, not a blank one
+    _keep(runs_png, "mlflow_sweep_view.png")
+    _keep(compare_png, "mlflow_compare.png")
+
+
+def _text(html: str) -> str:
+    """The page's visible text, whitespace collapsed (tags dropped)."""
+    return " ".join(re.sub(r"<[^>]+>", " ", re.sub(r"<(script|style)[^>]*>.*?</\1>", "", html, flags=re.DOTALL)).split())

@@ -1,0 +1,155 @@
+"""ShapeNet (R2N2 renderings + PC15k clouds) on a small tree in the published layout."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from cdm.__main__ import main
+from cdm.cameras import select_sequence_views
+from cdm.config import load_config
+from cdm.data import build_dataset, list_categories
+from cdm.data.shapenet import R2N2_FOCAL, SYNSETS
+from tests.datasets_fixtures import (
+    SHAPENET_SYNSETS,
+    inside_mask,
+    make_shapenet,
+    mirrored,
+    project,
+)
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    return make_shapenet(tmp_path_factory.mktemp("shapenet"))
+
+
+def _cfg(root, **overrides):
+    return load_config(None, {"data.kind": "shapenet_r2n2", "data.root": str(root), "data.image_size": 64,
+                              "data.num_points": 4096, **overrides})
+
+
+def test_samples_have_the_published_shapes_and_our_scales(tree):
+    ds = build_dataset(_cfg(tree.root), "val")
+    for i in range(len(ds)):
+        s = ds[i]
+        assert s.image.shape == (3, 64, 64) and s.image.dtype == torch.float32
+        assert 0.0 <= s.image.min() and s.image.max() <= 1.0
+        assert s.mask.shape == (1, 64, 64) and set(s.mask.unique().tolist()) == {0.0, 1.0}
+        assert 0.05 < s.mask.mean() < 0.7
+        # Composited on white: away from the silhouette's edge the background is exactly 1.
+        far = torch.from_numpy(cv2.dilate(s.mask[0].numpy(), np.ones((5, 5), np.uint8)) == 0)
+        assert torch.all(s.image[:, far] == 1.0)
+        assert s.depth is None and s.prior_2d.shape == (1, 64, 64)  # R2N2 has no depth; contour prior
+        assert s.points.shape == (4096, 3) and s.points.abs().max() <= 1.0
+        cloud = ds.record(i).cloud  # all 15,000 PC15k points, normalised like every data set
+        lo, hi = cloud.min(0).values, cloud.max(0).values
+        assert len(cloud) == 15000 and (hi - lo).max() == pytest.approx(2.0) and ((hi + lo) / 2).abs().max() < 1e-6
+        assert s.camera.focal.item() == pytest.approx(R2N2_FOCAL) and torch.all(s.camera.principal == 0)
+        assert s.view_cameras.batch_shape == (10,)
+        assert torch.equal(s.view_cameras.R[0], s.camera.R) and torch.equal(s.view_cameras.T[0], s.camera.T)
+
+
+def test_ground_truth_projects_into_the_mask_and_a_mirror_does_not(tree):
+    cfg = _cfg(tree.root, **{"data.image_size": 137})  # R2N2's own resolution
+    mirror = []
+    for split in ("train", "val"):
+        ds = build_dataset(cfg, split)
+        for i in range(len(ds)):
+            for round_ in range(3):
+                s = ds.sample(i, round_)
+                assert inside_mask(s.points, s.camera, s.mask) >= 0.95, (s.object_id, round_)
+                mirror.append(inside_mask(s.points, mirrored(s.camera), s.mask))
+                # Every prior view frames the whole object.
+                for k in range(len(s.view_cameras)):
+                    assert project(s.points, s.view_cameras[k])[:, :2].abs().max() < 1.0
+    assert np.mean(mirror) < 0.8  # the check tells a mirrored camera apart (some views look alike mirrored)
+
+
+def test_ground_truth_in_mask_at_the_training_size(tree):
+    ds = build_dataset(_cfg(tree.root), "train")
+    fractions = [inside_mask(ds.sample(i, r).points, ds.sample(i, r).camera, ds.sample(i, r).mask) for i in range(len(ds)) for r in range(2)]
+    assert min(fractions) >= 0.95 and np.mean(fractions) > 0.98
+
+
+def test_prior_views_are_the_renderings_in_azimuth_order_from_the_input(tree):
+    ds = build_dataset(_cfg(tree.root), "val")
+    record = ds.record(0)
+    s = ds[0]
+    positions = select_sequence_views(24, int(record.views[0]), 10)
+    assert torch.equal(s.view_cameras.R[1:], record.sequence.R[positions[1:]])
+    # Sorted by azimuth: every step turns the camera the same way, by less than a half turn.
+    centres = -(record.sequence.T[:, None, :] @ record.sequence.R.transpose(1, 2))[:, 0]  # camera centres
+    azimuth = torch.atan2(centres[:, 0], centres[:, 2])
+    turn = torch.remainder(azimuth.roll(-1) - azimuth + torch.pi, 2 * torch.pi) - torch.pi  # signed, in (−π, π]
+    assert torch.all(turn < 0) or torch.all(turn > 0)
+    assert turn.sum().abs() == pytest.approx(2 * torch.pi, abs=1e-3)  # one full turn
+
+
+def test_split_filtering_follows_pc15k_folders_and_skips_unrendered_models(tree):
+    def models(split, **overrides):
+        return {ref.object_id.split("/")[-1] for ref in build_dataset(_cfg(tree.root, **overrides), split).objects}
+
+    for published, ours, overrides in (("train", "train", {}), ("val", "val", {}), ("test", "val", {"data.eval_split": "test"})):
+        expected = {m for name in SHAPENET_SYNSETS for m in tree.splits[name][published]}
+        assert models(ours, **overrides) == expected
+    assert not set(tree.unrendered) & models("train")
+
+
+def test_category_mapping_names_and_synsets(tree):
+    assert list_categories(_cfg(tree.root)) == ("airplane", "chair")  # only synsets present in both folders
+    assert list_categories(_cfg(tree.root, **{"data.categories": ["03001627"]})) == ("chair",)
+    assert SYNSETS[SHAPENET_SYNSETS["airplane"]] == "airplane" and len(SYNSETS) == 13
+    ds = build_dataset(_cfg(tree.root), "train")
+    assert [ref.category for ref in ds.objects[:4]] == ["airplane", "chair", "airplane", "chair"]  # interleaved
+    assert all(ref.object_id.startswith(f"shapenet/{ref.category}/") for ref in ds.objects)
+    with pytest.raises(ValueError, match="data.categories.*sofa"):
+        build_dataset(_cfg(tree.root, **{"data.categories": ["sofa"]}), "train")
+
+
+def test_held_out_view_is_00_and_training_rounds_vary_the_view(tree):
+    ds = build_dataset(_cfg(tree.root, **{"data.image_size": 137}), "val")
+    synset, model = SHAPENET_SYNSETS[ds.objects[0].category], ds.objects[0].object_id.split("/")[-1]
+    alpha = cv2.imread(str(tree.root / "ShapeNetRendering" / synset / model / "rendering" / "00.png"), cv2.IMREAD_UNCHANGED)[..., 3]
+    assert torch.equal(ds[0].mask[0], torch.from_numpy(alpha > 127).float())
+    train = build_dataset(_cfg(tree.root), "train")
+    assert len({tuple(train.sample(0, r).camera.T.tolist()) for r in range(6)}) >= 3
+
+
+def _prepare(root, out, *extra):
+    return main(["prepare", "--data-kind", "shapenet_r2n2", "--root", str(root), "--out", str(out), "--image-size", "32", *extra])
+
+
+def test_cli_errors_name_the_path(tree, tmp_path, capsys):
+    assert _prepare(tmp_path / "nowhere", tmp_path / "out") == 2
+    assert "nowhere" in capsys.readouterr().err
+    partial = tmp_path / "partial"
+    shutil.copytree(tree.root / "ShapeNetRendering", partial / "ShapeNetRendering")
+    assert _prepare(partial, tmp_path / "out") == 2
+    assert f"{partial / 'ShapeNetCore.v2.PC15k'} is missing" in capsys.readouterr().err
+    assert _prepare(tree.root, tmp_path / "out", "--set", "data.categories=[sofa]") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: data.categories: ['sofa'] not in") and "airplane, chair" in err
+    assert main(["train", "--set", "data.kind=shapenet_r2n2", "--set", f"data.root={tree.root}", "--set", "priors.prior_2d=depth",
+                 "--set", f"train.out_dir={tmp_path / 'run'}"]) == 2
+    assert "priors.prior_2d" in capsys.readouterr().err and not (tmp_path / "run").exists()
+    assert not (tmp_path / "out").exists()  # nothing written before the input is known good
+
+
+def test_corrupt_image_exits_2_naming_it_and_leaves_no_partial_shard(tree, tmp_path, capsys):
+    root = tmp_path / "copy"
+    shutil.copytree(tree.root, root)
+    model = tree.splits["chair"]["train"][1]
+    png = root / "ShapeNetRendering" / SHAPENET_SYNSETS["chair"] / model / "rendering" / "00.png"
+    png.write_bytes(png.read_bytes()[:200])  # truncated mid-stream
+    out = tmp_path / "out"
+    assert _prepare(root, out, "--set", "data.categories=[chair]") == 2
+    err = capsys.readouterr().err
+    last = err.splitlines()[-1]  # after the progress bar, one error line
+    assert last.startswith("error: data.root: cannot read image") and str(png) in last and err.count("error:") == 1
+    shards = sorted(out.rglob("*.shard"))
+    assert len(shards) == 1 and not list(out.rglob(".*tmp*"))  # the object before it is complete; nothing half-written

@@ -1,0 +1,234 @@
+"""Reports rebuilt from a real MLflow SQLite store, written by the tracking classes the runner uses.
+
+No Ray here: each sweep's runs are written with :class:`SweepRun`/:class:`TrialRun` exactly as the
+driver and the trials write them, with chosen numbers, so the report's every figure can be checked.
+The end-to-end version (a real smoke sweep, the notebook, the MLflow UI) is
+``tests/integration/test_compare.py``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+import torch
+from mlflow import MlflowClient
+from scipy.ndimage import binary_dilation
+
+from cdm.data import build_dataset
+from cdm.data.sample import collate
+from cdm.evaluate import save_panel
+from sweeps import report
+from sweeps.spec import expand, load_spec
+from sweeps.tracking import SweepRun, TrialRun
+from tests.conftest import tiny_config
+
+GRID = """name: synth
+paper:
+  table: Table 5
+  note: Co3D teddybear
+  rows:
+    - {label: "size 0.02", when: {priors.point_size: 0.02}, values: {eval/f1: 0.45, eval/cd: 110.0}}
+    - {label: "size 0.04", when: {priors.point_size: 0.04}, values: {eval/f1: 0.46, eval/cd: 105.0}}
+grid: {priors.point_size: [0.02, 0.04, 0.08]}
+"""
+
+OPTUNA = """name: synth_opt
+search:
+  kind: optuna
+  num_samples: 4
+  space: {priors.lambda_3d: {type: log_float, low: 1.0e-3, high: 10.0}}
+metric: {name: eval/cd, mode: min}
+"""
+
+
+def _start(tmp_path: Path, uri: str, text: str) -> tuple[SweepRun, object]:
+    """The parent run as ``sweeps/run.py`` opens it: spec file and plan.json as artifacts."""
+    spec_file = tmp_path / f"{text.split()[1]}.yaml"
+    spec_file.write_text(text)
+    plan = expand(load_spec(spec_file), "smoke")
+    sweep = SweepRun.start(uri, plan.spec.name, f"{plan.spec.name} · smoke", tags={"spec": plan.spec.name, "profile": "smoke"},
+                           params={"trials": plan.num_trials})
+    plan_file = tmp_path / "plan.json"
+    plan_file.write_text(json.dumps({"fixed": plan.fixed, "sets": {}, "cells": [
+        {"label": c.label, "values": c.values, "seed": c.seed, "paper": c.paper} for c in plan.cells]}, default=str))
+    sweep.log_artifacts([spec_file, plan_file])
+    return sweep, plan
+
+
+def _trial(tmp_path: Path, sweep: SweepRun, trial_id: str, label: str, overrides: dict, evals: dict[int, dict[str, float]],
+           objects: list[dict[str, object]] | None = None) -> TrialRun:
+    """A trial's child run fed as ``cdm.train.fit`` feeds it: losses, then evaluations (the last with objects.csv)."""
+    cell = label.rsplit(" · seed ", 1)[0]
+    run = TrialRun(sweep.uri, sweep.experiment_id, sweep.run_id, trial_id, label,
+                   {"cell": cell, "seed": "0"}, tiny_config(tmp_path, **overrides))
+    for step in (5, 10, 15, 20):
+        run.on_step(step, {"train/loss": 10.0 / step})
+    for step, metrics in evals.items():
+        files = []
+        if objects is not None and step == max(evals):
+            table = tmp_path / trial_id / "objects.csv"
+            table.parent.mkdir(parents=True, exist_ok=True)
+            with table.open("w", newline="") as fh:
+                writer = csv.DictWriter(fh, fieldnames=list(objects[0]))
+                writer.writeheader()
+                writer.writerows(objects)
+            files.append(table)
+        run.on_eval(step, metrics, files)
+    return run
+
+
+def _objects(cd: list[float]) -> list[dict[str, object]]:
+    return [{"object_id": f"o{i}", "category": "chair", "eval_set": "e1", "cd": v, "f1": 0.5 - v / 1000,
+             "baseline/sphere/cd": 150.0, "baseline/sphere/f1": 0.2} for i, v in enumerate(cd)]
+
+
+@pytest.fixture(scope="module")
+def grid_store(tmp_path_factory):
+    """Three cells: two finished (point sizes 0.02 and 0.04), one failed before its first evaluation."""
+    tmp_path = tmp_path_factory.mktemp("grid")
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep, plan = _start(tmp_path, uri, GRID)
+    labels = [c.label for c in plan.cells]
+    base = {"baseline/sphere/cd": 150.0, "baseline/sphere/f1": 0.2}
+    _trial(tmp_path, sweep, "t0", labels[0], {"priors.point_size": 0.02},
+           {10: {"eval/cd": 90.0, "eval/f1": 0.40, **base, "eval/cd/chair": 91.0, "eval/f1/chair": 0.41},
+            20: {"eval/cd": 80.0, "eval/f1": 0.42, **base, "eval/cd/chair": 81.0, "eval/f1/chair": 0.43}},
+           _objects([70.0, 80.0, 90.0]))
+    _trial(tmp_path, sweep, "t1", labels[1], {"priors.point_size": 0.04},
+           {20: {"eval/cd": 60.0, "eval/f1": 0.48, **base, "eval/cd/chair": 61.0, "eval/f1/chair": 0.49}},
+           _objects([50.0, 60.0, 70.0]))
+    sweep.close_trial("t0", labels[0], "FINISHED")
+    sweep.close_trial("t1", labels[1], "FINISHED")
+    # The driver's verdict for a trial that raised before it opened its run (_TrialCloser.on_trial_error).
+    sweep.close_trial("t2", labels[2], "FAILED", error="cdm.train.TrainingDiverged: loss became NaN at step 3")
+    sweep.end()
+    return uri, sweep
+
+
+def test_final_metrics_are_the_last_evaluation_under_stable_names(grid_store):
+    uri, sweep = grid_store
+    client = MlflowClient(uri)
+    runs = {r.info.run_name: r for r in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")}
+    first = runs["point_size=0.02 · seed 0"]
+    assert first.data.metrics["final/cd"] == 80.0 and first.data.metrics["final/f1"] == 0.42
+    assert first.data.metrics["final/cd/chair"] == 81.0 and first.data.metrics["final/f1/chair"] == 0.43
+    assert [m.step for m in client.get_metric_history(first.info.run_id, "final/cd")] == [20]
+    assert not any(k.startswith("final/") for k in runs["point_size=0.08 · seed 0"].data.metrics)  # failed: no final
+
+
+def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, tmp_path, capsys):
+    uri, _ = grid_store
+    out = tmp_path / "report"
+    assert report.main(["synth", "--tracking-uri", uri, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    rows = {line.split("  ")[0].rstrip(" ★"): line for line in text.splitlines() if line.startswith("point_size=")}
+    assert set(rows) == {"point_size=0.02", "point_size=0.04", "point_size=0.08"}
+    assert "0/1 (1 failed)" in rows["point_size=0.08"] and "failed" in rows["point_size=0.08"].split("0/1 (1 failed)")[1]
+    assert "0.420" in rows["point_size=0.02"] and "0.450" in rows["point_size=0.02"]  # ours beside the paper's
+    assert rows["point_size=0.04"].startswith("point_size=0.04 ★")  # best F1
+    # Paired with the first cell on the same 3 objects: every object 20 lower, so Δcd is exactly -20.
+    assert "-20.00 [-20.00, -20.00]" in rows["point_size=0.04"] and "better" in rows["point_size=0.04"]
+    assert "failed: point_size=0.08 · seed 0 — cdm.train.TrainingDiverged: loss became NaN at step 3" in text
+    records = list(csv.DictReader((out / "results.csv").open()))
+    assert [r["cell"] for r in records[:3]] == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
+    assert float(records[1]["eval/f1 mean"]) == 0.48 and float(records[1]["eval/f1 paper"]) == 0.46
+    assert records[2]["failed"] == "1" and records[2]["eval/f1 mean"] == ""
+    for name in ("metric_vs_value.png", "training_curves.png"):
+        assert mpimg.imread(out / name).std() > 0.01  # a drawn figure, not a blank one
+
+
+def test_paper_layout_puts_ours_beside_the_paper_per_cell(grid_store):
+    uri, _ = grid_store
+    record = report.open_sweep(uri, "synth")
+    table = report.paper_layout(report.trial_records(record, objects=False))
+    assert list(table.index) == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
+    assert table.loc["point_size=0.02", ("all", "F1 ours")] == 0.42 and table.loc["point_size=0.02", ("all", "F1 paper")] == 0.45
+    assert table.loc["point_size=0.04", ("all", "CD ours")] == 60.0 and table.loc["point_size=0.04", ("all", "CD paper")] == 105.0
+    assert table.loc["point_size=0.04", ("chair", "F1 ours")] == 0.49
+    assert table.loc["point_size=0.08", ("", "trials")] == "0/1 (1 failed)" and np.isnan(table.loc["point_size=0.08", ("all", "CD ours")])
+
+
+def test_unknown_experiment_exits_2_listing_the_known_ones(grid_store, capsys):
+    uri, _ = grid_store
+    assert report.main(["point_sise", "--tracking-uri", uri]) == 2
+    assert capsys.readouterr().err.strip() == "error: no MLflow experiment named 'point_sise'; known: Default, synth"
+
+
+def test_shared_view_groups_the_sweeps_children_by_cell(grid_store):
+    uri, sweep = grid_store
+    record = report.open_sweep(uri, "synth")
+    path = report.share_view(record)
+    assert path == f"#/experiments/{sweep.experiment_id}/runs?viewStateShareKey=sweep-{sweep.run_id}"
+    state = json.loads(MlflowClient(uri).get_experiment(sweep.experiment_id).tags[f"mlflow.sharedViewState.sweep-{sweep.run_id}"])
+    assert state["searchFilter"] == f"tags.mlflow.parentRunId = '{sweep.run_id}'"
+    assert state["groupBy"]["groupByKeys"] == [{"mode": "tag", "groupByData": "cell"}]
+    assert state["selectedColumns"] == ["params.`priors.point_size`", "metrics.`final/f1`", "metrics.`final/cd`", "tags.`seed`"]
+
+
+def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep, _ = _start(tmp_path, uri, OPTUNA)
+    for i, (lam, cd) in enumerate([(0.01, 70.0), (0.1, 60.0), (1.0, 90.0)]):
+        label = f"λ={lam:g} · seed 0"
+        _trial(tmp_path, sweep, f"t{i}", label, {"priors.lambda_3d": lam}, {20: {"eval/cd": cd, "eval/f1": 0.4}})
+        sweep.close_trial(f"t{i}", label, "FINISHED")
+    _trial(tmp_path, sweep, "t3", "λ=5 · seed 0", {"priors.lambda_3d": 5.0}, {})
+    sweep.close_trial("t3", "λ=5 · seed 0", "FAILED", error="boom")
+    record = report.open_sweep(uri, "synth_opt")
+    trials = report.trial_records(record, objects=False)
+    assert [t.outcome.label for t in trials] == ["λ=0.1 · seed 0", "λ=0.01 · seed 0", "λ=1 · seed 0", "λ=5 · seed 0"]
+    assert [t.values["priors.lambda_3d"] for t in trials] == [0.1, 0.01, 1.0, 5.0]
+    paths = report.write_plots(record, trials, tmp_path / "plots")
+    assert [p.name for p in paths] == ["metric_vs_value.png", "training_curves.png", "optuna_history.png", "optuna_importance.png"]
+    for p in paths:
+        assert mpimg.imread(p).std() > 0.01
+
+
+def panel_views(png: Path) -> list[np.ndarray]:
+    """The 6 cloud views of a panel (pred 0–2, then GT 0–2) as boolean "ink" masks of equal shape.
+
+    The views are the last 6 axes of the row; each is found by its black frame: columns (then rows)
+    that are dark over most of the image's height are frame lines, and the 12 rightmost come in pairs.
+    """
+    img = mpimg.imread(png)[..., :3]
+    dark = (img < 0.25).all(-1)
+    cols = np.flatnonzero(dark.mean(0) > 0.5)
+    lines = [(r[0], r[-1]) for r in np.split(cols, np.flatnonzero(np.diff(cols) > 1) + 1)][-12:]
+    views = []
+    for (_, left), (right, _) in zip(lines[0::2], lines[1::2]):
+        box = dark[:, left + 1:right]
+        rows = np.flatnonzero(box.mean(1) > 0.5)
+        inner = img[rows[0] + 2:rows[-1] - 1, left + 2:right - 1]
+        views.append((inner < 0.9).any(-1))
+    h = min(v.shape[0] for v in views)
+    w = min(v.shape[1] for v in views)
+    return [v[:h, :w] for v in views]
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> float:
+    """Share of ink of each mask within 2 px of the other's ink, the smaller of the two (1: same drawing).
+
+    2 px of tolerance: two axes of one figure land on the pixel grid with different sub-pixel offsets.
+    """
+    near_a, near_b = binary_dilation(a, iterations=2), binary_dilation(b, iterations=2)
+    return float(min((a & near_b).sum() / a.sum(), (b & near_a).sum() / b.sum()))
+
+
+def test_panel_views_match_where_the_clouds_match_and_differ_where_they_differ(tmp_path):
+    cfg = tiny_config(tmp_path)
+    batch = collate([build_dataset(cfg, "val")[0]])
+    gt = batch.points[0]
+    same = panel_views(save_panel(tmp_path / "same.png", batch, 0, gt.clone(), 0.0, 1.0))
+    assert len(same) == 6 and all(v.sum() > 30 for v in same)
+    for k in range(3):  # prediction = ground truth: each pred view draws what the GT view draws
+        assert _overlap(same[k], same[3 + k]) > 0.95
+    assert _overlap(same[3], same[4]) < 0.8  # and the 3 views are different views
+    moved = panel_views(save_panel(tmp_path / "moved.png", batch, 0, gt * 0.3 + torch.tensor([0.4, 0.0, 0.0]), 50.0, 0.1))
+    for k in range(3):
+        assert _overlap(moved[k], moved[3 + k]) < 0.4
+        assert _overlap(moved[3 + k], same[3 + k]) > 0.95  # the GT half does not depend on the prediction
