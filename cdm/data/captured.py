@@ -211,10 +211,7 @@ class CapturedDataset(ObjectDataset):
 
     def sample(self, index: int, view_round: int = 0) -> Sample:
         """Object ``index`` seen from its input view of ``view_round`` (a pure function of both)."""
-        if not 0 <= index < len(self.objects):
-            raise IndexError(f"index {index} out of range for {len(self.objects)} objects")
-        if view_round < 0:
-            raise ValueError(f"view_round (epoch) must be >= 0, got {view_round}")
+        self._check_sample_args(index, view_round)
         surface = self.surface(index)
         ref = self.objects[index]
         choice = 0

@@ -374,12 +374,15 @@ class ObjectDataset(Dataset, ABC):
             self._cached_bytes -= dropped.nbytes()
         return surface
 
-    def sample(self, index: int, view_round: int = 0) -> Sample:
-        """Object ``index`` seen from its view of ``view_round`` (a pure function of both)."""
+    def _check_sample_args(self, index: int, view_round: int) -> None:
         if not 0 <= index < len(self.objects):
             raise IndexError(f"index {index} out of range for {len(self.objects)} objects")
         if view_round < 0:
             raise ValueError(f"view_round (epoch) must be >= 0, got {view_round}")
+
+    def sample(self, index: int, view_round: int = 0) -> Sample:
+        """Object ``index`` seen from its view of ``view_round`` (a pure function of both)."""
+        self._check_sample_args(index, view_round)
         surface = self.surface(index)
         view = draw_view(self._rng(index, _STREAM_VIEW, view_round))
         r = render_view(surface, view, self.cfg.data.image_size, self.num_views)

@@ -39,7 +39,7 @@ import ray._private.ray_logging
 from mlflow import MlflowClient
 
 from sweeps import run
-from tests.integration.test_job_submit import BIN, _free_port, _stop, _wait_http
+from tests.integration.test_job_submit import _stop, serve_mlflow
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -95,20 +95,9 @@ def machines() -> Iterator[TwoMachines]:
 @pytest.fixture(scope="module")
 def mlflow_http(tmp_path_factory) -> Iterator[str]:
     """``mlflow server`` on 127.0.0.1 (SQLite backend, proxied artifacts), as cluster/README.md starts it."""
-    store = tmp_path_factory.mktemp("mlflow_server")
-    port = _free_port()
-    cmd = [str(BIN / "mlflow"), "server", "--host", "127.0.0.1", "--port", str(port),
-           "--backend-store-uri", f"sqlite:///{store / 'mlflow.db'}",
-           "--artifacts-destination", str(store / "artifacts"), "--workers", "1"]
-    log = store / "server.log"
-    with log.open("w") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        _wait_http(f"http://127.0.0.1:{port}/health", {}, proc, log, timeout_s=60)
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        # uvicorn waits on the clients' idle keep-alive connections before it exits: do not wait long.
-        _stop(proc, None, grace_s=2)
+    # uvicorn waits on the clients' idle keep-alive connections before it exits: do not wait long.
+    with serve_mlflow(tmp_path_factory.mktemp("mlflow_server"), grace_s=2) as url:
+        yield url
 
 
 def _argv(tmp_path: Path, body: str, tracking_uri: str, storage: str | None = None) -> list[str]:

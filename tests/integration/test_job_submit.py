@@ -31,6 +31,7 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -175,24 +176,29 @@ def ray_head() -> Iterator[Head]:
         shutil.rmtree(temp_dir, ignore_errors=True)
 
 
-@pytest.fixture
-def mlflow_server(tmp_path) -> Iterator[str]:
-    """``mlflow server`` on 127.0.0.1 with a SQLite backend and proxied artifacts under ``tmp_path``."""
+@contextmanager
+def serve_mlflow(store: Path, grace_s: float = 10.0) -> Iterator[str]:
+    """``mlflow server`` on 127.0.0.1 with a SQLite backend and proxied artifacts in ``store``; its URL."""
     port = _free_port()
-    store = tmp_path / "mlflow_server"
-    store.mkdir()
+    store.mkdir(parents=True, exist_ok=True)
     cmd = [str(BIN / "mlflow"), "server", "--host", "127.0.0.1", "--port", str(port),
            "--backend-store-uri", f"sqlite:///{store / 'mlflow.db'}",
            # Clients upload through the server (mlflow-artifacts:/), so trials on any node reach it.
            "--artifacts-destination", str(store / "artifacts"), "--workers", "1"]
-    log = tmp_path / "mlflow_server.log"
+    log = store / "server.log"
     with log.open("w") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         _wait_http(f"http://127.0.0.1:{port}/health", {}, proc, log, timeout_s=60)
         yield f"http://127.0.0.1:{port}"
     finally:
-        _stop(proc, None)
+        _stop(proc, None, grace_s=grace_s)
+
+
+@pytest.fixture
+def mlflow_server(tmp_path) -> Iterator[str]:
+    with serve_mlflow(tmp_path / "mlflow_server") as url:
+        yield url
 
 
 def _ray_job(head: Head, verb: str, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
