@@ -1,7 +1,7 @@
 """Sweep efficiency on this machine: 6 identical short trials of the smoke profile through the real runner.
 
-The runner packs trials in Train's local mode with reused actors (sweeps/trial.py): on 2 CPUs two run
-at a time. From the MLflow child runs (start = the trial opens its run, end = the driver closes it):
+The runner packs trials in Train's local mode with reused actors (sweeps/trial.py): one per CPU at a
+time (on 2 CPUs, two). From the MLflow child runs (start = the trial opens its run, end = the driver closes it):
 
 - efficiency = Σ in-trial time ÷ (concurrent trials × wall of the trial phase); target ≥ 0.8;
 - gap per trial = (concurrent trials × wall − Σ in-trial time) ÷ trials: scheduling, actor reuse and
@@ -15,12 +15,15 @@ trial here (NOTES §5); that is why small machines use local mode.
 
 from __future__ import annotations
 
+import os
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
 from mlflow import MlflowClient
+
+from sweeps.spec import expand, load_spec, plan_concurrency
 
 __all__ = ["sweep_efficiency"]
 
@@ -39,6 +42,7 @@ def sweep_efficiency(quick: bool, out_dir: str) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         spec = Path(tmp) / "efficiency.yaml"
         spec.write_text(SPEC % (steps, steps))
+        smoke = expand(load_spec(spec), "smoke")
         uri = f"sqlite:///{tmp}/mlflow.db"
         start = time.perf_counter()
         code = run.main([str(spec), "--smoke", "--storage", f"{tmp}/results", "--tracking-uri", uri])
@@ -52,10 +56,11 @@ def sweep_efficiency(quick: bool, out_dir: str) -> list[dict]:
     in_trial = [end - begin for begin, end in spans]
     loop = [r.data.metrics["train/elapsed_s"] for r in children]
     wall = max(e for _, e in spans) - min(b for b, _ in spans)
-    lanes = 2
+    # Lanes = how many trials the runner lets run at once on this machine (its own sizing rule).
+    lanes = plan_concurrency(smoke.profile.resources, float(os.cpu_count() or 1), 0.0, smoke.num_trials).max_concurrent
     busy = sum(in_trial)
     return [
-        {"benchmark": "sweep efficiency", "case": f"6 trials × {steps} steps, smoke, 2 CPUs, local mode",
+        {"benchmark": "sweep efficiency", "case": f"6 trials × {steps} steps, smoke, {lanes} at a time, local mode",
          "without_s": busy / lanes, "with_s": wall, "ratio": busy / (lanes * wall), "target": ">= 0.8"},
         {"benchmark": "sweep gap per trial", "case": "scheduling + actor reuse + result handling",
          "without_s": (lanes * wall - busy) / len(spans), "with_s": (lanes * wall - busy) / len(spans),

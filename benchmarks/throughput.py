@@ -45,7 +45,7 @@ def _median_s(fn, device: torch.device, repeats: int) -> float:
 
 
 def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:
-    rows, costs = [], {}
+    rows, by_points = [], {}
     dev = torch.device(device)
     for n in (4096,) if quick and dev.type == "cpu" else (4096, 16384):
         cfg = load_config(None, {**PAPER, "data.num_points": n, "train.device": device, "train.out_dir": out_dir})
@@ -65,9 +65,9 @@ def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:
         name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
         rows.append({"benchmark": f"throughput ({name})", "case": f"B=8, N={n}, 224², H=10; {memory}",
                      "without_s": step_s, "with_s": sample_s, "ratio": 8 / step_s, "target": "samples/s (report)"})
-        costs = {"device": name, "date": time.strftime("%Y-%m-%d"),
-                 "by_points": {**costs.get("by_points", {}), str(n): {"train_step_s": step_s, "sample_step_s": sample_s}}}
+        by_points[str(n)] = {"train_step_s": step_s, "sample_step_s": sample_s}
     if dev.type == "cuda":
+        costs = {"device": torch.cuda.get_device_name(dev), "date": time.strftime("%Y-%m-%d"), "by_points": by_points}
         Path(out_dir).mkdir(parents=True, exist_ok=True)
         (Path(out_dir) / "gpu_costs.json").write_text(json.dumps(costs, indent=2))
     return rows

@@ -95,12 +95,11 @@ def _calibration_configs(plan: SweepPlan) -> list[Config]:
     return [distinct[i] for i in picks]
 
 
-def paper_trial_gpu_hours(plan: SweepPlan) -> tuple[float | None, str]:
-    """GPU-hours of one trial of ``plan``'s spec with the paper profile, and the GPU they were measured on."""
+def paper_trial_gpu_hours(paper: SweepPlan) -> tuple[float | None, str]:
+    """GPU-hours of one trial of a spec expanded with the paper profile, and the GPU they were measured on."""
     if not GPU_COSTS.is_file():
         return None, ""
     figures = json.loads(GPU_COSTS.read_text())
-    paper = expand(plan.spec, "paper", plan.sets)
     cfg = paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
     sizes = sorted(int(n) for n in figures["by_points"])
     # The smallest measured cloud size that holds the config's (else the largest measured).
@@ -130,6 +129,7 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int) -> Estimate:
         raise diverged
     trial_s = statistics.fmean(c.trial_s(plan.profile.steps, plan.profile.eval_every) for c in costs)
     lanes = max(1.0, min(float(concurrent), cpus))
-    trial_hours, gpu = paper_trial_gpu_hours(plan)
-    gpu_hours = None if trial_hours is None else trial_hours * expand(plan.spec, "paper", plan.sets).num_trials
+    paper = expand(plan.spec, "paper", plan.sets)
+    trial_hours, gpu = paper_trial_gpu_hours(paper)
+    gpu_hours = None if trial_hours is None else trial_hours * paper.num_trials
     return Estimate(plan.num_trials, trial_s, concurrent, plan.num_trials * trial_s / lanes, gpu_hours, gpu)

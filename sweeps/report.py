@@ -36,9 +36,9 @@ from sweeps.plots import (
     partner,
     training_curves,
 )
-from sweeps.results import ResultsTable, TrialOutcome, build_table
+from sweeps.results import ResultsTable, TrialOutcome, build_table, settings_note
 from sweeps.spec import SpaceParam, Spec, load_spec
-from sweeps.tracking import last_objects, resolve_tracking_uri
+from sweeps.tracking import last_eval_files, last_objects, resolve_tracking_uri
 
 __all__ = [
     "ReportError",
@@ -203,8 +203,7 @@ def _settings(record: SweepRecord) -> list[str]:
     if not targets:
         plan = record.plan
         targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", "eps")]
-    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
-    return [f"profile {record.profile}: {record.parent.data.params.get('steps', '?')} steps per trial; prediction target {shown}"]
+    return [settings_note(record.profile, record.parent.data.params.get("steps", "?"), targets)]
 
 
 def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTable:
@@ -306,8 +305,7 @@ def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_tri
     for t in trials:
         if t.run_id is None or t.outcome.status not in ("ok", "stopped"):
             continue
-        steps = sorted(a.path for a in record.client.list_artifacts(t.run_id, "eval") if a.is_dir)
-        files = [a.path for step in steps[-1:] for a in record.client.list_artifacts(t.run_id, step)]
+        files = last_eval_files(record.client, t.run_id)
         pngs = sorted(f for f in files if f.endswith(".png"))[:per_trial]
         dest = Path(folder) / t.run_id
         for f in pngs + [p.removesuffix(".png") + ".ply" for p in pngs if p.removesuffix(".png") + ".ply" in files]:

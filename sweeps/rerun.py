@@ -88,7 +88,11 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     tracked = TrialRun(uri, run.info.experiment_id, tags.get("mlflow.parentRunId", ""), f"rerun:{run_id}:{time.time_ns()}",
                        name, {"rerun_of": run_id}, config)
     seen = _Record()
-    result = fit(config, [TrialProgress(name, config.train.steps, "eval/cd"), tracked, seen])
+    try:
+        result = fit(config, [TrialProgress(name, config.train.steps, "eval/cd"), tracked, seen])
+    except BaseException:  # re-raised: only marks the re-run's MLflow run failed instead of left running
+        client.set_terminated(tracked.run_id, "FAILED")
+        raise
     client.set_terminated(tracked.run_id)
     rows = [(m, run.data.metrics.get(m), result.metrics.get(m)) for m in COMPARED]
     rows += [(f"repro.{k}", tags.get(f"repro.{k}"), v) for k, v in seen.record.items() if tags.get(f"repro.{k}") != v]

@@ -15,14 +15,14 @@ from __future__ import annotations
 import csv
 import math
 import statistics
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
 
-__all__ = ["ResultsTable", "TrialOutcome", "build_table"]
+__all__ = ["ResultsTable", "TrialOutcome", "build_table", "settings_note"]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
 
@@ -121,6 +121,13 @@ def _partner(metric: str) -> str | None:
 def _categories(outcomes: Sequence[TrialOutcome], metric: str) -> list[str]:
     prefix = metric + "/"
     return sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
+
+
+def settings_note(profile: str, steps: object, targets: Iterable[str]) -> str:
+    """The table's first note: what produced the numbers (profile, budget, prediction target)."""
+    targets = sorted(set(targets))
+    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
+    return f"profile {profile}: {steps} steps per trial; prediction target {shown}"
 
 
 def _finished(group: Sequence[TrialOutcome]) -> list[TrialOutcome]:

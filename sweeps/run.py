@@ -25,7 +25,7 @@ if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sy
 
 from pydantic import ValidationError
 
-from cdm.config import ConfigError, parse_override
+from cdm.config import ConfigError, load_config, parse_override
 from sweeps.spec import Spec, SpecError, SweepPlan, expand, load_spec, plan_concurrency
 
 __all__ = ["describe", "main"]
@@ -107,9 +107,11 @@ def _estimate(plan: SweepPlan, cpus: float, concurrent: int):
 
 def _settings(plan: SweepPlan) -> list[str]:
     """What produced the numbers, for the table's notes: budget and the training target of the cells."""
-    targets = sorted({c.config.diffusion.prediction for c in plan.cells}) or [plan.fixed.get("diffusion.prediction", "eps")]
-    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
-    return [f"profile {plan.profile.name}: {plan.profile.steps} steps per trial; prediction target {shown}"]
+    from sweeps.results import settings_note
+
+    # Optuna plans have no cells yet: the fixed settings and --set values stand for every trial.
+    configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
+    return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs))]
 
 
 def _fail(message: str) -> int:

@@ -157,10 +157,15 @@ class SweepRun:
         self.client.set_terminated(self.run_id, status=status)
 
 
+def last_eval_files(client: MlflowClient, run_id: str) -> list[str]:
+    """Artifact paths under the child run's last ``eval/step_<N>/`` folder; empty before any evaluation."""
+    steps = sorted(a.path for a in client.list_artifacts(run_id, "eval") if a.is_dir)
+    return [a.path for step in steps[-1:] for a in client.list_artifacts(run_id, step)]
+
+
 def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
     """Rows of ``eval/step_<last>/objects.csv`` in a child run (numbers as floats); empty if absent."""
-    steps = sorted(a.path for a in client.list_artifacts(run_id, "eval") if a.is_dir)
-    tables = [a.path for step in steps[-1:] for a in client.list_artifacts(run_id, step) if a.path.endswith("/objects.csv")]
+    tables = [f for f in last_eval_files(client, run_id) if f.endswith("/objects.csv")]
     if not tables:  # no evaluation logged yet, or one interrupted before its table
         return []
     with tempfile.TemporaryDirectory() as tmp:
@@ -220,6 +225,7 @@ class TrialRun(Callback):
         # Last step already in the run, per kind: a crash between a step's log and its evaluation
         # must not make the re-run evaluation look logged.
         self.logged_until = {"train": -1, "eval": -1}
+        self.eval_set_tagged = False
         if found is None:
             run = self.client.create_run(
                 experiment_id, run_name=run_name,
@@ -250,10 +256,13 @@ class TrialRun(Callback):
         if step <= self.logged_until["eval"]:
             return
         self._log(step, metrics)
-        for path in files:
-            if path.name == "objects.csv":
+        if not self.eval_set_tagged:  # every evaluation of a run scores the same evaluation set
+            for path in (p for p in files if p.name == "objects.csv"):
                 with path.open(newline="") as fh:
-                    self.client.set_tag(self.run_id, "eval_set", next(csv.DictReader(fh))["eval_set"])
+                    first = next(csv.DictReader(fh), None)
+                if first is not None:
+                    self.client.set_tag(self.run_id, "eval_set", first["eval_set"])
+                    self.eval_set_tagged = True
         for path in files:
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}")
         if files:

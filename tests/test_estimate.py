@@ -23,7 +23,7 @@ def test_trial_time_counts_steps_and_every_evaluation():
 def test_paper_gpu_hours_follow_the_measured_figures():
     figures = json.loads(GPU_COSTS.read_text())
     plan = expand(load_spec(SWEEPS / "point_size.yaml"), "local")
-    hours, device = paper_trial_gpu_hours(plan)
+    hours, device = paper_trial_gpu_hours(expand(plan.spec, "paper"))
     cfg = expand(plan.spec, "paper").cells[0].config
     evals = 100_000 // 5_000
     batches = math.ceil(cfg.eval.num_objects * 8 / 8)  # 8 procedural categories, batch 8
