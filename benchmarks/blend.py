@@ -72,7 +72,7 @@ def blend_overhead(quick: bool, out_dir: str) -> list[dict]:
         blended = load_config(plain.to_dict(), {"sampling.blend.enabled": True, "sampling.blend.prior_checkpoint": str(prior_dir),
                                                 "sampling.blend.select_prob": select_prob})
         d, b = plain.diffusion, blended.sampling.blend
-        timesteps = GaussianDiffusion.from_config(d)._timesteps(d.sampler, d.sample_steps)
+        timesteps = GaussianDiffusion.from_config(d).timesteps(d.sampler, d.sample_steps)
         share = sum(len(w) for w in blend_windows(timesteps, b.milestones, b.window_steps)) / len(timesteps)
         result = paired(_sampler(plain, network, batch), _sampler(blended, network, batch), repeats=repeats)
         rows.append({"benchmark": "BDM blending: sampling with ÷ without",

@@ -121,17 +121,13 @@ def blended_sample(
     x = torch.randn(shape, generator=generator, device=device)
     # The same timesteps and step functions as GaussianDiffusion.sample, so that outside windows
     # (and everywhere at select_prob 0) every operation on x is the plain sampler's.
-    timesteps = diffusion._timesteps(sampler, steps)
+    timesteps = diffusion.timesteps(sampler, steps)
     windows = blend_windows(timesteps, milestones, window_steps)
     opens = {w[0] for w in windows}
     closes = {w[-1] for w in windows}
 
     def step(x_t: Tensor, t: Tensor, i: int, x0_hat: Tensor, gen: torch.Generator | None) -> Tensor:
-        if clip_x0 is not None:
-            x0_hat = x0_hat.clamp(-clip_x0, clip_x0)
-        if sampler == "ddim":
-            return diffusion._ddim_step(x_t, t, x0_hat, timesteps[i + 1] if i + 1 < len(timesteps) else -1)
-        return diffusion._ddpm_step(x_t, timesteps[i], x0_hat, gen)
+        return diffusion.step(x_t, t, i, timesteps, x0_hat, sampler=sampler, clip_x0=clip_x0, generator=gen)
 
     x_prior: Tensor | None = None
     masks = []

@@ -106,22 +106,40 @@ class GaussianDiffusion:
         short-trained models from diverging (NOTES §6). Noise comes from ``generator`` only.
         """
         x = torch.randn(shape, generator=generator, device=device)
-        timesteps = self._timesteps(sampler, steps)
+        timesteps = self.timesteps(sampler, steps)
         for i, t_int in enumerate(timesteps):
             t = torch.full((shape[0],), t_int, dtype=torch.long, device=device)
-            x0_hat = self.predict_x0(x, t, model_fn(x, t))
-            if clip_x0 is not None:
-                x0_hat = x0_hat.clamp(-clip_x0, clip_x0)
-            t_prev = timesteps[i + 1] if i + 1 < len(timesteps) else -1
-            if sampler == "ddim":
-                x = self._ddim_step(x, t, x0_hat, t_prev)
-            else:
-                x = self._ddpm_step(x, t_int, x0_hat, generator)
+            x = self.step(x, t, i, timesteps, self.predict_x0(x, t, model_fn(x, t)),
+                          sampler=sampler, clip_x0=clip_x0, generator=generator)
             if progress is not None:
                 progress(i + 1, len(timesteps))
         return x
 
-    def _timesteps(self, sampler: str, steps: int) -> list[int]:
+    def step(
+        self,
+        x_t: Tensor,
+        t: Tensor,
+        i: int,
+        timesteps: list[int],
+        x0_hat: Tensor,
+        *,
+        sampler: Literal["ddim", "ddpm"],
+        clip_x0: float | None,
+        generator: torch.Generator | None,
+    ) -> Tensor:
+        """One reverse step from ``timesteps[i]`` (``t``, per sample) to the next, given the clean estimate.
+
+        Clamps ``x0_hat`` to ``[-clip_x0, clip_x0]`` first, then takes the DDIM (η = 0) or DDPM step;
+        ``generator`` feeds the DDPM noise. Shared by :meth:`sample` and the BDM blended sampler.
+        """
+        if clip_x0 is not None:
+            x0_hat = x0_hat.clamp(-clip_x0, clip_x0)
+        if sampler == "ddim":
+            return self._ddim_step(x_t, t, x0_hat, timesteps[i + 1] if i + 1 < len(timesteps) else -1)
+        return self._ddpm_step(x_t, timesteps[i], x0_hat, generator)
+
+    def timesteps(self, sampler: str, steps: int) -> list[int]:
+        """The sampler's timesteps, noisiest first: all T for ``ddpm``, ``steps`` evenly spaced for ``ddim``."""
         if sampler == "ddpm":
             return list(range(self.num_steps - 1, -1, -1))
         grid = torch.linspace(self.num_steps - 1, 0, steps).round().long().tolist()
