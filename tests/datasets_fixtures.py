@@ -1,9 +1,10 @@
 """Small ShapeNet-R2N2 and Co3D v2 trees in their exact published layouts, for tests and benchmarks.
 
 Every image is rendered from the object's dense cloud with the *data set's own* camera model, written
-out independently of :mod:`cdm.cameras`: R2N2's Blender camera (Z-up world after Blender's OBJ import,
-OpenGL camera axes, 35 mm lens on a 32 mm sensor) and Co3D's PyTorch3D NDC formulas on non-square
-images. A loader that converts either camera wrongly projects the ground truth off the mask.
+out independently of :mod:`cdm.cameras`: R2N2's cameras as PyTorch3D's R2N2 reader computes them from
+the metadata (in the ShapeNet v1 frame R2N2 rendered, with the PC15k cloud stored in PointFlow's v2
+frame, as published) and Co3D's PyTorch3D NDC formulas on non-square images. A loader that converts
+either camera or frame wrongly projects the ground truth off the mask.
 
 Objects are an asymmetric "L" of two boxes, so a mirrored or rotated camera does not go unnoticed.
 """
@@ -60,19 +61,27 @@ def _colours(points: np.ndarray) -> np.ndarray:
 # --- ShapeNet: R2N2 renderings + PointFlow PC15k -----------------------------------------------------
 
 
-def blender_pixels(points: np.ndarray, azimuth: float, elevation: float, distance: float, size: int = 137):
-    """Project model-frame (+Y up) points as R2N2's Blender renderer did; ``(u, v, depth)`` in pixels."""
-    p = np.stack([points[:, 0], -points[:, 2], points[:, 1]], 1)  # Blender's OBJ import: Y up → Z up
-    a, e = math.radians(azimuth), math.radians(elevation)
-    eye = distance * np.array([math.cos(e) * math.cos(a), -math.cos(e) * math.sin(a), math.sin(e)])
-    back = eye / np.linalg.norm(eye)  # OpenGL camera: looks down -Z, so +Z points back at the eye
-    right = np.cross(np.array([0.0, 0.0, 1.0]), back)
-    right /= np.linalg.norm(right)
-    up = np.cross(back, right)
-    rel = p - eye
-    x, y, z = rel @ right, rel @ up, rel @ back
-    f_px = 35.0 / 32.0 * size
-    return size / 2 + f_px * x / -z, size / 2 - f_px * y / -z, -z
+def r2n2_pixels(points: np.ndarray, azimuth: float, elevation: float, distance: float, size: int = 137):
+    """Project ShapeNet **v1** points with the camera PyTorch3D's R2N2 reader builds from a metadata line
+    (``compute_extrinsic_matrix``, then ``_compute_camera_calibration`` and ``K`` with focal 2.1875, as in
+    ``pytorch3d/datasets/r2n2``), written with 4×4 matrices as there; ``(u, v, depth)`` in pixels."""
+    a, e = -math.radians(azimuth), -math.radians(elevation)
+    sa, ca, se, ce = math.sin(a), math.cos(a), math.sin(e), math.cos(e)
+    world_to_obj = np.array([[ca * ce, sa * ce, -se], [-sa, ca, 0.0], [ca * se, sa * se, ce]])
+    obj_to_cam = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    rt = np.eye(4)
+    rt[:3, :3] = obj_to_cam @ world_to_obj
+    rt[:3, 3] = -(obj_to_cam @ np.array([distance, 0.0, 0.0]))
+    blender_obj_import = np.array([[1.0, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]])  # Y up → Z up
+    rt = (rt @ blender_obj_import).T @ np.diag([-1.0, 1.0, -1.0, 1.0])  # ShapeNet → PyTorch3D world
+    view = points @ rt[:3, :3] + rt[3, :3]
+    x, y = 2.1875 * view[:, 0] / view[:, 2], 2.1875 * view[:, 1] / view[:, 2]
+    return size / 2 * (1 - x), size / 2 * (1 - y), view[:, 2]  # NDC +X left, +Y up → pixels
+
+
+def v1_to_v2(points: np.ndarray) -> np.ndarray:
+    """ShapeNet v1 → v2 model frame: the inverse of BDM's ``transform_v2_to_v1`` (``(x, y, z)_v1 = (−z, y, −x)_v2``)."""
+    return np.stack([-points[:, 2], points[:, 1], -points[:, 0]], axis=1)
 
 
 @dataclass
@@ -88,8 +97,9 @@ def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int
     """``root/ShapeNetRendering`` and ``root/ShapeNetCore.v2.PC15k`` for chair and airplane.
 
     Each category gets ``per_split`` models per PC15k split (default train 3, val 1, test 1), plus one
-    train model without renderings (PC15k has models R2N2 never rendered). Clouds are written in the
-    model frame shifted by ``offset`` (as if not centred), renderings from the same frame.
+    train model without renderings (PC15k has models R2N2 never rendered). Each object lives in the v1
+    frame shifted by ``offset`` (as if not centred); renderings are made there, as R2N2 rendered v1
+    meshes, and the PC15k cloud is written in the v2 frame, as PointFlow sampled v2 meshes.
     """
     per_split = per_split or {"train": 3, "val": 1, "test": 1}
     rng = np.random.default_rng(seed)
@@ -105,7 +115,7 @@ def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int
                 dense = dense @ rot.T
                 cloud_dir = root / "ShapeNetCore.v2.PC15k" / synset / split
                 cloud_dir.mkdir(parents=True, exist_ok=True)
-                np.save(cloud_dir / f"{model}.npy", (dense + tree.offset).astype(np.float32))
+                np.save(cloud_dir / f"{model}.npy", v1_to_v2(dense + tree.offset).astype(np.float32))
                 if "norender" in model:
                     tree.unrendered.append(model)
                     continue
@@ -119,7 +129,7 @@ def _render_r2n2(folder: Path, dense: np.ndarray, rng: np.random.Generator, view
     colour = _colours(dense)
     for k in range(views):
         az, el, ratio = rng.uniform(0, 360), rng.uniform(25, 30), rng.uniform(0.8, 0.95)
-        u, v, z = blender_pixels(dense, az, el, ratio * 1.75)
+        u, v, z = r2n2_pixels(dense, az, el, ratio * 1.75)
         rgb, covered, _ = splat(u, v, z, colour, 137, 137, radius=1.0)
         bgra = np.concatenate([rgb[..., ::-1], (covered * 255).astype(np.uint8)[..., None]], axis=2)
         bgra[~covered] = 0
@@ -274,20 +284,6 @@ def project(points, camera):
     return project_points(points[None], one)[0]
 
 
-def inside_mask(points, camera, mask) -> float:
-    """Share of ``points`` whose projection by ``camera`` lands on a mask pixel (``mask`` ``(1, S, S)``)."""
-    import torch
-
-    from cdm.cameras import ndc_to_pixel
-
-    size = mask.shape[-1]
-    col, row = ndc_to_pixel(project(points, camera)[:, :2], size).round().long().unbind(-1)
-    ok = (col >= 0) & (col < size) & (row >= 0) & (row < size)
-    hits = torch.zeros(len(col))
-    hits[ok] = mask[0, row[ok], col[ok]]
-    return float(hits.mean())
-
-
 def mirrored(camera):
     """``camera`` with its view x axis flipped: a mirror image, what a wrong handedness gives."""
     import torch
@@ -296,3 +292,33 @@ def mirrored(camera):
 
     flip = torch.tensor([-1.0, 1.0, 1.0])
     return Cameras(camera.R * flip, camera.T * flip, camera.focal, camera.principal)
+
+
+# Negative controls of cdm.data.checks.check_masks: each is a bug the check must catch.
+
+
+def unmapped_frame(points, camera):
+    """The cloud left in PC15k's v2 frame (a loader without BDM's ``transform_v2_to_v1``): on the
+    normalised cloud the same involution, since box normalisation commutes with it."""
+    import torch
+
+    return torch.from_numpy(v1_to_v2(points.numpy())).float(), camera
+
+
+def mirrored_x(points, camera):
+    """The camera mirrored in its view x axis (a handedness bug)."""
+    return points, mirrored(camera)
+
+
+def wrong_distance(points, camera):
+    """The camera at the metadata's distance ratio without R2N2's ×1.75 (a distance-scale bug)."""
+    from cdm.cameras import Cameras
+
+    return points, Cameras(camera.R, camera.T / 1.75, camera.focal, camera.principal)
+
+
+def mask_check_report(dataset, perturb=None):
+    """``[MaskCheck]`` of every object of ``dataset`` (see :func:`cdm.data.checks.check_masks`)."""
+    from cdm.data.checks import check_masks
+
+    return [check_masks(dataset, i, perturb) for i in range(len(dataset))]

@@ -336,3 +336,37 @@ def test_input_view_does_not_depend_on_the_number_of_prior_views(tmp_path):
         images.append(sample.image)
         assert sample.view_cameras.T.shape[0] == max(1, priors["num_views"])
     assert torch.equal(images[0], images[1]) and torch.equal(images[0], images[2])
+
+
+# --- the mask check on rendered kinds ----------------------------------------------------------------
+
+
+def _ell_folder(root):
+    """Mesh folder of asymmetric L shapes (a mirror of one is not itself)."""
+    for category in ("ell", "step"):
+        (root / category).mkdir(parents=True)
+        for k in range(6):
+            a = trimesh.creation.box(extents=[1.0, 0.2 + 0.05 * k, 0.5])
+            b = trimesh.creation.box(extents=[0.25, 0.8, 0.5])
+            b.apply_translation([0.375, 0.5, 0.1 * k if category == "step" else 0.0])
+            trimesh.util.concatenate([a, b]).export(root / category / f"m{k}.obj")
+    return root
+
+
+@pytest.mark.parametrize("kind", ["procedural", "meshes"])
+def test_mask_check_passes_on_rendered_kinds_and_its_negative_controls_fail(kind, tmp_path):
+    from tests.datasets_fixtures import mask_check_report, mirrored_x, wrong_distance
+
+    extra = {"data.kind": "meshes", "data.root": str(_ell_folder(tmp_path / "m"))} if kind == "meshes" else {}
+    cfg = _cfg(**{"data.image_size": 64, "data.num_points": 512, **extra})
+    for split in ("train", "val"):
+        ds = build_dataset(cfg, split)
+        checks = mask_check_report(ds)
+        assert all(c.passed for c in checks) and min(float(c.fractions.min()) for c in checks) > 0.99
+        assert all(len(c.fractions) == (3 if split == "train" else 1) for c in checks)
+        assert not any(c.passed for c in mask_check_report(ds, wrong_distance))
+        mirror = mask_check_report(ds, mirrored_x)
+        # Procedural boxes, spheres and tori are mirror-symmetric and pass mirrored; the rest must not.
+        assert not all(c.passed for c in mirror) and np.mean([float(c.fractions.mean()) for c in mirror]) < 0.9
+        if kind == "meshes":
+            assert not any(c.passed for c in mirror)

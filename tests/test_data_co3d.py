@@ -15,7 +15,8 @@ from cdm.cameras import select_sequence_views
 from cdm.config import load_config
 from cdm.data import build_dataset, list_categories
 from cdm.data.co3d import PRIOR_FILL
-from tests.datasets_fixtures import inside_mask, make_co3d, mirrored, project
+from cdm.data.checks import inside_mask
+from tests.datasets_fixtures import make_co3d, mask_check_report, mirrored, mirrored_x, project, wrong_distance
 
 
 @pytest.fixture(scope="module")
@@ -72,6 +73,16 @@ def test_ground_truth_projects_into_the_mask_and_a_mirror_does_not(tree):
                 assert inside_mask(s.points, s.camera, s.mask) >= 0.95, (s.object_id, round_)
                 mirror.append(inside_mask(s.points, mirrored(s.camera), s.mask))
     assert np.mean(mirror) < 0.8
+
+
+@pytest.mark.parametrize("split", ["train", "val"])
+def test_mask_check_passes_on_every_view_and_its_negative_controls_fail(tree, split):
+    ds = build_dataset(_cfg(tree.root, **{"data.image_size": 96}), split)
+    checks = mask_check_report(ds)
+    assert checks and all(c.passed for c in checks), [(c.object_id, c.fractions.min().item()) for c in checks]
+    for control in (mirrored_x, wrong_distance):
+        bad = mask_check_report(ds, control)
+        assert not any(c.passed for c in bad), control.__name__
 
 
 def test_prior_views_are_evenly_spaced_frames_of_the_sequence(tree):

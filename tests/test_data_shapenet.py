@@ -13,13 +13,18 @@ from cdm.__main__ import main
 from cdm.cameras import select_sequence_views
 from cdm.config import load_config
 from cdm.data import build_dataset, list_categories
+from cdm.data.checks import inside_mask
 from cdm.data.shapenet import R2N2_FOCAL, SYNSETS
 from tests.datasets_fixtures import (
     SHAPENET_SYNSETS,
-    inside_mask,
     make_shapenet,
+    mask_check_report,
     mirrored,
+    mirrored_x,
     project,
+    r2n2_pixels,
+    unmapped_frame,
+    wrong_distance,
 )
 
 
@@ -68,6 +73,37 @@ def test_ground_truth_projects_into_the_mask_and_a_mirror_does_not(tree):
                 for k in range(len(s.view_cameras)):
                     assert project(s.points, s.view_cameras[k])[:, :2].abs().max() < 1.0
     assert np.mean(mirror) < 0.8  # the check tells a mirrored camera apart (some views look alike mirrored)
+
+
+@pytest.mark.parametrize("split", ["train", "val"])
+def test_mask_check_passes_on_every_view_and_its_negative_controls_fail(tree, split):
+    ds = build_dataset(_cfg(tree.root, **{"data.image_size": 137}), split)
+    checks = mask_check_report(ds)
+    assert all(c.passed for c in checks) and all(len(c.fractions) == 24 for c in checks)
+    assert min(float(c.fractions.min()) for c in checks) >= 0.95
+    for control in (unmapped_frame, mirrored_x, wrong_distance):
+        bad = mask_check_report(ds, control)
+        assert not any(c.passed for c in bad), control.__name__
+        assert np.mean([float(c.fractions.mean()) for c in bad]) < 0.8, control.__name__
+
+
+def test_pc15k_clouds_are_stored_in_the_v2_frame_and_loaded_in_v1(tree):
+    """The published frames: the .npy holds v2 points; the loader's cloud is their v1 image (−z, y, −x),
+    normalised, so the renderings' own camera (PyTorch3D's R2N2 reader) sees it on the mask."""
+    ds = build_dataset(_cfg(tree.root), "val")
+    rec = ds.record(0)
+    synset, model = SHAPENET_SYNSETS[ds.objects[0].category], ds.objects[0].object_id.split("/")[-1]
+    raw = np.load(tree.root / "ShapeNetCore.v2.PC15k" / synset / "val" / f"{model}.npy")
+    v1 = np.stack([-raw[:, 2], raw[:, 1], -raw[:, 0]], 1)
+    lo, hi = v1.min(0), v1.max(0)
+    expect = (v1 - (lo + hi) / 2) / ((hi - lo).max() / 2)
+    assert np.abs(rec.cloud.numpy() - expect).max() < 1e-5
+    meta = np.loadtxt(tree.root / "ShapeNetRendering" / synset / model / "rendering" / "rendering_metadata.txt")
+    u, v, _ = r2n2_pixels(v1, *meta[0, [0, 1]], meta[0, 3] * 1.75)
+    alpha = cv2.imread(str(tree.root / "ShapeNetRendering" / synset / model / "rendering" / "00.png"),
+                       cv2.IMREAD_UNCHANGED)[..., 3]
+    inside = alpha[np.clip(v.astype(int), 0, 136), np.clip(u.astype(int), 0, 136)] > 127
+    assert inside.mean() > 0.95
 
 
 def test_ground_truth_in_mask_at_the_training_size(tree):

@@ -14,13 +14,21 @@ box centred, largest half-extent 1) and ``data.num_points`` are drawn from it (t
 R2N2 renderings have no depth: use ``priors.prior_2d: contour`` (the default) and, as the paper does
 on ShapeNet, ``priors.render_kind: planar``.
 
+Frames. R2N2 rendered ShapeNetCore **v1** meshes; PC15k samples ShapeNetCore **v2**, whose model frame
+is v1's turned and mirrored. As BDM's ShapeNet data set code (``transform_v2_to_v1`` in mlpc-ucsd/BDM
+``experiments/dataset/shapenet_r2n2.py``) does before projecting, every PC15k cloud is first mapped
+into v1 by :func:`v2_to_v1`, ``(x, y, z)_v1 = (−z, y, −x)_v2``. The map is a reflection (det −1):
+without it the cloud is mirrored and turned against its own renderings (ground truth projected with
+the input camera then lands inside the mask for about half of its points instead of ~all).
+
 Cameras. Each metadata line is ``azimuth elevation in-plane distance-ratio fov`` (degrees, except the
-ratio). R2N2's Blender camera sits at distance ``ratio × 1.75`` looking at the origin with +Y (the
-model's up) up; in the model frame its centre is ``d·(cos e·cos a, sin e, cos e·sin a)``. That is
-:func:`cdm.cameras.look_at_cameras` with ``elev = e`` and ``azim = 90° − a`` (ours puts azimuth 0 on
-+Z, R2N2 on +X, and turns the other way). Blender rendered with a 35 mm lens on a 32 mm sensor
-(horizontal fov 49.1°, NDC focal 35/16 = 2.1875) whatever the metadata's fov column says (25 in the
-published files); the image centre is the principal point. PC15k clouds are in the same model frame.
+ratio). They are the cameras PyTorch3D's R2N2 reader computes (``compute_extrinsic_matrix`` and
+``R2N2._compute_camera_calibration`` in ``pytorch3d/datasets/r2n2``): distance ``ratio × 1.75``,
+looking at the origin with +Y (v1's up) up; in the v1 frame the centre is
+``d·(cos e·cos a, sin e, cos e·sin a)``, i.e. :func:`cdm.cameras.look_at_cameras` with
+``elev = e`` and ``azim = 90° − a`` (ours puts azimuth 0 on +Z, R2N2 on +X, and turns the other way).
+NDC focal 2.1875 (PyTorch3D's ``BLENDER_INTRINSIC``: a 35 mm lens on a 32 mm sensor) whatever the
+metadata's fov column says (25 in the published files); the image centre is the principal point.
 The prior views are the 24 renderings sorted by azimuth (a turntable sequence).
 """
 
@@ -39,7 +47,7 @@ from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
 from cdm.data.views import Split, interleave
 
-__all__ = ["DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras"]
+__all__ = ["DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
 
 SYNSETS = {
     "02691156": "airplane", "02828884": "bench", "02933112": "cabinet", "02958343": "car", "03001627": "chair",
@@ -55,6 +63,14 @@ DISTANCE_SCALE = 1.75
 """Camera distance per unit of the metadata's distance ratio (world units of the model frame)."""
 
 _RENDERINGS, _CLOUDS = "ShapeNetRendering", "ShapeNetCore.v2.PC15k"
+
+
+def v2_to_v1(points: np.ndarray) -> np.ndarray:
+    """``(P, 3)`` points of the ShapeNetCore v2 model frame (PC15k) in v1's (R2N2's): ``(−z, y, −x)``.
+
+    BDM's ``transform_v2_to_v1``. Its own inverse (applying it twice gives the input back).
+    """
+    return np.stack([-points[:, 2], points[:, 1], -points[:, 0]], axis=1)
 
 
 def r2n2_cameras(metadata: np.ndarray) -> torch.Tensor:
@@ -140,7 +156,7 @@ class ShapeNetR2N2Dataset(CapturedDataset):
             raise ValueError(f"data.root: cannot read point cloud {npy}: {exc}") from None
         if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or not np.isfinite(cloud).all():
             raise ValueError(f"data.root: {npy} holds {cloud.shape} values; expected finite (P, 3) points")
-        cloud = cap_cloud(cloud.astype(np.float64), self.objects[index].object_id)
+        cloud = v2_to_v1(cap_cloud(cloud.astype(np.float64), self.objects[index].object_id))
         lo, hi = cloud.min(0), cloud.max(0)
         centre, scale = (lo + hi) / 2, 1.0 / float((hi - lo).max() / 2)
         points = torch.from_numpy((cloud - centre) * scale).float().clamp(-1.0, 1.0)
