@@ -36,6 +36,7 @@ from cdm.data.views import ObjectDataset
 from cdm.diffusion import GaussianDiffusion
 from cdm.metrics import ChamferF1, chamfer_f1
 from cdm.model import CDMNetwork
+from cdm.normalise import score_factor
 
 __all__ = [
     "BASELINES",
@@ -62,6 +63,8 @@ class EvalSet:
     batches: list[Batch]
     fingerprint: str
     """Hash of the objects, their views and the scoring settings: equal fingerprints, comparable runs."""
+    factors: list[Tensor] = field(default_factory=list)
+    """Per batch, ``(B,)`` factors into the scoring units (``eval.normalise``, :mod:`cdm.normalise`)."""
     baseline_metrics: dict[str, float] = field(default_factory=dict)
     baseline_rows: dict[str, dict[str, float]] = field(default_factory=dict)
     """Per object id: ``{"baseline/<name>/cd": …, "baseline/<name>/f1": …}``."""
@@ -77,31 +80,37 @@ class EvalOutput:
 
 
 def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: int) -> EvalSet:
-    """Take the first ``eval.num_objects`` held-out objects of each category and score the baselines.
+    """Take the held-out objects ``eval.protocol`` names (``quick``: the first ``eval.num_objects`` of each
+    category; ``paper``: all of them) and score the baselines.
 
     ``train`` supplies the clouds for the category-mean oracle (up to 16 per category) and the
     retrieval baseline's bank.
     """
     per_cat: dict[str, list[int]] = {}
+    limit = len(val.objects) if cfg.eval.protocol == "paper" else cfg.eval.num_objects
     for i, ref in enumerate(val.objects):
-        if len(per_cat.setdefault(ref.category, [])) < cfg.eval.num_objects:
+        if len(per_cat.setdefault(ref.category, [])) < limit:
             per_cat[ref.category].append(i)
-    chosen = [val[i] for cat in sorted(per_cat) for i in per_cat[cat]]
+    order = [i for cat in sorted(per_cat) for i in per_cat[cat]]
+    chosen = [val[i] for i in order]
+    factors = torch.tensor([score_factor(cfg, val, i) for i in order])
     bs = cfg.train.batch_size
     batches = [collate(chosen[i : i + bs]) for i in range(0, len(chosen), bs)]
+    scoring: list[object] = [cfg.eval.seed, cfg.eval.num_points, cfg.eval.f1_threshold]
+    if cfg.eval.normalise != "box":  # box-unit evaluation sets keep the fingerprints they always had
+        scoring.append(cfg.eval.normalise)
     identity = {"data": [cfg.data.kind, cfg.data.root, cfg.data.seed, cfg.data.num_points, cfg.data.image_size],
-                "objects": [s.object_id for s in chosen],
-                "scoring": [cfg.eval.seed, cfg.eval.num_points, cfg.eval.f1_threshold]}
+                "objects": [s.object_id for s in chosen], "scoring": scoring}
     fingerprint = hashlib.sha256(json.dumps(identity).encode()).hexdigest()[:16]
-    eval_set = EvalSet(batches, fingerprint)
+    eval_set = EvalSet(batches, fingerprint, [factors[i : i + bs] for i in range(0, len(chosen), bs)])
     means = _category_medoids(train, set(per_cat), cfg.eval.num_points)
     bank = RetrievalBank.build(train, set(per_cat), cfg.eval.retrieval_bank)
     gen = torch.Generator().manual_seed(seed)
     scores: dict[str, list[tuple[str, float, float]]] = {name: [] for name in BASELINES}
-    for batch in batches:
+    for batch, factor in zip(batches, eval_set.factors):
         clouds = {**baseline_clouds(batch.points, batch.category, means, gen), "retrieval": bank.nearest(batch.mask)}
         for name in BASELINES:
-            m = _score(clouds[name], batch.points, cfg, gen)
+            m = _score(clouds[name], batch.points, cfg, gen, factor)
             scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
             for oid, cd, f1 in zip(batch.object_id, m.cd.tolist(), m.f1.tolist()):
                 eval_set.baseline_rows.setdefault(oid, {}).update({f"baseline/{name}/cd": cd, f"baseline/{name}/f1": f1})
@@ -187,9 +196,12 @@ def _subsample(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
     return cloud[:, idx.to(cloud.device)]
 
 
-def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator) -> ChamferF1:
-    """BDM's protocol: ``eval.num_points`` from each cloud, then CD and F1 at ``eval.f1_threshold``."""
-    return chamfer_f1(_subsample(pred, cfg.eval.num_points, gen), _subsample(gt, cfg.eval.num_points, gen), cfg.eval.f1_threshold)
+def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator, factor: Tensor) -> ChamferF1:
+    """BDM's protocol: ``eval.num_points`` from each cloud, both in the scoring units (``factor`` ``(B,)``,
+    :mod:`cdm.normalise`), then CD and F1 at ``eval.f1_threshold``."""
+    f = factor.to(pred.dtype)[:, None, None]
+    return chamfer_f1(_subsample(pred, cfg.eval.num_points, gen) * f, _subsample(gt, cfg.eval.num_points, gen) * f,
+                      cfg.eval.f1_threshold)
 
 
 def _summarise(rows: list[tuple[str, float, float]], prefix: str) -> dict[str, float]:
@@ -255,10 +267,10 @@ def run_evaluation(
     metric_gen = torch.Generator().manual_seed(cfg.eval.seed + 1)
     rows: list[dict[str, object]] = []
     files: list[Path] = []
-    for batch in eval_set.batches:
+    for batch, factor in zip(eval_set.batches, eval_set.factors):
         batch_d = batch.to(device)
         pred = reconstruct(network, diffusion, batch_d, cfg, sample_gen).cpu()
-        m = _score(pred, batch.points, cfg, metric_gen)
+        m = _score(pred, batch.points, cfg, metric_gen, factor)
         for j in range(len(batch)):
             oid = batch.object_id[j]
             rows.append({"object_id": oid, "category": batch.category[j], "eval_set": eval_set.fingerprint,

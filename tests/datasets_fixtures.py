@@ -90,16 +90,21 @@ class ShapeNetTree:
     splits: dict[str, dict[str, list[str]]] = field(default_factory=dict)
     """category → published split → model ids with renderings."""
     unrendered: list[str] = field(default_factory=list)
+    bdm_split: dict[str, dict[str, list[str]]] = field(default_factory=dict)
+    """R2N2 split (train/test) → category → model ids, as written to BDM's ``pc_dict_v2.json`` (if asked)."""
     offset: np.ndarray = field(default_factory=lambda: np.array([0.03, -0.05, 0.02]))
 
 
-def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int = 0, views: int = 24) -> ShapeNetTree:
+def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int = 0, views: int = 24,
+                  bdm_split: bool = False) -> ShapeNetTree:
     """``root/ShapeNetRendering`` and ``root/ShapeNetCore.v2.PC15k`` for chair and airplane.
 
     Each category gets ``per_split`` models per PC15k split (default train 3, val 1, test 1), plus one
     train model without renderings (PC15k has models R2N2 never rendered). Each object lives in the v1
     frame shifted by ``offset`` (as if not centred); renderings are made there, as R2N2 rendered v1
     meshes, and the PC15k cloud is written in the v2 frame, as PointFlow sampled v2 meshes.
+    ``bdm_split`` also writes BDM's ``pc_dict_v2.json``: R2N2's test split = PC15k's test models plus the
+    first train model, its train split = the other rendered models (each mapped to its PC15k folder).
     """
     per_split = per_split or {"train": 3, "val": 1, "test": 1}
     rng = np.random.default_rng(seed)
@@ -120,6 +125,16 @@ def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int
                     tree.unrendered.append(model)
                     continue
                 _render_r2n2(root / "ShapeNetRendering" / synset / model / "rendering", dense + tree.offset, rng, views)
+    if bdm_split:
+        table: dict[str, dict[str, dict[str, str]]] = {"train": {}, "test": {}}
+        for name, synset in SHAPENET_SYNSETS.items():
+            moved = tree.splits[name]["train"][0]
+            for folder, models in tree.splits[name].items():
+                for model in models:
+                    r2n2 = "test" if folder == "test" or model == moved else "train"
+                    table[r2n2].setdefault(synset, {})[model] = folder
+                    tree.bdm_split.setdefault(r2n2, {}).setdefault(name, []).append(model)
+        (root / "pc_dict_v2.json").write_text(json.dumps(table, indent=1))
     return tree
 
 

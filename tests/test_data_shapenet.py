@@ -136,6 +136,20 @@ def test_split_filtering_follows_pc15k_folders_and_skips_unrendered_models(tree)
     assert not set(tree.unrendered) & models("train")
 
 
+def test_bdm_split_file_gives_r2n2_splits_and_names_a_missing_split(tmp_path, capsys):
+    tree = make_shapenet(tmp_path / "bdm", per_split={"train": 2, "val": 1, "test": 1}, bdm_split=True)
+
+    def models(split, **overrides):
+        return {ref.object_id.split("/")[-1] for ref in build_dataset(_cfg(tree.root, **overrides), split).objects}
+
+    r2n2_test = {m for name in SHAPENET_SYNSETS for m in tree.bdm_split["test"][name]}
+    assert models("val", **{"data.eval_split": "test"}) == r2n2_test and len(r2n2_test) == 4
+    assert models("train") == {m for name in SHAPENET_SYNSETS for m in tree.bdm_split["train"][name]}
+    assert _prepare(tree.root, tmp_path / "out", "--set", "data.eval_split=val") == 2
+    err = capsys.readouterr().err
+    assert "error: data.eval_split:" in err and "data.eval_split=test" in err
+
+
 def test_category_mapping_names_and_synsets(tree):
     assert list_categories(_cfg(tree.root)) == ("airplane", "chair")  # only synsets present in both folders
     assert list_categories(_cfg(tree.root, **{"data.categories": ["03001627"]})) == ("chair",)

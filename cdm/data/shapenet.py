@@ -6,8 +6,11 @@ Layout under ``data.root`` (both as published, side by side)::
     ShapeNetRendering/<synset>/<model>/rendering/rendering_metadata.txt   one line per image
     ShapeNetCore.v2.PC15k/<synset>/{train,val,test}/<model>.npy       (15000, 3) float surface samples
 
-An object is a PC15k model that also has renderings; its split is PC15k's folder (``train`` for
-training, ``data.eval_split`` held out). Categories are the 13 R2N2 classes by name
+An object is a PC15k model that also has renderings. Its split is PC15k's folder (``train`` for
+training, ``data.eval_split`` held out), unless ``<root>/pc_dict_v2.json`` is there: BDM's split file
+(``experiments/data/ShapeNet/pc_dict_v2.json`` in mlpc-ucsd/BDM), R2N2's ``train``/``test`` split →
+synset → model → the PC15k folder holding its cloud; with it the splits are R2N2's, as BDM trains and
+scores (``data.eval_split: test``). Categories are the 13 R2N2 classes by name
 (:data:`SYNSETS`; ``data.categories`` also takes synset ids). The held-out input is view 00; training
 draws any of the 24 views per view round. The cloud is normalised like every data set here (bounding
 box centred, largest half-extent 1) and ``data.num_points`` are drawn from it (the paper: 4,096).
@@ -34,6 +37,7 @@ The prior views are the 24 renderings sorted by azimuth (a turntable sequence).
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -47,7 +51,7 @@ from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
 from cdm.data.views import Split, interleave
 
-__all__ = ["DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
+__all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
 
 SYNSETS = {
     "02691156": "airplane", "02828884": "bench", "02933112": "cabinet", "02958343": "car", "03001627": "chair",
@@ -63,6 +67,8 @@ DISTANCE_SCALE = 1.75
 """Camera distance per unit of the metadata's distance ratio (world units of the model frame)."""
 
 _RENDERINGS, _CLOUDS = "ShapeNetRendering", "ShapeNetCore.v2.PC15k"
+BDM_SPLIT_FILE = "pc_dict_v2.json"
+"""BDM's R2N2 split file, read from ``data.root`` when present (module docstring)."""
 
 
 def v2_to_v1(points: np.ndarray) -> np.ndarray:
@@ -105,7 +111,9 @@ class ShapeNetR2N2Dataset(CapturedDataset):
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
         if cfg.priors.prior_2d == "depth":
             raise ValueError("priors.prior_2d: 'depth' needs depth maps and R2N2 renderings have none; use 'contour' or 'none'")
-        self._models: dict[str, tuple[str, str]] = {}
+        self._models: dict[str, tuple[str, str, str]] = {}
+        """object id → (synset, model, PC15k folder)."""
+        self._split_std: dict[str, float] = {}
         super().__init__(cfg, split, cache_bytes)
 
     @classmethod
@@ -123,20 +131,40 @@ class ShapeNetR2N2Dataset(CapturedDataset):
                              f"{_RENDERINGS} and {_CLOUDS} under {root}")
         return found
 
+    def _split_members(self) -> dict[str, dict[str, str]] | None:
+        """BDM's split file's ``synset → model → PC15k folder`` for ``self.published``, or None without one."""
+        path = self.root / BDM_SPLIT_FILE
+        if not path.is_file():
+            return None
+        try:
+            table = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"data.root: cannot read BDM's split file {path}: {exc}") from None
+        if self.published not in table:
+            raise ValueError(f"data.eval_split: {path} (BDM's R2N2 split) has splits {sorted(table)}, not "
+                             f"{self.published!r}; BDM scores the R2N2 test split: data.eval_split=test")
+        return table[self.published]
+
     def _raw_index(self, categories: tuple[str, ...]) -> list[tuple[str, str]]:
+        members = self._split_members()
         per_category = []
         for name in categories:
             synset = _NAMES[name]
-            folder = self.root / _CLOUDS / synset / self.published
-            if not folder.is_dir():
-                raise ValueError(f"data.root: {folder} is missing; PC15k has {{train,val,test}} folders per synset")
+            if members is None:
+                folder = self.root / _CLOUDS / synset / self.published
+                if not folder.is_dir():
+                    raise ValueError(f"data.root: {folder} is missing; PC15k has {{train,val,test}} folders per synset")
+                entries = [(npy.stem, self.published) for npy in sorted(folder.glob("*.npy"))]
+            else:
+                folder = self.root / BDM_SPLIT_FILE
+                entries = sorted(members.get(synset, {}).items())
             refs = []
-            for npy in sorted(folder.glob("*.npy")):
-                rendering = self.root / _RENDERINGS / synset / npy.stem / "rendering"
-                # PC15k has models R2N2 never rendered: those have no input image and are skipped.
-                if (rendering / "rendering_metadata.txt").is_file():
-                    object_id = f"shapenet/{name}/{npy.stem}"
-                    self._models[object_id] = (synset, npy.stem)
+            for model, pc_folder in entries:
+                rendering = self.root / _RENDERINGS / synset / model / "rendering"
+                # PC15k has models R2N2 never rendered (and BDM's file names clouds PC15k may lack): skipped.
+                if (rendering / "rendering_metadata.txt").is_file() and (self.root / _CLOUDS / synset / pc_folder / f"{model}.npy").is_file():
+                    object_id = f"shapenet/{name}/{model}"
+                    self._models[object_id] = (synset, model, pc_folder)
                     refs.append((name, object_id))
             if not refs:
                 raise ValueError(f"data.root: no model of {folder} has renderings in {self.root / _RENDERINGS / synset}")
@@ -144,19 +172,35 @@ class ShapeNetR2N2Dataset(CapturedDataset):
         return interleave(per_category)
 
     def _paths(self, index: int) -> tuple[Path, Path]:
-        synset, model = self._models[self.objects[index].object_id]
-        return self.root / _RENDERINGS / synset / model / "rendering", self.root / _CLOUDS / synset / self.published / f"{model}.npy"
+        synset, model, pc_folder = self._models[self.objects[index].object_id]
+        return self.root / _RENDERINGS / synset / model / "rendering", self.root / _CLOUDS / synset / pc_folder / f"{model}.npy"
 
-    def _raw_record(self, index: int) -> ObjectRecord:
-        rendering, npy = self._paths(index)
-        metadata = _read_metadata(rendering / "rendering_metadata.txt")
+    def _read_cloud(self, npy: Path) -> np.ndarray:
         try:
             cloud = np.load(npy, allow_pickle=False)
         except (OSError, ValueError, EOFError) as exc:
             raise ValueError(f"data.root: cannot read point cloud {npy}: {exc}") from None
         if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or not np.isfinite(cloud).all():
             raise ValueError(f"data.root: {npy} holds {cloud.shape} values; expected finite (P, 3) points")
-        cloud = v2_to_v1(cap_cloud(cloud.astype(np.float64), self.objects[index].object_id))
+        return v2_to_v1(cloud.astype(np.float64))
+
+    def split_std(self, category: str) -> float:
+        """σ of BDM's normalisation for ``category`` in this split (:func:`cdm.normalise.flat_std` of every
+        full cloud, v1 frame); reads the published clouds once per category."""
+        from cdm.normalise import flat_std
+
+        if category not in self._split_std:
+            if self.prepared is not None:
+                raise ValueError("eval.normalise: 'reference' on ShapeNet needs BDM's σ over every published PC15k "
+                                 f"cloud of the split; set data.root to the published tree, not the prepared {self.root}")
+            clouds = [self._read_cloud(self._paths(i)[1]) for i, ref in enumerate(self.objects) if ref.category == category]
+            self._split_std[category] = flat_std(clouds)
+        return self._split_std[category]
+
+    def _raw_record(self, index: int) -> ObjectRecord:
+        rendering, npy = self._paths(index)
+        metadata = _read_metadata(rendering / "rendering_metadata.txt")
+        cloud = cap_cloud(self._read_cloud(npy), self.objects[index].object_id)
         lo, hi = cloud.min(0), cloud.max(0)
         centre, scale = (lo + hi) / 2, 1.0 / float((hi - lo).max() / 2)
         points = torch.from_numpy((cloud - centre) * scale).float().clamp(-1.0, 1.0)
