@@ -32,7 +32,7 @@ from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import reconstruct
 from cdm.model import CDMNetwork
 from cdm.prior_model import load_prior, prior_config, train_prior
-from cdm.priors import PRIOR_2D_CHANNELS
+from cdm.data.priors2d import PRIOR_2D_CHANNELS
 
 __all__ = ["blend_overhead"]
 

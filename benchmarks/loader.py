@@ -15,7 +15,8 @@ from pathlib import Path
 from benchmarks.common import paired
 from cdm.config import load_config
 from cdm.data import DATASETS, build_dataset
-from cdm.data.cache import DECODED, prepare, read_shard
+from cdm.data.cache import DECODED, read_shard
+from cdm.data.prepare import prepare
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
 __all__ = ["loader_speed"]
@@ -29,7 +30,6 @@ def _epoch(kind: str, root: Path, overrides: dict):
         DECODED.clear()
         read_shard.cache_clear()
         dataset._cache.clear()
-        dataset._cached_bytes = 0
         for index in range(len(dataset)):
             dataset.sample(index, 0)
 

@@ -25,7 +25,7 @@ PAPER_SCALE = {"data.image_size": 224, "data.num_points": 4096, "priors.render_s
 
 def _step_fn(cfg: Config, out_dir: str):
     """One training step on a fixed batch, on one torch thread (figures are per thread)."""
-    trainer = Trainer(cfg.model_copy(update={"train": cfg.train.model_copy(update={"out_dir": out_dir, "threads": 1})}))
+    trainer = Trainer(cfg.replace(**{"train.out_dir": out_dir, "train.threads": 1}))
     batch = trainer.next_batch()
     return lambda: trainer.train_step(batch)
 

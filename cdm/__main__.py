@@ -15,7 +15,8 @@ import torch
 
 from cdm.config import Config, config_field_paths, load_config, parse_override
 from cdm.evaluate import BASELINES
-from cdm.train import Callback, TrainingDiverged, fit
+from cdm.optim import TrainingDiverged
+from cdm.train import Callback, fit
 
 __all__ = ["main"]
 
@@ -72,25 +73,12 @@ def cmd_train_prior(args: argparse.Namespace) -> int:
     return 0
 
 
-def _network_from_checkpoint(path: str, overrides: dict):
-    from cdm.diffusion import GaussianDiffusion
-    from cdm.model import CDMNetwork
-    from cdm.priors import PRIOR_2D_CHANNELS
-    from cdm.train import load_checkpoint, resolve_device
-
-    state = load_checkpoint(path)
-    cfg = load_config(state["config"], overrides)
-    device = resolve_device(cfg.train.device)
-    network = CDMNetwork(cfg.model.model_copy(update={"voxel_backend": state["voxel_backend"]}), PRIOR_2D_CHANNELS[cfg.priors.prior_2d])
-    network.load_state_dict(state["ema"] or state["model"])
-    return cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device
-
-
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from cdm.checkpoint import load_network
     from cdm.data import build_dataset
     from cdm.evaluate import build_eval_set, run_evaluation
 
-    cfg, network, diffusion, device = _network_from_checkpoint(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
     eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
     out = run_evaluation(network, diffusion, eval_set, cfg, device, Path(args.out) if args.out else None)
     names = sorted(k for k in out.metrics if k.endswith("/cd") or k.endswith("/f1"))
@@ -124,11 +112,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cdm.cameras import look_at_cameras, orbit_cameras
+    from cdm.checkpoint import load_network
+    from cdm.data.priors2d import prior_2d_channels
     from cdm.data.sample import Sample, collate
     from cdm.evaluate import reconstruct, write_ply
-    from cdm.priors import prior_2d_channels
 
-    cfg, network, diffusion, device = _network_from_checkpoint(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
     elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
     camera = look_at_cameras(elev, azim, dist, args.focal)
@@ -155,7 +144,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def cmd_prepare(args: argparse.Namespace) -> int:
     from cdm.data import DATASETS
-    from cdm.data.cache import prepare
+    from cdm.data.prepare import prepare
     from cdm.data.captured import CapturedDataset
 
     preparable = [k for k, cls in DATASETS.items() if issubclass(cls, CapturedDataset)]

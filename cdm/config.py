@@ -307,6 +307,16 @@ class Config(_Group):
         """Nested plain-python dict (tuples as lists), loadable again by :func:`load_config`."""
         return self.model_dump(mode="json")
 
+    def replace(self, **dotted: Any) -> Config:
+        """A copy with dotted fields set, validated like :func:`load_config` (the one way to derive a config).
+
+        Example: ``cfg.replace(**{"train.out_dir": path, "model.voxel_backend": "sparse"})``.
+
+        Raises:
+            ConfigError: unknown field or bad value; the message names the dotted field.
+        """
+        return load_config(self.to_dict(), dotted)
+
     def flat(self) -> dict[str, Any]:
         """Flat ``{"priors.lambda_3d": 1.0, "sampling.blend.enabled": False, ...}`` view, e.g. for tracking params."""
         tree = self.to_dict()

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.blend import blended_reconstruction
 from cdm.cameras import Cameras, orbit_cameras, project_points
 from cdm.config import Config
 from cdm.data.sample import Batch, collate
@@ -233,9 +234,6 @@ def reconstruct(
         return network(x, t, context, batch.camera)
 
     if cfg.sampling.blend.enabled:
-        # Imported here: cdm.blend loads priors through cdm.train, which imports this module.
-        from cdm.blend import blended_reconstruction
-
         return blended_reconstruction(model_fn, diffusion, batch, cfg, generator, progress).points
     return diffusion.sample(
         model_fn,

@@ -22,7 +22,6 @@ import fcntl
 import hashlib
 import json
 import math
-import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -32,19 +31,15 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from cdm.config import Config, DiffusionConfig, ModelConfig, load_config
+from cdm.checkpoint import CHECKPOINT_FILE, Checkpoint, load_checkpoint, network_config, save_checkpoint
+from cdm.config import Config, DiffusionConfig, ModelConfig
 from cdm.data import build_dataset, list_categories
+from cdm.data.order import batch_indices
 from cdm.diffusion import GaussianDiffusion
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
-from cdm.train import (
-    CHECKPOINT_FILE,
-    TrainingDiverged,
-    batch_indices,
-    load_checkpoint,
-    lr_factor,
-    resolve_device,
-)
+from cdm.optim import Optimiser, TrainingDiverged
+from cdm.runtime import start_run
 
 __all__ = [
     "AUTO",
@@ -115,7 +110,7 @@ def prior_config(config: Config, category: str) -> Config:
     """
     default = DiffusionConfig()
     schedule = {f"diffusion.{k}": v for k, v in PRIOR_SCHEDULE.items() if getattr(config.diffusion, k) == getattr(default, k)}
-    return load_config(config.to_dict(), {**schedule, "data.categories": [category], "sampling.blend.enabled": False})
+    return config.replace(**schedule, **{"data.categories": [category], "sampling.blend.enabled": False})
 
 
 def train_prior(config: Config, out_dir: str | Path, progress: Callable[[int, float], None] | None = None) -> PriorResult:
@@ -133,16 +128,12 @@ def train_prior(config: Config, out_dir: str | Path, progress: Callable[[int, fl
     if len(categories) != 1:
         raise ValueError(f"data.categories: a category prior models one category, got {list(categories)}")
     t = config.train
-    device = resolve_device(t.device)
-    if t.threads is not None:
-        torch.set_num_threads(t.threads)
-    torch.manual_seed(t.seed)
+    device = start_run(t)
     data = build_dataset(config, "train")
     clouds = torch.stack([data.surface(i).cloud for i in range(len(data))])  # (K, N, 3), world frame in [-1, 1]³
     network = PriorNetwork(config.model, device=device).to(device)
     diffusion = GaussianDiffusion.from_config(config.diffusion)
-    optimizer = torch.optim.AdamW(network.parameters(), lr=t.lr, weight_decay=t.weight_decay, betas=t.betas)
-    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda s: lr_factor(s, t.warmup_steps, t.steps))
+    optimiser = Optimiser(network.parameters(), t)
     generator = torch.Generator(device=device).manual_seed(t.seed)
     start = time.perf_counter()
     window: list[float] = []
@@ -153,27 +144,14 @@ def train_prior(config: Config, out_dir: str | Path, progress: Callable[[int, fl
         loss = diffusion.loss(network(diffusion.q_sample(x0, steps_t, noise), steps_t), x0, noise, steps_t)
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"the category prior's loss became NaN or infinite at step {step}; lower train.lr (now {t.lr})")
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(network.parameters(), t.grad_clip)
-        optimizer.step()
-        scheduler.step()
+        optimiser.step(loss)
         window = (window + [loss.item()])[-t.log_every :]
         if progress is not None and ((step + 1) % t.log_every == 0 or step + 1 == t.steps):
             progress(step + 1, sum(window) / len(window))
-    state = {
-        "config": config.to_dict(),
-        "step": t.steps,
-        "voxel_backend": network.voxel_backend,
-        "model": network.state_dict(),
-        "kind": PRIOR_KIND,
-        "category": categories[0],
-    }
+    state = Checkpoint(config=config.to_dict(), step=t.steps, voxel_backend=network.voxel_backend,
+                       model=network.state_dict(), kind=PRIOR_KIND, category=categories[0])
     folder = Path(out_dir)
-    folder.mkdir(parents=True, exist_ok=True)
-    tmp = folder / f".{CHECKPOINT_FILE}.tmp"
-    torch.save(state, tmp)
-    os.replace(tmp, folder / CHECKPOINT_FILE)  # a reader sees a whole checkpoint or none
+    save_checkpoint(state, folder)
     return PriorResult(folder, t.steps, sum(window) / len(window) if window else math.nan, time.perf_counter() - start)
 
 
@@ -198,15 +176,15 @@ def load_prior(path: str | Path, device: torch.device | str = "cpu") -> Category
         state = load_checkpoint(path)
     except ValueError as exc:
         raise ValueError(f"{_FIELD}: {exc}") from None
-    if state.get("kind") != PRIOR_KIND:
+    if state.kind != PRIOR_KIND:
         raise ValueError(
             f"{_FIELD}: {path} is not a category prior (a CDM checkpoint?); train one with "
             "`python -m cdm train-prior --category <name>`"
         )
-    cfg = load_config(state["config"])
-    network = PriorNetwork(cfg.model.model_copy(update={"voxel_backend": state["voxel_backend"]}))
-    network.load_state_dict(state["model"])
-    return CategoryPrior(network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), state["category"])
+    cfg = network_config(state)
+    network = PriorNetwork(cfg.model)
+    network.load_state_dict(state.model)
+    return CategoryPrior(network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), state.category)
 
 
 # What shapes a prior's weights: every group but those of evaluation, sampling and the 3D/2D priors
@@ -260,5 +238,4 @@ def ensure_priors(config: Config, cache_dir: str | Path, progress: Callable[[str
             if progress is not None:
                 progress(f"category prior {category}: trained {result.steps} steps in {result.seconds:.1f} s "
                          f"(loss {result.loss:.4f}) → {folder}")
-    blend = blend.model_copy(update={"prior_checkpoint": str(cache / f"{{category}}-{key}")})
-    return config.model_copy(update={"sampling": config.sampling.model_copy(update={"blend": blend})})
+    return config.replace(**{"sampling.blend.prior_checkpoint": str(cache / f"{{category}}-{key}")})

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
-import pickle
 import shutil
 import time
 from collections.abc import Iterator, Sequence
@@ -23,26 +21,25 @@ from pathlib import Path
 
 import torch
 import torch.distributed
-from torch import Tensor
 from torch.utils.data import DataLoader
 
+from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import Config
 from cdm.data import build_dataset
+from cdm.data.order import ByRound, StepBatches, batch_indices
+from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import Batch, collate
 from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import BASELINES, EvalSet, build_eval_set, run_evaluation
 from cdm.model import CDMNetwork
-from cdm.priors import PRIOR_2D_CHANNELS, prior_3d_loss
+from cdm.objective import LossTerms, cdm_loss
+from cdm.optim import Optimiser, TrainingDiverged
 from cdm.provenance import run_record
+from cdm.runtime import start_run
 
-__all__ = ["Callback", "FitResult", "Trainer", "TrainingDiverged", "fit", "load_checkpoint", "metric_names", "resolve_device"]
+__all__ = ["Callback", "FitResult", "Trainer", "TrainingDiverged", "fit", "metric_names"]
 
-CHECKPOINT_FILE = "checkpoint.pt"
 log = logging.getLogger(__name__)
-
-
-class TrainingDiverged(RuntimeError):
-    """The loss became NaN or infinite; the message says at which step and which term."""
 
 
 class Callback:
@@ -83,59 +80,13 @@ def metric_names(config: Config, categories: Sequence[str] = ()) -> list[str]:
     return names
 
 
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("train.device: cuda requested but no CUDA device is available; use auto or cpu")
-    return torch.device(name)
-
-
-def lr_factor(step: int, warmup: int, total: int) -> float:
-    """Linear warm-up then cosine decay to 0 (PC²'s schedule)."""
-    if step < warmup:
-        return (step + 1) / warmup
-    progress = (step - warmup) / max(1, total - warmup)
-    return 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress)))
-
-
-def batch_indices(step: int, batch_size: int, size: int, seed: int) -> list[tuple[int, int]]:
-    """``(epoch, index)`` pairs of the batch at ``step``.
-
-    A pure function of the step, so a resumed run sees the same data; the epoch doubles as the
-    view round, so each object is seen from a fresh camera every epoch.
-    """
-    out = []
-    for k in range(step * batch_size, (step + 1) * batch_size):
-        epoch, pos = divmod(k, size)
-        perm = torch.randperm(size, generator=torch.Generator().manual_seed(seed * 1_000_003 + epoch))
-        out.append((epoch, int(perm[pos])))
-    return out
-
-
-def load_checkpoint(path: str | Path) -> dict:
-    """Read a checkpoint file or directory safely (``weights_only=True``: tensors and plain data only)."""
-    path = Path(path)
-    file = path / CHECKPOINT_FILE if path.is_dir() else path
-    if not file.is_file():
-        raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
-    try:
-        state = torch.load(file, map_location="cpu", weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, EOFError) as exc:
-        raise ValueError(f"checkpoint: {file} is not a readable CDM checkpoint ({exc})") from None
-    missing = {"config", "step", "voxel_backend", "model"} - set(state if isinstance(state, dict) else ())
-    if missing:
-        raise ValueError(f"checkpoint: {file} is not a CDM checkpoint (missing {', '.join(sorted(missing))})")
-    return state
-
-
-def _check_compatible(state: dict, config: Config, network: CDMNetwork) -> None:
-    if state["voxel_backend"] != network.voxel_backend:
+def _check_compatible(state: Checkpoint, config: Config, network: CDMNetwork) -> None:
+    if state.voxel_backend != network.voxel_backend:
         raise ValueError(
-            f"resume: checkpoint trained with voxel back-end {state['voxel_backend']!r}, this run resolves to "
-            f"{network.voxel_backend!r}; set model.voxel_backend={state['voxel_backend']} (the back-ends compute different functions)"
+            f"resume: checkpoint trained with voxel back-end {state.voxel_backend!r}, this run resolves to "
+            f"{network.voxel_backend!r}; set model.voxel_backend={state.voxel_backend} (the back-ends compute different functions)"
         )
-    saved, now = state["config"], config.to_dict()
+    saved, now = state.config, config.to_dict()
     # The resolved back-end is compared above; `auto` and its resolution may be written either way.
     differ = [f"model.{k}" for k in now["model"] if k != "voxel_backend" and saved["model"].get(k) != now["model"][k]]
     differ += [f"diffusion.{k}" for k in now["diffusion"] if saved["diffusion"].get(k) != now["diffusion"][k]]
@@ -144,46 +95,13 @@ def _check_compatible(state: dict, config: Config, network: CDMNetwork) -> None:
         raise ValueError(f"resume: this run's {', '.join(differ)} differ from the checkpoint's; resume with the same settings")
 
 
-class _StepBatches:
-    """Batch sampler of a data loader: the ``(view round, index)`` pairs of steps ``start``…``stop − 1``
-    (:func:`batch_indices`; rank ``rank`` of ``world`` data-parallel ranks)."""
-
-    def __init__(self, start: int, stop: int, world: int, rank: int, batch_size: int, size: int, seed: int):
-        self.start, self.stop, self.world, self.rank = start, stop, world, rank
-        self.batch_size, self.size, self.seed = batch_size, size, seed
-
-    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
-        for step in range(self.start, self.stop):
-            yield batch_indices(step * self.world + self.rank, self.batch_size, self.size, self.seed)
-
-    def __len__(self) -> int:
-        return max(0, self.stop - self.start)
-
-
-class _ByRound(torch.utils.data.Dataset):
-    """A data set indexed by ``(view round, object index)``, as :class:`_StepBatches` yields them."""
-
-    def __init__(self, dataset):
-        self.dataset = dataset
-
-    def __len__(self) -> int:
-        return len(self.dataset)
-
-    def __getitem__(self, key: tuple[int, int]):
-        epoch, index = key
-        return self.dataset.sample(index, epoch)
-
-
 class Trainer:
     """State of one run: data, network, optimiser, RNGs and step. :func:`fit` drives it; benchmarks and
     the sweep runner's cost estimate time its steps directly."""
 
     def __init__(self, config: Config):
         self.cfg = config
-        self.device = resolve_device(config.train.device)
-        if config.train.threads is not None:
-            torch.set_num_threads(config.train.threads)
-        torch.manual_seed(config.train.seed)
+        self.device = start_run(config.train)
         self.train_set = build_dataset(config, "train")
         self.val_set = build_dataset(config, "val")
         self.network = CDMNetwork(config.model, PRIOR_2D_CHANNELS[config.priors.prior_2d], device=self.device).to(self.device)
@@ -194,8 +112,7 @@ class Trainer:
         self.ema = _ema_copy(self.network) if config.train.ema_decay is not None else None
         self.diffusion = GaussianDiffusion.from_config(config.diffusion)
         t = config.train
-        self.optimizer = torch.optim.AdamW(self.network.parameters(), lr=t.lr, weight_decay=t.weight_decay, betas=t.betas)
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimizer, lambda s: lr_factor(s, t.warmup_steps, t.steps))
+        self.optimiser = Optimiser(self.network.parameters(), t)
         # Data-parallel when a process group exists (Ray Train's TorchTrainer sets one up): each rank
         # draws its own batch and noise, and gradients are averaged before the optimiser step.
         distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
@@ -208,30 +125,32 @@ class Trainer:
         self._loader: Iterator[Batch] | None = None
         self._loader_step = 0
 
-    def state(self) -> dict:
-        return {
-            "config": self.cfg.to_dict(),
-            "step": self.step,
-            "voxel_backend": self.network.voxel_backend,
-            "model": self.network.state_dict(),
-            "ema": None if self.ema is None else self.ema.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "scheduler": self.scheduler.state_dict(),
-            "generator": self.generator.get_state(),
-            "torch_rng": torch.get_rng_state(),
-        }
+    def state(self) -> Checkpoint:
+        return Checkpoint(
+            config=self.cfg.to_dict(),
+            step=self.step,
+            voxel_backend=self.network.voxel_backend,
+            model=self.network.state_dict(),
+            ema=None if self.ema is None else self.ema.state_dict(),
+            optimizer=self.optimiser.optimizer.state_dict(),
+            scheduler=self.optimiser.scheduler.state_dict(),
+            generator=self.generator.get_state(),
+            torch_rng=torch.get_rng_state(),
+        )
 
-    def restore(self, state: dict) -> None:
+    def restore(self, state: Checkpoint) -> None:
+        if state.kind is not None:
+            raise ValueError(f"resume: the checkpoint holds a {state.kind} ({state.category}), not a CDM run")
         _check_compatible(state, self.cfg, self.network)
-        self.network.load_state_dict(state["model"])
+        self.network.load_state_dict(state.model)
         if self.ema is not None:
             # A checkpoint from a run without EMA starts the average at its weights, not at init.
-            self.ema.load_state_dict(state["ema"] or state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
-        self.scheduler.load_state_dict(state["scheduler"])
-        self.generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
-        self.step = int(state["step"])
+            self.ema.load_state_dict(state.weights)
+        self.optimiser.optimizer.load_state_dict(state.optimizer)
+        self.optimiser.scheduler.load_state_dict(state.scheduler)
+        self.generator.set_state(state.generator)
+        torch.set_rng_state(state.torch_rng)
+        self.step = int(state.step)
 
     def next_batch(self) -> Batch:
         if self.cfg.data.num_workers == 0:
@@ -241,36 +160,18 @@ class Trainer:
         # function of the step as above, so results do not depend on data.num_workers; a loader is
         # (re)started at the current step, e.g. after a resume.
         if self._loader is None or self._loader_step != self.step:
-            sampler = _StepBatches(self.step, self.cfg.train.steps, self.world, self.rank, self.cfg.train.batch_size,
+            sampler = StepBatches(self.step, self.cfg.train.steps, self.world, self.rank, self.cfg.train.batch_size,
                                    len(self.train_set), self.cfg.train.seed)
-            self._loader = iter(DataLoader(_ByRound(self.train_set), batch_sampler=sampler, collate_fn=collate,
+            self._loader = iter(DataLoader(ByRound(self.train_set), batch_sampler=sampler, collate_fn=collate,
                                            num_workers=self.cfg.data.num_workers))
             self._loader_step = self.step
         self._loader_step += 1
         return next(self._loader).to(self.device)
 
-    def losses(self, batch: Batch) -> tuple[Tensor, Tensor, Tensor]:
-        """Total loss, diffusion term and 3D prior term (Eq. 6) for one batch."""
-        x0 = batch.points
-        b = x0.shape[0]
-        t = torch.randint(0, self.diffusion.num_steps, (b,), generator=self.generator, device=self.device)
-        noise = torch.randn(x0.shape, generator=self.generator, device=self.device)
-        x_t = self.diffusion.q_sample(x0, t, noise)
-        context = self.network.encode(batch)
-        output = self.network(x_t, t, context, batch.camera)
-        loss_diff = self.diffusion.loss(output, x0, noise, t)
-        if not torch.isfinite(loss_diff):
-            raise self._diverged("the diffusion loss")
-        p = self.cfg.priors
-        if not p.prior_3d or p.lambda_3d == 0.0:
-            return loss_diff, loss_diff, torch.zeros((), device=self.device)
-        # As written, Eq. 6 compares x_t with x₀: x_t does not depend on θ, so that term carries no
-        # gradient. The default compares the network's clean estimate x̂₀ instead (NOTES §1).
-        cloud = self.diffusion.predict_x0(x_t, t, output) if p.target == "x0_hat" else x_t
-        if not torch.isfinite(cloud).all():
-            raise self._diverged("the predicted clean cloud x̂₀")
-        loss_prior = prior_3d_loss(cloud, x0, batch.view_cameras, p.render_size, p.point_size, p.render_kind).loss
-        return loss_diff + p.lambda_3d * loss_prior, loss_diff, loss_prior
+    def losses(self, batch: Batch) -> LossTerms:
+        """Total loss, diffusion term and 3D prior term (Eq. 6) for one batch (:func:`cdm.objective.cdm_loss`)."""
+        return cdm_loss(network=self.network, diffusion=self.diffusion, batch=batch, priors=self.cfg.priors,
+                        generator=self.generator, diverged=self._diverged)
 
     def _diverged(self, what: str) -> TrainingDiverged:
         return TrainingDiverged(
@@ -282,13 +183,7 @@ class Trainer:
         loss, loss_diff, loss_prior = self.losses(batch)
         if not torch.isfinite(loss):
             raise self._diverged("the 3D prior loss")
-        self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        if self.world > 1:
-            self._average_gradients()
-        torch.nn.utils.clip_grad_norm_(self.network.parameters(), self.cfg.train.grad_clip)
-        self.optimizer.step()
-        self.scheduler.step()
+        self.optimiser.step(loss, self._average_gradients if self.world > 1 else None)
         if self.ema is not None:
             _ema_update(self.ema, self.network, self.cfg.train.ema_decay)
         self.step += 1
@@ -316,8 +211,7 @@ class Trainer:
         root = self.out_dir / "checkpoints"
         final = root / f"step_{self.step:07d}"
         tmp = root / f".tmp_step_{self.step:07d}"
-        tmp.mkdir(parents=True, exist_ok=True)
-        torch.save(self.state(), tmp / CHECKPOINT_FILE)
+        save_checkpoint(self.state(), tmp)
         if final.exists():
             shutil.rmtree(final)
         tmp.rename(final)  # a checkpoint directory is either complete or absent
@@ -376,7 +270,7 @@ def fit(config: Config, callbacks: Sequence[Callback] = (), resume_from: str | P
                 "train/loss": sums[0] / window,
                 "train/loss_diffusion": sums[1] / window,
                 "train/loss_prior_3d": sums[2] / window,
-                "train/lr": trainer.scheduler.get_last_lr()[0],
+                "train/lr": trainer.optimiser.lr,
                 "train/steps_per_s": window / max(now - window_start, 1e-9),
                 "train/elapsed_s": now - start,
             }

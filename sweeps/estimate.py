@@ -25,7 +25,8 @@ from pathlib import Path
 from cdm.config import Config, load_config
 from cdm.data import list_categories
 from cdm.prior_model import ensure_priors
-from cdm.train import Trainer, TrainingDiverged
+from cdm.optim import TrainingDiverged
+from cdm.train import Trainer
 from sweeps.spec import SweepPlan, expand
 
 __all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate", "paper_trial_gpu_hours"]
@@ -71,10 +72,10 @@ def calibrate(config: Config, steps: int = 3) -> TrialCost:
     with tempfile.TemporaryDirectory() as tmp:
         # A blended cell (sampling.blend.prior_checkpoint: auto) samples with category priors; one-step
         # priors on one object sample as fast as trained ones, and are not part of the timed set-up.
-        stub = ensure_priors(load_config(config.to_dict(), {"train.steps": 1, "data.train_objects": 1}), tmp)
-        config = config.model_copy(update={"sampling": stub.sampling})
+        stub = ensure_priors(config.replace(**{"train.steps": 1, "data.train_objects": 1}), tmp)
+        config = config.replace(**{"sampling.blend.prior_checkpoint": stub.sampling.blend.prior_checkpoint})
         start = time.perf_counter()
-        trainer = Trainer(config.model_copy(update={"train": config.train.model_copy(update={"out_dir": tmp, "threads": 1})}))
+        trainer = Trainer(config.replace(**{"train.out_dir": tmp, "train.threads": 1}))
         setup_s = time.perf_counter() - start
         trainer.train_step(trainer.next_batch())
         times = []

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -13,8 +14,10 @@ import torch
 
 from cdm.__main__ import main
 from cdm.blend import blend_windows, blended_sample, matched_timesteps
+from cdm.checkpoint import CHECKPOINT_FILE, load_checkpoint, save_checkpoint
 from cdm.config import load_config
 from cdm.data import build_dataset
+from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import collate
 from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import reconstruct
@@ -26,8 +29,6 @@ from cdm.prior_model import (
     prior_config,
     train_prior,
 )
-from cdm.priors import PRIOR_2D_CHANNELS
-from cdm.train import CHECKPOINT_FILE, load_checkpoint
 from tests.conftest import TINY, tiny_config
 
 BDM_MILESTONES = (936, 872, 128, 64, 32)
@@ -188,13 +189,13 @@ def test_train_prior_cli_defaults_to_bdm_schedule_and_keeps_explicit_fields(tmp_
     argv = ["train-prior", "--category", "sofa", "--out", str(tmp_path / "sofa")]
     assert main(argv + [a for s in sets for a in ("--set", s)]) == 0
     state = load_checkpoint(tmp_path / "sofa")
-    assert state["kind"] == PRIOR_KIND and state["category"] == "sofa" and state["step"] == 4
-    d = state["config"]["diffusion"]
+    assert state.kind == PRIOR_KIND and state.category == "sofa" and state.step == 4
+    d = state.config["diffusion"]
     assert (d["beta_start"], d["beta_end"], d["num_steps"], d["prediction"]) == (1e-4, 2e-2, 1000, "eps")
     assert "step 4: loss" in capsys.readouterr().out
     assert main(argv + ["--set", "diffusion.beta_end=0.01", "--set", "diffusion.prediction=x0"]
                 + [a for s in sets for a in ("--set", s)]) == 0
-    d = load_checkpoint(tmp_path / "sofa")["config"]["diffusion"]
+    d = load_checkpoint(tmp_path / "sofa").config["diffusion"]
     assert (d["beta_start"], d["beta_end"], d["prediction"]) == (1e-4, 0.01, "x0")
     assert main(["train-prior", "--category", "car", "--out", str(tmp_path / "car")]) == 2
     assert "data.categories: ['car'] not in the procedural data set" in capsys.readouterr().err
@@ -210,8 +211,7 @@ def test_prior_training_lowers_its_loss(tmp_path):
 
 def test_load_prior_refuses_a_cdm_checkpoint(tmp_path, priors):
     state = load_checkpoint(priors / "chair")
-    del state["kind"]
-    torch.save(state, tmp_path / CHECKPOINT_FILE)
+    save_checkpoint(dataclasses.replace(state, kind=None), tmp_path)
     with pytest.raises(ValueError, match=r"sampling\.blend\.prior_checkpoint: .* is not a category prior"):
         load_prior(tmp_path)
     with pytest.raises(ValueError, match=r"sampling\.blend\.prior_checkpoint: checkpoint: .* does not exist"):

@@ -61,3 +61,17 @@ def test_field_paths_cover_every_group():
     paths = config_field_paths()
     assert "priors.point_size" in paths and "model.global_feature" in paths and "eval.f1_threshold" in paths
     assert all(p.split(".")[0] in Config.model_fields for p in paths)
+
+
+def test_replace_sets_dotted_fields_through_the_same_validation():
+    cfg = load_config(None, {"priors.lambda_3d": 0.5})
+    out = cfg.replace(**{"train.out_dir": "/tmp/x", "model.voxel_backend": "sparse", "sampling.blend.seed": 3})
+    assert (out.train.out_dir, out.model.voxel_backend, out.sampling.blend.seed) == ("/tmp/x", "sparse", 3)
+    assert out.priors.lambda_3d == 0.5 and cfg.train.out_dir == "runs/cdm"  # the rest kept, the original untouched
+    assert out.replace() == out
+    with pytest.raises(ConfigError, match=r"^priors\.lambda_3d: Input should be greater than or equal to 0"):
+        cfg.replace(**{"priors.lambda_3d": -1.0})
+    with pytest.raises(ConfigError, match=r"^train\.stpes: unknown config field"):
+        cfg.replace(**{"train.stpes": 3})
+    with pytest.raises(ConfigError, match="sampling.blend.prior_checkpoint is required"):
+        cfg.replace(**{"sampling.blend.enabled": True})

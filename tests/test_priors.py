@@ -1,19 +1,13 @@
-"""Tests for cdm.priors: contour maps on a known image, depth normalisation, the 3D prior loss."""
+"""The paper's priors: 2D prior maps (cdm.data.priors2d: contour maps on a known image, depth
+normalisation) and the 3D prior loss of the objective (cdm.objective)."""
 
 import pytest
 import torch
 import torch.nn.functional as F
 
 from cdm.cameras import orbit_cameras
-from cdm.priors import (
-    PRIOR_2D_CHANNELS,
-    DepthEstimator,
-    contour_map,
-    contour_map_soft,
-    depth_prior_from_map,
-    prior_2d_channels,
-    prior_3d_loss,
-)
+from cdm.data.priors2d import PRIOR_2D_CHANNELS, contour_map, depth_prior_from_map, prior_2d_channels
+from cdm.objective import prior_3d_loss
 
 
 def _square_image(size: int = 32, lo: int = 8, hi: int = 24) -> torch.Tensor:
@@ -42,20 +36,6 @@ def test_contour_of_a_filled_square_lies_on_its_border():
     assert contour_map(torch.full((3, 16, 16), 0.5)).sum() == 0  # flat image: no edges
 
 
-def test_soft_contour_is_high_on_the_border_low_inside_and_differentiable():
-    images = torch.stack([_square_image(), 0.5 * _square_image()]).requires_grad_()
-    soft = contour_map_soft(images)
-    assert soft.shape == (2, 1, 32, 32)
-    assert soft.max() <= 1.0
-    # Beside an axis-aligned unit step: normalised Sobel |g| = 1/2, scaled by 1/(√2/2) → √2/2.
-    assert soft[0, 0, 15, 7].item() == pytest.approx(2**-0.5, abs=1e-3)
-    assert soft[0, 0, 15, 8].item() == pytest.approx(2**-0.5, abs=1e-3)
-    assert soft[1, 0, 15, 8].item() == pytest.approx(0.5 * 2**-0.5, abs=1e-3)  # half contrast, half edge
-    assert soft[0, 0, 12:20, 12:20].max() < 2e-3 and soft[0, 0, :4, :4].max() < 2e-3
-    soft.sum().backward()
-    assert torch.isfinite(images.grad).all() and images.grad.abs().sum() > 0
-
-
 def test_depth_prior_normalises_the_foreground_near_to_one():
     depth = torch.tensor([[[0.0, 2.0, 3.0], [4.0, 2.5, 0.0], [9.0, 3.5, 0.0]]])
     mask = torch.tensor([[[0.0, 1.0, 1.0], [1.0, 1.0, 1.0], [0.0, 1.0, 0.0]]])
@@ -67,13 +47,6 @@ def test_depth_prior_normalises_the_foreground_near_to_one():
     torch.testing.assert_close(depth_prior_from_map(depth, torch.zeros_like(mask)), torch.zeros_like(depth))
 
 
-class _BrightnessDepth:
-    """A trivial real estimator: darker pixels are farther (depth = 2 − grey)."""
-
-    def __call__(self, images: torch.Tensor) -> torch.Tensor:
-        return 2.0 - images.mean(dim=1, keepdim=True)
-
-
 def test_prior_2d_channels_per_kind():
     image, mask = _square_image(16, 4, 12), torch.zeros(1, 16, 16)
     mask[:, 4:12, 4:12] = 1.0
@@ -83,11 +56,6 @@ def test_prior_2d_channels_per_kind():
         assert out.shape == (channels, 16, 16)
     torch.testing.assert_close(prior_2d_channels("contour", image, mask, None), contour_map(image))
     torch.testing.assert_close(prior_2d_channels("depth", image, mask, depth), depth_prior_from_map(depth, mask))
-    estimator = _BrightnessDepth()
-    assert isinstance(estimator, DepthEstimator)
-    image[:, 4:8] *= 0.5  # upper half of the square darker → farther → nearness 0 there, 1 below
-    est = prior_2d_channels("depth", image, mask, None, estimator=estimator)
-    assert est[0, 5, 6] == 0.0 and est[0, 10, 6] == 1.0 and est[0, 0, 0] == 0.0
     with pytest.raises(ValueError, match="priors.prior_2d='depth' needs a depth map"):
         prior_2d_channels("depth", image, mask, None)
     with pytest.raises(ValueError, match="priors.prior_2d must be one of"):

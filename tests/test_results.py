@@ -74,7 +74,7 @@ def test_a_trained_model_is_marked_better_than_its_reset_copy(tmp_path):
     from cdm.diffusion import GaussianDiffusion
     from cdm.evaluate import build_eval_set, run_evaluation
     from cdm.model import CDMNetwork
-    from cdm.priors import PRIOR_2D_CHANNELS
+    from cdm.data.priors2d import PRIOR_2D_CHANNELS
     from cdm.train import fit
     from tests.conftest import tiny_config
 
@@ -88,7 +88,7 @@ def test_a_trained_model_is_marked_better_than_its_reset_copy(tmp_path):
     diffusion = GaussianDiffusion.from_config(cfg.diffusion)
     rows = {}
     for seed in (1234, 99):  # the same untrained model sampled with two seeds
-        out = run_evaluation(reset, diffusion, eval_set, cfg.model_copy(update={"eval": cfg.eval.model_copy(update={"seed": seed})}),
+        out = run_evaluation(reset, diffusion, eval_set, cfg.replace(**{"eval.seed": seed}),
                              torch.device("cpu"), None)
         rows[seed] = tuple(out.rows)
     outcomes = [TrialOutcome("reset · seed 0", "reset", "ok", {"eval/cd": 1.0}, objects=rows[1234]),

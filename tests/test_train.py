@@ -7,7 +7,10 @@ import math
 import pytest
 import torch
 
-from cdm.train import Callback, TrainingDiverged, batch_indices, fit, load_checkpoint, lr_factor, metric_names
+from cdm.checkpoint import load_checkpoint
+from cdm.data.order import batch_indices
+from cdm.optim import TrainingDiverged, lr_factor
+from cdm.train import Callback, fit, metric_names
 from tests.conftest import tiny_config
 
 
@@ -52,7 +55,7 @@ def test_resume_gives_the_identical_next_step_loss(tmp_path):
     six = [p for s, p in full.checkpoints if s == 6]
     assert six, full.checkpoints
     state = load_checkpoint(six[0])
-    assert state["step"] == 6 and state["config"] == cfg.to_dict()
+    assert state.step == 6 and state.config == cfg.to_dict()
     # Keep only the step-6 checkpoint, as a killed run would have.
     cfg2 = tiny_config(tmp_path / "again", **{"train.steps": 12, "train.eval_every": 6, "train.log_every": 1})
     resumed = Recorder()

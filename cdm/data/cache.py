@@ -1,7 +1,7 @@
 """Prepared data roots (one shard per object) and the per-process cache of decoded views.
 
-``python -m cdm prepare --data-kind KIND --root RAW --out OUT`` reads every object of the training
-split and of ``data.eval_split`` once and writes
+``python -m cdm prepare --data-kind KIND --root RAW --out OUT`` (:mod:`cdm.data.prepare`) reads every
+object of the training split and of ``data.eval_split`` once and writes
 
 - ``OUT/<published split>/<object_id>.shard``: the object's normalised cloud, its sequence cameras and
   every input view of the split already cropped and resized (``--image-size``, 224 by default):
@@ -21,32 +21,28 @@ from __future__ import annotations
 import json
 import mmap
 import os
-from collections import OrderedDict
-from collections.abc import Callable, Hashable
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from cdm.cameras import Cameras
-from cdm.config import Config
-
-if TYPE_CHECKING:
-    from cdm.data.captured import CapturedDataset
+from cdm.data.lru import ByteLRU
+from cdm.data.views import interleave
 
 __all__ = [
     "DECODED",
+    "FORMAT",
     "MANIFEST",
-    "DecodeCache",
     "ObjectRecord",
-    "PrepareReport",
     "PreparedRoot",
     "ViewImages",
+    "atomic_write",
     "is_prepared",
-    "prepare",
     "read_shard",
     "write_shard",
 ]
@@ -74,6 +70,11 @@ class ObjectRecord(NamedTuple):
     views: Tensor
     scale: float
 
+    def nbytes(self) -> int:
+        """Memory held by the record's tensors, in bytes (the record cache's budget unit)."""
+        cams = self.sequence
+        return sum(t.numel() * t.element_size() for t in (self.cloud, self.views, cams.R, cams.T, cams.focal, cams.principal))
+
 
 class ViewImages(NamedTuple):
     """One input view cropped to the square frame of ``camera`` and resized to ``S × S``.
@@ -96,46 +97,13 @@ class ViewImages(NamedTuple):
         return self.image.nbytes + self.mask.nbytes + (0 if self.depth is None else self.depth.nbytes)
 
 
-class DecodeCache:
-    """Decoded views by key, least recently used out beyond ``max_bytes``; one per process (:data:`DECODED`).
-
-    Keys must identify the file and the decoding (data set, root, object, view, size). A sweep runs
-    its cells one after another in reused worker processes, so later cells find their images here.
-    """
-
-    def __init__(self, max_bytes: int):
-        self.max_bytes = max_bytes
-        self.hits = 0
-        self.misses = 0
-        self._items: OrderedDict[Hashable, ViewImages] = OrderedDict()
-        self._bytes = 0
-
-    def get(self, key: Hashable, decode: Callable[[], ViewImages]) -> ViewImages:
-        """The cached value of ``key``, or ``decode()`` stored under it."""
-        if key in self._items:
-            self._items.move_to_end(key)
-            self.hits += 1
-            return self._items[key]
-        self.misses += 1
-        value = decode()
-        self._items[key] = value
-        self._bytes += value.nbytes()
-        while self._bytes > self.max_bytes and len(self._items) > 1:
-            _, dropped = self._items.popitem(last=False)
-            self._bytes -= dropped.nbytes()
-        return value
-
-    def clear(self) -> None:
-        self._items.clear()
-        self._bytes = 0
-        self.hits = self.misses = 0
+DECODED: ByteLRU[ViewImages] = ByteLRU(256 * 2**20)
+"""This process's decoded raw views (256 MiB: ~850 views at 224² with depth), by a key naming the file
+and the decoding (data set, root, object, view, size). A sweep runs its cells one after another in
+reused worker processes, so later cells find their images here."""
 
 
-DECODED = DecodeCache(256 * 2**20)
-"""This process's decoded raw views (256 MiB: ~850 views at 224² with depth)."""
-
-
-def _atomic_write(path: Path, write: Callable[[object], None]) -> None:
+def atomic_write(path: Path, write: Callable[[object], None]) -> None:
     """Write ``path`` through a temporary sibling renamed when complete; nothing half-written remains."""
     temp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
@@ -162,7 +130,7 @@ def write_shard(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
             f.write(np.ascontiguousarray(array).tobytes())
         f.truncate(start + offset)
 
-    _atomic_write(path, write)
+    atomic_write(path, write)
 
 
 class Shard(NamedTuple):
@@ -235,8 +203,6 @@ class PreparedRoot:
 
     def objects(self, published: str, categories: tuple[str, ...]) -> list[tuple[str, str]]:
         """``(category, object_id)`` of split ``published`` in ``categories``, interleaved; every shard must exist."""
-        from cdm.data.views import interleave
-
         splits = self.manifest["splits"]
         if published not in splits:
             raise ValueError(
@@ -264,80 +230,3 @@ class PreparedRoot:
         depth = np.array(a["depths"][view]) if "depths" in a else None
         return ViewImages(np.array(a["images"][view]), np.array(a["masks"][view]), depth, float(a["depth_scale"][view]),
                           _cameras(a, "cam", view))
-
-
-class PrepareReport(NamedTuple):
-    """What :func:`prepare` did: shards written now, shards found complete from an earlier run."""
-
-    out: Path
-    written: int
-    skipped: int
-
-
-def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, np.ndarray]:
-    seq = record.sequence
-    arrays = {
-        "cloud": record.cloud.numpy().astype(np.float32),
-        "seq_R": seq.R.numpy(), "seq_T": seq.T.numpy(), "seq_focal": seq.focal.numpy(), "seq_principal": seq.principal.numpy(),
-        "views": record.views.numpy().astype(np.int64),
-        "images": np.stack([v.image for v in views]),
-        "masks": np.stack([v.mask for v in views]),
-        "depth_scale": np.array([v.depth_scale for v in views], dtype=np.float32),
-    }
-    if views[0].depth is not None:
-        arrays["depths"] = np.stack([v.depth for v in views])
-    for key in ("R", "T", "focal", "principal"):
-        arrays[f"cam_{key}"] = torch.stack([getattr(v.camera, key) for v in views]).numpy()
-    return arrays
-
-
-def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bool = True) -> PrepareReport:
-    """Write the prepared form of the raw data set ``cfg.data`` (kind ``dataset``) into ``out``.
-
-    Reads the training split and ``data.eval_split`` of ``data.categories`` at ``data.image_size``.
-    Both splits are indexed (and every path checked) before anything is written. Shards already in
-    ``out`` from an interrupted run of the same command are kept.
-
-    Raises:
-        ValueError: bad root, annotation, category or image (named), or ``out`` prepared differently.
-    """
-    root = Path(cfg.data.root).expanduser() if cfg.data.root is not None else None
-    if root is not None and is_prepared(root):
-        raise ValueError(f"--root: {root} is already a prepared root; point --root at the published data set")
-    splits = [dataset(cfg, "train"), dataset(cfg, "val")]
-    manifest = {
-        "format": FORMAT, "kind": dataset.kind, "image_size": cfg.data.image_size, "source": str(root),
-        "categories": list(dataset.categories(cfg)),
-        "splits": {ds.published: [list(ref) for ref in ds.objects] for ds in splits},
-    }
-    out = out.expanduser()
-    if is_prepared(out):
-        earlier = json.loads((out / MANIFEST).read_text())
-        if earlier != manifest:
-            raise ValueError(
-                f"--out: {out} holds a different preparation (kind {earlier.get('kind')}, image size "
-                f"{earlier.get('image_size')}, {earlier.get('categories')}); choose another --out"
-            )
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in out.rglob(".*.tmp-*"):  # left by a killed run: never renamed, so never complete
-        stale.unlink()
-    _atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
-    from tqdm import tqdm
-
-    written = skipped = 0
-    for ds in splits:
-        # The context closes the bar on errors too, so an error message starts on its own line.
-        with tqdm(total=len(ds), desc=f"{dataset.kind} {ds.published}", unit="object", disable=not progress) as bar:
-            for index, ref in enumerate(ds.objects):
-                path = out / ds.published / f"{ref.object_id}.shard"
-                if path.is_file():
-                    skipped += 1
-                else:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    record, views = ds.export(index)
-                    write_shard(path, _object_arrays(record, views),
-                                {"object_id": ref.object_id, "category": ref.category, "scale": record.scale,
-                                 "image_size": cfg.data.image_size})
-                    written += 1
-                bar.update(1)
-    return PrepareReport(out, written, skipped)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import hashlib
 from abc import abstractmethod
-from collections import OrderedDict
 from pathlib import Path
 from typing import ClassVar
 
@@ -33,9 +32,10 @@ from torch import Tensor
 from cdm.cameras import Cameras, select_sequence_views
 from cdm.config import Config
 from cdm.data.cache import DECODED, ObjectRecord, PreparedRoot, ViewImages, is_prepared
+from cdm.data.lru import ByteLRU
+from cdm.data.priors2d import prior_2d_channels
 from cdm.data.sample import Sample
 from cdm.data.views import ObjectDataset, Shape, Split, select_categories
-from cdm.priors import prior_2d_channels
 
 __all__ = [
     "MAX_CLOUD_POINTS",
@@ -50,12 +50,6 @@ __all__ = [
 MAX_CLOUD_POINTS = 65_536
 """Points kept of a published cloud (a fixed subset per object, independent of ``data.seed``): the
 paper needs 16,384 at most, and a cap keeps Co3D's larger clouds and the prepared shards small."""
-
-
-def _nbytes(record: ObjectRecord) -> int:
-    """Memory held by a record's tensors, in bytes (the record cache's budget unit)."""
-    cams = record.sequence
-    return sum(t.numel() * t.element_size() for t in (record.cloud, record.views, cams.R, cams.T, cams.focal, cams.principal))
 
 
 def data_root(cfg: Config, expected: str) -> Path:
@@ -168,7 +162,7 @@ class CapturedDataset(ObjectDataset):
     def __getstate__(self) -> dict:
         # Data-loader workers get the index, not the cached records.
         state = dict(self.__dict__)
-        state["_cache"], state["_cached_bytes"] = OrderedDict(), 0
+        state["_cache"] = ByteLRU(self.cache_bytes)
         return state
 
     def record(self, index: int) -> ObjectRecord:
@@ -177,22 +171,12 @@ class CapturedDataset(ObjectDataset):
             return self.prepared.record(self.published, self.objects[index].object_id)
         return self._raw_record(index)
 
-    def surface(self, index: int) -> ObjectRecord:
-        """Object ``index`` with ``data.num_points`` drawn from its cloud (``(N, 3)``; cached, least
-        recently used out)."""
-        if index in self._cache:
-            self._cache.move_to_end(index)
-            return self._cache[index]
+    def _load_surface(self, index: int) -> ObjectRecord:
+        """Object ``index`` with ``data.num_points`` drawn from its cloud (``(N, 3)``); :meth:`surface` caches it."""
         rec = self.record(index)
         n, p = self.cfg.data.num_points, rec.cloud.shape[0]
         pick = self._rng(index, _STREAM_CLOUD).choice(p, n, replace=p < n)
-        surface = rec._replace(cloud=rec.cloud[torch.from_numpy(pick)])
-        self._cache[index] = surface
-        self._cached_bytes += _nbytes(surface)
-        while self._cached_bytes > self.cache_bytes and len(self._cache) > 1:
-            _, dropped = self._cache.popitem(last=False)
-            self._cached_bytes -= _nbytes(dropped)
-        return surface
+        return rec._replace(cloud=rec.cloud[torch.from_numpy(pick)])
 
     def export(self, index: int) -> tuple[ObjectRecord, list[ViewImages]]:
         """Object ``index`` and all its input views at ``data.image_size``, read from the published

@@ -25,7 +25,6 @@ import colorsys
 import hashlib
 import json
 from abc import ABC, abstractmethod
-from collections import OrderedDict
 from typing import ClassVar, Literal, NamedTuple
 
 import numpy as np
@@ -36,8 +35,9 @@ from torch.utils.data import Dataset
 
 from cdm.cameras import Cameras, orbit_cameras, project_points
 from cdm.config import Config
+from cdm.data.lru import ByteLRU
 from cdm.data.sample import Sample
-from cdm.priors import prior_2d_channels
+from cdm.data.priors2d import prior_2d_channels
 from cdm.render import rasterize_points
 
 __all__ = [
@@ -314,8 +314,7 @@ class ObjectDataset(Dataset, ABC):
         self.num_dense = dense_point_count(cfg.data.image_size)
         self.cache_bytes = cache_bytes
         self.epoch = 0
-        self._cache: OrderedDict[int, ObjectSurface] = OrderedDict()
-        self._cached_bytes = 0
+        self._cache: ByteLRU = ByteLRU(cache_bytes)
 
     @classmethod
     @abstractmethod
@@ -359,20 +358,15 @@ class ObjectDataset(Dataset, ABC):
         return np.random.default_rng(np.random.SeedSequence(entropy, spawn_key=stream))
 
     def surface(self, index: int) -> ObjectSurface:
-        """The normalised, sampled object ``index`` (cached)."""
-        if index in self._cache:
-            self._cache.move_to_end(index)
-            return self._cache[index]
+        """The normalised, sampled object ``index`` (cached, least recently used out beyond ``cache_bytes``;
+        captured data sets return their :class:`~cdm.data.cache.ObjectRecord` instead)."""
+        return self._cache.get(index, lambda: self._load_surface(index))
+
+    def _load_surface(self, index: int) -> ObjectSurface:
         shape = self._shape(index, self._rng(index, _STREAM_SHAPE))
         palette = draw_palette(self._rng(index, _STREAM_PALETTE), max(2, int(shape.material.max(initial=0)) + 1))
         rng = self._rng(index, _STREAM_SURFACE)
-        surface = sample_surface(shape, self.cfg.data.num_points, self.num_dense, rng, palette)
-        self._cache[index] = surface
-        self._cached_bytes += surface.nbytes()
-        while self._cached_bytes > self.cache_bytes and len(self._cache) > 1:
-            _, dropped = self._cache.popitem(last=False)
-            self._cached_bytes -= dropped.nbytes()
-        return surface
+        return sample_surface(shape, self.cfg.data.num_points, self.num_dense, rng, palette)
 
     def _check_sample_args(self, index: int, view_round: int) -> None:
         if not 0 <= index < len(self.objects):

@@ -52,7 +52,7 @@ class CDMNetwork(nn.Module):
 
     Attributes:
         voxel_backend: the resolved back-end, ``dense`` or ``sparse``. Record it with a checkpoint and
-            rebuild with ``cfg.model_copy(update={"voxel_backend": ...})``: the two compute different
+            rebuild with ``config.replace(**{"model.voxel_backend": ...})``: the two compute different
             functions with the same parameters.
     """
 

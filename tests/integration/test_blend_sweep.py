@@ -14,7 +14,7 @@ import ray
 import yaml
 from mlflow import MlflowClient
 
-from cdm.train import CHECKPOINT_FILE, load_checkpoint
+from cdm.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from sweeps import run
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
@@ -61,7 +61,7 @@ def test_bdm_blend_smoke_sweep(cluster, tmp_path, capsys):
     assert out.count("category prior airplane: trained") == 1 and out.count("category prior airplane: reusing") == 1
     chair = next(p for p in (sweep / "priors").glob("chair-*") if p.is_dir())
     prior = load_checkpoint(chair)
-    assert prior["category"] == "chair" and prior["config"]["diffusion"]["beta_end"] == 0.02
+    assert prior.category == "chair" and prior.config["diffusion"]["beta_end"] == 0.02
 
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("bdm_blend").experiment_id])

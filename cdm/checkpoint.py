@@ -1,0 +1,128 @@
+"""Checkpoints: one ``checkpoint.pt`` per folder, written atomically, read back typed and safely.
+
+A checkpoint holds everything needed to use or continue a run without anything else (nanoGPT's
+habit): the resolved config, the step, the voxel back-end the weights were trained with (the
+back-ends compute different functions) and the weights; a CDM run adds its EMA weights, optimiser,
+schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Files are read with
+``torch.load(weights_only=True)``: tensors and plain data only, nothing executed.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor
+
+from cdm.config import Config, load_config
+from cdm.data.priors2d import PRIOR_2D_CHANNELS
+from cdm.diffusion import GaussianDiffusion
+from cdm.model import CDMNetwork
+from cdm.runtime import resolve_device
+
+__all__ = ["CHECKPOINT_FILE", "Checkpoint", "LoadedNetwork", "load_checkpoint", "load_network", "network_config", "save_checkpoint"]
+
+CHECKPOINT_FILE = "checkpoint.pt"
+_REQUIRED = ("config", "step", "voxel_backend", "model")
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """The contents of one ``checkpoint.pt``."""
+
+    config: dict[str, Any]
+    """The resolved config as saved (:meth:`Config.to_dict`)."""
+    step: int
+    """Optimiser steps taken."""
+    voxel_backend: str
+    """The voxel back-end the weights were trained with (``dense`` or ``sparse``)."""
+    model: dict[str, Tensor]
+    """The network's ``state_dict``."""
+    ema: dict[str, Tensor] | None = None
+    """EMA weights (``train.ema_decay``), or None."""
+    optimizer: dict[str, Any] | None = None
+    scheduler: dict[str, Any] | None = None
+    generator: Tensor | None = None
+    """State of the training noise generator."""
+    torch_rng: Tensor | None = None
+    """State of torch's global CPU RNG."""
+    kind: str | None = None
+    """``category_prior`` for a BDM prior (:mod:`cdm.prior_model`); None for a CDM run."""
+    category: str | None = None
+    """The one category a prior models."""
+
+    @property
+    def weights(self) -> dict[str, Tensor]:
+        """The weights to evaluate with: EMA when the run kept them, else the trained ones."""
+        return self.ema or self.model
+
+
+def save_checkpoint(checkpoint: Checkpoint, folder: str | Path) -> Path:
+    """Write ``folder/checkpoint.pt`` through a temporary file renamed when complete, so a reader sees
+    a whole checkpoint or none; returns the file."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    file = folder / CHECKPOINT_FILE
+    tmp = folder / f".{CHECKPOINT_FILE}.tmp"
+    torch.save({f.name: getattr(checkpoint, f.name) for f in fields(checkpoint)}, tmp)
+    os.replace(tmp, file)
+    return file
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a checkpoint file or its folder safely (``weights_only=True``).
+
+    Raises:
+        ValueError: missing file, unreadable file, or not a CDM checkpoint; the message starts with
+            ``checkpoint:`` and names the file.
+    """
+    path = Path(path)
+    file = path / CHECKPOINT_FILE if path.is_dir() else path
+    if not file.is_file():
+        raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
+    try:
+        state = torch.load(file, map_location="cpu", weights_only=True)
+    except (RuntimeError, pickle.UnpicklingError, EOFError) as exc:
+        raise ValueError(f"checkpoint: {file} is not a readable CDM checkpoint ({exc})") from None
+    missing = set(_REQUIRED) - set(state if isinstance(state, dict) else ())
+    if missing:
+        raise ValueError(f"checkpoint: {file} is not a CDM checkpoint (missing {', '.join(sorted(missing))})")
+    return Checkpoint(**{f.name: state[f.name] for f in fields(Checkpoint) if f.name in state})
+
+
+def network_config(checkpoint: Checkpoint, overrides: dict[str, Any] | None = None) -> Config:
+    """The checkpoint's config with dotted ``overrides``, its voxel back-end fixed to the trained one."""
+    return load_config(checkpoint.config, {**(overrides or {}), "model.voxel_backend": checkpoint.voxel_backend})
+
+
+class LoadedNetwork(NamedTuple):
+    """A CDM checkpoint ready to sample: config, network (eval mode, on ``device``), schedule, device."""
+
+    config: Config
+    network: CDMNetwork
+    diffusion: GaussianDiffusion
+    device: torch.device
+
+
+def load_network(path: str | Path, overrides: dict[str, Any] | None = None) -> LoadedNetwork:
+    """The network of a CDM checkpoint (EMA weights when present) on ``train.device``.
+
+    Args:
+        path: a checkpoint folder or its ``checkpoint.pt``.
+        overrides: dotted config fields applied to the saved config (e.g. ``eval.num_objects``,
+            ``train.device``); the voxel back-end stays the trained one.
+    Raises:
+        ValueError: unreadable file, a category prior instead of a CDM checkpoint, a bad override.
+    """
+    checkpoint = load_checkpoint(path)
+    if checkpoint.kind is not None:
+        raise ValueError(f"checkpoint: {path} holds a {checkpoint.kind} ({checkpoint.category}), not a CDM network")
+    cfg = network_config(checkpoint, overrides)
+    device = resolve_device(cfg.train.device)
+    network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d])
+    network.load_state_dict(checkpoint.weights)
+    return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)

@@ -1,0 +1,97 @@
+"""``python -m cdm prepare``: convert a published data set once into a prepared root of shards.
+
+The format is :mod:`cdm.data.cache`'s; this module reads both splits through the data set's own
+reader (:meth:`CapturedDataset.export`) and writes one shard per object, resumably.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from cdm.config import Config
+from cdm.data.cache import FORMAT, MANIFEST, ObjectRecord, ViewImages, atomic_write, is_prepared, write_shard
+from cdm.data.captured import CapturedDataset
+
+__all__ = ["PrepareReport", "prepare"]
+
+
+class PrepareReport(NamedTuple):
+    """What :func:`prepare` did: shards written now, shards found complete from an earlier run."""
+
+    out: Path
+    written: int
+    skipped: int
+
+
+def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, np.ndarray]:
+    seq = record.sequence
+    arrays = {
+        "cloud": record.cloud.numpy().astype(np.float32),
+        "seq_R": seq.R.numpy(), "seq_T": seq.T.numpy(), "seq_focal": seq.focal.numpy(), "seq_principal": seq.principal.numpy(),
+        "views": record.views.numpy().astype(np.int64),
+        "images": np.stack([v.image for v in views]),
+        "masks": np.stack([v.mask for v in views]),
+        "depth_scale": np.array([v.depth_scale for v in views], dtype=np.float32),
+    }
+    if views[0].depth is not None:
+        arrays["depths"] = np.stack([v.depth for v in views])
+    for key in ("R", "T", "focal", "principal"):
+        arrays[f"cam_{key}"] = torch.stack([getattr(v.camera, key) for v in views]).numpy()
+    return arrays
+
+
+def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bool = True) -> PrepareReport:
+    """Write the prepared form of the raw data set ``cfg.data`` (kind ``dataset``) into ``out``.
+
+    Reads the training split and ``data.eval_split`` of ``data.categories`` at ``data.image_size``.
+    Both splits are indexed (and every path checked) before anything is written. Shards already in
+    ``out`` from an interrupted run of the same command are kept.
+
+    Raises:
+        ValueError: bad root, annotation, category or image (named), or ``out`` prepared differently.
+    """
+    root = Path(cfg.data.root).expanduser() if cfg.data.root is not None else None
+    if root is not None and is_prepared(root):
+        raise ValueError(f"--root: {root} is already a prepared root; point --root at the published data set")
+    splits = [dataset(cfg, "train"), dataset(cfg, "val")]
+    manifest = {
+        "format": FORMAT, "kind": dataset.kind, "image_size": cfg.data.image_size, "source": str(root),
+        "categories": list(dataset.categories(cfg)),
+        "splits": {ds.published: [list(ref) for ref in ds.objects] for ds in splits},
+    }
+    out = out.expanduser()
+    if is_prepared(out):
+        earlier = json.loads((out / MANIFEST).read_text())
+        if earlier != manifest:
+            raise ValueError(
+                f"--out: {out} holds a different preparation (kind {earlier.get('kind')}, image size "
+                f"{earlier.get('image_size')}, {earlier.get('categories')}); choose another --out"
+            )
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in out.rglob(".*.tmp-*"):  # left by a killed run: never renamed, so never complete
+        stale.unlink()
+    atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+    from tqdm import tqdm
+
+    written = skipped = 0
+    for ds in splits:
+        # The context closes the bar on errors too, so an error message starts on its own line.
+        with tqdm(total=len(ds), desc=f"{dataset.kind} {ds.published}", unit="object", disable=not progress) as bar:
+            for index, ref in enumerate(ds.objects):
+                path = out / ds.published / f"{ref.object_id}.shard"
+                if path.is_file():
+                    skipped += 1
+                else:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    record, views = ds.export(index)
+                    write_shard(path, _object_arrays(record, views),
+                                {"object_id": ref.object_id, "category": ref.category, "scale": record.scale,
+                                 "image_size": cfg.data.image_size})
+                    written += 1
+                bar.update(1)
+    return PrepareReport(out, written, skipped)

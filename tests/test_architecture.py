@@ -1,0 +1,115 @@
+"""One-way architecture: no import cycle in cdm/ or sweeps/, and the model library knows nothing of
+the sweep stack (Ray, MLflow, Optuna) or of sweeps/.
+
+Imports are read with ``ast`` from the source, every one of them: module level, inside functions
+(deferred imports) and under ``TYPE_CHECKING``, so a cycle hidden behind a lazy import counts too.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("cdm", "sweeps")
+FORBIDDEN_IN_CDM = ("ray", "mlflow", "optuna", "sweeps")
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _modules() -> dict[str, Path]:
+    return {_module_name(p): p for package in PACKAGES for p in sorted((ROOT / package).rglob("*.py"))}
+
+
+def _imported(path: Path, name: str, known: set[str]) -> set[str]:
+    """Modules of ``known`` that the file imports, anywhere in it; ``from a import b`` counts ``a.b``
+    when that is a module, else ``a``; relative imports are resolved against ``name``."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            targets = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            targets = [f"{base}.{alias.name}" if f"{base}.{alias.name}" in known else base for alias in node.names]
+        else:
+            continue
+        for target in targets:
+            # `import cdm.data.views` also imports its packages; the innermost known module names the edge.
+            while target and target not in known:
+                target = target.rpartition(".")[0]
+            if target and target != name:
+                out.add(target)
+    return out
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    known = set(modules)
+    return {name: _imported(path, name, known) for name, path in modules.items()}
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` as a path ``[a, b, …, a]``, or None (iterative depth-first search)."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: finished
+    for root in sorted(graph):
+        if root in state:
+            continue
+        path, stack = [root], [iter(sorted(graph[root]))]
+        state[root] = 1
+        while stack:
+            nxt = next(stack[-1], None)
+            if nxt is None:
+                state[path.pop()] = 2
+                stack.pop()
+            elif state.get(nxt) == 1:
+                return path[path.index(nxt):] + [nxt]
+            elif nxt not in state:
+                state[nxt] = 1
+                path.append(nxt)
+                stack.append(iter(sorted(graph[nxt])))
+    return None
+
+
+def test_the_cycle_finder_finds_a_planted_cycle_and_accepts_a_tree():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
+
+
+def test_the_import_reader_sees_lazy_relative_and_type_checking_imports(tmp_path, monkeypatch):
+    package = tmp_path / "cdm"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "a.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from cdm import b\n"
+        "def f():\n    from .c import thing\n    import cdm.d.e\n"
+    )
+    monkeypatch.setattr(f"{__name__}.ROOT", tmp_path)
+    assert _imported(package / "a.py", "cdm.a", {"cdm", "cdm.a", "cdm.b", "cdm.c", "cdm.d", "cdm.d.e"}) == {"cdm.b", "cdm.c", "cdm.d.e"}
+
+
+def test_no_import_cycle_in_cdm_or_sweeps():
+    graph = _graph()
+    assert len(graph) > 30 and "cdm.train" in graph and "sweeps.trial" in graph  # the walk found the code
+    cycle = _cycle(graph)
+    assert cycle is None, f"import cycle: {' -> '.join(cycle)}"
+
+
+@pytest.mark.parametrize("name", sorted(n for n in _modules() if n == "cdm" or n.startswith("cdm.")))
+def test_the_model_library_does_not_import_the_sweep_stack(name):
+    tree = ast.parse(_modules()[name].read_text())
+    roots = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            roots |= {alias.name.split(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            roots.add(node.module.split(".")[0])
+    assert not roots & set(FORBIDDEN_IN_CDM), f"{name} imports {sorted(roots & set(FORBIDDEN_IN_CDM))}"
