@@ -114,7 +114,7 @@ def test_a_diverging_trial_fails_with_its_reason_and_the_sweep_goes_on(cluster, 
     argv, uri = _sweep(tmp_path, "name: nan\ngrid: {train.lr: [1.0e-3, 1.0e+30]}\n")
     assert run.main(argv) == 0
     out = capsys.readouterr().out
-    assert "✗ failed [lr=1e+30 · seed 0]: cdm.train.TrainingDiverged: " in out and "NaN or infinite" in out
+    assert "✗ failed [lr=1e+30 · seed 0]: cdm.optim.TrainingDiverged: " in out and "NaN or infinite" in out
     assert "0/1 (1 failed)" in out
     _, _, children = _children(uri, "nan")
     status = {c.info.run_name: (c.info.status, c.data.tags.get("error", "")) for c in children}
