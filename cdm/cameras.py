@@ -155,7 +155,7 @@ def look_at_cameras(elev_deg: Tensor, azim_deg: Tensor, dist: Tensor, focal: flo
 
 
 def orbit_cameras(elev_deg: Tensor, azim_deg: Tensor, dist: Tensor, num_views: int, focal: float | Tensor = 2.0) -> Cameras:
-    """H prior-view cameras evenly spaced in azimuth, starting at the input view (NOTES §1).
+    """H prior-view cameras evenly spaced in azimuth, starting at the input view (the H views of Eq. 6).
 
     The stand-in for "evenly spaced frames of the object's sequence" on data without a sequence.
     Inputs ``(B,)``; returns cameras of batch shape ``(B, H)``; view 0 is the input camera.

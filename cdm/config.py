@@ -1,11 +1,14 @@
 """Typed, validated configuration for CDM: one home and one documented default per hyperparameter.
 
+(Over 400 lines on purpose: every field of every group, with its unit and paper default, in one file.)
+
 Each group is a frozen pydantic model with ``extra="forbid"``, so an unknown key or a value of the
 wrong type or range fails at load time with a message naming the dotted field (``priors.lambda_3d``).
 Defaults are the paper's (CDM, CVPR 2025) or PC²'s where the paper is silent; units are stated per
 field. Sizes that differ between a laptop and the paper live in sweep profiles, not here.
 
-Use :func:`load_config` for a YAML file or nested dict plus ``key=value`` overrides.
+Use :func:`load_config` for a YAML file or nested dict plus ``key=value`` overrides, and
+:meth:`Config.replace` to derive one config from another (validated the same way).
 """
 
 from __future__ import annotations
@@ -139,11 +142,12 @@ class PriorsConfig(_Group):
     prior_3d: bool = True
     """Add the 3D prior constraint (Eq. 6) to the loss."""
     lambda_3d: float = Field(1.0, ge=0.0)
-    """λ, weight of the 3D prior constraint (Eq. 4–6)."""
+    """λ, dimensionless weight of the 3D prior constraint in the loss (Eq. 6)."""
     num_views: int = Field(10, ge=0)
     """H, views rendered for the constraint, evenly spaced from the input view (Table 5: 10 best)."""
     point_size: float = Field(0.04, gt=0.0, le=1.0)
-    """Rendered point radius of the constraint, NDC units (paper: 0.04)."""
+    """The paper's point size of the constraint's renderings (0.04), NDC units (one pixel is 2/S): today
+    the standard deviation σ of each point's Gaussian splat, cut at 2σ (:func:`cdm.render.splat_points`)."""
     render_kind: Literal["depth", "planar"] = "depth"
     """Constraint images: soft depth maps (Co3D) or planar point images (ShapeNet), Fig. 3."""
     render_size: int = Field(224, ge=8, le=1024)
@@ -164,19 +168,19 @@ class TrainConfig(_Group):
     """Optimiser and loop (PC²: AdamW 1e-3, cosine with 2k warm-up, 100k steps, clip 50, batch 8)."""
 
     steps: int = Field(100_000, ge=1)
-    """Optimiser steps."""
+    """Optimiser steps (PC²: 100k)."""
     batch_size: int = Field(8, ge=1)
     """Objects per step (paper: 8)."""
     lr: float = Field(1e-3, gt=0.0)
-    """Peak AdamW learning rate."""
+    """Peak AdamW learning rate, reached after ``warmup_steps`` (PC²: 1e-3)."""
     weight_decay: float = Field(1e-6, ge=0.0)
     """AdamW weight decay."""
     betas: tuple[float, float] = (0.95, 0.999)
     """AdamW betas."""
     warmup_steps: int = Field(2000, ge=0)
-    """Linear warm-up steps before the cosine decay to zero."""
+    """Steps of linear warm-up before the cosine decay to zero at ``steps`` (PC²: 2,000)."""
     grad_clip: float = Field(50.0, gt=0.0)
-    """Max global gradient norm."""
+    """Largest global L2 norm of the gradient; larger gradients are scaled down to it (PC²: 50)."""
     ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
     """Exponential moving average of weights used for evaluation; null = off."""
     eval_every: int = Field(5000, ge=1)

@@ -5,7 +5,8 @@ Notation follows DDPM and the paper (Eq. 1–3): ``ᾱ_t = Π_{s≤t} (1 − β_
 (``prediction``):
 
 - ``eps``: ε̂, the paper's and PC²'s choice (Eq. 2–3);
-- ``x0``: x̂₀ directly — learns far faster in short CPU budgets (NOTES §6);
+- ``x0``: x̂₀ directly — learns far faster in short CPU budgets (``benchmarks/RESULTS.md``, "Which
+  recipe learns": ε-prediction does not learn in 1,500 steps);
 - ``v``: v̂ = √ᾱ_t · ε − √(1 − ᾱ_t) · x₀ (Salimans & Ho, 2022).
 
 Whatever the target, the loss is the MSE to that target, and every sampler works from x̂₀, so the
@@ -103,7 +104,8 @@ class GaussianDiffusion:
 
         ``ddim`` is deterministic DDIM (η = 0) over ``steps`` evenly spaced timesteps; ``ddpm`` is the
         full ancestral sampler over all T steps. ``clip_x0`` clamps x̂₀ at every step, which keeps
-        short-trained models from diverging (NOTES §6). Noise comes from ``generator`` only.
+        short-trained models from diverging (unclipped 100-step DDIM after minutes of CPU training gave
+        diverged clouds). Noise comes from ``generator`` only.
         """
         x = torch.randn(shape, generator=generator, device=device)
         timesteps = self.timesteps(sampler, steps)

@@ -1,6 +1,7 @@
 """Held-out evaluation: sample reconstructions, score them, and score trivial baselines beside them.
 
-A number without a baseline says little on small local runs (NOTES §6), so every evaluation also
+A number without a baseline says little on small local runs (``benchmarks/RESULTS.md``, "Does the
+quick config learn?": model and baselines side by side), so every evaluation also
 scores, on the same objects and with the same metric:
 
 - ``sphere``: points on a sphere centred at the origin with the ground truth's mean radius;

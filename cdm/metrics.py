@@ -1,4 +1,4 @@
-"""Chamfer distance and F-score with the definitions of BDM's evaluation (NOTES §4).
+"""Chamfer distance and F-score with the definitions of BDM's evaluation code (mlpc-ucsd/BDM; paper Tables 1–2).
 
 Per shape: both clouds are centred on their own mean; with ``d(p, Q) = min_q ‖p − q‖²`` (squared
 Euclidean, world units²),

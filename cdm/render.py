@@ -4,7 +4,8 @@
   (radius 0.0075 NDC at 224²) and renders dense surface samples into images on the data side. It
   has no gradient.
 - :func:`splat_points` renders soft depth maps or planar point images for the 3D prior constraint
-  (paper Eq. 6, point size 0.04 NDC, 224²). It is differentiable in the point coordinates.
+  (paper Eq. 6; point size 0.04 NDC, here the σ of each point's Gaussian splat; 224²). It is
+  differentiable in the point coordinates.
 
 Cameras, axes and pixel layout are those of :mod:`cdm.cameras` (PyTorch3D NDC: +X left, +Y up,
 pixel ``[row, col]`` centred at ``x = 1 − (2·col + 1)/S``, ``y = 1 − (2·row + 1)/S``). A point is in
@@ -36,7 +37,7 @@ SPLAT_DEPTH_EPS = 0.1
 """Added to the splat weight in the soft depth's denominator, ``Σwz / (Σw + eps)``.
 
 With 1e-3 the thin weight at a splat's edge gave spiky gradients (~10× a dense Gaussian splat's);
-0.1 fixed it (NOTES §6). It biases an isolated point's depth by ``1/(1 + eps)`` at its centre, and
+0.1 fixed it (measured against a naive per-point Gaussian splat). It biases an isolated point's depth by ``1/(1 + eps)`` at its centre, and
 by much less inside a dense cloud where ``Σw`` is tens.
 """
 
@@ -183,11 +184,13 @@ def splat_points(
     Each in-front point deposits weight ``w`` (and ``w·z``) on the 4 pixels around its projection
     with bilinear weights, then both accumulators are blurred by a separable Gaussian of
     ``σ = point_size`` (in pixels: ``point_size · S/2``), peak 1, cut at 2σ. This equals splatting
-    a Gaussian disc per point up to the bilinear step, at a fraction of the cost (NOTES §6).
+    a Gaussian disc per point up to the bilinear step, at a fraction of the cost: with H = 10 views
+    a training step costs 1.14–1.18× the step without the prior (``benchmarks/RESULTS.md``, "3D prior
+    overhead"), against 1.53× for the naive per-point splat.
 
     - ``"depth"``: ``Σwz / (Σw + SPLAT_DEPTH_EPS)``, view depth in world units, falling smoothly to
       ~0 on the background. Overlapping points average their depths by weight (no z-test: a soft
-      z-test stalled optimisation, NOTES §6).
+      z-test, weights ``w·exp(−z/τ)``, stalled optimisation of the prior loss).
     - ``"planar"``: soft coverage ``1 − exp(−Σw)`` in ``[0, 1)``: ~0.63 at an isolated point's
       centre, → 1 inside a dense cloud, never saturated flat, so every covered pixel has gradient.
 
@@ -195,7 +198,7 @@ def splat_points(
         points: ``(B, N, 3)`` world coordinates.
         cameras: batch ``(B,)``.
         image_size: ``S``, side of the square image in pixels.
-        point_size: Gaussian σ in NDC units (paper: 0.04).
+        point_size: the paper's point size (0.04), used as the splat's Gaussian σ, NDC units.
         kind: ``"depth"`` or ``"planar"``.
     Returns:
         ``(B, S, S)`` image, differentiable w.r.t. ``points``. Points behind the camera add nothing.

@@ -1,11 +1,11 @@
 """The CDM training loop, readable top to bottom: ``fit(config, callbacks)``.
 
-One step (paper Eq. 6): draw t and ε, noise the GT cloud, predict, take the diffusion loss, and —
-with ``priors.prior_3d`` — add λ × the 3D prior constraint between renderings of the predicted clean
-cloud x̂₀ (or x_t, ``priors.target``) and of x₀ from the H prior views.
+One step: the loss of Eq. 6 (:func:`cdm.objective.cdm_loss`: diffusion term + λ × the 3D prior
+constraint) and one optimiser step (:class:`cdm.optim.Optimiser`: AdamW, warm-up + cosine, clip).
 
 The loop talks to the outside only through :class:`Callback` (sweeps/ hooks Ray and MLflow in
-there). Checkpoints carry the resolved config, the step, the voxel back-end and every RNG state, so
+there). Checkpoints (:mod:`cdm.checkpoint`) carry the resolved config, the step, the voxel back-end
+and every RNG state, so
 ``fit(config, resume_from=dir)`` continues with exactly the step the interrupted run would have taken.
 """
 

@@ -5,16 +5,41 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cdm.config import Config, load_config
+from pathlib import Path
 
-TINY = {
-    "data": {"image_size": 32, "num_points": 128, "train_objects": 6, "val_objects": 2, "categories": ["chair", "mug"]},
-    "model": {"feature_dim": 8, "widths": [16, 16], "voxel_resolutions": [8, 4], "time_embed_dim": 16},
-    "diffusion": {"prediction": "x0", "sample_steps": 5},
-    "priors": {"num_views": 2, "render_size": 32},
-    "train": {"threads": 1, "steps": 40, "batch_size": 4, "warmup_steps": 5, "eval_every": 20, "log_every": 10, "lr": 3e-3},
-    "eval": {"num_objects": 1, "num_points": 128, "save_clouds": 1},
+import yaml
+
+from cdm.config import Config, apply_overrides, load_config
+
+PROFILES = Path(__file__).resolve().parents[1] / "sweeps" / "profiles.yaml"
+
+# What the tests change in the `smoke` profile, and why. The numbers the tests assert on were set
+# with these values, so they stay.
+TEST_CHANGES = {
+    "data.categories": ["chair", "mug"],  # mug: the category-prior tests train one
+    "data.train_objects": 6,
+    "data.val_objects": 2,  # two held-out objects per category: per-object rows to pair
+    "model.voxel_resolutions": [8, 4],  # two different resolutions exercise both grids
+    "priors.num_views": 2,  # H > 1 at the least cost
+    "train.threads": 1,
+    "train.steps": 40,
+    "train.eval_every": 20,
+    "train.warmup_steps": 5,
+    "train.log_every": 10,
+    "train.lr": 3e-3,  # learns within 40 steps
+    "eval.save_clouds": 1,
 }
+
+
+def _smoke_tree() -> dict:
+    """The `smoke` profile of sweeps/profiles.yaml (its overrides and budget) as a nested config tree."""
+    smoke = yaml.safe_load(PROFILES.read_text())["smoke"]
+    budget = {f"train.{k}": v for k, v in smoke["budget"].items()}
+    return apply_overrides({}, {**smoke["overrides"], **budget, **TEST_CHANGES})
+
+
+TINY = _smoke_tree()
+"""The tests' config tree: the `smoke` profile shrunk further where a test needs it (``TEST_CHANGES``)."""
 
 
 def tiny_config(tmp_path, **overrides) -> Config:

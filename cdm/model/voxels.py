@@ -1,5 +1,8 @@
 """Voxel branch of the point-voxel denoiser, with a dense and a sparse back-end behind one interface.
 
+(Over 400 lines on purpose: the two back-ends and their shared interface stay in one file so that
+each sparse operation reads beside the dense one it must equal at occupied voxels.)
+
 A :class:`VoxelGrid` is the structure of one batch of clouds at one voxel resolution ``r``: which
 voxel each point falls in and how voxels are laid out. It is built once per forward pass and
 resolution (the points do not move inside the network) and offers four operations on voxel
@@ -11,7 +14,8 @@ features, used by :class:`VoxelBranch` without knowing the back-end:
   ``b·r³ + (i·r + j)·r + k``; a submanifold 3×3×3 convolution (outputs only at occupied voxels, inputs
   only from occupied neighbours) and ``GroupNorm`` statistics per sample over its occupied voxels.
   A cloud of N points fills at most N of the ``r³`` voxels (≤ 3 % at N = 1,024, r = 32), which made a
-  training step 4–9× faster on CPU (NOTES §6); on a GPU dense is faster (:func:`resolve_voxel_backend`).
+  training step 3.8–9.9× faster on CPU (``benchmarks/RESULTS.md``, "dense / sparse step"); on a GPU
+  dense is faster (:func:`resolve_voxel_backend`).
 
 Both back-ends share the parameters of :class:`VoxelBranch` (same names and shapes) but compute
 different functions — a dense convolution and norm also see the empty voxels — so a model must be
@@ -63,8 +67,9 @@ def resolve_voxel_backend(backend: str, device: torch.device | str | None = None
     """Resolve ``model.voxel_backend``: ``auto`` is ``sparse`` on CPU and ``dense`` on CUDA.
 
     Measured per training step (B = 8, widths 64/128/256, resolutions 32/16/16): on one CPU thread
-    sparse was 4–9× faster (NOTES §6); on an H100 dense was 2.3× faster at N = 1,024 and 1.8× at
-    N = 16,384 (29 vs 66 ms, 34 vs 60 ms) — the sparse loop there is bound by kernel launches.
+    sparse was 9.9× faster at N = 1,024 and 3.8× at N = 4,096; on an H100 dense was 2.3× faster at
+    N = 1,024 and 1.8× at N = 16,384 (29 vs 66 ms, 34 vs 60 ms) — the sparse loop there is bound by
+    kernel launches (``benchmarks/RESULTS.md``, "dense / sparse step" and "Earlier H100 measurements").
     ``device=None`` means CUDA when it is available.
     """
     if backend in ("dense", "sparse"):
@@ -180,7 +185,7 @@ class _Interpolate(torch.autograd.Function):
 class _SubmanifoldConv(torch.autograd.Function):
     """Submanifold 3×3×3 convolution on occupied voxels: ``out[o] = Σ_k W_k · x[i]`` over the pairs
     ``(o, i)`` of each offset ``k`` — one gather → matmul → ``index_add_`` per offset (faster than
-    im2col or 27 dense matmuls, NOTES §6).
+    one im2col matmul or 27 dense matmuls, as timed on CPU when this was written).
 
     A hand-written backward runs the same loop in reverse and accumulates into one buffer; plain
     autograd allocated, zero-filled and summed a full ``(M, C_in)`` gradient per offset, 1.3–1.8×
