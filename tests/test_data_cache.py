@@ -124,3 +124,29 @@ def test_data_loader_workers_give_the_same_batches(trees, tmp_path):
         direct.step = workers.step = step + 1
     workers.step = 0  # a resume to another step restarts the loader there
     assert workers.next_batch().object_id == Trainer(tiny_config(tmp_path / "c", **overrides)).next_batch().object_id
+
+
+def test_byte_lru_keeps_the_most_recent_values_within_its_budget():
+    from cdm.data.lru import ByteLRU
+
+    class Blob(bytes):
+        def nbytes(self) -> int:
+            return len(self)
+
+    cache = ByteLRU(10)
+    made = []
+
+    def make(key: str, size: int):
+        return lambda: made.append(key) or Blob(b"x" * size)
+
+    cache.get("a", make("a", 4))
+    cache.get("b", make("b", 4))
+    assert cache.get("a", make("a", 4)) == b"xxxx"  # a hit: now b is the least recently used
+    cache.get("c", make("c", 4))  # 12 bytes > 10: b goes
+    assert (len(cache), cache.hits, cache.misses, made) == (2, 1, 3, ["a", "b", "c"])
+    cache.get("b", make("b", 4))
+    assert made[-1] == "b" and len(cache) == 2
+    cache.get("big", make("big", 50))  # alone over the budget, the newest value still stays
+    assert len(cache) == 1 and cache.get("big", make("big", 50)) and made.count("big") == 1
+    cache.clear()
+    assert (len(cache), cache.hits, cache.misses) == (0, 0, 0)

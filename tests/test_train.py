@@ -147,3 +147,17 @@ def test_data_parallel_ranks_see_different_batches_and_stay_in_sync(tmp_path):
         (ids0, w0), (ids1, w1) = results[0], results[1]
     assert ids0 != ids1
     assert torch.equal(w0, w1)
+
+
+def test_optimiser_step_clips_to_the_global_norm_and_follows_the_schedule():
+    from cdm.config import TrainConfig
+    from cdm.optim import Optimiser
+
+    weight = torch.nn.Parameter(torch.zeros(3))
+    opt = Optimiser([weight], TrainConfig(lr=0.1, warmup_steps=2, steps=4, grad_clip=1.0, weight_decay=0.0))
+    assert opt.lr == pytest.approx(0.05)  # step 0 of a 2-step warm-up
+    reduced = []
+    opt.step((weight * torch.tensor([300.0, 400.0, 0.0])).sum(), lambda: reduced.append(weight.grad.norm().item()))
+    assert reduced == [pytest.approx(500.0)] and weight.grad.norm().item() == pytest.approx(1.0)  # reduce, then clip
+    assert opt.lr == pytest.approx(0.1)
+    torch.testing.assert_close(weight.detach(), torch.tensor([-0.05, -0.05, 0.0]))  # Adam's first step: lr·sign
