@@ -36,6 +36,7 @@ from sweeps.plots import (
     partner,
     training_curves,
 )
+from sweeps.protocol import CARD_TAG
 from sweeps.results import ResultsTable, TrialOutcome, build_table, settings_note
 from sweeps.spec import SpaceParam, Spec, load_spec
 from sweeps.tracking import last_eval_files, last_objects, resolve_tracking_uri
@@ -203,7 +204,15 @@ def _settings(record: SweepRecord) -> list[str]:
     if not targets:
         plan = record.plan
         targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", "eps")]
-    return [settings_note(record.profile, record.parent.data.params.get("steps", "?"), targets)]
+    return [settings_note(record.profile, record.parent.data.params.get("steps", "?"), targets),
+            *(f"protocol: {line}" for line in protocol_card_lines(record))]
+
+
+def protocol_card_lines(record: SweepRecord) -> list[str]:
+    """The sweep's protocol card (``sweeps/protocol.py``) as the runner tagged it on the parent run; a
+    sweep from before the card existed says it has none."""
+    card = record.parent.data.tags.get(CARD_TAG)
+    return card.splitlines() if card else ["no protocol card recorded (a sweep from before the card)"]
 
 
 def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTable:

@@ -26,6 +26,7 @@ if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sy
 from pydantic import ValidationError
 
 from cdm.config import ConfigError, load_config, parse_override
+from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.spec import Spec, SpecError, SweepPlan, expand, load_spec, plan_concurrency
 
 __all__ = ["describe", "main"]
@@ -39,7 +40,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", default=None, help="profile in sweeps/profiles.yaml or the spec (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials")
-    p.add_argument("--dry-run", action="store_true", help="print the trials and the resource plan; start nothing")
+    p.add_argument("--dry-run", action="store_true", help="print the trials, the resource plan and the protocol card; start nothing")
+    p.add_argument("--no-estimate", action="store_true", help="with --dry-run: skip the cost estimate's calibration steps")
     p.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every trial")
     p.add_argument("--storage", default="results",
@@ -73,6 +75,7 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None) -> str:
             line += f"; this machine cannot run it: {exc}"
     out.append(line)
     out.append("fixed: " + ", ".join(f"{k}={v}" for k, v in {**plan.fixed, **plan.sets}.items()))
+    out += ["protocol card:"] + [f"  {line}" for line in plan_card(plan).lines()]
     if spec.search.kind == "optuna":
         s = spec.search
         out.append(f"search: Optuna {s.sampler} (seed {s.seed}), {plan.num_trials} trials, seed {spec.seeds[0]}, over:")
@@ -111,7 +114,8 @@ def _settings(plan: SweepPlan) -> list[str]:
 
     # Optuna plans have no cells yet: the fixed settings and --set values stand for every trial.
     configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs))]
+    card = [f"protocol: {line}" for line in plan_card(plan).lines()]
+    return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs)), *card]
 
 
 def _fail(message: str) -> int:
@@ -207,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
 
         cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
         print(describe(plan, cpus, gpus), flush=True)
+        if args.no_estimate:
+            return 0
         if cpus is None:
             print("estimate: run --dry-run on the cluster's head (without --address) to size it")
             return 0
@@ -259,7 +265,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         else:
             sweep_run = SweepRun.start(
                 uri, plan.spec.name, f"{plan.spec.name} · {plan.profile.name} · {time.strftime('%Y-%m-%d %H:%M')}",
-                tags={"spec": plan.spec.name, "profile": plan.profile.name, "sweep_dir": sweep_dir},
+                tags={"spec": plan.spec.name, "profile": plan.profile.name, "sweep_dir": sweep_dir,
+                      CARD_TAG: "\n".join(plan_card(plan).lines())},
                 params={"profile": plan.profile.name, "search": plan.spec.search.kind, "trials": plan.num_trials,
                         "metric": plan.spec.metric.name, "steps": plan.profile.steps, "sets": json.dumps(sets)},
             )

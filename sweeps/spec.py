@@ -185,6 +185,16 @@ class ExplicitCell(_Strict):
     set: dict[str, Any] = {}
 
 
+class DatasetRun(_Strict):
+    """How the paper ran a spec's table on one data set; used by ``--profile paper`` once ``--set
+    data.root=...`` names where that data set is (``--set data.kind=...`` picks one of several)."""
+
+    overrides: dict[str, Any] = {}
+    """Dotted config fields the paper used on this data set (e.g. ``priors.render_kind: planar``)."""
+    grid: dict[str, list[Any]] = {}
+    """Grid axes replaced on this data set (e.g. Table 2's ShapeNet categories, with car)."""
+
+
 class Spec(_Strict):
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
     description: str = ""
@@ -202,6 +212,10 @@ class Spec(_Strict):
     profiles: dict[str, Profile] = {}
     compare_to: str | None = None
     """Cell every other cell is paired with in the results table (default: the first cell)."""
+    datasets: dict[Literal["shapenet_r2n2", "co3d"], DatasetRun] = {}
+    """The data sets the paper ran this table on; empty = the paper's ShapeNet and Co3D alike."""
+    stand_in: str = ""
+    """What the procedural data set stands in with for the paper's data (shown on the protocol card)."""
 
     @model_validator(mode="after")
     def _check(self) -> Spec:
@@ -211,6 +225,8 @@ class Spec(_Strict):
         dotted += [("search.space", k) for k in self.search.space]
         dotted += [(f"profiles.{p}.overrides", k) for p, prof in self.profiles.items() for k in prof.overrides]
         dotted += [(f"paper.rows[{i}].when", k) for i, r in enumerate(self.paper.rows if self.paper else []) for k in r.when]
+        dotted += [(f"datasets.{d}.{part}", k) for d, run in self.datasets.items() for part in ("overrides", "grid")
+                   for k in getattr(run, part)]
         for where, key in dotted:
             if key not in known:
                 raise ValueError(f"{where}.{key}: unknown config field (see `python -m cdm fields`)")
@@ -225,6 +241,9 @@ class Spec(_Strict):
             raise ValueError("grid: empty; give at least one dotted config field with a list of values (or cells)")
         if self.search.kind == "optuna" and (self.grid or self.cells or len(self.seeds) > 1):
             raise ValueError("search: optuna explores search.space; leave grid and cells empty and give one seed")
+        for d, run in self.datasets.items():
+            if set(run.grid) - set(self.grid):
+                raise ValueError(f"datasets.{d}.grid: {sorted(set(run.grid) - set(self.grid))} are not axes of grid")
         for i, rule in enumerate(self.exclude):
             for key, value in rule.items():
                 if key not in self.grid or value not in self.grid[key]:
@@ -459,6 +478,18 @@ def _check_metric(spec: Spec, configs: list[Config]) -> tuple[str, ...]:
     return tuple(sorted(names))
 
 
+def _dataset_run(spec: Spec, profile: str, sets: dict[str, Any]) -> DatasetRun | None:
+    """The paper's run on the data set ``--set data.root`` points at (paper profile only); sets
+    ``data.kind`` in ``sets`` when the spec names one data set and ``--set`` gives none."""
+    if profile != "paper" or "data.root" not in sets or not spec.datasets:
+        return None
+    if "data.kind" not in sets:
+        if len(spec.datasets) > 1:
+            raise SpecError(f"--set data.kind: this table ran on {' and '.join(spec.datasets)}; say which data.root holds")
+        sets["data.kind"] = next(iter(spec.datasets))
+    return spec.datasets.get(sets["data.kind"])
+
+
 def expand(
     spec: Spec,
     profile: str = "local",
@@ -481,7 +512,10 @@ def expand(
             raise SpecError(f"--set {key}: set it through {_OWNED[key]} (or --profile) instead")
         if key in spec.grid or key in spec.search.space or any(key in c.set for c in spec.cells):
             raise SpecError(f"--set {key}: this spec sweeps it; change the spec's grid, cells or space instead")
-    fixed = {**prof.overrides, "train.steps": prof.steps, "train.eval_every": prof.eval_every}
+    run = _dataset_run(spec, profile, sets)
+    if run is not None:
+        spec = spec.model_copy(update={"grid": {**spec.grid, **run.grid}})
+    fixed = {**prof.overrides, **(run.overrides if run else {}), "train.steps": prof.steps, "train.eval_every": prof.eval_every}
     fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
     _build({**fixed, **sets}, f"profile {profile}")
     rows = spec.paper.rows if spec.paper else []
