@@ -8,7 +8,9 @@ evaluation, on one torch thread (how trials run on a small machine). Trials run 
     wall  ≈ Σ trials ÷ min(concurrent trials, CPUs)
 
 The paper profile's GPU-hours use per-step GPU figures measured by ``benchmarks/run.py --device cuda``
-(``benchmarks/gpu_costs.json``; absent: not estimated). Estimates assume every cell costs what the
+(``benchmarks/gpu_costs.json``; absent: not estimated); an evaluation samples with the profile's sampler
+(DDPM: all T steps) and scores every held-out object under ``eval.protocol: paper`` when ``data.root`` is
+given (counted), else ``eval.num_objects`` per category. Estimates assume every cell costs what the
 calibrated cells cost on average.
 """
 
@@ -23,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cdm.config import Config, load_config
-from cdm.data import list_categories
+from cdm.data import build_dataset, list_categories
 from cdm.prior_model import ensure_priors
 from cdm.optim import TrainingDiverged
 from cdm.train import Trainer
@@ -96,6 +98,18 @@ def _calibration_configs(plan: SweepPlan) -> list[Config]:
     return [distinct[i] for i in picks]
 
 
+def _sample_steps(cfg: Config) -> int:
+    return cfg.diffusion.num_steps if cfg.diffusion.sampler == "ddpm" else cfg.diffusion.sample_steps
+
+
+def _eval_objects(cfg: Config) -> int:
+    """Objects one evaluation scores: every held-out one under ``eval.protocol: paper`` when the data set
+    is on disk (counted), else ``eval.num_objects`` per category."""
+    if cfg.eval.protocol == "paper" and cfg.data.root is not None:
+        return len(build_dataset(cfg, "val"))
+    return cfg.eval.num_objects * len(list_categories(cfg))
+
+
 def paper_trial_gpu_hours(paper: SweepPlan) -> tuple[float | None, str]:
     """GPU-hours of one trial of a spec expanded with the paper profile, and the GPU they were measured on."""
     if not GPU_COSTS.is_file():
@@ -105,8 +119,7 @@ def paper_trial_gpu_hours(paper: SweepPlan) -> tuple[float | None, str]:
     sizes = sorted(int(n) for n in figures["by_points"])
     # The smallest measured cloud size that holds the config's (else the largest measured).
     step = figures["by_points"][str(next((n for n in sizes if n >= cfg.data.num_points), sizes[-1]))]
-    objects = cfg.eval.num_objects * len(list_categories(cfg))
-    eval_s = math.ceil(objects / cfg.train.batch_size) * cfg.diffusion.sample_steps * step["sample_step_s"]
+    eval_s = math.ceil(_eval_objects(cfg) / cfg.train.batch_size) * _sample_steps(cfg) * step["sample_step_s"]
     per_trial = paper.profile.steps * step["train_step_s"] + math.ceil(paper.profile.steps / paper.profile.eval_every) * eval_s
     r = paper.profile.resources
     gpus = max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0)

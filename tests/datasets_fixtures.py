@@ -96,7 +96,7 @@ class ShapeNetTree:
 
 
 def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int = 0, views: int = 24,
-                  bdm_split: bool = False) -> ShapeNetTree:
+                  bdm_split: bool = False, synsets: dict[str, str] | None = None) -> ShapeNetTree:
     """``root/ShapeNetRendering`` and ``root/ShapeNetCore.v2.PC15k`` for chair and airplane.
 
     Each category gets ``per_split`` models per PC15k split (default train 3, val 1, test 1), plus one
@@ -105,11 +105,13 @@ def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int
     meshes, and the PC15k cloud is written in the v2 frame, as PointFlow sampled v2 meshes.
     ``bdm_split`` also writes BDM's ``pc_dict_v2.json``: R2N2's test split = PC15k's test models plus the
     first train model, its train split = the other rendered models (each mapped to its PC15k folder).
+    ``synsets`` (name → synset id) replaces chair and airplane, e.g. with all 13 R2N2 classes.
     """
+    synsets = synsets or SHAPENET_SYNSETS
     per_split = per_split or {"train": 3, "val": 1, "test": 1}
     rng = np.random.default_rng(seed)
     tree = ShapeNetTree(root)
-    for name, synset in SHAPENET_SYNSETS.items():
+    for name, synset in synsets.items():
         tree.splits[name] = {}
         for split, count in per_split.items():
             models = [f"{name[:2]}{split}{k:03d}{rng.integers(1 << 30):08x}" for k in range(count)]
@@ -127,7 +129,7 @@ def make_shapenet(root: Path, per_split: dict[str, int] | None = None, seed: int
                 _render_r2n2(root / "ShapeNetRendering" / synset / model / "rendering", dense + tree.offset, rng, views)
     if bdm_split:
         table: dict[str, dict[str, dict[str, str]]] = {"train": {}, "test": {}}
-        for name, synset in SHAPENET_SYNSETS.items():
+        for name, synset in synsets.items():
             moved = tree.splits[name]["train"][0]
             for folder, models in tree.splits[name].items():
                 for model in models:

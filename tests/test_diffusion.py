@@ -74,3 +74,24 @@ def test_loss_is_zero_at_target_and_positive_elsewhere():
     t = torch.tensor([3, 900])
     assert d.loss(d.target(x0, noise, t), x0, noise, t).item() == pytest.approx(0.0, abs=1e-12)
     assert d.loss(torch.zeros_like(x0), x0, noise, t).item() > 0.1
+
+
+def test_paper_profile_samples_with_pc2s_schedule_and_sampler():
+    """PC²'s ``experiments/config/structured.py``: beta_start 1e-5, beta_end 8e-3, beta_schedule linear
+    (1,000 training steps), diffusion_scheduler ddpm, num_inference_steps 1000; no x̂₀ clipping."""
+    from pathlib import Path
+
+    from sweeps.spec import expand, load_spec
+
+    spec = Path(__file__).resolve().parent.parent / "sweeps" / "point_size.yaml"
+    cfg = expand(load_spec(spec), "paper").cells[0].config
+    assert (cfg.diffusion.sampler, cfg.diffusion.clip_x0, cfg.diffusion.prediction) == ("ddpm", None, "eps")
+    d = GaussianDiffusion.from_config(cfg.diffusion)
+    assert len(d.betas) == 1000 and d.betas[0].item() == 1e-5 and d.betas[-1].item() == pytest.approx(8e-3, rel=1e-15)
+    steps = d.betas[1:] - d.betas[:-1]  # linear: every increment (8e-3 − 1e-5) / 999
+    assert torch.allclose(steps, torch.full_like(steps, (8e-3 - 1e-5) / 999), rtol=1e-9, atol=0)
+    assert torch.allclose(d.alphas_cumprod, torch.cumprod(1 - d.betas, 0))
+    assert d.timesteps(cfg.diffusion.sampler, cfg.diffusion.sample_steps) == list(range(999, -1, -1))  # all 1,000 steps
+    for profile in ("smoke", "local"):  # the small profiles keep the clipped DDIM they had
+        small = expand(load_spec(spec), profile).cells[0].config.diffusion
+        assert small.sampler == "ddim" and small.clip_x0 == 1.0

@@ -22,7 +22,7 @@ SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
 
 EXPECTED_TRIALS = {  # cells × seeds per shipped spec (Optuna: num_samples of the profile)
     "point_size": 5, "frames": 7, "frames_point_size": 3, "priors_2d_3d": 4, "prior_type": 2,
-    "global_features": 3, "conditions": 1, "prediction": 3, "bdm_blend": 20, "lambda": {"smoke": 4, "local": 8, "paper": 32},
+    "global_features": 3, "conditions": 1, "prediction": 3, "bdm_blend": 20, "shapenet": 10, "co3d": 6, "lambda": {"smoke": 4, "local": 8, "paper": 32},
 }
 
 
@@ -60,8 +60,19 @@ def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, t
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
+@pytest.mark.parametrize("profile", ["smoke", "local", "paper"])
+def test_every_spec_dry_runs_in_every_profile_with_its_protocol_card(path, profile, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert run.main([str(path), "--dry-run", "--no-estimate", "--profile", profile]) == 0
+    out = capsys.readouterr().out
+    card = out.split("protocol card:\n", 1)[1].splitlines()
+    assert card[0].startswith("  deviation: data set: the procedural data set stands in")  # no data.root given
+    assert f"profile {profile}" in out and list(tmp_path.iterdir()) == []
+
+
 def test_profiles_differ_in_size_and_the_paper_profile_has_the_paper_settings():
-    spec = load_spec(SWEEPS / "point_size.yaml")
+    spec = load_spec(SWEEPS / "shapenet.yaml")  # Table 1: ShapeNet sizes (Table 5's point_size.yaml is Co3D's)
     smoke, local, paper = (expand(spec, p).cells[0].config for p in ("smoke", "local", "paper"))
     assert smoke.data.image_size < local.data.image_size < paper.data.image_size == 224
     assert (paper.data.num_points, paper.train.batch_size, paper.train.steps) == (4096, 8, 100_000)
