@@ -19,24 +19,11 @@ applied to prediction and ground truth alike: ``x_scored = f · x_box``.
 
 from __future__ import annotations
 
-import numpy as np
-
 from cdm.config import Config
 from cdm.data.captured import CapturedDataset
 from cdm.data.views import ObjectDataset
 
-__all__ = ["flat_std", "score_factor"]
-
-
-def flat_std(clouds: list[np.ndarray]) -> float:
-    """σ of BDM's global normalisation: ``std`` (n − 1) of all coordinates of ``clouds`` (each ``(P, 3)``)
-    flattened into one vector, as ``all_points.reshape(-1).std()`` there. Sums in float64."""
-    n = sum(c.size for c in clouds)
-    if n < 2:
-        raise ValueError("flat_std needs at least two coordinates")
-    total = sum(float(c.sum(dtype=np.float64)) for c in clouds)
-    squares = sum(float(np.square(c, dtype=np.float64).sum()) for c in clouds)
-    return float(np.sqrt(max(squares - total * total / n, 0.0) / (n - 1)))
+__all__ = ["score_factor"]
 
 
 def score_factor(cfg: Config, dataset: ObjectDataset, index: int) -> float:

@@ -22,13 +22,14 @@ def test_trial_time_counts_steps_and_every_evaluation():
 
 def test_paper_gpu_hours_follow_the_measured_figures():
     figures = json.loads(GPU_COSTS.read_text())
-    plan = expand(load_spec(SWEEPS / "point_size.yaml"), "local")
+    plan = expand(load_spec(SWEEPS / "shapenet.yaml"), "local")
     hours, device = paper_trial_gpu_hours(expand(plan.spec, "paper"))
     cfg = expand(plan.spec, "paper").cells[0].config
     evals = 100_000 // 5_000
-    batches = math.ceil(cfg.eval.num_objects * 8 / 8)  # 8 procedural categories, batch 8
+    batches = math.ceil(cfg.eval.num_objects * 1 / 8)  # one category per cell, batch 8
     step = figures["by_points"]["4096"]  # the paper profile's ShapeNet size
-    per_trial = 100_000 * step["train_step_s"] + evals * batches * cfg.diffusion.sample_steps * step["sample_step_s"]
+    assert cfg.diffusion.sampler == "ddpm"  # PC²'s sampler: every one of the 1,000 steps per evaluation
+    per_trial = 100_000 * step["train_step_s"] + evals * batches * 1000 * step["sample_step_s"]
     assert hours == pytest.approx(per_trial / 3600)
     assert device == figures["device"]
 

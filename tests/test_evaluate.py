@@ -69,7 +69,7 @@ def test_eval_set_scores_every_baseline_per_object_and_fingerprints_the_objects(
 def test_flat_std_is_bdms_std_of_all_coordinates_by_hand():
     import numpy as np
 
-    from cdm.normalise import flat_std
+    from cdm.data.shapenet import flat_std
 
     # Values 0,0,0, 2,0,0 | 0,2,0: n = 9, mean 4/9, Σv² = 8 → var = (8 − 16/9)/8 = 7/9 (n − 1, as torch.std).
     clouds = [np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), np.array([[0.0, 2.0, 0.0]])]

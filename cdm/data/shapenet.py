@@ -51,7 +51,7 @@ from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
 from cdm.data.views import Split, interleave
 
-__all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
+__all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "flat_std", "r2n2_cameras", "v2_to_v1"]
 
 SYNSETS = {
     "02691156": "airplane", "02828884": "bench", "02933112": "cabinet", "02958343": "car", "03001627": "chair",
@@ -77,6 +77,17 @@ def v2_to_v1(points: np.ndarray) -> np.ndarray:
     BDM's ``transform_v2_to_v1``. Its own inverse (applying it twice gives the input back).
     """
     return np.stack([-points[:, 2], points[:, 1], -points[:, 0]], axis=1)
+
+
+def flat_std(clouds: list[np.ndarray]) -> float:
+    """σ of BDM's global normalisation: ``std`` (n − 1) of all coordinates of ``clouds`` (each ``(P, 3)``)
+    flattened into one vector, as ``all_points.reshape(-1).std()`` there. Sums in float64."""
+    n = sum(c.size for c in clouds)
+    if n < 2:
+        raise ValueError("flat_std needs at least two coordinates")
+    total = sum(float(c.sum(dtype=np.float64)) for c in clouds)
+    squares = sum(float(np.square(c, dtype=np.float64).sum()) for c in clouds)
+    return float(np.sqrt(max(squares - total * total / n, 0.0) / (n - 1)))
 
 
 def r2n2_cameras(metadata: np.ndarray) -> torch.Tensor:
@@ -185,10 +196,8 @@ class ShapeNetR2N2Dataset(CapturedDataset):
         return v2_to_v1(cloud.astype(np.float64))
 
     def split_std(self, category: str) -> float:
-        """σ of BDM's normalisation for ``category`` in this split (:func:`cdm.normalise.flat_std` of every
+        """σ of BDM's normalisation for ``category`` in this split (:func:`flat_std` of every
         full cloud, v1 frame); reads the published clouds once per category."""
-        from cdm.normalise import flat_std
-
         if category not in self._split_std:
             if self.prepared is not None:
                 raise ValueError("eval.normalise: 'reference' on ShapeNet needs BDM's σ over every published PC15k "
