@@ -101,3 +101,33 @@ def test_dry_run_prints_the_card(shapenet, capsys):
     out = capsys.readouterr().out
     card = out.split("protocol card:\n", 1)[1].splitlines()[:2]
     assert card == [f"  deviation: {ENCODER}", "  note: λ = 1 is ours: the paper gives no value for the 3D prior's weight"]
+
+
+def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_table(tmp_path):
+    """As sweeps/run.py starts a sweep: the card's lines tagged on the parent MLflow run (a real sqlite store);
+    report.py reads them back and both results tables list them under the rows."""
+    import json
+
+    from sweeps import report
+    from sweeps.protocol import CARD_TAG
+    from sweeps.results import build_table
+    from sweeps.tracking import SweepRun
+
+    spec_file = SWEEPS / "co3d.yaml"
+    plan = expand(load_spec(spec_file), "smoke")
+    lines = plan_card(plan).lines()
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, plan.spec.name, "co3d · smoke",
+                           tags={"spec": plan.spec.name, "profile": "smoke", CARD_TAG: "\n".join(lines)},
+                           params={"trials": plan.num_trials, "steps": plan.profile.steps})
+    plan_file = tmp_path / "plan.json"
+    plan_file.write_text(json.dumps({"fixed": plan.fixed, "sets": {}, "cells": []}, default=str))
+    sweep.log_artifacts([spec_file, plan_file])
+    sweep.end()
+    record = report.open_sweep(uri, plan.spec.name)
+    assert report.protocol_card_lines(record) == lines
+    assert lines[0] == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa stand in for hydrant, teddybear and toytruck"
+    theirs = report.results_table(record, []).notes
+    ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=run._settings(plan)).notes
+    assert [n for n in theirs if n.startswith("protocol: ")] == [n for n in ours if n.startswith("protocol: ")] == [
+        f"protocol: {line}" for line in lines]
