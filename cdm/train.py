@@ -161,7 +161,7 @@ class Trainer:
         # (re)started at the current step, e.g. after a resume.
         if self._loader is None or self._loader_step != self.step:
             sampler = StepBatches(self.step, self.cfg.train.steps, self.world, self.rank, self.cfg.train.batch_size,
-                                   len(self.train_set), self.cfg.train.seed)
+                                  len(self.train_set), self.cfg.train.seed)
             self._loader = iter(DataLoader(ByRound(self.train_set), batch_sampler=sampler, collate_fn=collate,
                                            num_workers=self.cfg.data.num_workers))
             self._loader_step = self.step
