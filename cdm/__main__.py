@@ -158,6 +158,26 @@ def cmd_prepare(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_check_data(args: argparse.Namespace) -> int:
+    from cdm.data import build_dataset
+    from cdm.data.checks import MIN_INSIDE, check_masks
+
+    cfg = load_config(args.config, _overrides(args.set))
+    failed = total = 0
+    for split in ("train", "val"):
+        dataset = build_dataset(cfg, split)
+        for i in range(len(dataset)):
+            check = check_masks(dataset, i)
+            total += 1
+            if not check.passed:
+                failed += 1
+                bad = [f"view {v}: {f:.2f}" for v, f in enumerate(check.fractions.tolist()) if f < MIN_INSIDE]
+                print(f"FAIL {split} {check.object_id}: ground truth inside the mask on {', '.join(bad)}")
+    print(f"{total - failed}/{total} objects pass (every view with a mask holds >= {MIN_INSIDE:.0%} of the "
+          "projected ground truth)" + ("" if not failed else "; a cloud in the wrong frame or a wrong camera does this"))
+    return 1 if failed else 0
+
+
 def cmd_fields(args: argparse.Namespace) -> int:
     defaults = Config().flat()
     for path in config_field_paths():
@@ -202,6 +222,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-size", type=int, default=224, help="side of the stored crops in pixels (default 224)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]")
     p.set_defaults(func=cmd_prepare)
+    p = sub.add_parser("check-data", help="check that every ground-truth cloud projects into its own masks (exit 1 if not)")
+    p.add_argument("--config", help="YAML config; data.kind and data.root name the data set")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.kind=co3d")
+    p.set_defaults(func=cmd_check_data)
     p = sub.add_parser("fields", help="list every config field with its default")
     p.set_defaults(func=cmd_fields)
     return parser

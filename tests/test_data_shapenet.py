@@ -106,6 +106,21 @@ def test_pc15k_clouds_are_stored_in_the_v2_frame_and_loaded_in_v1(tree):
     assert inside.mean() > 0.95
 
 
+def test_check_data_command_passes_the_published_frames_and_fails_clouds_left_unmapped(tree, tmp_path, capsys):
+    args = ["check-data", "--set", "data.kind=shapenet_r2n2", "--set", "data.image_size=64"]
+    assert main([*args, "--set", f"data.root={tree.root}"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1].startswith("8/8 objects pass")
+    # The same tree with every PC15k cloud already in R2N2's v1 frame: the loader's map now turns it wrong.
+    root = tmp_path / "v1"
+    shutil.copytree(tree.root, root)
+    for npy in (root / "ShapeNetCore.v2.PC15k").rglob("*.npy"):
+        v2 = np.load(npy)
+        np.save(npy, np.stack([-v2[:, 2], v2[:, 1], -v2[:, 0]], 1))
+    assert main([*args, "--set", f"data.root={root}"]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1].startswith("0/8 objects pass") and sum(line.startswith("FAIL ") for line in out) == 8
+
+
 def test_ground_truth_in_mask_at_the_training_size(tree):
     ds = build_dataset(_cfg(tree.root), "train")
     fractions = [inside_mask(ds.sample(i, r).points, ds.sample(i, r).camera, ds.sample(i, r).mask) for i in range(len(ds)) for r in range(2)]
