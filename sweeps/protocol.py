@@ -94,6 +94,12 @@ def _points(cfg: Config, ctx: CardContext) -> str | None:
     return f"points: {cfg.data.num_points} per cloud, {cfg.eval.num_points} scored (the reference: {want})"
 
 
+def _metric(cfg: Config, ctx: CardContext) -> str | None:
+    if cfg.eval.f1_threshold == 0.01:
+        return None
+    return f"metric: F1 at τ = {cfg.eval.f1_threshold:g} on the squared distance (BDM: 0.01)"
+
+
 def _sampler(cfg: Config, ctx: CardContext) -> str | None:
     d = cfg.diffusion
     if d.sampler == "ddpm" and d.clip_x0 is None:
@@ -137,8 +143,8 @@ def _depth_source(cfg: Config, ctx: CardContext) -> str | None:
     return "depth: the 2D depth prior reads ground-truth depth maps, an upper bound (the paper estimates depth)"
 
 
-CHECKS: list[Check] = [_data_set, _split, _objects, _normalisation, _points, _sampler, _diffusion, _training,
-                       _encoder, _depth_source]
+CHECKS: list[Check] = [_data_set, _split, _objects, _normalisation, _points, _metric, _sampler, _diffusion,
+                       _training, _encoder, _depth_source]
 """The card's checks, in the order the card lists them; append a function to check one more aspect."""
 
 

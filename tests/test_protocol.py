@@ -41,6 +41,8 @@ def test_paper_profile_on_shapenet_lists_only_the_encoder(shapenet):
         "test", "paper", "reference", "ddpm", None)
     card = plan_card(plan)
     assert card.deviations == (ENCODER,)
+    looser = protocol_card(cfg.replace(**{"eval.f1_threshold": 0.02})).deviations
+    assert looser == ("metric: F1 at τ = 0.02 on the squared distance (BDM: 0.01)", ENCODER)
     assert card.notes == ("λ = 1 is ours: the paper gives no value for the 3D prior's weight",)
 
 
