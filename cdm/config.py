@@ -44,7 +44,9 @@ class ConfigError(ValueError):
 
 
 class _Group(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    # allow_inf_nan=False: every float field (betas' items too) must be a finite number, so
+    # priors.lambda_3d=.inf fails here instead of stopping the training at step 0.
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False)
 
 
 class DataConfig(_Group):
@@ -371,9 +373,12 @@ def parse_override(text: str) -> tuple[str, Any]:
         raise ConfigError(f"override {text!r} must look like key=value, e.g. priors.lambda_3d=0.5")
     key, raw = text.split("=", 1)
     try:
+        # An alias chain of a few hundred bytes can expand to gigabytes: a value has no need of one.
+        if any(isinstance(event, yaml.AliasEvent) for event in yaml.parse(raw, Loader=yaml.SafeLoader)):
+            raise ConfigError(f"{key}: YAML aliases (*name) are not allowed in a value; write the value out")
         value = yaml.safe_load(raw)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{key}: cannot parse value {raw!r}: {exc}") from None
+        raise ConfigError(f"{key}: cannot parse value {raw!r}: {' '.join(str(exc).split())}") from None
     return key.strip(), value
 
 

@@ -26,8 +26,11 @@ if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sy
 from pydantic import ValidationError
 
 from cdm.config import ConfigError, load_config, parse_override
+from sweeps.claim import ClaimError, SweepClaim, claim
+from sweeps.limits import MAX_TRIALS, LimitError, check_memory, check_trials
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.spec import Spec, SpecError, SweepPlan, expand, load_spec, plan_concurrency
+from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
 
 __all__ = ["describe", "main"]
 
@@ -50,6 +53,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
     p.add_argument("--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record")
     p.add_argument("--force", action="store_true", help="with --rerun: run even if the code or config differs from the record")
+    p.add_argument("--max-cells", type=int, default=MAX_TRIALS, metavar="N",
+                   help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; README, Security and limits)")
     p.add_argument("--report", metavar="EXPERIMENT", default=None, help="rebuild the results table and plots of this finished sweep from MLflow")
     return p
 
@@ -147,7 +152,7 @@ def _read_text(location: str) -> str:
 
     filesystem, path = fs.FileSystem.from_uri(location)
     with filesystem.open_input_stream(path) as stream:
-        return stream.read().decode()
+        return stream.read().decode(errors="replace")  # a damaged file fails as JSON, with its name
 
 
 def _publish_files(local: Path, location: str) -> None:
@@ -186,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         # repository: checkpoints there vanish with the job and other nodes never see them.
         return _fail(f"--storage {args.storage}: on a cluster give an absolute path that every node shares "
                      "(e.g. /mnt/shared/results) or an object-store URI (s3://bucket/results)")
+    state = None
     try:
         spec = load_spec(args.spec)
         sweep_dir = _sweep_location(args.storage, spec.name, profile)
@@ -197,14 +203,30 @@ def main(argv: list[str] | None = None) -> int:
             if sets:
                 return _fail("--resume continues a sweep with the spec and --set values it started with; drop --set")
             # The spec as it started, even if the file was edited since: trials must stay the same.
+            state = parse_state(_read_text(state_file), state_file)
             try:
-                state = json.loads(_read_text(state_file))
                 spec, sets = Spec.model_validate(state["spec"]), state["sets"]
-            except (json.JSONDecodeError, KeyError, ValidationError) as exc:
-                return _fail(f"--resume: {state_file} is damaged ({type(exc).__name__}: {exc}); remove the folder to start over")
+            except ValidationError as exc:
+                return _fail(f"--resume: {state_file} is damaged ({' '.join(str(exc).split())}); remove the folder to start over")
+        check_trials(spec, args.max_cells)
         plan = expand(spec, profile, sets)
-    except (SpecError, ConfigError) as exc:
+        if not remote:  # a cluster's nodes have their own memory; this machine's says nothing of them
+            check_memory([c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})],
+                         _local_concurrency(plan))
+    except (SpecError, ConfigError, LimitError, StoreError) as exc:
         return _fail(str(exc))
+    if not args.dry_run:
+        from sweeps.tracking import resolve_tracking_uri
+
+        try:  # before Ray starts and before any MLflow run exists
+            check_storage(sweep_dir)
+            check_tracking_uri(resolve_tracking_uri(args.tracking_uri or (state or {}).get("tracking_uri")))
+            held = claim(sweep_dir)
+        except (StoreError, ClaimError) as exc:
+            return _fail(str(exc))
+        if not args.resume and _exists(sweep_dir):
+            held.release()
+            return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
     print(f"spec {spec.name} ({args.spec}): {spec.description}", flush=True)
     if args.dry_run:
         import torch
@@ -223,13 +245,23 @@ def main(argv: list[str] | None = None) -> int:
         print("calibrating (a few training steps and one evaluation) ...", flush=True)
         _estimate(plan, cpus, concurrent)
         return 0
-    if not args.resume and _exists(sweep_dir):
-        return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
     print(describe(plan, None, None), flush=True)
-    return _run(plan, args, sweep_dir, state_file, sets, remote)
+    try:
+        return _run(plan, args, sweep_dir, state_file, sets, remote, held)
+    finally:
+        held.release()
 
 
-def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: str, sets: dict, remote: bool) -> int:
+def _local_concurrency(plan: SweepPlan) -> int:
+    """Trials this machine runs at once (GPUs not counted: the memory check is about host RAM)."""
+    try:
+        return plan_concurrency(plan.profile.resources, os.cpu_count() or 1, 1e9, plan.num_trials).max_concurrent
+    except SpecError:
+        return 1
+
+
+def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: str, sets: dict, remote: bool,
+         held: SweepClaim) -> int:
     # Read when ray is imported: progress lines of concurrent trials differ only in numbers, and
     # Ray's log de-duplication would fold them into "[repeated 3x]".
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
@@ -282,6 +314,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             if _is_uri(sweep_dir):
                 _publish_files(staging, sweep_dir)
             sweep_run.log_artifacts([args.spec.resolve(), plan_file])
+        held.record(uri, sweep_run.run_id)
         print(f"profile in force: {plan.profile.name}; MLflow: {uri} (parent run {sweep_run.run_id})", flush=True)
         predicted = None
         if not args.resume:  # a resumed sweep has only its unfinished trials left: the estimate would not apply

@@ -26,10 +26,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from cdm.config import Config, ConfigError, config_field_paths, load_config
+from sweeps.limits import LimitError, load_yaml
 
 __all__ = [
     "PROFILES_FILE",
@@ -65,7 +65,7 @@ class SpecError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class PaperRow(_Strict):
@@ -352,11 +352,9 @@ def _allowed_keys(loc: tuple) -> list[str]:
 
 def _read_yaml(path: Path) -> dict[str, Any]:
     try:
-        tree = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise SpecError(f"{path}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise SpecError(f"{path}: not valid YAML: {exc}") from None
+        tree = load_yaml(path)
+    except LimitError as exc:
+        raise SpecError(str(exc)) from None
     if not isinstance(tree, dict):
         raise SpecError(f"{path}: top level must be a mapping")
     return tree

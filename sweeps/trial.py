@@ -244,9 +244,9 @@ def connect(address: str | None) -> bool:
     if address:
         ray.init(address=address, logging_level="WARNING")
     else:
-        # address="local": always a new cluster of our own; plain ray.init() would join any cluster
-        # another process left running on this machine.
-        ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, logging_level="WARNING")
+        from sweeps import local_cluster
+
+        local_cluster.start()
     return True
 
 

@@ -1,0 +1,89 @@
+"""One running sweep per sweep folder: an exclusive lock taken before the folder is looked at.
+
+"Does the folder already hold a sweep?" followed by "create it" lets two copies of one spec started
+together both pass the check. So the runner first takes an ``flock`` on a lock file beside the
+sweep folder (``<storage>/<spec>/.<profile>.lock``; for an object-store URI, in this machine's
+temporary folder, keyed by the URI) and holds it until it exits. The kernel drops the lock when the
+process dies, SIGKILL included, so a killed sweep never leaves a stale claim; the file stays (removing
+it would let a third copy lock a new file while the second still holds the old one).
+
+The lock file records who holds it (process id, host, and once created the MLflow parent run), so
+the copy that is refused can say where the running sweep logs.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import socket
+import tempfile
+from pathlib import Path
+
+__all__ = ["ClaimError", "SweepClaim", "claim"]
+
+
+class ClaimError(RuntimeError):
+    """Another process is running a sweep in this folder; the message says which and where it logs."""
+
+
+def _lock_path(sweep_dir: str) -> Path:
+    if "://" in sweep_dir:
+        key = hashlib.sha256(sweep_dir.encode()).hexdigest()[:16]
+        return Path(tempfile.gettempdir()) / "cdm-sweep-claims" / f"{key}.lock"
+    folder = Path(sweep_dir)
+    return folder.parent / f".{folder.name}.lock"
+
+
+class SweepClaim:
+    """The held lock of one sweep folder; :meth:`record` notes the parent run for a refused copy."""
+
+    def __init__(self, sweep_dir: str, fd: int):
+        self.sweep_dir, self._fd = sweep_dir, fd
+
+    def record(self, tracking_uri: str, parent_run_id: str) -> None:
+        self._write({"pid": os.getpid(), "host": socket.gethostname(), "sweep_dir": self.sweep_dir,
+                     "tracking_uri": tracking_uri, "parent_run_id": parent_run_id})
+
+    def _write(self, holder: dict[str, object]) -> None:
+        data = json.dumps(holder).encode()
+        os.ftruncate(self._fd, 0)
+        os.pwrite(self._fd, data, 0)
+
+    def release(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)  # closing the descriptor drops the flock
+            self._fd = -1
+
+
+def _holder_text(fd: int) -> str:
+    try:
+        holder = json.loads(os.pread(fd, 4096, 0) or b"{}")
+    except json.JSONDecodeError:
+        holder = {}
+    who = f"process {holder['pid']} on {holder['host']}" if "pid" in holder else "another process"
+    if "parent_run_id" in holder:
+        return f"{who}; its MLflow parent run is {holder['parent_run_id']} in {holder['tracking_uri']}"
+    return f"{who}, still starting (no MLflow parent run yet)"
+
+
+def claim(sweep_dir: str) -> SweepClaim:
+    """Take the sweep folder ``sweep_dir`` for this process (creates the folder holding the lock file).
+
+    Raises:
+        ClaimError: another live process holds it.
+    """
+    path = _lock_path(sweep_dir)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        text = _holder_text(fd)
+        os.close(fd)
+        raise ClaimError(f"{sweep_dir}: a sweep is already running there ({text}); wait for it to end, "
+                         "or stop it and pass --resume") from None
+    held = SweepClaim(sweep_dir, fd)
+    held._write({"pid": os.getpid(), "host": socket.gethostname(), "sweep_dir": sweep_dir})
+    return held
