@@ -18,6 +18,9 @@ from cdm.evaluate import BASELINES
 from cdm.optim import TrainingDiverged
 from cdm.train import Callback, fit
 
+MIN_IMAGE_SIDE = 16
+"""Smallest input image side accepted by ``reconstruct``, in pixels (``data.image_size``'s lower bound)."""
+
 __all__ = ["main"]
 
 
@@ -94,18 +97,39 @@ def _load_image(path: Path, size: int) -> tuple[torch.Tensor, torch.Tensor]:
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ValueError(f"--image: cannot read {path} as an image")
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"--image: {path} holds {raw.dtype} pixels; give an 8- or 16-bit image")
+    height, width = raw.shape[:2]
+    if min(height, width) < MIN_IMAGE_SIDE:
+        raise ValueError(f"--image: {path} is {width}×{height} pixels; give at least {MIN_IMAGE_SIDE}×{MIN_IMAGE_SIDE} "
+                         f"(the model sees {size}×{size})")
+    if min(height, width) * 4 < size:
+        print(f"warning: --image {path} is {width}×{height} pixels, enlarged {size / min(height, width):.0f}× to "
+              f"{size}×{size}: expect a blurry input and a poor reconstruction", file=sys.stderr)
+    full_scale = float(np.iinfo(raw.dtype).max)  # 255 or 65535: a 16-bit PNG is not divided by 255
     raw = cv2.resize(raw, (size, size), interpolation=cv2.INTER_AREA)
     if raw.ndim == 2:
         raw = np.repeat(raw[..., None], 3, axis=2)
     if raw.shape[2] not in (3, 4):
         raise ValueError(f"--image: {path} has {raw.shape[2]} channels; give a grey, RGB or RGBA image")
-    rgb = cv2.cvtColor(raw[..., :3], cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+    rgb = cv2.cvtColor(raw[..., :3], cv2.COLOR_BGR2RGB).astype(np.float32) / full_scale
     if raw.shape[2] == 4:
-        mask = (raw[..., 3] > 127).astype(np.float32)
+        mask = (raw[..., 3] > full_scale / 2).astype(np.float32)
     else:
         background = np.median(np.stack([rgb[0, 0], rgb[0, -1], rgb[-1, 0], rgb[-1, -1]]), axis=0)
         mask = (np.abs(rgb - background).sum(-1) > 0.06).astype(np.float32)
     return torch.from_numpy(rgb).permute(2, 0, 1), torch.from_numpy(mask)[None]
+
+
+def _output_folder(out: Path) -> Path | None:
+    """The missing folder ``--out`` needs, if any: inside the working directory it is created (and
+    said so); elsewhere a missing folder is refused, so a typo does not scatter folders over the disk."""
+    folder = out.resolve().parent
+    if folder.is_dir():
+        return None
+    if not folder.is_relative_to(Path.cwd().resolve()):
+        raise ValueError(f"--out: folder {folder} does not exist and lies outside the working directory; create it first")
+    return folder
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -117,6 +141,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from cdm.data.sample import Sample, collate
     from cdm.evaluate import reconstruct, write_ply
 
+    out_folder = _output_folder(Path(args.out))
     cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
     elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
@@ -137,6 +162,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     bar = tqdm(total=cfg.diffusion.sample_steps if cfg.diffusion.sampler == "ddim" else cfg.diffusion.num_steps, unit="step")
     cloud = reconstruct(network, diffusion, batch, cfg, gen, progress=lambda i, n: bar.update(1))
     bar.close()
+    if out_folder is not None:
+        print(f"creating folder {out_folder}")
     out = write_ply(Path(args.out), cloud[0])
     print(f"wrote {cloud.shape[1]} points to {out} (extent {cloud[0].abs().max().item():.3f})")
     return 0

@@ -86,7 +86,11 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
     try:
         state = torch.load(file, map_location="cpu", weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, EOFError) as exc:
+    except pickle.UnpicklingError:
+        # Our own words: torch's message ends advising weights_only=False, i.e. running the file's code.
+        raise ValueError(f"checkpoint: {file} holds Python objects other than tensors and plain data; refused, "
+                         "since loading them could run code from the file. Load only checkpoints written by cdm") from None
+    except (RuntimeError, EOFError) as exc:
         raise ValueError(f"checkpoint: {file} is not a readable CDM checkpoint ({exc})") from None
     missing = set(_REQUIRED) - set(state if isinstance(state, dict) else ())
     if missing:

@@ -1,0 +1,220 @@
+"""Caps and boundary checks of a sweep (sweeps/limits.py, storage.py, claim.py), each bad input tried
+through ``sweeps/run.py`` too: exit 2, one ``error:`` line naming the field or file, nothing written,
+Ray never started."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import time
+import tracemalloc
+import typing
+from pathlib import Path
+
+import pytest
+import ray
+import yaml
+
+from cdm.config import Config, ConfigError, config_field_paths, load_config, parse_override
+from sweeps import run
+from sweeps.claim import ClaimError, claim
+from sweeps.limits import LimitError, check_memory, check_trials, estimate_trial_bytes, load_yaml
+from sweeps.spec import Spec, expand, load_spec
+from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
+
+ROOT = Path(__file__).resolve().parents[1]
+
+BOMB = "name: bomb\ngrid:\n  data.categories: &a [[x, x, x, x, x, x, x, x, x]]\n" + "".join(
+    f"  {p}: &{n} [{', '.join([f'*{p}'] * 9)}]\n" for p, n in zip("abcdefg", "bcdefgh"))
+"""A 330-byte alias chain: 9⁸ ≈ 43 million leaves once expanded."""
+
+
+def _grid(values_per_key: int, keys: int = 3) -> str:
+    fields = ["priors.point_size", "priors.lambda_3d", "train.lr"][:keys]
+    return "name: big\ngrid:\n" + "".join(
+        f"  {k}: [{', '.join(f'{0.001 * (i + 1):.3f}' for i in range(values_per_key))}]\n" for k in fields)
+
+
+def test_alias_bomb_is_refused_before_it_expands(tmp_path):
+    spec = tmp_path / "bomb.yaml"
+    spec.write_text(BOMB)
+    assert len(BOMB) < 400
+    tracemalloc.start()
+    with pytest.raises(LimitError, match="expand to more than 100000 YAML nodes"):
+        load_yaml(spec)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 20 * 2**20  # the composed graph is a few hundred nodes; expansion would be gigabytes
+
+
+def test_small_aliases_load_as_safe_load_does(tmp_path):
+    text = "base: &b {priors.point_size: 0.04}\ngrid: {priors.lambda_3d: [0.1, 1.0]}\ncells: [{label: one, set: *b}]\n"
+    spec = tmp_path / "s.yaml"
+    spec.write_text(text)
+    assert load_yaml(spec) == yaml.safe_load(text)
+
+
+def test_recursive_anchor_binary_and_oversized_files_are_refused(tmp_path):
+    cases = {"rec.yaml": (b"a: &x [1, *x]\n", "refers to itself"),
+             "bin.yaml": (b"\x00\xff\xfe\x00 spec", "not UTF-8 text"),
+             "big.yaml": (b"# " + b"x" * (1 << 20) + b"\n", "at most 1048576 bytes")}
+    for name, (data, needle) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(LimitError, match=needle):
+            load_yaml(tmp_path / name)
+
+
+def test_trial_cap_counts_without_building_and_is_raised_by_the_flag(tmp_path):
+    (tmp_path / "big.yaml").write_text(_grid(100))
+    spec = load_spec(tmp_path / "big.yaml")
+    t0 = time.perf_counter()
+    with pytest.raises(LimitError, match="1000000 trials.*--max-cells 1000000"):
+        check_trials(spec)
+    assert time.perf_counter() - t0 < 1.0
+    check_trials(spec, 10**6)
+    small = Spec.model_validate({"name": "s", "grid": {"priors.point_size": [0.01, 0.02]}, "seeds": [0, 1, 2]})
+    check_trials(small, 6)
+    with pytest.raises(LimitError, match="6 trials"):
+        check_trials(small, 5)
+    optuna = Spec.model_validate({"name": "o", "search": {"kind": "optuna", "num_samples": 8, "space": {
+        "priors.lambda_3d": {"type": "float", "low": 0.1, "high": 1.0}}}, "profiles": {"paper": {"num_samples": 2000}}})
+    with pytest.raises(LimitError, match="search.num_samples: 2000 trials"):
+        check_trials(optuna)
+
+
+def _annotation(path: str):
+    model = Config
+    *groups, name = path.split(".")
+    for group in groups:
+        model = model.model_fields[group].annotation
+    return model.model_fields[name].annotation
+
+
+def test_every_float_field_must_be_finite():
+    floats = [k for k in config_field_paths() if _annotation(k) is float
+              or (typing.get_origin(_annotation(k)) is not tuple and float in typing.get_args(_annotation(k)))]
+    assert "train.ema_decay" in floats and "priors.lambda_3d" in floats and len(floats) >= 12  # betas: below
+    for key in floats:
+        for bad in (math.inf, -math.inf, math.nan):
+            with pytest.raises(ConfigError, match=f"{key}: Input should be a finite number"):
+                load_config(None, {key: bad})
+    with pytest.raises(ConfigError, match="train.betas.1: Input should be a finite number"):
+        load_config(None, {"train.betas": [0.9, math.nan]})
+    with pytest.raises(ValueError, match="finite number"):
+        Spec.model_validate({"name": "s", "grid": {"priors.point_size": [0.01]}, "resources": {"cpus_per_worker": math.inf}})
+
+
+def test_set_value_may_not_use_aliases():
+    with pytest.raises(ConfigError, match="data.categories: YAML aliases"):
+        parse_override("data.categories=[&a [x, x], *a, *a]")
+    assert parse_override("data.categories=[chair, car]") == ("data.categories", ["chair", "car"])
+
+
+def test_memory_estimate_grows_with_each_size_and_refuses_past_the_machine():
+    base = expand(load_spec(ROOT / "sweeps" / "point_size.yaml"), "smoke").cells[0].config
+    b0 = estimate_trial_bytes(base, 2)
+    # One more object per split and category costs one index entry per category.
+    more = load_config(None, {**base.flat(), "data.train_objects": base.data.train_objects + 1})
+    assert estimate_trial_bytes(more, 2) - b0 == 2 * 256
+    # Doubling the batch adds exactly one batch's worth: the part that scales with train.batch_size.
+    double = load_config(None, {**base.flat(), "train.batch_size": 2 * base.train.batch_size})
+    fixed = (base.data.train_objects + base.data.val_objects) * 2 * 256 + 2 * 512 * 2**20
+    assert estimate_trial_bytes(double, 2) - b0 == b0 - fixed
+    check_memory([base], concurrent=2)  # the smoke profile fits any machine
+    huge = load_config(None, {**base.flat(), "data.train_objects": 10**11})
+    with pytest.raises(LimitError, match=r"data.train_objects=100000000000.*need at least .* GiB but this machine has 16.0 GiB"):
+        check_memory([huge], concurrent=1, total=16 * 2**30)
+
+
+def test_state_file_tracking_uri_and_storage_checks(tmp_path):
+    for text, needle in [("[]", "a JSON list, not an object"), ("\ufffd\x00", "not JSON"),
+                         ('{"spec": {}, "sets": {}, "profile": "smoke", "tracking_uri": "sqlite:///x"}', "parent_run_id")]:
+        with pytest.raises(StoreError, match=needle):
+            parse_state(text, "sweep.json")
+    with pytest.raises(StoreError, match="unsupported scheme 'ftp'"):
+        check_tracking_uri("ftp://nope")
+    with pytest.raises(StoreError, match="no MLflow server answers"):
+        check_tracking_uri("http://127.0.0.1:9")  # the discard port: nothing listens
+    check_tracking_uri(f"sqlite:///{tmp_path}/sub/mlflow.db")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(StoreError, match="is a file, not a folder"):
+        check_storage(str(tmp_path / "file" / "spec" / "smoke"))
+    with pytest.raises(StoreError, match="cannot write in /proc"):
+        check_storage("/proc/cdm-results/spec/smoke")
+    check_storage(str(tmp_path / "results" / "spec" / "smoke"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]  # the checks wrote nothing
+
+
+def _hold(folder: str) -> subprocess.Popen:
+    """Another process claiming ``folder`` and noting a parent run; it prints once it holds the claim."""
+    code = (f"import sys, time; from sweeps.claim import claim; c = claim({folder!r}); "
+            "c.record('sqlite:////somewhere/mlflow.db', 'abc123'); print('held', flush=True); time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_claim_is_exclusive_across_processes_and_dies_with_its_holder(tmp_path):
+    folder = str(tmp_path / "results" / "spec" / "smoke")
+    holder = _hold(folder)
+    try:
+        with pytest.raises(ClaimError, match=f"process {holder.pid} .*parent run is abc123 in sqlite:////somewhere"):
+            claim(folder)
+    finally:
+        holder.kill()
+        holder.wait()
+    held = claim(folder)  # SIGKILL released it: no stale claim
+    held.release()
+
+
+BAD_SPECS = {
+    "binary": (b"\x89PNG\r\n\x1a\n\x00\x00", [], "not UTF-8 text"),
+    "bomb": (BOMB.encode(), [], "expand to more than"),
+    "grid": (_grid(100).encode(), ["--dry-run"], "1000000 trials"),
+    "inf": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--set", "priors.lambda_3d=.inf"], "priors.lambda_3d: Input should be a finite"),
+    "objects": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--set", "data.train_objects=100000000000", "--dry-run"], "data.train_objects=100000000000"),
+    "ftp": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--tracking-uri", "ftp://nope"], "--tracking-uri ftp://nope"),
+    "storage": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--storage", "/proc/cdm-results"], "--storage /proc/cdm-results"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SPECS))
+def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch, case):
+    data, extra, needle = BAD_SPECS[case]
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "spec.yaml").write_bytes(data)
+    argv = ["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp_path}/mlflow.db", *extra]
+    assert run.main(argv) == 2
+    err = capsys.readouterr().err
+    assert needle in err and err.startswith("error: ") and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["spec.yaml"]
+    assert not ray.is_initialized()
+
+
+@pytest.mark.parametrize("content,needle", [(b"[]", "a JSON list"), (b"\xff\xfe\x00garbage", "not JSON"),
+                                            (b'{"spec": 1}', "spec: expected a JSON object")])
+def test_damaged_state_file_on_resume(tmp_path, capsys, monkeypatch, content, needle):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "spec.yaml").write_text("name: s\ngrid: {priors.point_size: [0.04]}\n")
+    folder = tmp_path / "results" / "s" / "smoke"
+    folder.mkdir(parents=True)
+    (folder / "sweep.json").write_bytes(content)
+    assert run.main(["spec.yaml", "--smoke", "--storage", "results", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert needle in err and str(folder / "sweep.json") in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in folder.iterdir()) == ["sweep.json"] and not (tmp_path / "mlflow.db").exists()
+
+
+def test_a_claimed_folder_is_refused_naming_the_running_parent_run(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "spec.yaml").write_text("name: s\ngrid: {priors.point_size: [0.04]}\n")
+    holder = _hold(str(tmp_path / "results" / "s" / "smoke"))
+    try:
+        assert run.main(["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp_path}/m.db"]) == 2
+    finally:
+        holder.kill()
+        holder.wait()
+    err = capsys.readouterr().err
+    assert "a sweep is already running there" in err and "parent run is abc123" in err, err
+    assert not ray.is_initialized() and not (tmp_path / "results" / "s" / "smoke").exists()
