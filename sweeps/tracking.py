@@ -27,7 +27,7 @@ from mlflow.entities import Metric, Param, RunTag
 from cdm.config import Config
 from cdm.train import Callback
 
-__all__ = ["SweepRun", "TrialRun", "find_trial_run", "resolve_tracking_uri", "ui_command"]
+__all__ = ["SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "resolve_tracking_uri", "ui_command"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
 
@@ -75,6 +75,24 @@ def find_trial_run(client: MlflowClient, experiment_id: str, parent_run_id: str,
         max_results=2,
     )
     return runs[0].info.run_id if runs else None
+
+
+def finished_trial_metrics(uri: str, experiment_id: str, parent_run_id: str, trial_id: str) -> dict[str, float] | None:
+    """The last metrics of a trial the driver already closed as FINISHED, with ``step``; None otherwise.
+
+    A trial that ended just before its driver was killed is FINISHED in MLflow (the driver logged its
+    ``final/…``) while Tune's last experiment snapshot still lists it as running: on ``--resume`` its
+    own record says it is done, so it reports these again instead of training (and logging) anew.
+    """
+    client = MlflowClient(uri)
+    run_id = find_trial_run(client, experiment_id, parent_run_id, trial_id)
+    if run_id is None:
+        return None
+    run = client.get_run(run_id)
+    if run.info.status != "FINISHED" or not any(k.startswith("final/") for k in run.data.metrics):
+        return None
+    step = max((m.step for m in client.get_metric_history(run_id, "eval/cd")), default=0)
+    return {**{k: v for k, v in run.data.metrics.items() if not k.startswith("final/")}, "step": step}
 
 
 class SweepRun:
@@ -139,11 +157,11 @@ class SweepRun:
         is in: the trial itself cannot tell its last evaluation from an intermediate one.
         """
         history = self.client.get_metric_history(run_id, "eval/cd")
-        if not history:
+        latest = self.client.get_run(run_id).data.metrics
+        if not history or any(k.startswith("final/") for k in latest):  # logged once: a resumed trial may close twice
             return
         step = max(m.step for m in history)
         now = int(time.time() * 1000)
-        latest = self.client.get_run(run_id).data.metrics
         final = [Metric("final/" + k.removeprefix("eval/"), v, now, step) for k, v in latest.items()
                  if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])]
         self.client.log_batch(run_id, metrics=final)

@@ -37,7 +37,7 @@ from cdm.provenance import code_version
 from cdm.train import Callback, fit
 from sweeps.results import TrialOutcome
 from sweeps.spec import Cell, SweepPlan, plan_concurrency
-from sweeps.tracking import SweepRun, TrialRun
+from sweeps.tracking import SweepRun, TrialRun, finished_trial_metrics
 
 __all__ = [
     "TrialProgress", "TrialSetup", "cluster_capacity", "cluster_machines", "connect", "error_summary", "run_sweep",
@@ -130,6 +130,11 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     cell = plan.trial(tune_config)
     ctx = ray.tune.get_context()
     trial_id = ctx.get_trial_id()
+    done = finished_trial_metrics(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, trial_id)
+    if done is not None:
+        print(f"[{cell.label}] already finished before the driver stopped (its MLflow run says so): not re-run", flush=True)
+        ray.tune.report(done)
+        return
     r = plan.profile.resources
     out_dir = Path(ctx.get_trial_dir()) / "cdm"
     categories = ",".join(cell.config.data.categories) or "all"

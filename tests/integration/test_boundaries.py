@@ -160,9 +160,10 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
         assert "a sweep is already running there" in text and f"{storage}/s3kill/smoke" in text, text
         assert "Traceback" not in text and len([ln for ln in text.splitlines() if ln.startswith("error:")]) == 1
 
-        # Wait until a trial has checkpointed into S3: the cluster, its agents and a worker are all up.
+        # Wait until the first trial has checkpointed into S3 three times: the cluster, its agents and a
+        # worker are all up, and Tune's state (synced each second) knows a checkpoint to resume from.
         deadline = time.monotonic() + 300
-        while not any("/trial_" in p and "/checkpoint_" in p for p in _s3_files(s3, "results/s3kill/smoke")):
+        while not any("/trial_" in p and "/checkpoint_000002/" in p for p in _s3_files(s3, "results/s3kill/smoke")):
             assert driver.poll() is None and time.monotonic() < deadline, logs[1 - refused].read_text()[-3000:]
             time.sleep(0.5)
         record = json.loads((Path("/tmp") / "cdm-ray-sessions" / f"{driver.pid}.json").read_text())
@@ -183,11 +184,12 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
     leftovers = _alive(session_pids(record["session_dir"]))
 
     resumed = subprocess.run([*argv, "--resume"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    (tmp_path / "resumed.log").write_text(resumed.stdout + resumed.stderr)
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     if leftovers:
         assert "leftover Ray processes of an earlier sweep" in resumed.stdout
     assert not _alive(leftovers), f"processes of the killed sweep still alive: {_alive(leftovers)}"
-    assert "resuming from" in resumed.stdout
+    assert "resuming from" in resumed.stdout, resumed.stdout[-3000:]
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("s3kill").experiment_id])
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
