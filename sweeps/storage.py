@@ -4,8 +4,9 @@
   a database URL), whose folder can be written (SQLite, files) or whose server answers (HTTP).
 - :func:`check_storage`: a sweep folder that can be created — a local path under a writable folder,
   or an object-store URI (``s3://``, ``gs://``, ``file://``) whose bucket exists and takes a write
-  with the credentials of this environment (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``,
-  ``AWS_ENDPOINT_URL`` or ``?endpoint_override=host:port&scheme=http`` in the URI, as pyarrow reads them).
+  with the credentials of this environment (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, and
+  ``AWS_ENDPOINT_URL`` for an S3-compatible server other than AWS, as pyarrow reads them; Ray's
+  processes inherit them from the driver).
 - :func:`parse_state`: a sweep's ``sweep.json`` as ``--resume`` needs it.
 
 Each refusal is a :class:`StoreError` of one line naming the URI or file and what is allowed.
