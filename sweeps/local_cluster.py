@@ -73,6 +73,9 @@ def reap_stale_sessions() -> list[int]:
         except (OSError, ValueError, KeyError, TypeError):
             record.unlink(missing_ok=True)
             continue
+        if not Path(session_dir).name.startswith("session_"):  # only ever a Ray session folder, never "/"
+            record.unlink(missing_ok=True)
+            continue
         if _alive(driver):
             continue
         for pid in sorted(session_pids(session_dir)):

@@ -140,7 +140,7 @@ def _alive(pids: set[int]) -> set[int]:
 def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tmp_path):
     spec = tmp_path / "spec.yaml"
     spec.write_text("name: s3kill\ngrid: {priors.point_size: [0.02, 0.04]}\nresources: {max_concurrent_trials: 1}\n"
-                    "profiles: {smoke: {budget: {steps: 120, eval_every: 10}}}\n")
+                    "profiles: {smoke: {budget: {steps: 60, eval_every: 10}}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = f"s3://{BUCKET}/results"
     argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", storage, "--tracking-uri", uri]
@@ -196,7 +196,7 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
     assert len(children) == 2 and all(c.info.status == "FINISHED" for c in children)
     for child in children:
         steps = [m.step for m in client.get_metric_history(child.info.run_id, "train/loss")]
-        assert sorted(steps) == list(range(5, 121, 5)), (child.info.run_name, steps)
+        assert sorted(steps) == list(range(5, 61, 5)), (child.info.run_name, steps)
     stored = set(_s3_files(s3, "results/s3kill/smoke"))
     assert {f"{BUCKET}/results/s3kill/smoke/{name}" for name in ("sweep.json", "results.md", "results.csv")} <= stored
 
