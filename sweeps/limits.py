@@ -23,7 +23,6 @@ import yaml
 
 if TYPE_CHECKING:
     from cdm.config import Config
-    from sweeps.spec import Spec
 
 __all__ = [
     "MAX_TRIALS",
@@ -117,8 +116,9 @@ def load_yaml(path: Path) -> Any:
         loader.dispose()
 
 
-def check_trials(spec: Spec, max_trials: int = MAX_TRIALS) -> None:
-    """Refuse a spec with more than ``max_trials`` trials, counted without building them.
+def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:
+    """Refuse a :class:`sweeps.spec.Spec` with more than ``max_trials`` trials, counted without building them
+    (typed ``Any``: the spec module reads its files through this one).
 
     A grid counts (explicit cells or 1) × the product of its value lists × seeds, an upper bound
     when ``exclude`` drops combinations; Optuna counts its largest ``num_samples``.

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from cdm.__main__ import MIN_IMAGE_SIDE, _load_image, _output_folder
-from cdm.train import load_checkpoint
+from cdm.checkpoint import load_checkpoint
 
 
 def _object(side: int, dtype=np.uint8) -> np.ndarray:
