@@ -21,7 +21,7 @@ from torch import Tensor
 from cdm.config import Config, load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
-from cdm.model import CDMNetwork
+from cdm.model import CDMNetwork, check_encoder_record
 from cdm.runtime import resolve_device
 
 __all__ = ["CHECKPOINT_FILE", "Checkpoint", "LoadedNetwork", "load_checkpoint", "load_network", "network_config", "save_checkpoint"]
@@ -54,6 +54,10 @@ class Checkpoint:
     """``category_prior`` for a BDM prior (:mod:`cdm.prior_model`); None for a CDM run."""
     category: str | None = None
     """The one category a prior models."""
+    encoder: dict[str, Any] | None = None
+    """The image encoder's record (``CDMNetwork.encoder.record``): ``{"encoder": "cnn"}``, or
+    ``{"encoder": "vit_s16", "weights_sha256": ...}`` for the frozen ViT, whose weights are not in
+    ``model``; None in checkpoints written before it was recorded (read as the CNN)."""
 
     @property
     def weights(self) -> dict[str, Tensor]:
@@ -120,7 +124,8 @@ def load_network(path: str | Path, overrides: dict[str, Any] | None = None) -> L
         overrides: dotted config fields applied to the saved config (e.g. ``eval.num_objects``,
             ``train.device``); the voxel back-end stays the trained one.
     Raises:
-        ValueError: unreadable file, a category prior instead of a CDM checkpoint, a bad override.
+        ValueError: unreadable file, a category prior instead of a CDM checkpoint, a bad override, or
+            frozen encoder weights other than those it was trained with (``model.encoder_weights``).
     """
     checkpoint = load_checkpoint(path)
     if checkpoint.kind is not None:
@@ -128,5 +133,6 @@ def load_network(path: str | Path, overrides: dict[str, Any] | None = None) -> L
     cfg = network_config(checkpoint, overrides)
     device = resolve_device(cfg.train.device)
     network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d])
+    check_encoder_record(checkpoint.encoder, network.encoder.record)
     network.load_state_dict(checkpoint.weights)
     return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)

@@ -75,13 +75,32 @@ class DataConfig(_Group):
     ``fewview_dev`` set list, PC²'s protocol: ``val``); training always reads ``train``."""
     num_workers: int = Field(0, ge=0)
     """Data-loader worker processes decoding training batches ahead of the step; 0 = in the training process."""
+    condition_views: int = Field(0, ge=0, le=16)
+    """Extra condition images per training sample, projected onto the points like the input image
+    (supplementary Table 8, "ControlNet" section): views 1…k of k + 1 evenly spaced in azimuth around the
+    input view. Sampling sees the input image only, as in the paper."""
+    condition_views_random: bool = False
+    """Draw the number of extra views per sample uniformly in 1…``condition_views`` (Table 8 row 3)."""
+    condition_source: Literal["gt", "folder"] = "gt"
+    """Extra condition images: renderings of the object (GT) or generated ones from ``condition_folder``."""
+    input_source: Literal["gt", "folder"] = "gt"
+    """The input image itself: the data set's, or the generated one of ``condition_folder`` (Table 8 rows 4, 6, 7)."""
+    condition_folder: str | None = None
+    """Folder of generated condition images: ``<object_id>/<view>.png`` (README, "Condition images")."""
+    condition_grey: bool = False
+    """Use grey versions (ITU-R 601 luma in all three channels) of the generated images (Table 8 rows 4, 7)."""
 
 
 class ModelConfig(_Group):
     """Image encoder, projection conditioning and point-voxel denoiser (PC² architecture)."""
 
-    encoder: Literal["cnn"] = "cnn"
-    """Image encoder: a small trainable CNN (PC² uses a frozen ViT-S/16; see ``cdm.model.encoder``)."""
+    encoder: Literal["cnn", "vit_s16"] = "cnn"
+    """Image encoder (``cdm.model.encoder``): a small trainable CNN, or PC²'s frozen ViT-S/16 with MSN
+    weights (needs ``encoder_weights``, ``feature_dim: 384`` and an image size that is a multiple of 16)."""
+    encoder_weights: str | None = None
+    """Local file of the ViT-S/16 weights for ``encoder: vit_s16``: MSN's published
+    ``vits16_800ep.pth.tar`` (https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar) or a state dict
+    with its key names. A checkpoint records its SHA-256 and refuses other weights."""
     feature_dim: int = Field(32, ge=1)
     """Channels of the per-pixel image feature map projected onto points (PC² ViT-S: 384)."""
     raster_radius: float = Field(0.0075, gt=0.0, le=1.0)
@@ -98,6 +117,12 @@ class ModelConfig(_Group):
     """Sinusoidal timestep embedding size (PC²: 64)."""
     global_feature: Literal["none", "concat", "cross_attention"] = "none"
     """Global image embedding added to every point (supplementary Table 7); ``none`` in the paper's CDM."""
+    global_source: Literal["image_features", "embeddings"] = "image_features"
+    """Where ``global_feature`` takes its vectors: pooled encoder features, or per-object vectors from
+    ``global_embeddings`` (the paper's OpenCLIP text, image or depth-image embeddings)."""
+    global_embeddings: str | None = None
+    """``.npz`` of per-object embeddings for ``global_source: embeddings``: one float array per object id,
+    shape ``(E,)`` or ``(T, E)`` (``T`` tokens), the same for all (``cdm/tools/openclip_embeddings.py``)."""
 
     @model_validator(mode="after")
     def _check_blocks(self) -> ModelConfig:
@@ -108,6 +133,18 @@ class ModelConfig(_Group):
             )
         if min(self.widths) < 8 or min(self.voxel_resolutions) < 2:
             raise ValueError("model.widths must be >= 8 and model.voxel_resolutions >= 2")
+        if self.encoder == "vit_s16" and self.encoder_weights is None:
+            raise ValueError(
+                "model.encoder_weights is required with model.encoder=vit_s16: download MSN's ViT-S/16 weights "
+                "(https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar) and pass the local path"
+            )
+        if self.encoder == "vit_s16" and self.feature_dim != 384:
+            raise ValueError(f"model.feature_dim must be 384 with model.encoder=vit_s16 (got {self.feature_dim})")
+        if self.global_source == "embeddings" and (self.global_embeddings is None or self.global_feature == "none"):
+            raise ValueError(
+                "model.global_source=embeddings needs model.global_embeddings (an .npz path) and "
+                "model.global_feature concat or cross_attention"
+            )
         return self
 
 
@@ -158,11 +195,21 @@ class PriorsConfig(_Group):
     """Cloud compared with x₀: the predicted clean cloud x̂₀ (trainable) or x_t as Eq. 6 is written."""
     prior_2d: Literal["none", "contour", "depth"] = "contour"
     """2D prior concatenated with the image features (Eq. 7): contour (ShapeNet) or depth (Co3D)."""
+    depth_source: Literal["ground_truth", "maps"] = "ground_truth"
+    """Depth of the ``depth`` prior: the data set's own depth map (an **upper bound**: privileged, not
+    estimated from the image) or estimated maps from ``depth_maps`` (the paper: DINOv2), captured data sets."""
+    depth_maps: str | None = None
+    """Folder of estimated depth maps for ``depth_source: maps``: ``<object_id>/<position>.npy`` (README,
+    "Estimated depth maps"); any per-image scale and shift (normalised away per image)."""
+    depth_maps_disparity: bool = False
+    """The maps hold disparity (larger = nearer, e.g. Depth Anything's output), inverted before use."""
 
     @model_validator(mode="after")
     def _check_views(self) -> PriorsConfig:
         if self.prior_3d and self.num_views < 1:
             raise ValueError("priors.num_views (H) must be >= 1 when priors.prior_3d is on")
+        if self.depth_source == "maps" and self.depth_maps is None:
+            raise ValueError("priors.depth_maps (a folder) is required with priors.depth_source=maps")
         return self
 
 
@@ -296,6 +343,26 @@ class Config(_Group):
     train: TrainConfig = TrainConfig()
     eval: EvalConfig = EvalConfig()
     sampling: SamplingConfig = SamplingConfig()
+
+    @model_validator(mode="after")
+    def _check_external_inputs(self) -> Config:
+        data = self.data
+        uses_folder = "folder" in (data.input_source, data.condition_source if data.condition_views else "gt")
+        if uses_folder and data.condition_folder is None:
+            raise ValueError("data.condition_folder is required when data.input_source or data.condition_source is folder")
+        if (data.condition_views or data.input_source == "folder") and data.kind not in ("procedural", "meshes"):
+            raise ValueError(
+                f"data.condition_views / data.input_source need a rendered data set (data.kind procedural or meshes), "
+                f"not {data.kind}: the extra views are renderings of the object"
+            )
+        if self.model.encoder == "vit_s16" and data.image_size % 16:
+            raise ValueError(f"data.image_size must be a multiple of 16 with model.encoder=vit_s16 (got {data.image_size})")
+        if self.priors.depth_source == "maps" and data.kind not in ("shapenet_r2n2", "co3d"):
+            raise ValueError(
+                "priors.depth_source=maps needs a captured data set (data.kind shapenet_r2n2 or co3d): rendered "
+                f"kinds ({data.kind}) draw a fresh view every round, which no folder of maps can cover"
+            )
+        return self
 
     @model_validator(mode="after")
     def _check_blend_schedule(self) -> Config:

@@ -31,7 +31,8 @@ from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import Batch, collate
 from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import BASELINES, EvalSet, build_eval_set, run_evaluation
-from cdm.model import CDMNetwork
+from cdm.inputs import check_coverage, check_inputs
+from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss
 from cdm.optim import Optimiser, TrainingDiverged
 from cdm.provenance import run_record
@@ -81,6 +82,7 @@ def metric_names(config: Config, categories: Sequence[str] = ()) -> list[str]:
 
 
 def _check_compatible(state: Checkpoint, config: Config, network: CDMNetwork) -> None:
+    check_encoder_record(state.encoder, network.encoder.record)
     if state.voxel_backend != network.voxel_backend:
         raise ValueError(
             f"resume: checkpoint trained with voxel back-end {state.voxel_backend!r}, this run resolves to "
@@ -102,8 +104,10 @@ class Trainer:
     def __init__(self, config: Config):
         self.cfg = config
         self.device = start_run(config.train)
+        check_inputs(config)
         self.train_set = build_dataset(config, "train")
         self.val_set = build_dataset(config, "val")
+        check_coverage(config, (self.train_set, self.val_set))
         self.network = CDMNetwork(config.model, PRIOR_2D_CHANNELS[config.priors.prior_2d], device=self.device).to(self.device)
         log.info(
             "voxel back-end: %s (model.voxel_backend=%s, device %s)",
@@ -130,6 +134,7 @@ class Trainer:
             config=self.cfg.to_dict(),
             step=self.step,
             voxel_backend=self.network.voxel_backend,
+            encoder=self.network.encoder.record,
             model=self.network.state_dict(),
             ema=None if self.ema is None else self.ema.state_dict(),
             optimizer=self.optimiser.optimizer.state_dict(),

@@ -128,6 +128,29 @@ def _fail(message: str) -> int:
     return 2
 
 
+def _check_inputs(plan: SweepPlan, remote: bool) -> None:
+    """Print which external inputs (weights, maps, embeddings, images) each cell reads and whether they
+    exist; refuse absent ones (``ValueError`` naming the field) before Ray starts. On this machine each
+    distinct config's data sets are also indexed to check that every object has its entry; a cluster
+    driver may not see the data, so there the trials check it (``cdm.train.Trainer``)."""
+    from cdm.data import build_dataset
+    from cdm.inputs import check_coverage, check_inputs, describe_inputs, required_inputs
+
+    configs = [cell.config for cell in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
+    names = [c.label for c in plan.cells] or ["every trial"]
+    if not any(required_inputs(cfg) for cfg in configs):
+        print("external inputs: none (everything is generated or in data.root)", flush=True)
+        return
+    print("external inputs:\n" + "\n".join(f"  {n}: {describe_inputs(cfg)}" for n, cfg in zip(names, configs)), flush=True)
+    covered = set()
+    for cfg in configs:
+        check_inputs(cfg)
+        key = repr(required_inputs(cfg)) + repr(cfg.data)
+        if not remote and required_inputs(cfg) and key not in covered:
+            covered.add(key)
+            check_coverage(cfg, (build_dataset(cfg, "train"), build_dataset(cfg, "val")))
+
+
 def _is_uri(storage: str) -> bool:
     """``s3://…``, ``gs://…``, ``file://…``: kept as written and read through pyarrow; else a local path."""
     return "://" in storage
@@ -228,6 +251,10 @@ def main(argv: list[str] | None = None) -> int:
             held.release()
             return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
     print(f"spec {spec.name} ({args.spec}): {spec.description}", flush=True)
+    try:
+        _check_inputs(plan, remote)
+    except ValueError as exc:
+        return _fail(str(exc))
     if args.dry_run:
         import torch
 

@@ -16,7 +16,6 @@ from cdm.config import Config, ModelConfig
 from cdm.data.sample import Batch
 from cdm.model import (
     CDMNetwork,
-    FrozenEncoder,
     ImageEncoder,
     conditioning_channels,
     conditioning_map,
@@ -71,26 +70,6 @@ def test_image_encoder_shape_and_gradient(size):
     assert image.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="prior_2d has 1 channels"):
         encoder(image, torch.ones(2, 1, size, size), torch.rand(2, 1, size, size))
-
-
-def test_frozen_encoder_loads_a_local_state_dict(tmp_path):
-    torch.manual_seed(0)
-    trained = nn.Sequential(nn.Conv2d(3, 5, 3, stride=4, padding=1), nn.BatchNorm2d(5))
-    path = tmp_path / "weights.pt"
-    torch.save(trained.state_dict(), path)
-    fresh = nn.Sequential(nn.Conv2d(3, 5, 3, stride=4, padding=1), nn.BatchNorm2d(5))
-    encoder = FrozenEncoder(fresh, path, out_channels=5).train()
-    assert torch.equal(encoder.backbone[0].weight, trained[0].weight)
-    assert not any(p.requires_grad for p in encoder.parameters())
-    assert not encoder.backbone.training  # BatchNorm statistics stay frozen in training mode
-    image = torch.rand(2, 3, 16, 16)
-    out = encoder(image, torch.ones(2, 1, 16, 16), torch.zeros(2, 0, 16, 16))
-    expected = F.interpolate(trained.eval()(image), size=(16, 16), mode="bilinear", align_corners=False)
-    assert out.shape == (2, 5, 16, 16) and torch.allclose(out, expected, atol=1e-6)
-    with pytest.raises(ValueError, match="no such file"):
-        FrozenEncoder(fresh, tmp_path / "missing.pt", out_channels=5)
-    with pytest.raises(ValueError, match="expected"):
-        FrozenEncoder(fresh, path, out_channels=4)(image, None, None)
 
 
 def test_mask_distance_transform_matches_scipy():

@@ -32,6 +32,7 @@ from torch import Tensor
 from cdm.cameras import Cameras, select_sequence_views
 from cdm.config import Config
 from cdm.data.cache import DECODED, ObjectRecord, PreparedRoot, ViewImages, is_prepared
+from cdm.data.depth_maps import DepthMaps
 from cdm.data.lru import ByteLRU
 from cdm.data.priors2d import prior_2d_channels
 from cdm.data.sample import Sample
@@ -119,6 +120,8 @@ class CapturedDataset(ObjectDataset):
         if not self._refs:
             raise ValueError(f"data.root: {self.root} has no objects of categories {list(chosen)} in split {self.published!r}")
         super().__init__(cfg, split, cache_bytes)
+        p = cfg.priors
+        self.depth_maps = DepthMaps(p.depth_maps, p.depth_maps_disparity) if p.prior_2d == "depth" and p.depth_source == "maps" else None
 
     @classmethod
     def categories(cls, cfg: Config) -> tuple[str, ...]:
@@ -206,11 +209,14 @@ class CapturedDataset(ObjectDataset):
         mask = torch.from_numpy(v.mask > 127).float()[None]
         depth = None if v.depth is None else torch.from_numpy(v.depth.astype(np.float32))[None] * v.depth_scale
         positions = select_sequence_views(len(surface.sequence), int(surface.views[choice]), self.num_views)
+        prior_depth = depth
+        if self.depth_maps is not None:  # estimated from the image (the paper's DINOv2 route), not measured
+            prior_depth = self.depth_maps.read(ref.object_id, int(surface.views[choice]), self.cfg.data.image_size)
         return Sample(
             image=image,
             mask=mask,
             depth=depth,
-            prior_2d=prior_2d_channels(self.cfg.priors.prior_2d, image, mask, depth),
+            prior_2d=prior_2d_channels(self.cfg.priors.prior_2d, image, mask, prior_depth),
             camera=v.camera,
             # View 0 is the input view itself, with the intrinsics of the input crop.
             view_cameras=_with_first(surface.sequence[torch.tensor(positions)], v.camera),

@@ -14,7 +14,35 @@ from torch import Tensor
 
 from cdm.cameras import Cameras
 
-__all__ = ["Batch", "Sample", "collate"]
+__all__ = ["Batch", "ConditionViews", "Sample", "collate"]
+
+
+@dataclass(frozen=True)
+class ConditionViews:
+    """Extra condition images of a training sample (``data.condition_views``, supplementary Table 8).
+
+    Attributes (``K`` views; a batch adds a leading ``B``):
+        image: ``(K, 3, S, S)`` RGB in [0, 1] (renderings or generated images).
+        mask: ``(K, 1, S, S)`` foreground of the object from that view, in {0, 1}.
+        prior_2d: ``(K, C2, S, S)`` 2D-prior channels of each image (as the input's, Eq. 7).
+        camera: batch ``(K,)``, the camera each image was taken from.
+        valid: ``(K,)`` bool, False for views left out of this sample (a random count per sample).
+    """
+
+    image: Tensor
+    mask: Tensor
+    prior_2d: Tensor
+    camera: Cameras
+    valid: Tensor
+
+    def to(self, device: torch.device | str) -> ConditionViews:
+        return ConditionViews(self.image.to(device), self.mask.to(device), self.prior_2d.to(device),
+                              self.camera.to(device), self.valid.to(device))
+
+    @staticmethod
+    def stack(views: list[ConditionViews]) -> ConditionViews:
+        return ConditionViews(*(torch.stack([getattr(v, f) for v in views]) for f in ("image", "mask", "prior_2d")),
+                              Cameras.stack([v.camera for v in views]), torch.stack([v.valid for v in views]))
 
 
 @dataclass(frozen=True)
@@ -31,6 +59,7 @@ class Sample:
         points: ``(N, 3)`` ground-truth cloud, world units.
         category: category name.
         object_id: stable id of the object (same across its views and runs).
+        conditions: extra condition views (training with ``data.condition_views``), else None.
     """
 
     image: Tensor
@@ -42,6 +71,7 @@ class Sample:
     points: Tensor
     category: str
     object_id: str
+    conditions: ConditionViews | None = None
 
 
 @dataclass(frozen=True)
@@ -57,6 +87,7 @@ class Batch:
     points: Tensor
     category: tuple[str, ...]
     object_id: tuple[str, ...]
+    conditions: ConditionViews | None = None
 
     def __len__(self) -> int:
         return self.points.shape[0]
@@ -72,6 +103,7 @@ class Batch:
             points=self.points.to(device),
             category=self.category,
             object_id=self.object_id,
+            conditions=None if self.conditions is None else self.conditions.to(device),
         )
 
 
@@ -88,4 +120,5 @@ def collate(samples: list[Sample]) -> Batch:
         points=torch.stack([s.points for s in samples]),
         category=tuple(s.category for s in samples),
         object_id=tuple(s.object_id for s in samples),
+        conditions=None if any(s.conditions is None for s in samples) else ConditionViews.stack([s.conditions for s in samples]),
     )

@@ -35,9 +35,10 @@ from torch.utils.data import Dataset
 
 from cdm.cameras import Cameras, orbit_cameras, project_points
 from cdm.config import Config
+from cdm.data.condition_images import ConditionImages, condition_views
 from cdm.data.lru import ByteLRU
-from cdm.data.sample import Sample
 from cdm.data.priors2d import prior_2d_channels
+from cdm.data.sample import ConditionViews, Sample
 from cdm.render import rasterize_points
 
 __all__ = [
@@ -67,7 +68,7 @@ _FIT_POINTS = 2048
 """Dense points (an i.i.d. subset) projected to fit the focal; the frame margin covers the rest."""
 
 # Purposes of the per-object random streams (spawn keys of one SeedSequence per object).
-_STREAM_SHAPE, _STREAM_SURFACE, _STREAM_PALETTE, _STREAM_VIEW = range(4)
+_STREAM_SHAPE, _STREAM_SURFACE, _STREAM_PALETTE, _STREAM_VIEW, _STREAM_CONDITIONS = range(5)
 
 
 class Shape(NamedTuple):
@@ -315,6 +316,9 @@ class ObjectDataset(Dataset, ABC):
         self.cache_bytes = cache_bytes
         self.epoch = 0
         self._cache: ByteLRU = ByteLRU(cache_bytes)
+        d = cfg.data
+        from_folder = d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")
+        self.condition_images = ConditionImages(d.condition_folder, d.condition_grey) if from_folder else None
 
     @classmethod
     @abstractmethod
@@ -378,17 +382,35 @@ class ObjectDataset(Dataset, ABC):
         """Object ``index`` seen from its view of ``view_round`` (a pure function of both)."""
         self._check_sample_args(index, view_round)
         surface = self.surface(index)
-        view = draw_view(self._rng(index, _STREAM_VIEW, view_round))
+        view = self.drawn_view(index, view_round)
         r = render_view(surface, view, self.cfg.data.image_size, self.num_views)
         ref = self.objects[index]
+        image, d = r.image, self.cfg.data
+        if d.input_source == "folder":  # a generated input image (Table 8 rows 4, 6, 7)
+            image = self.condition_images.read(ref.object_id, view_round, 0, d.image_size)
         return Sample(
-            image=r.image,
+            image=image,
             mask=r.mask,
             depth=r.depth,
-            prior_2d=prior_2d_channels(self.cfg.priors.prior_2d, r.image, r.mask, r.depth),
+            prior_2d=prior_2d_channels(self.cfg.priors.prior_2d, image, r.mask, r.depth),
             camera=r.camera,
             view_cameras=r.view_cameras,
             points=surface.cloud,
             category=ref.category,
             object_id=ref.object_id,
+            conditions=self._conditions(index, surface, view, view_round) if self.split == "train" and d.condition_views else None,
         )
+
+    def drawn_view(self, index: int, view_round: int) -> View:
+        """The random view of object ``index`` in ``view_round`` (what :meth:`sample` renders)."""
+        return draw_view(self._rng(index, _STREAM_VIEW, view_round))
+
+    def _conditions(self, index: int, surface: ObjectSurface, view: View, view_round: int) -> ConditionViews:
+        """Views 1…k of k + 1 evenly spaced in azimuth around the input view (``data.condition_views``)."""
+        d = self.cfg.data
+        k = d.condition_views
+        shown = int(self._rng(index, _STREAM_CONDITIONS, view_round).integers(1, k + 1)) if d.condition_views_random else k
+        turned = [view._replace(azim=view.azim + 360.0 * j / (k + 1)) for j in range(1, k + 1)]
+        renders = [render_view(surface, v, d.image_size, 1) for v in turned]
+        images = self.condition_images if d.condition_source == "folder" else None
+        return condition_views(renders, images, self.objects[index].object_id, view_round, shown, self.cfg.priors.prior_2d)

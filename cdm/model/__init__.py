@@ -6,7 +6,7 @@ from cdm.model.conditioning import (
     mask_distance_transform,
     project_conditioning,
 )
-from cdm.model.encoder import FrozenEncoder, ImageEncoder
+from cdm.model.encoder import FrozenViT, ImageEncoder, ViTS16, build_encoder, check_encoder_record
 from cdm.model.global_features import PointCrossAttention, global_embedding, image_tokens
 from cdm.model.network import CDMNetwork, ImageContext
 from cdm.model.pvcnn import PointVoxelBlock, PVCNNDenoiser, timestep_embedding
@@ -23,7 +23,7 @@ from cdm.model.voxels import (
 __all__ = [
     "CDMNetwork",
     "DenseGrid",
-    "FrozenEncoder",
+    "FrozenViT",
     "ImageContext",
     "ImageEncoder",
     "PVCNNDenoiser",
@@ -31,7 +31,10 @@ __all__ = [
     "PointVoxelBlock",
     "SparseGrid",
     "VoxelBranch",
+    "ViTS16",
     "VoxelGrid",
+    "build_encoder",
+    "check_encoder_record",
     "build_grid",
     "conditioning_channels",
     "conditioning_map",

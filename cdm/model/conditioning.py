@@ -20,7 +20,13 @@ from torch import Tensor
 from cdm.cameras import Cameras
 from cdm.render import rasterize_points
 
-__all__ = ["conditioning_channels", "conditioning_map", "mask_distance_transform", "project_conditioning"]
+__all__ = [
+    "conditioning_channels",
+    "conditioning_map",
+    "mask_distance_transform",
+    "project_conditioning",
+    "project_views",
+]
 
 def conditioning_channels(feature_dim: int, prior_2d_channels: int) -> int:
     """Channels of :func:`conditioning_map`: features + 2D prior + RGB (3) + mask (1) + distance (1)."""
@@ -97,3 +103,25 @@ def project_conditioning(cond_map: Tensor, points: Tensor, cameras: Cameras, rad
     index = frags.pixel.clamp(min=0)[:, None, :].expand(b, c, -1)
     gathered = cond_map.flatten(2).gather(2, index).transpose(1, 2)  # (B, N, C)
     return gathered * frags.visible[..., None].to(gathered.dtype)
+
+
+def project_views(cond_maps: Tensor, points: Tensor, cameras: Cameras, valid: Tensor, radius: float) -> Tensor:
+    """Several condition images per sample (supplementary Table 8): each point gets the mean of the
+    channels it gathers from the views it is front-most in; points seen by none get zeros (as PC²).
+
+    Args:
+        cond_maps: ``(B, V, C, S, S)`` conditioning maps, view 0 the input image.
+        points: ``(B, N, 3)`` world coordinates (``x_t``).
+        cameras: batch ``(B, V)``.
+        valid: ``(B, V)`` bool, views that take part.
+        radius: rasterization radius, NDC units.
+    Returns:
+        ``(B, N, C)``.
+    """
+    b, v, c, s, _ = cond_maps.shape
+    seen_channel = cond_maps.new_ones(b, v, 1, s, s)  # gathers 1 exactly where a point is visible
+    gathered = project_conditioning(
+        torch.cat([cond_maps, seen_channel], dim=2).flatten(0, 1), points.repeat_interleave(v, 0), cameras.flatten(), radius
+    ).unflatten(0, (b, v)) * valid[:, :, None, None].to(cond_maps.dtype)  # (B, V, N, C + 1)
+    seen = gathered[..., -1:].sum(dim=1)
+    return gathered[..., :-1].sum(dim=1) / seen.clamp(min=1.0)

@@ -16,9 +16,10 @@ from torch import Tensor
 from cdm.cameras import Cameras
 from cdm.config import ModelConfig
 from cdm.data.sample import Batch
-from cdm.model.conditioning import conditioning_channels, conditioning_map, project_conditioning
-from cdm.model.encoder import ImageEncoder
-from cdm.model.global_features import global_embedding, image_tokens
+from cdm.model.conditioning import conditioning_channels, conditioning_map, project_conditioning, project_views
+from cdm.model.encoder import build_encoder
+from cdm.model.embeddings import load_embeddings
+from cdm.model.global_features import TOKEN_GRID, global_embedding, image_tokens
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
 
@@ -30,13 +31,22 @@ class ImageContext(NamedTuple):
 
     Attributes:
         pixel: ``(B, C, S, S)`` conditioning map ``[features, 2D prior, RGB, mask, distance]``.
-        embedding: ``(B, F)`` global embedding (``global_feature == "concat"``), else ``None``.
-        tokens: ``(B, 64, F)`` image tokens (``global_feature == "cross_attention"``), else ``None``.
+        embedding: ``(B, F)`` global embedding (``global_feature == "concat"``), else ``None``; ``(B, E)``
+            from ``model.global_embeddings`` with ``global_source == "embeddings"``.
+        tokens: ``(B, 64, F)`` image tokens (``global_feature == "cross_attention"``), else ``None``;
+            ``(B, T, E)`` from the embeddings file.
     """
 
     pixel: Tensor
     embedding: Tensor | None
     tokens: Tensor | None
+    views: Tensor | None = None
+    """``(B, K, C, S, S)`` conditioning maps of the extra condition views (training with
+    ``data.condition_views``), else ``None``."""
+    view_cameras: Cameras | None = None
+    """Their cameras, batch ``(B, K)``."""
+    view_valid: Tensor | None = None
+    """``(B, K)`` bool, the views each sample uses."""
 
 
 class CDMNetwork(nn.Module):
@@ -47,8 +57,8 @@ class CDMNetwork(nn.Module):
         prior_2d_channels: ``C2`` of ``batch.prior_2d`` (0 when ``priors.prior_2d`` is ``none``).
         device: where the model will run; only resolves ``voxel_backend="auto"`` (``None``: CUDA if
             available). Move the module yourself.
-        encoder: replaces the default :class:`~cdm.model.encoder.ImageEncoder`, e.g. a
-            :class:`~cdm.model.encoder.FrozenEncoder`; its ``out_channels`` must equal ``cfg.feature_dim``.
+        encoder: replaces the one ``cfg.encoder`` names (:func:`~cdm.model.encoder.build_encoder`);
+            its ``out_channels`` must equal ``cfg.feature_dim``.
 
     Attributes:
         voxel_backend: the resolved back-end, ``dense`` or ``sparse``. Record it with a checkpoint and
@@ -69,20 +79,23 @@ class CDMNetwork(nn.Module):
         self.prior_2d_channels = prior_2d_channels
         self.raster_radius = cfg.raster_radius
         self.global_feature = cfg.global_feature
-        self.encoder = encoder if encoder is not None else ImageEncoder(prior_2d_channels, cfg.feature_dim)
+        self.encoder = encoder if encoder is not None else build_encoder(cfg, prior_2d_channels)
         if self.encoder.out_channels != cfg.feature_dim:
             raise ValueError(
                 f"encoder gives {self.encoder.out_channels} channels but model.feature_dim is {cfg.feature_dim}"
             )
         cond = conditioning_channels(cfg.feature_dim, prior_2d_channels)
+        self.embeddings = load_embeddings(cfg.global_embeddings) if cfg.global_source == "embeddings" else None
+        global_dim = cfg.feature_dim if self.embeddings is None else self.embeddings.dim
         self.denoiser = PVCNNDenoiser(
-            in_channels=cond + (cfg.feature_dim if cfg.global_feature == "concat" else 0),
+            in_channels=cond + (global_dim if cfg.global_feature == "concat" else 0),
             widths=cfg.widths,
             resolutions=cfg.voxel_resolutions,
             time_embed_dim=cfg.time_embed_dim,
             voxel_backend=self.voxel_backend,
             devoxelize=cfg.devoxelize,
-            token_channels=cfg.feature_dim if cfg.global_feature == "cross_attention" else None,
+            token_channels=global_dim if cfg.global_feature == "cross_attention" else None,
+            num_tokens=TOKEN_GRID**2 if self.embeddings is None else self.embeddings.num_tokens,
         )
 
     def encode(self, batch: Batch) -> ImageContext:
@@ -94,9 +107,18 @@ class CDMNetwork(nn.Module):
             )
         features = self.encoder(batch.image, batch.mask, batch.prior_2d)
         pixel = conditioning_map(features, batch.prior_2d, batch.image, batch.mask)
-        embedding = global_embedding(features) if self.global_feature == "concat" else None
-        tokens = image_tokens(features) if self.global_feature == "cross_attention" else None
-        return ImageContext(pixel, embedding, tokens)
+        concat, attend = self.global_feature == "concat", self.global_feature == "cross_attention"
+        if self.embeddings is not None:
+            given = self.embeddings.batch(batch.object_id).to(features)  # (B, T, E)
+            context = ImageContext(pixel, given.mean(dim=1) if concat else None, given if attend else None)
+        else:
+            context = ImageContext(pixel, global_embedding(features) if concat else None, image_tokens(features) if attend else None)
+        c = batch.conditions
+        if c is None:
+            return context
+        image, mask, prior = (t.flatten(0, 1) for t in (c.image, c.mask, c.prior_2d))
+        views = conditioning_map(self.encoder(image, mask, prior), prior, image, mask).unflatten(0, c.valid.shape)
+        return context._replace(views=views, view_cameras=c.camera, view_valid=c.valid)
 
     def forward(self, x_t: Tensor, t: Tensor, context: ImageContext, camera: Cameras) -> Tensor:
         """One denoiser evaluation.
@@ -115,7 +137,14 @@ class CDMNetwork(nn.Module):
             raise ValueError(
                 f"t {tuple(t.shape)} and context (batch {context.pixel.shape[0]}) must match x_t's batch {x_t.shape[0]}"
             )
-        cond = project_conditioning(context.pixel, x_t, camera, self.raster_radius)
+        if context.views is None:
+            cond = project_conditioning(context.pixel, x_t, camera, self.raster_radius)
+        else:
+            fields = ("R", "T", "focal", "principal")
+            cameras = Cameras(*(torch.cat([getattr(camera, f)[:, None], getattr(context.view_cameras, f)], 1) for f in fields))
+            valid = torch.cat([context.view_valid.new_ones(x_t.shape[0], 1), context.view_valid], dim=1)
+            maps = torch.cat([context.pixel[:, None], context.views], dim=1)
+            cond = project_views(maps, x_t, cameras, valid, self.raster_radius)
         if context.embedding is not None:
             cond = torch.cat([cond, context.embedding[:, None, :].expand(-1, x_t.shape[1], -1)], dim=-1)
         return self.denoiser(x_t, cond, t, context.tokens)

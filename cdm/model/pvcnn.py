@@ -25,7 +25,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from cdm.model.global_features import PointCrossAttention
+from cdm.model.global_features import TOKEN_GRID, PointCrossAttention
 from cdm.model.voxels import (
     Devoxelize,
     VoxelBackend,
@@ -92,6 +92,8 @@ class PVCNNDenoiser(nn.Module):
         voxel_backend: ``dense`` or ``sparse`` (resolved; see ``resolve_voxel_backend``).
         devoxelize: ``trilinear`` or ``nearest``.
         token_channels: channels of image tokens for one cross-attention block; ``None`` = no block.
+        num_tokens: tokens per image the block attends to (``TOKEN_GRID²`` pooled features, or ``T``
+            per-object embeddings).
     """
 
     def __init__(
@@ -103,6 +105,7 @@ class PVCNNDenoiser(nn.Module):
         voxel_backend: VoxelBackend,
         devoxelize: Devoxelize = "trilinear",
         token_channels: int | None = None,
+        num_tokens: int = TOKEN_GRID**2,
     ):
         super().__init__()
         if len(widths) != len(resolutions) or not widths:
@@ -122,7 +125,7 @@ class PVCNNDenoiser(nn.Module):
         )
         self.attention_after = len(widths) // 2 if token_channels is not None else None
         self.attention = (
-            PointCrossAttention(widths[self.attention_after], token_channels) if token_channels is not None else None
+            PointCrossAttention(widths[self.attention_after], token_channels, num_tokens) if token_channels is not None else None
         )
         last = widths[-1]
         self.head = nn.Linear(last, last)

@@ -1,0 +1,86 @@
+"""Write the per-object embeddings of supplementary Table 7 with OpenCLIP, on a machine that has it.
+
+Not a dependency of CDM Lab (it downloads its weights): install ``open_clip_torch`` where you run
+this, then copy the ``.npz`` files next to the data. Input: a folder from
+``python -m cdm.tools.export_views`` (its ``objects.json`` names every object and category)::
+
+    python -m cdm.tools.openclip_embeddings --views views/ --kind image --out image.npz
+    python -m cdm.tools.openclip_embeddings --views views/ --kind text  --out text.npz
+    python -m cdm.tools.openclip_embeddings --views views/ --kind depth --out depth.npz
+
+``image``: the embedding of the object's reference view (captured kinds: its lowest sequence
+position, the held-out view for held-out objects; rendered kinds: round 0, view 0); ``text``: the
+embedding of "a photo of a {category}"; ``depth``: the embedding of that view's depth map drawn as a
+grey image (near = white), from ``<view>.depth.npy`` or an estimated map folder (``--depth-maps``).
+Each entry is a unit-norm ``(E,)`` float32 vector under the object id (:mod:`cdm.model.embeddings`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["main"]
+
+
+def _reference(folder: Path) -> Path:
+    """The reference view's image of one object folder (module docstring)."""
+    flat = sorted((p for p in folder.glob("*.png") if p.stem.isdigit()), key=lambda p: int(p.stem))
+    return flat[0] if flat else folder / "0" / "0.png"
+
+
+def _depth_image(path: Path):
+    from PIL import Image
+
+    depth = np.load(path)
+    fg = depth > 0
+    near = np.zeros_like(depth)
+    if fg.any():
+        lo, hi = depth[fg].min(), depth[fg].max()
+        near[fg] = 1.0 if hi == lo else (hi - depth[fg]) / (hi - lo)
+    return Image.fromarray((near * 255).astype(np.uint8)).convert("RGB")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m cdm.tools.openclip_embeddings", description=__doc__.split("\n\n")[0])
+    p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")
+    p.add_argument("--kind", required=True, choices=("image", "text", "depth"))
+    p.add_argument("--out", required=True, type=Path, help=".npz to write")
+    p.add_argument("--depth-maps", type=Path, help="estimated maps (<object_id>/<position>.npy) instead of rendered depth")
+    p.add_argument("--model", default="ViT-B-32")
+    p.add_argument("--pretrained", default="laion2b_s34b_b79k")
+    args = p.parse_args(argv)
+    import open_clip  # optional: only where this script runs
+    import torch
+    from PIL import Image
+
+    model, _, preprocess = open_clip.create_model_and_transforms(args.model, pretrained=args.pretrained)
+    tokenizer = open_clip.get_tokenizer(args.model)
+    model.eval()
+    objects = json.loads((args.views / "objects.json").read_text())
+    out = {}
+    with torch.no_grad():
+        for object_id, category in objects.items():
+            if args.kind == "text":
+                vector = model.encode_text(tokenizer([f"a photo of a {category}"]))[0]
+            else:
+                ref = _reference(args.views / object_id)
+                if args.kind == "image":
+                    picture = Image.open(ref).convert("RGB")
+                elif args.depth_maps is not None:
+                    picture = _depth_image(args.depth_maps / object_id / f"{ref.stem}.npy")
+                else:
+                    picture = _depth_image(ref.with_name(f"{ref.stem}.depth.npy"))
+                vector = model.encode_image(preprocess(picture)[None])[0]
+            out[object_id] = (vector / vector.norm()).float().numpy()
+    np.savez(args.out, **out)
+    print(f"wrote {len(out)} {args.kind} embeddings ({next(iter(out.values())).shape[0]} dims) to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,125 @@
+"""Extra condition views (``data.condition_views``, ``data.input_source``; supplementary Table 8)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cdm.cameras import look_at_cameras
+from cdm.config import ConfigError
+from cdm.data import build_dataset
+from cdm.data.condition_images import grey
+from cdm.data.sample import collate
+from cdm.data.views import render_view
+from cdm.inputs import check_coverage, check_inputs
+from cdm.model import CDMNetwork, project_conditioning
+from cdm.model.conditioning import project_views
+from cdm.render import rasterize_points
+from tests.conftest import tiny_config
+from tests.input_fixtures import object_ids, write_condition_images
+
+PC2 = {"priors.prior_3d": False, "priors.prior_2d": "none"}
+
+
+def test_project_views_averages_over_the_views_that_see_a_point():
+    s, n = 16, 60
+    g = torch.Generator().manual_seed(0)
+    points = (torch.rand(1, n, 3, generator=g) * 2 - 1) * 0.8
+    maps = torch.randn(1, 2, 4, s, s, generator=g)
+    cams = look_at_cameras(torch.tensor([[10.0, 30.0]]), torch.tensor([[0.0, 120.0]]), torch.tensor([[3.0, 3.0]]))
+    got = project_views(maps, points, cams, torch.tensor([[True, True]]), 0.05)[0]
+    flat = cams.flatten()
+    seen, gathered = [], []
+    for v in range(2):
+        cam = flat[v : v + 1]
+        seen.append(rasterize_points(points, cam, s, 0.05).visible[0])
+        gathered.append(project_conditioning(maps[:, v], points, cam, 0.05)[0])
+    counts = seen[0].int() + seen[1].int()
+    assert (counts == 1).any() and (counts == 2).any() and (counts == 0).any()
+    for i in range(n):  # the naive reference: the mean over the views whose z-buffer keeps point i
+        views = [v for v in range(2) if seen[v][i]]
+        expected = sum((gathered[v][i] for v in views), torch.zeros(4)) / max(1, len(views))
+        assert torch.allclose(got[i], expected, atol=1e-6), i
+    only_first = project_views(maps, points, cams, torch.tensor([[True, False]]), 0.05)[0]
+    assert torch.allclose(only_first, gathered[0])  # one valid view = plain PC² projection
+
+
+def test_gt_condition_views_are_renderings_from_turned_cameras(tmp_path):
+    cfg = tiny_config(tmp_path, **PC2, **{"data.condition_views": 3})
+    ds = build_dataset(cfg, "train")
+    sample = ds.sample(1, view_round=2)
+    c = sample.conditions
+    assert c.image.shape == (3, 3, 32, 32) and c.mask.shape == (3, 1, 32, 32) and c.prior_2d.shape == (3, 0, 32, 32)
+    assert c.valid.all() and c.camera.batch_shape == (3,)
+    view = ds.drawn_view(1, 2)
+    for j in range(1, 4):
+        shot = render_view(ds.surface(1), view._replace(azim=view.azim + 90.0 * j), 32, 1)
+        assert torch.equal(c.image[j - 1], shot.image) and torch.equal(c.camera.R[j - 1], shot.camera.R)
+    # Camera centres (-T R^T) turn by 90° about +Y, at the input's distance.
+    centres = [(-cam.T @ cam.R.T) for cam in [sample.camera, *[c.camera[j] for j in range(3)]]]
+    for j in range(1, 4):
+        cos = torch.dot(centres[0][[0, 2]], centres[j][[0, 2]]) / (centres[0][[0, 2]].norm() * centres[j][[0, 2]].norm())
+        assert cos == pytest.approx(np.cos(np.radians(90.0 * j)), abs=1e-4)
+    assert build_dataset(cfg, "val").sample(0).conditions is None  # sampling sees the input only
+    plain = build_dataset(tiny_config(tmp_path, **PC2), "train").sample(1, view_round=2)
+    assert plain.conditions is None and torch.equal(plain.image, sample.image)  # extra views leave the input alone
+
+
+def test_random_count_and_folder_images(tmp_path):
+    base = tiny_config(tmp_path, **PC2)
+    ids = object_ids(base)
+    write_condition_images(tmp_path / "gen", ids, views=3, rounds=2)
+    common = {**PC2, "data.condition_views": 3, "data.condition_folder": str(tmp_path / "gen")}
+    counts = {int(build_dataset(tiny_config(tmp_path, **common, **{"data.condition_views_random": True}), "train")
+                  .sample(i, r).conditions.valid.sum()) for i in range(4) for r in range(4)}
+    assert counts <= {1, 2, 3} and len(counts) > 1
+    folder = build_dataset(tiny_config(tmp_path, **common, **{"data.condition_source": "folder"}), "train")
+    s = folder.sample(0, view_round=3)  # round 3 of 2 generated rounds reads round 1
+    import cv2
+
+    for v in range(1, 4):
+        bgr = cv2.imread(str(tmp_path / "gen" / ids[0] / "1" / f"{v}.png"))
+        assert torch.allclose(s.conditions.image[v - 1][:, 5, 5], torch.from_numpy(bgr[5, 5, ::-1].copy()).float() / 255)
+    grey_in = build_dataset(tiny_config(tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_grey": True,
+                                                           "data.condition_folder": str(tmp_path / "gen")}), "val")
+    image = grey_in.sample(0).image
+    rgb = torch.from_numpy(cv2.imread(str(tmp_path / "gen" / grey_in.objects[0].object_id / "0" / "0.png"))[5, 5, ::-1].copy()).float() / 255
+    assert torch.allclose(image[:, 5, 5], torch.full((3,), float(0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2])), atol=1e-6)
+    assert torch.allclose(grey(torch.tensor([1.0, 0.0, 0.0]).view(3, 1, 1).expand(3, 2, 2))[:, 0, 0], torch.full((3,), 0.299))
+
+
+def test_network_projects_condition_views_in_training_only(tmp_path):
+    cfg = tiny_config(tmp_path, **PC2, **{"data.condition_views": 3})
+    torch.manual_seed(0)
+    net = CDMNetwork(cfg.model, 0)
+    batch = collate([build_dataset(cfg, "train").sample(i) for i in range(2)])
+    ctx = net.encode(batch)
+    assert ctx.views.shape == (2, 3, 8 + 5, 32, 32) and ctx.view_valid.shape == (2, 3)
+    t = torch.tensor([4, 9])
+    with_views = net(batch.points, t, ctx, batch.camera)
+    without = net(batch.points, t, ctx._replace(views=None, view_cameras=None, view_valid=None), batch.camera)
+    assert not torch.allclose(with_views, without)  # back-facing points of the input view get features
+    invalid = ctx._replace(view_valid=torch.zeros_like(ctx.view_valid))
+    assert torch.allclose(net(batch.points, t, invalid, batch.camera), without, atol=1e-6)
+
+
+def test_bad_condition_inputs_name_the_field(tmp_path):
+    base = tiny_config(tmp_path, **PC2)
+    ids = object_ids(base)
+    write_condition_images(tmp_path / "gen", ids[1:], views=3)
+    cfg = tiny_config(tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_folder": str(tmp_path / "gen")})
+    with pytest.raises(ValueError, match=rf"data.condition_folder: no images for object id '{ids[0]}' \(1 of"):
+        check_coverage(cfg, (build_dataset(cfg, "train"), build_dataset(cfg, "val")))
+    missing = tiny_config(tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_folder": str(tmp_path / "no")})
+    with pytest.raises(ValueError, match="data.condition_folder: .*no does not exist"):
+        check_inputs(missing)
+    with pytest.raises(ConfigError, match="data.condition_folder is required"):
+        tiny_config(tmp_path, **{"data.input_source": "folder"})
+    with pytest.raises(ConfigError, match="need a rendered data set"):
+        tiny_config(tmp_path, **{"data.condition_views": 2, "data.kind": "co3d", "data.root": str(tmp_path)})
+    (tmp_path / "gen" / ids[1] / "0" / "2.png").write_bytes(b"not a png")
+    folder = tiny_config(tmp_path, **PC2, **{"data.condition_views": 3, "data.condition_source": "folder",
+                                             "data.condition_folder": str(tmp_path / "gen")})
+    with pytest.raises(ValueError, match=r"data.condition_folder: cannot read .*2.png as an image"):
+        build_dataset(folder, "train").sample(next(i for i, o in enumerate(build_dataset(folder, "train").objects) if o.object_id == ids[1]))
