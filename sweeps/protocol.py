@@ -131,14 +131,14 @@ def _training(cfg: Config, ctx: CardContext) -> str | None:
 
 
 def _encoder(cfg: Config, ctx: CardContext) -> str | None:
-    if cfg.model.encoder == "vit_s16":
+    if cfg.model.encoder == "vit_s16":  # its weights are required (model.encoder_weights) and checked by hash
         return None
     return "encoder: a small CNN trained from scratch (PC²: frozen ViT-S/16, 384 channels)"
 
 
 def _depth_source(cfg: Config, ctx: CardContext) -> str | None:
-    # Until the depth estimator exists, depth always comes from the data set's ground truth.
-    if cfg.priors.prior_2d != "depth":
+    # Estimated maps (priors.depth_source: maps) are the paper's route, whatever estimator made them.
+    if cfg.priors.prior_2d != "depth" or cfg.priors.depth_source == "maps":
         return None
     return "depth: the 2D depth prior reads ground-truth depth maps, an upper bound (the paper estimates depth)"
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -86,3 +88,21 @@ def test_bad_maps_name_the_field(tree, tmp_path):
         load_config(None, {"priors.prior_2d": "depth", "priors.depth_source": "maps", "priors.depth_maps": "x"})
     with pytest.raises(ConfigError, match="priors.depth_maps .* is required"):
         _cfg(tree.root, **{"priors.depth_source": "maps"})
+
+
+def test_protocol_card_names_encoder_and_depth_unless_weights_and_maps_are_given(tmp_path):
+    from sweeps.protocol import plan_card
+    from sweeps.spec import expand, load_spec
+
+    root = make_co3d(tmp_path / "co3d3", categories=("hydrant", "teddybear", "toytruck"), frames=3,
+                     splits={"train": 1, "val": 1, "test": 0}).root
+    spec = load_spec(Path(__file__).resolve().parent.parent / "sweeps" / "co3d.yaml")
+    stand_ins = expand(spec, "paper", {"data.root": str(root)})
+    assert plan_card(stand_ins).deviations == (
+        "encoder: a small CNN trained from scratch (PC²: frozen ViT-S/16, 384 channels)",
+        "depth: the 2D depth prior reads ground-truth depth maps, an upper bound (the paper estimates depth)",
+    )
+    given = expand(spec, "paper", {"data.root": str(root), "model.encoder": "vit_s16", "model.feature_dim": 384,
+                                   "model.encoder_weights": str(tmp_path / "vits16_800ep.pth.tar"),
+                                   "priors.depth_source": "maps", "priors.depth_maps": str(tmp_path / "maps")})
+    assert plan_card(given).deviations == ()
