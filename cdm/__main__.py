@@ -16,6 +16,7 @@ import torch
 from cdm.config import Config, config_field_paths, load_config, parse_override
 from cdm.evaluate import BASELINES
 from cdm.inputs import check_inputs
+from cdm.memory import check_memory
 from cdm.optim import TrainingDiverged
 from cdm.train import Callback, fit
 
@@ -55,6 +56,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, _overrides(args.set))
     check_inputs(cfg)
+    check_memory([cfg], concurrent=1)
     print(f"training {cfg.train.steps} steps on data.kind={cfg.data.kind}, output in {cfg.train.out_dir}", flush=True)
     result = fit(cfg, [_Progress(cfg.train.steps, 0)], resume_from=args.resume)
     print(f"done at step {result.step}: CD×1000 {result.metrics.get('eval/cd', float('nan')):.2f}, "

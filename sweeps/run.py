@@ -26,8 +26,9 @@ if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sy
 from pydantic import ValidationError
 
 from cdm.config import ConfigError, load_config, parse_override
+from cdm.memory import check_memory
 from sweeps.claim import ClaimError, SweepClaim, claim
-from sweeps.limits import MAX_TRIALS, LimitError, check_memory, check_trials
+from sweeps.limits import MAX_TRIALS, LimitError, check_trials
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.spec import Spec, SpecError, SweepPlan, expand, load_spec, plan_concurrency
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state

@@ -19,7 +19,8 @@ import yaml
 from cdm.config import Config, ConfigError, config_field_paths, load_config, parse_override
 from sweeps import run
 from sweeps.claim import ClaimError, claim
-from sweeps.limits import LimitError, check_memory, check_trials, estimate_trial_bytes, load_yaml
+from cdm.memory import check_memory, estimate_train_bytes
+from sweeps.limits import LimitError, check_trials, load_yaml
 from sweeps.spec import Spec, expand, load_spec
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
 
@@ -113,17 +114,17 @@ def test_set_value_may_not_use_aliases():
 
 def test_memory_estimate_grows_with_each_size_and_refuses_past_the_machine():
     base = expand(load_spec(ROOT / "sweeps" / "point_size.yaml"), "smoke").cells[0].config
-    b0 = estimate_trial_bytes(base, 2)
+    b0 = estimate_train_bytes(base, 2)
     # One more object per split and category costs one index entry per category.
     more = load_config(None, {**base.flat(), "data.train_objects": base.data.train_objects + 1})
-    assert estimate_trial_bytes(more, 2) - b0 == 2 * 256
+    assert estimate_train_bytes(more, 2) - b0 == 2 * 256
     # Doubling the batch adds exactly one batch's worth: the part that scales with train.batch_size.
     double = load_config(None, {**base.flat(), "train.batch_size": 2 * base.train.batch_size})
     fixed = (base.data.train_objects + base.data.val_objects) * 2 * 256 + 2 * 512 * 2**20
-    assert estimate_trial_bytes(double, 2) - b0 == b0 - fixed
+    assert estimate_train_bytes(double, 2) - b0 == b0 - fixed
     check_memory([base], concurrent=2)  # the smoke profile fits any machine
     huge = load_config(None, {**base.flat(), "data.train_objects": 10**11})
-    with pytest.raises(LimitError, match=r"data.train_objects=100000000000.*need at least .* GiB but this machine has 16.0 GiB"):
+    with pytest.raises(ConfigError, match=r"data.train_objects=100000000000.*need at least .* GiB but this machine has 16.0 GiB"):
         check_memory([huge], concurrent=1, total=16 * 2**30)
 
 
