@@ -239,6 +239,11 @@ def main(argv: list[str] | None = None) -> int:
                          _local_concurrency(plan))
     except (SpecError, ConfigError, LimitError, StoreError) as exc:
         return _fail(str(exc))
+    print(f"spec {spec.name} ({args.spec}): {spec.description}", flush=True)
+    try:
+        _check_inputs(plan, remote)
+    except ValueError as exc:
+        return _fail(str(exc))
     if not args.dry_run:
         from sweeps.tracking import resolve_tracking_uri
 
@@ -251,11 +256,6 @@ def main(argv: list[str] | None = None) -> int:
         if not args.resume and _exists(sweep_dir):
             held.release()
             return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
-    print(f"spec {spec.name} ({args.spec}): {spec.description}", flush=True)
-    try:
-        _check_inputs(plan, remote)
-    except ValueError as exc:
-        return _fail(str(exc))
     if args.dry_run:
         import torch
 
