@@ -77,8 +77,9 @@ class DataConfig(_Group):
     """Data-loader worker processes decoding training batches ahead of the step; 0 = in the training process."""
     condition_views: int = Field(0, ge=0, le=16)
     """Extra condition images per training sample, projected onto the points like the input image
-    (supplementary Table 8, "ControlNet" section): views 1…k of k + 1 evenly spaced in azimuth around the
-    input view. Sampling sees the input image only, as in the paper."""
+    (supplementary Table 8, "ControlNet" section): rendered kinds show views 1…k of k + 1 evenly spaced
+    in azimuth around the input view; captured kinds k of the object's input views, evenly spaced through
+    them from the input view. Sampling sees the input image only, as in the paper."""
     condition_views_random: bool = False
     """Draw the number of extra views per sample uniformly in 1…``condition_views`` (Table 8 row 3)."""
     condition_source: Literal["gt", "folder"] = "gt"
@@ -86,7 +87,8 @@ class DataConfig(_Group):
     input_source: Literal["gt", "folder"] = "gt"
     """The input image itself: the data set's, or the generated one of ``condition_folder`` (Table 8 rows 4, 6, 7)."""
     condition_folder: str | None = None
-    """Folder of generated condition images: ``<object_id>/<view>.png`` (README, "Condition images")."""
+    """Folder of generated condition images: ``<object_id>/<round>/<view>.png`` (rendered kinds) or
+    ``<object_id>/<position>.png`` (captured kinds); README, "External inputs"."""
     condition_grey: bool = False
     """Use grey versions (ITU-R 601 luma in all three channels) of the generated images (Table 8 rows 4, 7)."""
 
@@ -350,11 +352,6 @@ class Config(_Group):
         uses_folder = "folder" in (data.input_source, data.condition_source if data.condition_views else "gt")
         if uses_folder and data.condition_folder is None:
             raise ValueError("data.condition_folder is required when data.input_source or data.condition_source is folder")
-        if (data.condition_views or data.input_source == "folder") and data.kind not in ("procedural", "meshes"):
-            raise ValueError(
-                f"data.condition_views / data.input_source need a rendered data set (data.kind procedural or meshes), "
-                f"not {data.kind}: the extra views are renderings of the object"
-            )
         if self.model.encoder == "vit_s16" and data.image_size % 16:
             raise ValueError(f"data.image_size must be a multiple of 16 with model.encoder=vit_s16 (got {data.image_size})")
         if self.priors.depth_source == "maps" and data.kind not in ("shapenet_r2n2", "co3d"):

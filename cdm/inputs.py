@@ -102,6 +102,7 @@ def check_coverage(cfg: Config, datasets: Iterable) -> None:
     from cdm.data.depth_maps import DepthMaps
     from cdm.model.embeddings import embedding_ids
 
+    datasets = list(datasets)
     ids = [ref.object_id for ds in datasets for ref in ds.objects]
     for item in required_inputs(cfg):
         if item.field == "model.global_embeddings":
@@ -113,4 +114,4 @@ def check_coverage(cfg: Config, datasets: Iterable) -> None:
         elif item.field == "priors.depth_maps":
             DepthMaps(item.path, cfg.priors.depth_maps_disparity).require(ids)
         elif item.field == "data.condition_folder":
-            ConditionImages(item.path, cfg.data.condition_grey).require(ids)
+            ConditionImages(item.path, cfg.data.condition_grey, by_position=any(ds.captured for ds in datasets)).require(ids)

@@ -116,10 +116,40 @@ def test_bad_condition_inputs_name_the_field(tmp_path):
         check_inputs(missing)
     with pytest.raises(ConfigError, match="data.condition_folder is required"):
         tiny_config(tmp_path, **{"data.input_source": "folder"})
-    with pytest.raises(ConfigError, match="need a rendered data set"):
-        tiny_config(tmp_path, **{"data.condition_views": 2, "data.kind": "co3d", "data.root": str(tmp_path)})
     (tmp_path / "gen" / ids[1] / "0" / "2.png").write_bytes(b"not a png")
     folder = tiny_config(tmp_path, **PC2, **{"data.condition_views": 3, "data.condition_source": "folder",
                                              "data.condition_folder": str(tmp_path / "gen")})
     with pytest.raises(ValueError, match=r"data.condition_folder: cannot read .*2.png as an image"):
         build_dataset(folder, "train").sample(next(i for i, o in enumerate(build_dataset(folder, "train").objects) if o.object_id == ids[1]))
+
+
+def test_captured_condition_views_are_other_input_views_and_folder_images_go_by_position(tmp_path):
+    import cv2
+
+    from tests.datasets_fixtures import make_co3d
+
+    root = make_co3d(tmp_path / "co3d", categories=("teddybear",)).root
+    common = {"data.kind": "co3d", "data.root": str(root), "data.categories": ["teddybear"], "data.image_size": 32,
+              "data.num_points": 256, **PC2}
+    gt = build_dataset(tiny_config(tmp_path, **common, **{"data.condition_views": 2}), "train")
+    plain = build_dataset(tiny_config(tmp_path, **common), "train")
+    surface = gt.surface(0)
+    n = len(surface.views)
+    sample = gt.sample(0, view_round=1)
+    choice = next(c for c in range(n) if torch.equal(plain._view_tensors(0, c)[1], sample.image))
+    for j, c in enumerate((choice + round(i * n / 3)) % n for i in (1, 2)):
+        v, image, mask, _ = plain._view_tensors(0, c)
+        assert torch.equal(sample.conditions.image[j], image) and torch.equal(sample.conditions.mask[j], mask)
+        assert torch.equal(sample.conditions.camera.R[j], v.camera.R)
+    assert torch.equal(plain.sample(0, view_round=1).image, sample.image) and plain.sample(0, 1).conditions is None
+    folder = tmp_path / "gen"
+    for ds in (plain, build_dataset(tiny_config(tmp_path, **common), "val")):
+        for i, ref in enumerate(ds.objects):
+            (folder / ref.object_id).mkdir(parents=True, exist_ok=True)
+            for position in ds.surface(i).views.tolist():
+                cv2.imwrite(str(folder / ref.object_id / f"{position}.png"), np.full((20, 20, 3), (position * 9) % 256, np.uint8))
+    cfg = tiny_config(tmp_path, **common, **{"data.input_source": "folder", "data.condition_folder": str(folder)})
+    check_coverage(cfg, (build_dataset(cfg, "train"), build_dataset(cfg, "val")))
+    val = build_dataset(cfg, "val")
+    position = int(val.surface(0).views[0])
+    assert torch.allclose(val.sample(0).image, torch.full((3, 32, 32), ((position * 9) % 256) / 255.0))

@@ -101,3 +101,16 @@ def test_missing_object_ids_and_paths_are_refused_before_training(tmp_path, caps
     err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert code == 2 and len(err) == 1 and "model.global_embeddings" in err[0]
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(("spec", "rows"), [("global_features", 6), ("conditions", 7)])
+def test_each_cell_of_tables_7_and_8_is_one_paper_row_and_row_1_is_pc2(spec, rows):
+    from pathlib import Path
+
+    from sweeps.spec import expand, load_spec
+
+    plan = expand(load_spec(Path(__file__).resolve().parent.parent / "sweeps" / f"{spec}.yaml"), "smoke")
+    labels = [c.paper_label for c in plan.cells]
+    assert len(set(labels)) == rows == len(plan.cells) and None not in labels
+    assert all((c.config.priors.prior_3d, c.config.priors.prior_2d) == (False, "none") for c in plan.cells)  # PC² cells
+    assert plan.cells[0].paper == {"eval/f1": 0.428}  # = PC² on teddybear, Table 3

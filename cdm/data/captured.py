@@ -32,11 +32,12 @@ from torch import Tensor
 from cdm.cameras import Cameras, select_sequence_views
 from cdm.config import Config
 from cdm.data.cache import DECODED, ObjectRecord, PreparedRoot, ViewImages, is_prepared
+from cdm.data.condition_images import condition_views
 from cdm.data.depth_maps import DepthMaps
 from cdm.data.lru import ByteLRU
 from cdm.data.priors2d import prior_2d_channels
-from cdm.data.sample import Sample
-from cdm.data.views import ObjectDataset, Shape, Split, select_categories
+from cdm.data.sample import ConditionViews, Sample
+from cdm.data.views import ObjectDataset, Rendering, Shape, Split, select_categories
 
 __all__ = [
     "MAX_CLOUD_POINTS",
@@ -109,6 +110,7 @@ class CapturedDataset(ObjectDataset):
 
     layout: ClassVar[str]
     """The published layout in words, for error messages."""
+    captured: ClassVar[bool] = True
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
         self.published = "train" if split == "train" else cfg.data.eval_split
@@ -204,14 +206,14 @@ class CapturedDataset(ObjectDataset):
         choice = 0
         if self.split == "train":
             choice = int(self._rng(index, _STREAM_VIEW, view_round).integers(len(surface.views)))
-        v = self.view(index, choice)
-        image = torch.from_numpy(v.image).permute(2, 0, 1).float() / 255.0
-        mask = torch.from_numpy(v.mask > 127).float()[None]
-        depth = None if v.depth is None else torch.from_numpy(v.depth.astype(np.float32))[None] * v.depth_scale
+        v, image, mask, depth = self._view_tensors(index, choice)
         positions = select_sequence_views(len(surface.sequence), int(surface.views[choice]), self.num_views)
-        prior_depth = depth
-        if self.depth_maps is not None:  # estimated from the image (the paper's DINOv2 route), not measured
-            prior_depth = self.depth_maps.read(ref.object_id, int(surface.views[choice]), self.cfg.data.image_size)
+        if self.cfg.data.input_source == "folder":  # a generated input image (Table 8 rows 4, 6, 7)
+            image = self.condition_images.read_position(ref.object_id, int(surface.views[choice]), self.cfg.data.image_size)
+        prior_depth = self._prior_depth(ref.object_id, int(surface.views[choice]), depth)
+        conditions = None
+        if self.split == "train" and self.cfg.data.condition_views:
+            conditions = self._conditions(index, surface, choice, view_round)
         return Sample(
             image=image,
             mask=mask,
@@ -223,7 +225,36 @@ class CapturedDataset(ObjectDataset):
             points=surface.cloud,
             category=ref.category,
             object_id=ref.object_id,
+            conditions=conditions,
         )
+
+    def _view_tensors(self, index: int, choice: int) -> tuple[ViewImages, Tensor, Tensor, Tensor | None]:
+        """Input view ``choice`` as RGB ``(3, S, S)``, mask ``(1, S, S)`` and view depth ``(1, S, S)`` or None."""
+        v = self.view(index, choice)
+        image = torch.from_numpy(v.image).permute(2, 0, 1).float() / 255.0
+        mask = torch.from_numpy(v.mask > 127).float()[None]
+        depth = None if v.depth is None else torch.from_numpy(v.depth.astype(np.float32))[None] * v.depth_scale
+        return v, image, mask, depth
+
+    def _prior_depth(self, object_id: str, position: int, depth: Tensor | None) -> Tensor | None:
+        """The depth the 2D prior reads: estimated (the paper's DINOv2 route) with ``priors.depth_source:
+        maps``, else the measured one."""
+        if self.depth_maps is None:
+            return depth
+        return self.depth_maps.read(object_id, position, self.cfg.data.image_size)
+
+    def _conditions(self, index: int, surface: ObjectRecord, choice: int, view_round: int) -> ConditionViews:
+        """k of the object's input views, evenly spaced through them after the input view (``data.condition_views``)."""
+        k, n, size = self.cfg.data.condition_views, len(surface.views), self.cfg.data.image_size
+        object_id = self.objects[index].object_id
+        views, generated = [], []
+        for c in ((choice + round(j * n / (k + 1))) % n for j in range(1, k + 1)):
+            v, image, mask, depth = self._view_tensors(index, c)
+            position = int(surface.views[c])
+            views.append(Rendering(image, mask, self._prior_depth(object_id, position, depth), v.camera, v.camera))
+            if self.cfg.data.condition_source == "folder":
+                generated.append(self.condition_images.read_position(object_id, position, size))
+        return condition_views(views, generated or None, self.shown_conditions(index, view_round), self.cfg.priors.prior_2d)
 
 
 def _with_first(cameras: Cameras, first: Cameras) -> Cameras:

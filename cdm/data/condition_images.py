@@ -10,10 +10,16 @@ each projected onto ``x_t`` like the input (:mod:`cdm.model.network`).
 Generated images come from a folder (``data.condition_folder``), written offline by the user's
 generator from ``python -m cdm.tools.export_views`` output (same names):
 
-``<condition_folder>/<object_id>/<round>/<view>.png`` — RGB (any size, resized to ``S``); ``view`` 0
-is the input view (used with ``data.input_source: folder``), 1…k the extra views; ``round`` is the
-training view round (0, 1, … R−1 for as many rounds as were generated; round ``r`` uses ``r mod R``;
-held-out samples use round 0). Masks and cameras stay those of the rendered view: the paper's
+- rendered kinds (``procedural``, ``meshes``): ``<condition_folder>/<object_id>/<round>/<view>.png``
+  — ``view`` 0 is the input view (used with ``data.input_source: folder``), 1…k the extra views;
+  ``round`` is the training view round (0, 1, … R−1 for as many rounds as were generated; round ``r``
+  uses ``r mod R``; held-out samples use round 0);
+- captured kinds (``shapenet_r2n2``, ``co3d``): ``<condition_folder>/<object_id>/<position>.png`` —
+  one image per input view, ``position`` its place in the object's sequence (as ``export_views``
+  names the crops). The extra views of a sample are k of the object's input views evenly spaced
+  through them from the input view.
+
+RGB, any size (resized to ``S``). Masks and cameras stay those of the GT view: the paper's
 generated images keep the shape of their point-cloud rendering. ``data.condition_grey`` turns the
 generated images grey (ITU-R BT.601 luma in all three channels).
 """
@@ -48,9 +54,10 @@ def grey(image: Tensor) -> Tensor:
 class ConditionImages:
     """Reader of a folder of generated condition images (layout in the module docstring)."""
 
-    def __init__(self, folder: str | Path, grey_images: bool = False):
+    def __init__(self, folder: str | Path, grey_images: bool = False, by_position: bool = False):
         self.folder = input_path(folder)
         self.grey = grey_images
+        self.by_position = by_position
         if not self.folder.is_dir():
             raise ValueError(f"{_FIELD}: {self.folder} is not a folder; write <object_id>/<round>/<view>.png images there")
         self._rounds: dict[str, int] = {}
@@ -67,38 +74,44 @@ class ConditionImages:
     def require(self, object_ids: Iterable[str]) -> None:
         """``ValueError`` naming the first object id without round 0."""
         ids = list(object_ids)
-        missing = [o for o in ids if self.rounds(o) == 0]
+        missing = [o for o in ids if not (self.folder / o).is_dir() or (not self.by_position and self.rounds(o) == 0)]
         if missing:
+            expected = "<position>.png" if self.by_position else "0/<view>.png"
             raise ValueError(f"{_FIELD}: no images for object id {missing[0]!r} ({len(missing)} of {len(ids)} objects "
-                             f"missing; expected {self.folder / missing[0]}/0/<view>.png)")
+                             f"missing; expected {self.folder / missing[0]}/{expected})")
 
     def read(self, object_id: str, view_round: int, view: int, size: int) -> Tensor:
         """``(3, S, S)`` RGB in [0, 1] of one generated image (grey if asked)."""
         rounds = self.rounds(object_id)
         if rounds == 0:
             raise ValueError(f"{_FIELD}: no images for object id {object_id!r}")
-        path = self.folder / object_id / str(view_round % rounds) / f"{view}.png"
+        return self._image(self.folder / object_id / str(view_round % rounds) / f"{view}.png", size)
+
+    def read_position(self, object_id: str, position: int, size: int) -> Tensor:
+        """``(3, S, S)`` RGB in [0, 1] of the generated image of a captured object's input view."""
+        return self._image(self.folder / object_id / f"{position}.png", size)
+
+    def _image(self, path: Path, size: int) -> Tensor:
         raw = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if raw is None:
-            raise ValueError(f"{_FIELD}: cannot read {path} as an image (object {object_id!r}, view {view})")
+            raise ValueError(f"{_FIELD}: cannot read {path} as an image")
         rgb = cv2.cvtColor(cv2.resize(raw, (size, size), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2RGB)
         image = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float() / 255.0
         return grey(image) if self.grey else image
 
 
-def condition_views(renders: list, images: ConditionImages | None, object_id: str, view_round: int, shown: int,
-                    prior_2d: str) -> ConditionViews:
+def condition_views(views: list, generated: list[Tensor] | None, shown: int, prior_2d: str) -> ConditionViews:
     """The :class:`ConditionViews` of one training sample.
 
     Args:
-        renders: :class:`~cdm.data.views.Rendering` of views 1…k (their masks, depths and cameras).
-        images: generated images (``data.condition_source: folder``) or None for the renderings (GT).
-        object_id, view_round: which generated images.
+        views: the k GT views (anything with ``image``, ``mask``, ``depth`` and ``camera`` as in
+            :class:`~cdm.data.views.Rendering`; ``depth`` is what the depth prior reads).
+        generated: the k generated images that replace the GT ones (``data.condition_source: folder``), or None.
         shown: how many of the k views this sample uses (the rest are marked invalid).
         prior_2d: ``priors.prior_2d``, computed on each condition image as on the input.
     """
-    size = renders[0].image.shape[-1]
-    rgb = [r.image if images is None else images.read(object_id, view_round, j + 1, size) for j, r in enumerate(renders)]
+    renders = views
+    rgb = [r.image for r in renders] if generated is None else generated
     return ConditionViews(
         image=torch.stack(rgb),
         mask=torch.stack([r.mask for r in renders]),

@@ -304,6 +304,8 @@ class ObjectDataset(Dataset, ABC):
     """
 
     kind: ClassVar[str]
+    captured: ClassVar[bool] = False
+    """Objects read from captured input views (named by sequence position), not rendered views."""
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
         if split not in ("train", "val"):
@@ -318,7 +320,10 @@ class ObjectDataset(Dataset, ABC):
         self._cache: ByteLRU = ByteLRU(cache_bytes)
         d = cfg.data
         from_folder = d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")
-        self.condition_images = ConditionImages(d.condition_folder, d.condition_grey) if from_folder else None
+        self.condition_images = (
+            ConditionImages(d.condition_folder, d.condition_grey, by_position=self.captured)
+            if from_folder else None
+        )
 
     @classmethod
     @abstractmethod
@@ -409,8 +414,17 @@ class ObjectDataset(Dataset, ABC):
         """Views 1…k of k + 1 evenly spaced in azimuth around the input view (``data.condition_views``)."""
         d = self.cfg.data
         k = d.condition_views
-        shown = int(self._rng(index, _STREAM_CONDITIONS, view_round).integers(1, k + 1)) if d.condition_views_random else k
         turned = [view._replace(azim=view.azim + 360.0 * j / (k + 1)) for j in range(1, k + 1)]
         renders = [render_view(surface, v, d.image_size, 1) for v in turned]
-        images = self.condition_images if d.condition_source == "folder" else None
-        return condition_views(renders, images, self.objects[index].object_id, view_round, shown, self.cfg.priors.prior_2d)
+        generated = None
+        if d.condition_source == "folder":
+            generated = [self.condition_images.read(self.objects[index].object_id, view_round, j, d.image_size) for j in range(1, k + 1)]
+        return condition_views(renders, generated, self.shown_conditions(index, view_round), self.cfg.priors.prior_2d)
+
+    def shown_conditions(self, index: int, view_round: int) -> int:
+        """How many of the ``data.condition_views`` extra views a training sample uses (1…k drawn
+        per sample and round with ``data.condition_views_random``)."""
+        d = self.cfg.data
+        if not d.condition_views_random:
+            return d.condition_views
+        return int(self._rng(index, _STREAM_CONDITIONS, view_round).integers(1, d.condition_views + 1))
