@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from cdm.cameras import look_at_cameras
-from cdm.config import ConfigError
+from cdm.config import ConfigError, load_config, parse_override
 from cdm.data import build_dataset
 from cdm.data.condition_images import grey
 from cdm.data.sample import collate
@@ -153,3 +153,36 @@ def test_captured_condition_views_are_other_input_views_and_folder_images_go_by_
     val = build_dataset(cfg, "val")
     position = int(val.surface(0).views[0])
     assert torch.allclose(val.sample(0).image, torch.full((3, 32, 32), ((position * 9) % 256) / 255.0))
+
+
+def test_export_views_writes_what_the_model_sees_under_the_input_names(tmp_path):
+    import json
+
+    import cv2
+
+    from cdm.tools.export_views import main as export_main
+    from tests.datasets_fixtures import make_co3d
+
+    sets = ["data.categories=[mug]", "data.train_objects=1", "data.val_objects=1", "data.image_size=32",
+            "data.condition_views=1", "data.num_points=128", "priors.prior_3d=false", "priors.prior_2d=none"]
+    assert export_main(["--out", str(tmp_path / "views"), "--rounds", "2", *(a for s in sets for a in ("--set", s))]) == 0
+    cfg = tiny_config(tmp_path, **{"data.categories": ["mug"], "data.train_objects": 1, "data.val_objects": 1,
+                                   "data.condition_views": 1, **PC2})
+    ds = build_dataset(cfg, "train")
+    folder = tmp_path / "views" / ds.objects[0].object_id
+    assert json.loads((tmp_path / "views" / "objects.json").read_text())[ds.objects[0].object_id] == "mug"
+    for r in (0, 1):
+        sample = ds.sample(0, r)
+        png = torch.from_numpy(cv2.imread(str(folder / str(r) / "0.png"))[..., ::-1].copy()).permute(2, 0, 1).float() / 255
+        assert (png - sample.image).abs().max() <= 0.5 / 255 + 1e-6  # the input image, 8-bit
+        extra = torch.from_numpy(cv2.imread(str(folder / str(r) / "1.png"))[..., ::-1].copy()).permute(2, 0, 1).float() / 255
+        assert (extra - sample.conditions.image[0]).abs().max() <= 0.5 / 255 + 1e-6  # condition view 1
+        assert np.load(folder / str(r) / "1.depth.npy").shape == (32, 32) and (folder / str(r) / "1.points.png").is_file()
+    assert not (folder / "2").exists()
+    root = make_co3d(tmp_path / "co3d", categories=("teddybear",)).root
+    co3d = ["data.kind=co3d", f"data.root={root}", "data.categories=[teddybear]", "data.image_size=32"]
+    assert export_main(["--out", str(tmp_path / "crops"), *(a for s in co3d for a in ("--set", s))]) == 0
+    cap = build_dataset(load_config(None, dict(parse_override(s) for s in co3d)), "val")
+    position = int(cap.surface(0).views[0])
+    crop = cv2.imread(str(tmp_path / "crops" / cap.objects[0].object_id / f"{position}.png"))[..., ::-1]
+    assert np.array_equal(crop, cap.view(0, 0).image)
