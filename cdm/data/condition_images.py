@@ -110,12 +110,11 @@ def condition_views(views: list, generated: list[Tensor] | None, shown: int, pri
         shown: how many of the k views this sample uses (the rest are marked invalid).
         prior_2d: ``priors.prior_2d``, computed on each condition image as on the input.
     """
-    renders = views
-    rgb = [r.image for r in renders] if generated is None else generated
+    rgb = [v.image for v in views] if generated is None else generated
     return ConditionViews(
         image=torch.stack(rgb),
-        mask=torch.stack([r.mask for r in renders]),
-        prior_2d=torch.stack([prior_2d_channels(prior_2d, im, r.mask, r.depth) for im, r in zip(rgb, renders)]),
-        camera=Cameras.stack([r.camera for r in renders]),
-        valid=torch.arange(len(renders)) < shown,
+        mask=torch.stack([v.mask for v in views]),
+        prior_2d=torch.stack([prior_2d_channels(prior_2d, im, v.mask, v.depth) for im, v in zip(rgb, views)]),
+        camera=Cameras.stack([v.camera for v in views]),
+        valid=torch.arange(len(views)) < shown,
     )
