@@ -183,7 +183,7 @@ def cmd_prepare(args: argparse.Namespace) -> int:
         raise ValueError(f"--data-kind: {args.data_kind!r} cannot be prepared; choose one of {', '.join(preparable)}")
     cfg = load_config(None, {**_overrides(args.set), "data.kind": args.data_kind, "data.root": args.root,
                              "data.image_size": args.image_size})
-    report = prepare(DATASETS[args.data_kind], cfg, Path(args.out))
+    report = prepare(DATASETS[args.data_kind], cfg, Path(args.out), depth_maps=args.depth_maps and Path(args.depth_maps))
     print(f"prepared {report.out}: {report.written} shards written, {report.skipped} already complete; "
           f"train with --set data.kind={args.data_kind} --set data.root={report.out}")
     return 0
@@ -251,6 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--root", required=True, help="the data set as published")
     p.add_argument("--out", required=True, help="folder for the shards; rerun the same command to resume")
     p.add_argument("--image-size", type=int, default=224, help="side of the stored crops in pixels (default 224)")
+    p.add_argument("--depth-maps", help="estimated depth maps (<object_id>/<position>.npy) to store in the shards "
+                   "for priors.depth_source=maps")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]")
     p.set_defaults(func=cmd_prepare)
     p = sub.add_parser("check-data", help="check that every ground-truth cloud projects into its own masks (exit 1 if not)")

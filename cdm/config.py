@@ -202,7 +202,8 @@ class PriorsConfig(_Group):
     estimated from the image) or estimated maps from ``depth_maps`` (the paper: DINOv2), captured data sets."""
     depth_maps: str | None = None
     """Folder of estimated depth maps for ``depth_source: maps``: ``<object_id>/<position>.npy`` (README,
-    "Estimated depth maps"); any per-image scale and shift (normalised away per image)."""
+    "External inputs"); any per-image scale and shift (normalised away per image). Null: the maps stored
+    in a root prepared with ``python -m cdm prepare --depth-maps DIR``."""
     depth_maps_disparity: bool = False
     """The maps hold disparity (larger = nearer, e.g. Depth Anything's output), inverted before use."""
 
@@ -210,8 +211,6 @@ class PriorsConfig(_Group):
     def _check_views(self) -> PriorsConfig:
         if self.prior_3d and self.num_views < 1:
             raise ValueError("priors.num_views (H) must be >= 1 when priors.prior_3d is on")
-        if self.depth_source == "maps" and self.depth_maps is None:
-            raise ValueError("priors.depth_maps (a folder) is required with priors.depth_source=maps")
         return self
 
 

@@ -65,7 +65,7 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
     if cfg.model.global_source == "embeddings":
         out.append(ExternalInput("model.global_embeddings", input_path(cfg.model.global_embeddings),
                                  "per-object global embeddings (.npz)", "file", "cdm/tools/openclip_embeddings.py"))
-    if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps":
+    if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps" and cfg.priors.depth_maps is not None:
         out.append(ExternalInput("priors.depth_maps", input_path(cfg.priors.depth_maps),
                                  "estimated depth maps", "folder", "your depth estimator on `python -m cdm.tools.export_views` crops"))
     d = cfg.data

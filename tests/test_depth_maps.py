@@ -86,8 +86,8 @@ def test_bad_maps_name_the_field(tree, tmp_path):
         check_inputs(_cfg(tree.root, **{"priors.depth_source": "maps", "priors.depth_maps": str(tmp_path / "elsewhere")}))
     with pytest.raises(ConfigError, match="priors.depth_source=maps needs a captured data set"):
         load_config(None, {"priors.prior_2d": "depth", "priors.depth_source": "maps", "priors.depth_maps": "x"})
-    with pytest.raises(ConfigError, match="priors.depth_maps .* is required"):
-        _cfg(tree.root, **{"priors.depth_source": "maps"})
+    with pytest.raises(ValueError, match="priors.depth_maps: not set and data.root .* holds no estimated depth maps"):
+        build_dataset(_cfg(tree.root, **{"priors.depth_source": "maps"}), "val")
 
 
 def test_protocol_card_names_encoder_and_depth_unless_weights_and_maps_are_given(tmp_path):
@@ -106,3 +106,27 @@ def test_protocol_card_names_encoder_and_depth_unless_weights_and_maps_are_given
                                    "model.encoder_weights": str(tmp_path / "vits16_800ep.pth.tar"),
                                    "priors.depth_source": "maps", "priors.depth_maps": str(tmp_path / "maps")})
     assert plan_card(given).deviations == ()
+
+
+def test_prepare_stores_the_maps_in_the_shards(tree, tmp_path, capsys):
+    from cdm.__main__ import main
+
+    gt_cfg = _cfg(tree.root)
+    _write_maps(tmp_path / "maps", gt_cfg, lambda d: 4.0 * d + 1.0)
+    args = ["prepare", "--data-kind", "co3d", "--root", str(tree.root), "--image-size", "32", "--set", "data.categories=[teddybear]"]
+    assert main([*args, "--out", str(tmp_path / "prepared"), "--depth-maps", str(tmp_path / "maps")]) == 0
+    sets = {"priors.depth_source": "maps"}
+    from_shards = _cfg(tmp_path / "prepared", **sets)
+    from_folder = _cfg(tree.root, **sets, **{"priors.depth_maps": str(tmp_path / "maps")})
+    for split in ("train", "val"):
+        a, b = build_dataset(from_folder, split), build_dataset(from_shards, split)
+        for i in range(len(a)):
+            assert torch.equal(a.sample(i, 1).prior_2d, b.sample(i, 1).prior_2d)
+    first = build_dataset(gt_cfg, "train").objects[0].object_id
+    for f in (tmp_path / "maps" / first).iterdir():
+        f.unlink()
+    (tmp_path / "maps" / first).rmdir()
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "other"), "--depth-maps", str(tmp_path / "maps")]) == 2
+    assert f"error: priors.depth_maps: no maps for object id '{first}'" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()  # refused before anything is written

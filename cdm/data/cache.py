@@ -36,6 +36,7 @@ from cdm.data.views import interleave
 
 __all__ = [
     "DECODED",
+    "ESTIMATED_DEPTHS",
     "FORMAT",
     "MANIFEST",
     "ObjectRecord",
@@ -50,6 +51,8 @@ __all__ = [
 MANIFEST = "cdm_prepared.json"
 """Name of the manifest file that marks a prepared root."""
 FORMAT = 1
+ESTIMATED_DEPTHS = "estimated_depths"
+"""Shard array (and manifest key) of the estimated depth maps stored by ``prepare --depth-maps``."""
 _MAGIC = b"CDMSHRD1"
 _ALIGN = 64
 
@@ -224,6 +227,15 @@ class PreparedRoot:
         a = shard.arrays
         cloud = torch.from_numpy(np.array(a["cloud"]))
         return ObjectRecord(cloud, _cameras(a, "seq"), torch.from_numpy(np.array(a["views"])), float(shard.meta["scale"]))
+
+    @property
+    def has_estimated_depths(self) -> bool:
+        """Prepared with ``--depth-maps``: every shard holds its views' estimated depth."""
+        return ESTIMATED_DEPTHS in self.manifest
+
+    def estimated_depth(self, published: str, object_id: str, view: int) -> np.ndarray:
+        """``(S, S)`` float32 estimated view depth of input view ``view`` (0 = unknown)."""
+        return np.array(read_shard(self.shard_path(published, object_id)).arrays[ESTIMATED_DEPTHS][view])
 
     def view(self, published: str, object_id: str, view: int) -> ViewImages:
         a = read_shard(self.shard_path(published, object_id)).arrays

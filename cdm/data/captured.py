@@ -123,7 +123,14 @@ class CapturedDataset(ObjectDataset):
             raise ValueError(f"data.root: {self.root} has no objects of categories {list(chosen)} in split {self.published!r}")
         super().__init__(cfg, split, cache_bytes)
         p = cfg.priors
-        self.depth_maps = DepthMaps(p.depth_maps, p.depth_maps_disparity) if p.prior_2d == "depth" and p.depth_source == "maps" else None
+        estimated = p.prior_2d == "depth" and p.depth_source == "maps"
+        self.depth_maps = DepthMaps(p.depth_maps, p.depth_maps_disparity) if estimated and p.depth_maps is not None else None
+        self.shard_depths = estimated and p.depth_maps is None
+        if self.shard_depths and (self.prepared is None or not self.prepared.has_estimated_depths):
+            raise ValueError(
+                f"priors.depth_maps: not set and data.root {self.root} holds no estimated depth maps; give the folder "
+                "of maps, or prepare data.root with `python -m cdm prepare ... --depth-maps DIR`"
+            )
 
     @classmethod
     def categories(cls, cfg: Config) -> tuple[str, ...]:
@@ -210,7 +217,7 @@ class CapturedDataset(ObjectDataset):
         positions = select_sequence_views(len(surface.sequence), int(surface.views[choice]), self.num_views)
         if self.cfg.data.input_source == "folder":  # a generated input image (Table 8 rows 4, 6, 7)
             image = self.condition_images.read_position(ref.object_id, int(surface.views[choice]), self.cfg.data.image_size)
-        prior_depth = self._prior_depth(ref.object_id, int(surface.views[choice]), depth)
+        prior_depth = self._prior_depth(ref.object_id, choice, int(surface.views[choice]), depth)
         conditions = None
         if self.split == "train" and self.cfg.data.condition_views:
             conditions = self._conditions(index, surface, choice, view_round)
@@ -236,12 +243,17 @@ class CapturedDataset(ObjectDataset):
         depth = None if v.depth is None else torch.from_numpy(v.depth.astype(np.float32))[None] * v.depth_scale
         return v, image, mask, depth
 
-    def _prior_depth(self, object_id: str, position: int, depth: Tensor | None) -> Tensor | None:
-        """The depth the 2D prior reads: estimated (the paper's DINOv2 route) with ``priors.depth_source:
-        maps``, else the measured one."""
-        if self.depth_maps is None:
-            return depth
-        return self.depth_maps.read(object_id, position, self.cfg.data.image_size)
+    def _prior_depth(self, object_id: str, view: int, position: int, depth: Tensor | None) -> Tensor | None:
+        """The depth the 2D prior reads for input view ``view`` (sequence ``position``): estimated (the
+        paper's DINOv2 route; from the folder or the prepared shards) with ``priors.depth_source: maps``,
+        else the measured one."""
+        size = self.cfg.data.image_size
+        if self.depth_maps is not None:
+            return self.depth_maps.read(object_id, position, size)
+        if self.shard_depths:
+            stored = self.prepared.estimated_depth(self.published, object_id, view)
+            return torch.from_numpy(cv2.resize(stored, (size, size), interpolation=cv2.INTER_NEAREST))[None]
+        return depth
 
     def _conditions(self, index: int, surface: ObjectRecord, choice: int, view_round: int) -> ConditionViews:
         """k of the object's input views, evenly spaced through them after the input view (``data.condition_views``)."""
@@ -251,7 +263,7 @@ class CapturedDataset(ObjectDataset):
         for c in ((choice + round(j * n / (k + 1))) % n for j in range(1, k + 1)):
             v, image, mask, depth = self._view_tensors(index, c)
             position = int(surface.views[c])
-            views.append(Rendering(image, mask, self._prior_depth(object_id, position, depth), v.camera, v.camera))
+            views.append(Rendering(image, mask, self._prior_depth(object_id, c, position, depth), v.camera, v.camera))
             if self.cfg.data.condition_source == "folder":
                 generated.append(self.condition_images.read_position(object_id, position, size))
         return condition_views(views, generated or None, self.shown_conditions(index, view_round), self.cfg.priors.prior_2d)

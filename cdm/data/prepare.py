@@ -14,8 +14,18 @@ import numpy as np
 import torch
 
 from cdm.config import Config
-from cdm.data.cache import FORMAT, MANIFEST, ObjectRecord, ViewImages, atomic_write, is_prepared, write_shard
+from cdm.data.cache import (
+    ESTIMATED_DEPTHS,
+    FORMAT,
+    MANIFEST,
+    ObjectRecord,
+    ViewImages,
+    atomic_write,
+    is_prepared,
+    write_shard,
+)
 from cdm.data.captured import CapturedDataset
+from cdm.data.depth_maps import DepthMaps
 
 __all__ = ["PrepareReport", "prepare"]
 
@@ -45,8 +55,13 @@ def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, n
     return arrays
 
 
-def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bool = True) -> PrepareReport:
+def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bool = True,
+            depth_maps: Path | None = None) -> PrepareReport:
     """Write the prepared form of the raw data set ``cfg.data`` (kind ``dataset``) into ``out``.
+
+    With ``depth_maps`` (a folder in :mod:`cdm.data.depth_maps`' layout; disparity with
+    ``priors.depth_maps_disparity``) each shard also stores the estimated depth of its input views,
+    which ``priors.depth_source: maps`` reads when ``priors.depth_maps`` is not set.
 
     Reads the training split and ``data.eval_split`` of ``data.categories`` at ``data.image_size``.
     Both splits are indexed (and every path checked) before anything is written. Shards already in
@@ -64,6 +79,11 @@ def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bo
         "categories": list(dataset.categories(cfg)),
         "splits": {ds.published: [list(ref) for ref in ds.objects] for ds in splits},
     }
+    maps = None
+    if depth_maps is not None:
+        maps = DepthMaps(depth_maps, cfg.priors.depth_maps_disparity)
+        maps.require(ref.object_id for ds in splits for ref in ds.objects)
+        manifest[ESTIMATED_DEPTHS] = str(maps.folder)
     out = out.expanduser()
     if is_prepared(out):
         earlier = json.loads((out / MANIFEST).read_text())
@@ -89,7 +109,11 @@ def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bo
                 else:
                     path.parent.mkdir(parents=True, exist_ok=True)
                     record, views = ds.export(index)
-                    write_shard(path, _object_arrays(record, views),
+                    arrays = _object_arrays(record, views)
+                    if maps is not None:
+                        arrays[ESTIMATED_DEPTHS] = np.stack(
+                            [maps.read(ref.object_id, p, cfg.data.image_size)[0].numpy() for p in record.views.tolist()])
+                    write_shard(path, arrays,
                                 {"object_id": ref.object_id, "category": ref.category, "scale": record.scale,
                                  "image_size": cfg.data.image_size})
                     written += 1
