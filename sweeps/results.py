@@ -15,11 +15,13 @@ from __future__ import annotations
 import csv
 import math
 import statistics
+import textwrap
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from cdm.evaluate import BASELINES
 from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
 
 __all__ = ["ResultsTable", "TrialOutcome", "build_table", "settings_note"]
@@ -78,21 +80,46 @@ class ResultsTable:
     """One flat record per row for the CSV: means, stds, counts and paper values as numbers."""
     notes: list[str]
     best: str | None
+    summary: list[str] = field(default_factory=list)
+    """One plain sentence per class of cells: how it stands against the baselines (and the failed ones)."""
+    wide_only: frozenset[str] = frozenset()
+    """Columns only ``results.md``/``.csv`` carry (per category, baselines beaten: the summary says it)."""
+    narrowing: tuple[str, ...] = ()
+    """Columns the terminal drops first, in this order, until the table fits its width."""
 
-    def text(self) -> str:
-        widths = [max(len(r[i]) for r in [self.header, *self.rows]) for i in range(len(self.header))]
+    def text(self, width: int = 120) -> str:
+        """The table for a terminal, at most ``width`` columns: the wide columns stay in ``results.md``,
+        empty ones are left out, then ``narrowing`` columns until it fits; notes are wrapped."""
+        keep = [i for i, h in enumerate(self.header)
+                if h not in self.wide_only and (i == 0 or any(r[i] for r in self.rows))]
+
+        def widths(columns: list[int]) -> list[int]:
+            return [max(len(r[i]) for r in [self.header, *self.rows]) for i in columns]
+
+        for name in self.narrowing:
+            if sum(widths(keep)) + 2 * (len(keep) - 1) <= width:
+                break
+            keep = [i for i in keep if self.header[i] != name]
+        sizes = widths(keep)
 
         def line(cells: list[str]) -> str:
-            return "  ".join(c.ljust(w) for c, w in zip(cells, widths)).rstrip()
+            return "  ".join(cells[i].ljust(w) for i, w in zip(keep, sizes)).rstrip()
 
-        out = [self.title, line(self.header), "  ".join("-" * w for w in widths)]
-        out += [line(r) for r in self.rows] + self.notes
+        out = [self.title, line(self.header), "  ".join("-" * w for w in sizes)] + [line(r) for r in self.rows]
+        dropped = [h for i, h in enumerate(self.header) if i not in keep and any(r[i] for r in self.rows)]
+        categories = [h for h in dropped if h.count("/") == 2]
+        if categories:  # eval/f1/chair, eval/f1/lamp, … → eval/f1/<category>
+            dropped[dropped.index(categories[0])] = categories[0].rsplit("/", 1)[0] + "/<category>"
+            dropped = [h for h in dropped if h not in categories]
+        notes = self.notes + (["not shown here, in results.md and results.csv: " + ", ".join(dropped)] if dropped else [])
+        out += [""] + [textwrap.fill(s, width) for s in self.summary] if self.summary else []
+        out += [""] + [textwrap.fill(n, width, subsequent_indent="  ") for n in notes] if notes else []
         return "\n".join(out)
 
     def markdown(self) -> str:
         out = [f"## {self.title}", "", "| " + " | ".join(self.header) + " |", "|" + "---|" * len(self.header)]
         out += ["| " + " | ".join(r) + " |" for r in self.rows]
-        out += [""] + [f"- {n}" for n in self.notes]
+        out += [""] + [f"- {n}" for n in self.summary + self.notes]
         return "\n".join(out) + "\n"
 
     def write(self, folder: str | Path) -> tuple[Path, Path]:
@@ -155,8 +182,8 @@ class _Pairing:
     reference: str
     diffs: dict[tuple[str, str], PairedDifference | str]
     """``(row name, metric) →`` the difference, or why there is none."""
-    beats: dict[str, list[str]]
-    """Cell → baselines it beats on the table's metric (interval excluding 0)."""
+    against: dict[str, dict[str, str]]
+    """Cell → baseline → verdict of the cell against it on the table's metric (``better``: interval excluding 0)."""
     notes: list[str]
 
     @classmethod
@@ -167,8 +194,6 @@ class _Pairing:
         for m in shown:
             column, category = _object_column(m)  # type: ignore[misc]
             scores = {name: _object_scores(group, column, category) for name, group in cells.items()}
-            # Baselines depend on the evaluation set only: the reference cell's rows carry them.
-            scores |= {f"baseline: {b}": _object_scores(cells[reference], f"baseline/{b}/{column}", category) for b in baselines}
             for name, values in scores.items():
                 if name == reference or not values:
                     continue
@@ -183,22 +208,25 @@ class _Pairing:
                 for b in baselines:
                     # The baselines scored on this cell's own objects, whichever objects those are.
                     ours, theirs = scores[name], _object_scores(group, f"baseline/{b}/{column}", category)
-                    if ours and set(ours) == set(theirs) and compare(ours, theirs, (name, b)).verdict(mode) == "better":
-                        pairing.beats.setdefault(name, []).append(b)
+                    if ours and set(ours) == set(theirs):
+                        pairing.against.setdefault(name, {})[b] = compare(ours, theirs, (name, b)).verdict(mode)
         if unpaired:
             pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
                                  f"comparison needs the same evaluation set): {', '.join(unpaired)}")
         return pairing
 
-    def columns(self, name: str, shown: list[str], metric: str, mode: Literal["min", "max"], is_cell: bool) -> list[str]:
-        """Δ per shown metric, verdict, and (cells only) the baselines beaten."""
+    def beats(self, name: str) -> list[str]:
+        return [b for b, v in self.against.get(name, {}).items() if v == "better"]
+
+    def columns(self, name: str, shown: list[str], metric: str, mode: Literal["min", "max"]) -> list[str]:
+        """A cell's Δ per shown metric, verdict and the baselines it beats."""
         out = []
         for m in shown:
             d = self.diffs.get((name, m))
             out.append("reference" if name == self.reference else d.text() if isinstance(d, PairedDifference) else d or "–")
         d = self.diffs.get((name, metric))
         out.append(d.verdict(mode) if isinstance(d, PairedDifference) else "")
-        out.append((", ".join(self.beats.get(name, [])) or "none") if is_cell else "")
+        out.append(", ".join(self.beats(name)) or "none")
         return out
 
 
@@ -225,7 +253,9 @@ def build_table(
     shown = [m for m in (metric, partner) if m is not None]
     categories = _categories(outcomes, metric)
     has_paper_label = any(o.paper_label for o in outcomes)
-    baselines = sorted({k.split("/")[1] for o in outcomes for k in o.metrics if k.startswith("baseline/")})
+    # In cdm.evaluate's order, weakest first (sphere … retrieval); any other after them.
+    found = {k.split("/")[1] for o in outcomes for k in o.metrics if k.startswith("baseline/")}
+    baselines = [b for b in BASELINES if b in found] + sorted(found - set(BASELINES))
     reference = compare_to or next(iter(cells), None)
     pairing = None
     if _object_column(metric) is not None and reference in cells and any(o.objects for o in _finished(cells[reference])):
@@ -263,7 +293,7 @@ def build_table(
             record.update({f"{m} mean": stat.mean if stat else None, f"{m} std": stat.std if stat else None,
                            f"{m} paper": paper})
         if pairing:
-            row += pairing.columns(name, shown, metric, mode, is_cell=True)
+            row += pairing.columns(name, shown, metric, mode)
             record.update(_paired_record(pairing, name, shown, metric, mode))
         rows.append(row)
         records.append(record)
@@ -279,25 +309,65 @@ def build_table(
             stat = _Stat.of([o.metrics[key] for o in done if key in o.metrics])
             row += [_num(stat.mean) if stat else "–"] + ([""] if m in shown else [])
             record.update({f"{m} mean": stat.mean if stat else None})
-        if pairing:
-            row += pairing.columns(f"baseline: {b}", shown, metric, mode, is_cell=False)
-            record.update(_paired_record(pairing, f"baseline: {b}", shown, metric, mode))
+        if pairing:  # a reference row: no difference to the reference cell, no verdict
+            row += [""] * (len(shown) + 2)
         rows.append(row)
         records.append(record)
 
     notes = list(settings)
     if paper_note:
         notes.append(f"paper: {paper_note}")
-    if categories:
+    if any(f"{metric}/{c}" in o.paper for o in outcomes for c in categories):
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
     if best is not None:
-        notes.append(f"★ best cell by {metric} ({mode}); ± is the standard deviation over seeds")
+        seeds = any(len(_finished(group)) > 1 for group in cells.values())
+        notes.append(f"★ best cell by {metric} ({mode})" + ("; ± is the standard deviation over seeds" if seeds else ""))
     if pairing:
         notes.append(f"Δ: mean over the same objects of (row − {reference}), seeds averaged per object, with a 95% "
                      f"paired bootstrap interval; verdict and beats baselines by {metric} ({mode}), interval excluding 0")
         notes += pairing.notes
     notes += [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
-    return ResultsTable(title, header, rows, records, notes, best)
+    narrowing = [f"Δ{partner.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and partner else []
+    narrowing += ["paper setting"] + ([f"paper {partner}", partner] if partner else [])
+    return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, best, metric, pairing),
+                        frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]), tuple(narrowing))
+
+
+def _baseline_name(name: str) -> str:
+    return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
+
+
+def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, _Stat | None], best: str | None, metric: str,
+             pairing: _Pairing | None) -> list[str]:
+    """One sentence per class of cells — the best cell, then cells that stand the same against the
+    baselines (paired verdicts on ``metric``) — and one for the cells with no finished trial."""
+    if best is None:
+        return ["no cell finished a trial"] if cells else []
+
+    def standing(name: str, plural: bool) -> str:
+        against = (pairing.against if pairing else {}).get(name)
+        if not against:
+            return f"{metric} {stats[name].text()}" if stats[name] else "no result"  # type: ignore[union-attr]
+        words = {"better": "beat" if plural else "beats", "no clear difference": "level with", "worse": "below"}
+        parts = []
+        for verdict, word in words.items():
+            names = [_baseline_name(b) for b, v in against.items() if v == verdict]
+            if names:
+                parts.append(f"{word} {', '.join(names)}")
+        return "; ".join(parts)
+
+    out = [f"best cell {best}: {standing(best, False)}"]
+    if pairing:
+        classes: dict[str, list[str]] = {}
+        for name in cells:
+            if name != best and stats[name] is not None:
+                classes.setdefault(standing(name, True), []).append(name)
+        out += [f"{'cell' if len(names) == 1 else 'cells'} {', '.join(names)}: "
+                f"{standing(names[0], len(names) > 1)}" for names in classes.values()]
+    failed = [name for name in cells if stats[name] is None]
+    if failed:
+        out.append(f"no result (failed or not run): {', '.join(failed)}")
+    return out
 
 
 def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str, mode: Literal["min", "max"]) -> dict[str, object]:
@@ -309,5 +379,5 @@ def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str, 
                        f"{m} delta high": d.high if ok else None})
     d = pairing.diffs.get((name, metric))
     record["verdict"] = d.verdict(mode) if isinstance(d, PairedDifference) else ""
-    record["beats baselines"] = ";".join(pairing.beats.get(name, []))
+    record["beats baselines"] = ";".join(pairing.beats(name))
     return record

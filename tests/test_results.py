@@ -101,3 +101,49 @@ def test_a_trained_model_is_marked_better_than_its_reset_copy(tmp_path):
     assert table.rows[2][verdict] == "no clear difference"
     assert delta["eval/cd delta low"] <= delta["eval/cd delta"] <= delta["eval/cd delta high"]
     assert len({r["eval_set"] for r in trained + rows[99]}) == 1  # the runner pairs only the same evaluation set
+
+
+def _main_job_outcomes() -> list[TrialOutcome]:
+    """The main job's shape (sweeps/point_size.yaml, local profile): 5 cells × 1 seed, 8 categories of 4
+    objects, the four baselines, two paper rows; the 0.04 cell scores best and beats only the sphere."""
+    categories = ["airplane", "bench", "car", "chair", "lamp", "sofa", "table", "watercraft"]
+    baselines = {"sphere": (0.10, 120.0), "gaussian": (0.50, 40.0), "category_mean": (0.55, 35.0), "retrieval": (0.60, 30.0)}
+    paper = {0.0075: ("10 frames + 0.0075 point size", 0.451), 0.04: ("10 frames + 0.04 point size", 0.461)}
+    out = []
+    for size, level in ((0.0075, 0.30), (0.01, 0.31), (0.02, 0.33), (0.04, 0.40), (0.08, 0.35)):
+        rows = []
+        for i, cat in enumerate(categories * 4):
+            wobble = 0.01 * ((i * 7) % 5 - 2)
+            row = {"object_id": f"{cat}/{i:04d}", "category": cat, "eval_set": "abc", "f1": level + wobble, "cd": 60.0 - 50 * level}
+            for b, (f1, cd) in baselines.items():
+                row |= {f"baseline/{b}/f1": f1 + wobble / 2, f"baseline/{b}/cd": cd}
+            rows.append(row)
+        metrics = {"eval/f1": level, "eval/cd": 60.0 - 50 * level}
+        metrics |= {f"eval/{m}/{c}": v + 0.001 for m, v in (("f1", level), ("cd", 60 - 50 * level)) for c in categories}
+        metrics |= {f"baseline/{b}/{m}" + suffix: v for b, (f1, cd) in baselines.items() for m, v in (("f1", f1), ("cd", cd))
+                    for suffix in ["", *(f"/{c}" for c in categories)]}
+        label, value = paper.get(size, (None, None))
+        out.append(TrialOutcome(f"point_size={size} · seed 0", f"point_size={size}", "ok", metrics, label,
+                                {"eval/f1": value} if value else {}, objects=tuple(rows)))
+    return out
+
+
+def test_terminal_table_fits_120_columns_at_the_main_jobs_size_and_says_where_the_cells_stand():
+    table = build_table(_main_job_outcomes(), "eval/f1", "max", "point_size — profile local",
+                        "Table 5: Co3D teddybear, F1@0.01; other data sets give other values, compare the trend",
+                        settings=["profile local: 800 steps per trial; prediction target x0"])
+    text = table.text()
+    assert max(len(line) for line in text.splitlines()) <= 120
+    assert max(len(line) for line in table.markdown().splitlines()) > 200  # results.md keeps every column
+    assert "eval/f1/chair" not in text and "eval/f1/chair" in table.markdown() and "eval/f1/<category>" in text
+    assert "not shown here, in results.md and results.csv: " in text
+    assert "best cell point_size=0.04: beats sphere; below Gaussian, category mean, retrieval" in text
+    assert "cells point_size=0.0075, point_size=0.01, point_size=0.02, point_size=0.08: beat sphere; below Gaussian" in text
+    # Footnotes only when they apply: one seed (no ±), no per-category paper numbers.
+    assert "±" not in text and "ours (paper)" not in text
+    # Baselines are reference rows: numbers, no Δ or verdict against the reference cell.
+    baseline = next(r for r in table.rows if r[0] == "baseline: retrieval")
+    for column in ("verdict", "Δf1 vs point_size=0.0075 [95% CI]", "beats baselines"):
+        assert baseline[table.header.index(column)] == ""
+    assert table.rows[3][table.header.index("verdict")] == "better"
+    assert table.records[-1]["eval/f1 mean"] == pytest.approx(0.60)
