@@ -124,6 +124,15 @@ def _settings(plan: SweepPlan) -> list[str]:
     return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs)), *card]
 
 
+def _ui_hint(uri: str, path: str) -> str:
+    """Where to see ``path`` (``#/experiments/…``) of the MLflow UI: its address, or how to start it."""
+    from sweeps.tracking import ui_command
+
+    if uri.startswith(("http://", "https://")):
+        return f"open {uri.rstrip('/')}/{path}"
+    return f"{ui_command(uri)}   (then open http://127.0.0.1:5000/{path})"
+
+
 def _fail(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
@@ -295,11 +304,15 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
     # The results table downloads each trial's per-object scores: no progress bar per small file.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    from sweeps.progress import SweepProgress, is_tty, quiet_environment, quiet_loggers
+
+    tty = is_tty(sys.stdout)
+    quiet_environment(tty)
     import ray
 
     from sweeps.report import publish
     from sweeps.results import build_table
-    from sweeps.tracking import SweepRun, resolve_tracking_uri, ui_command
+    from sweeps.tracking import SweepRun, resolve_tracking_uri
     from sweeps.trial import cluster_capacity, cluster_machines, connect, run_sweep
 
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
@@ -309,6 +322,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     stored = json.loads(_read_text(state_file)) if args.resume else {}
     uri = resolve_tracking_uri(args.tracking_uri or stored.get("tracking_uri"))
     started = connect(args.address)
+    quiet_loggers()
     try:
         machines = cluster_machines(remote)
         if uri.startswith("sqlite:") and machines > 1:
@@ -344,6 +358,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             sweep_run.log_artifacts([args.spec.resolve(), plan_file])
         held.record(uri, sweep_run.run_id)
         print(f"profile in force: {plan.profile.name}; MLflow: {uri} (parent run {sweep_run.run_id})", flush=True)
+        live = f"#/experiments/{sweep_run.experiment_id}/runs/{sweep_run.run_id}"
+        print(f"watch it live: {_ui_hint(uri, live)}", flush=True)
         predicted = None
         if not args.resume:  # a resumed sweep has only its unfinished trials left: the estimate would not apply
             cluster = ray.cluster_resources()
@@ -356,7 +372,15 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             else:
                 predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent)
         started_at = time.perf_counter()
-        outcomes = run_sweep(plan, sweep_dir, sweep_run, args.resume, remote)
+        # A resumed sweep keeps the callbacks it started with (Tune restores them): no line of its own.
+        progress = None if args.resume else SweepProgress(
+            sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.trial(t.config).label,
+            predicted.wall_s if predicted else None, tty)
+        try:
+            outcomes = run_sweep(plan, sweep_dir, sweep_run, args.resume, remote, callbacks=[progress] if progress else [])
+        finally:
+            if progress is not None:
+                progress.close()
         took = time.perf_counter() - started_at
         table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,
                             f"{plan.spec.name} — profile {plan.profile.name}",
@@ -379,10 +403,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         print(f"time: estimated ~{predicted.wall_s / 60:.1f} min, took {took / 60:.1f} min "
               f"(actual / estimate = {took / predicted.wall_s:.2f})")
     print(f"results: {sweep_dir}/{md.name} and {sweep_dir}/{csv.name}")
-    if uri.startswith(("http://", "https://")):
-        print(f"MLflow: open {uri.rstrip('/')}/{view}")
-    else:
-        print(f"MLflow: {ui_command(uri)}   (then open http://127.0.0.1:5000/{view})")
+    print(f"MLflow: {_ui_hint(uri, view)}")
     if unfinished:
         print(f"some trials did not finish; continue with: python sweeps/run.py {args.spec} --profile {plan.profile.name} --resume")
     return 0 if any(o.status in ("ok", "stopped") for o in outcomes) else 1

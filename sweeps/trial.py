@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import uuid
+from collections.abc import Sequence
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,6 +36,7 @@ from cdm.config import load_config
 from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
 from cdm.train import Callback, fit
+from sweeps.progress import StepReporter, quiet_loggers
 from sweeps.results import TrialOutcome
 from sweeps.spec import Cell, SweepPlan, plan_concurrency
 from sweeps.tracking import SweepRun, TrialRun, finished_trial_metrics
@@ -101,6 +103,7 @@ class TrialProgress(Callback):
 def train_loop(loop_config: dict[str, Any]) -> None:
     """Ray Train loop (local mode or each worker): rebuild the config, resume if Ray has a checkpoint, fit."""
     local = loop_config["local"]
+    quiet_loggers()
     rank = 0 if local else ray.train.get_context().get_world_rank()
     overrides = dict(loop_config["overrides"])
     if rank > 0:  # workers on one node must not overwrite rank 0's checkpoints and evaluation files
@@ -114,6 +117,7 @@ def train_loop(loop_config: dict[str, Any]) -> None:
         t = loop_config["tracking"]
         callbacks += [
             TrialProgress(loop_config["label"], config.train.steps, loop_config["metric"]),
+            StepReporter(t["parent_run_id"], loop_config["label"]),
             TrialRun(t["uri"], t["experiment_id"], t["parent_run_id"], loop_config["trial_id"],
                      loop_config["label"], loop_config["tags"], config),
         ]
@@ -126,6 +130,7 @@ def train_loop(loop_config: dict[str, Any]) -> None:
 
 def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     """Tune function trainable: one trial = one ``TorchTrainer.fit`` of :func:`train_loop`."""
+    quiet_loggers()  # "Running in local mode …" and the like, logged in this process
     plan = setup.plan
     cell = plan.trial(tune_config)
     ctx = ray.tune.get_context()
@@ -325,13 +330,16 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
     return TrialOutcome(cell.label, cell.name, status, metrics, cell.paper_label, cell.paper, error, objects)
 
 
-def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool, remote: bool = False) -> list[TrialOutcome]:
+def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool, remote: bool = False,
+              callbacks: Sequence[ray.tune.Callback] = ()) -> list[TrialOutcome]:
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
     ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
     (``s3://…``, ``file://…``). Resume re-runs only unfinished trials, each from its last
     checkpoint; errored trials stay failed. ``remote``: the cluster was joined by address and may
-    autoscale (concurrency as :func:`sweeps.spec.plan_concurrency` says).
+    autoscale (concurrency as :func:`sweeps.spec.plan_concurrency` says). ``callbacks`` (e.g. the
+    progress line, :class:`sweeps.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
+    started with.
     """
     # Snapshot the experiment state every second (and sync it to storage as often, below), so a
     # killed driver resumes trials from their checkpoints instead of from step 0 (NOTES §5).
@@ -369,7 +377,7 @@ def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool
                 failure_config=ray.tune.FailureConfig(max_failures=plan.spec.failure.max_retries),
                 checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=2),
                 sync_config=ray.tune.SyncConfig(sync_period=1),
-                callbacks=[_TrialCloser(plan, sweep_run)],
+                callbacks=[_TrialCloser(plan, sweep_run), *callbacks],
                 # Tune's own tables list every reported metric (dozens, per category); the trials'
                 # step/eval lines and _TrialCloser's lines are the progress display instead.
                 verbose=0,

@@ -110,12 +110,25 @@ scheduler: {kind: asha, grace_evals: 1, reduction_factor: 2}
         assert max(m.step for m in client.get_metric_history(c.info.run_id, "train/loss")) < 20
 
 
-def test_a_diverging_trial_fails_with_its_reason_and_the_sweep_goes_on(cluster, tmp_path, capsys):
+BOILERPLATE = ("Checkpoint successfully created at", "Running in local mode", "Configuration for experiment",
+               "TensorBoard", "View detailed results here", "Creating initial MLflow database tables", "alembic")
+
+
+def test_a_diverging_trial_fails_with_its_reason_and_the_sweep_goes_on(cluster, tmp_path, capfd):
     argv, uri = _sweep(tmp_path, "name: nan\ngrid: {train.lr: [1.0e-3, 1.0e+30]}\n")
     assert run.main(argv) == 0
-    out = capsys.readouterr().out
+    captured = capfd.readouterr()
+    out = captured.out
     assert "✗ failed [lr=1e+30 · seed 0]: cdm.optim.TrainingDiverged: " in out and "NaN or infinite" in out
     assert "0/1 (1 failed)" in out
+    # Output to a pipe: Ray's and MLflow's boilerplate silenced, no colour codes, the error still shown,
+    # and the progress line's last word (one line, not redrawn in place).
+    everything = captured.out + captured.err
+    assert [line for line in everything.splitlines() if any(b in line for b in BOILERPLATE)] == []
+    assert "\x1b[" not in everything and "\r" not in everything
+    assert "TrainingDiverged" in captured.err or out.count("TrainingDiverged") >= 1
+    assert "sweep: 1/2 done, 0 running, 1 failed · " in out and "/40 steps · " in out
+    assert "watch it live: mlflow ui --backend-store-uri " in out and "#/experiments/" in out
     _, _, children = _children(uri, "nan")
     status = {c.info.run_name: (c.info.status, c.data.tags.get("error", "")) for c in children}
     assert status["lr=0.001 · seed 0"][0] == "FINISHED"
