@@ -21,6 +21,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 if __package__ in (None, ""):  # `python sweeps/report.py` puts sweeps/ first on sys.path, not the repo root
@@ -39,13 +40,14 @@ from sweeps.plots import (
 from sweeps.protocol import CARD_TAG
 from sweeps.results import ResultsTable, TrialOutcome, build_table, settings_note
 from sweeps.spec import SpaceParam, Spec, load_spec
-from sweeps.tracking import last_eval_files, last_objects, resolve_tracking_uri
+from sweeps.tracking import last_eval_files, last_objects, parent_baselines, resolve_tracking_uri
 
 __all__ = [
     "ReportError",
     "SweepRecord",
     "TrialRecord",
     "UnknownExperimentError",
+    "describe_sweep",
     "main",
     "open_sweep",
     "panels",
@@ -171,7 +173,9 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         # A trial that died before opening its run has only the name the driver gave it: `<cell> · seed <n>`.
         cell = tags.get("cell") or label.rsplit(" · seed ", 1)[0]
         values = planned.get("values") or _sampled(run, record.spec.search.space)
-        metrics = {k: v for k, v in run.data.metrics.items() if "/" in k}
+        # Baselines live on the parent run, once per evaluation set (older sweeps: on every child).
+        metrics = parent_baselines(record.parent.data.metrics, tags.get("eval_set")) | {
+            k: v for k, v in run.data.metrics.items() if "/" in k}
         rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in ("ok", "stopped") else ()
         outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
                                tags.get("error") if status == "failed" else None, rows)
@@ -323,12 +327,23 @@ def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_tri
     return out
 
 
+def describe_sweep(spec: Spec, profile: str, profile_description: str, table: ResultsTable, sections: Sequence[str] = ()) -> str:
+    """The parent run's description (Markdown, the run page's first block): what was swept, with which
+    profile, the verdict sentences, any further ``sections`` (e.g. the evaluation protocol), the table."""
+    out = [f"**{spec.name}**: {spec.description}".rstrip(": "), f"Profile **{profile}**: {profile_description}".rstrip(": ")]
+    out += ["\n".join(f"- {line}" for line in table.summary)] if table.summary else []
+    out += list(sections)
+    out.append(table.markdown().split("\n", 2)[2])  # the table and its notes, without its "## title"
+    return "\n\n".join(out)
+
+
 def share_view(record: SweepRecord) -> str:
     """Save an MLflow UI view of this sweep and return its path on the UI server (``#/experiments/…``).
 
     The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
-    reads) lists the sweep's child runs grouped by cell — the group row averages the seeds — with the
-    swept params, ``final/<metric>`` and seed as columns.
+    reads) lists the sweep's child runs grouped by cell — the group row averages the seeds — with
+    ``final/<metric>`` (the sweep's metric first), the swept params and seed as columns, sorted by the
+    swept value (one swept field; MLflow orders params as text, which orders plain decimals right).
     """
     metric = record.spec.metric.name
     swept = list(dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])]))
@@ -336,8 +351,10 @@ def share_view(record: SweepRecord) -> str:
     state = {
         "searchFilter": f"tags.mlflow.parentRunId = '{record.parent.info.run_id}'",
         "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": "cell"}]},
-        "selectedColumns": [f"params.`{k}`" for k in swept] + [f"metrics.`{m}`" for m in finals or [metric]] + ["tags.`seed`"],
+        "selectedColumns": [f"metrics.`{m}`" for m in finals or [metric]] + [f"params.`{k}`" for k in swept] + ["tags.`seed`"],
     }
+    if len(swept) == 1:
+        state |= {"orderByKey": f"params.`{swept[0]}`", "orderByAsc": True}
     key = f"sweep-{record.parent.info.run_id}"
     record.client.set_experiment_tag(record.experiment_id, f"mlflow.sharedViewState.{key}", json.dumps(state))
     return f"#/experiments/{record.experiment_id}/runs?viewStateShareKey={key}"

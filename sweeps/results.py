@@ -24,7 +24,7 @@ from typing import Literal
 from cdm.evaluate import BASELINES
 from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
 
-__all__ = ["ResultsTable", "TrialOutcome", "build_table", "settings_note"]
+__all__ = ["ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "settings_note"]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
 
@@ -381,3 +381,29 @@ def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str, 
     record["verdict"] = d.verdict(mode) if isinstance(d, PairedDifference) else ""
     record["beats baselines"] = ";".join(pairing.beats(name))
     return record
+
+
+def cell_means(table: ResultsTable) -> dict[str, dict[str, float]]:
+    """Cell → metric (``f1``, ``cd``, ``f1/chair``: ``eval/`` dropped) → mean over its finished seeds."""
+    out: dict[str, dict[str, float]] = {}
+    for record in table.records:
+        name = str(record["cell"])
+        if name.startswith("baseline: "):
+            continue
+        out[name] = {k.removesuffix(" mean").removeprefix("eval/"): float(v) for k, v in record.items()
+                     if k.endswith(" mean") and v is not None}
+    return out
+
+
+def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[str, float]]:
+    """Evaluation-set fingerprint → the ``baseline/…`` metrics scored on it (the same in every trial on it).
+
+    A trial without per-object rows files its baselines under ``""``.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for o in _finished(outcomes):
+        eval_set = str(o.objects[0].get("eval_set", "")) if o.objects else ""
+        found = {k: v for k, v in o.metrics.items() if k.startswith("baseline/")}
+        if found and eval_set not in out:
+            out[eval_set] = found
+    return out

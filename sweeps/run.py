@@ -310,8 +310,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     quiet_environment(tty)
     import ray
 
-    from sweeps.report import publish
-    from sweeps.results import build_table
+    from sweeps.report import describe_sweep, publish
+    from sweeps.results import baselines_by_eval_set, build_table, cell_means
     from sweeps.tracking import SweepRun, resolve_tracking_uri
     from sweeps.trial import cluster_capacity, cluster_machines, connect, run_sweep
 
@@ -388,6 +388,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                             compare_to=plan.spec.compare_to, settings=_settings(plan))
         md, csv = table.write(staging)
         sweep_run.log_artifacts([md, csv])
+        sweep_run.log_results(cell_means(table), baselines_by_eval_set(outcomes),
+                              describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table))
         view = publish(uri, sweep_run.run_id, staging / "plots")
         if _is_uri(sweep_dir):
             _publish_files(staging, sweep_dir)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import tempfile
 import time
 from collections.abc import Iterable
@@ -27,9 +28,13 @@ from mlflow.entities import Metric, Param, RunTag
 from cdm.config import Config
 from cdm.train import Callback
 
-__all__ = ["SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "resolve_tracking_uri", "ui_command"]
+__all__ = ["SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
+           "resolve_tracking_uri", "ui_command"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
+PER_TRIAL_PARAMS = ("train.out_dir",)
+"""Config fields that differ in every trial by construction (its own folder): not params, so the
+compare view shows only what the cells set."""
 
 
 def resolve_tracking_uri(cli: str | None, cwd: Path | None = None) -> str:
@@ -65,6 +70,19 @@ def _experiment(client: MlflowClient, name: str, uri: str) -> str:
 
 def _params(values: dict[str, Any]) -> list[Param]:
     return [Param(k, str(v)) for k, v in values.items()]
+
+
+def metric_key(name: str) -> str:
+    """A cell name as an MLflow metric name (letters, digits, ``_ - . / : space``): ``point_size=0.04``
+    → ``point_size 0.04``."""
+    return re.sub(r"[^\w.\- :]", " ", name.replace("=", " ")).strip()
+
+
+def parent_baselines(parent_metrics: dict[str, float], eval_set: str | None) -> dict[str, float]:
+    """The ``baseline/…`` metrics the parent run holds for ``eval_set`` (see :meth:`SweepRun.log_results`)."""
+    prefix = f"eval_set {eval_set}/"
+    own = {k.removeprefix(prefix): v for k, v in parent_metrics.items() if k.startswith(prefix + "baseline/")}
+    return own or {k: v for k, v in parent_metrics.items() if k.startswith("baseline/")}
 
 
 def find_trial_run(client: MlflowClient, experiment_id: str, parent_run_id: str, trial_id: str) -> str | None:
@@ -171,6 +189,24 @@ class SweepRun:
         run_id = find_trial_run(self.client, self.experiment_id, self.run_id, trial_id)
         return [] if run_id is None else last_objects(self.client, run_id)
 
+    def log_results(self, cells: dict[str, dict[str, float]], baselines: dict[str, dict[str, float]], description: str) -> None:
+        """The sweep's results on the parent run: per cell ``<cell>/<metric>`` (``point_size 0.04/f1``),
+        the baselines once per evaluation set (``baseline/sphere/f1``; ``eval_set <id>/baseline/…``
+        when the cells were scored on several), and ``description`` as the run's description.
+
+        Args:
+            cells: cell name → metric (``eval/`` dropped: ``f1``, ``cd/chair``) → mean over its seeds.
+            baselines: evaluation-set fingerprint → ``baseline/<name>/<metric>`` → value.
+        """
+        now = int(time.time() * 1000)
+        metrics = [Metric(f"{metric_key(cell)}/{k}", v, now, 0) for cell, values in cells.items() for k, v in values.items()]
+        for eval_set, values in baselines.items():
+            prefix = "" if len(baselines) == 1 else f"eval_set {eval_set}/"
+            metrics += [Metric(prefix + k, v, now, 0) for k, v in values.items()]
+        for i in range(0, len(metrics), 1000):  # MLflow's limit of metrics per log_batch call
+            self.client.log_batch(self.run_id, metrics=metrics[i:i + 1000])
+        self.client.set_tag(self.run_id, "mlflow.note.content", description)
+
     def end(self, status: str = "FINISHED") -> None:
         self.client.set_terminated(self.run_id, status=status)
 
@@ -249,7 +285,7 @@ class TrialRun(Callback):
                 experiment_id, run_name=run_name,
                 tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, **tags})
             self.run_id = run.info.run_id
-            params = _params(config.flat())
+            params = _params({k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS})
             for i in range(0, len(params), _BATCH):
                 self.client.log_batch(self.run_id, params=params[i:i + _BATCH])
             self.client.log_text(self.run_id, yaml.safe_dump(config.to_dict(), sort_keys=False), "config.yaml")
@@ -273,7 +309,8 @@ class TrialRun(Callback):
     def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
         if step <= self.logged_until["eval"]:
             return
-        self._log(step, metrics)
+        # Baselines depend on the evaluation set only: the driver logs them once on the parent run.
+        self._log(step, {k: v for k, v in metrics.items() if not k.startswith("baseline/")})
         if not self.eval_set_tagged:  # every evaluation of a run scores the same evaluation set
             for path in (p for p in files if p.name == "objects.csv"):
                 with path.open(newline="") as fh:

@@ -106,6 +106,8 @@ def grid_store(tmp_path_factory):
     sweep.close_trial("t1", labels[1], "FINISHED")
     # The driver's verdict for a trial that raised before it opened its run (_TrialCloser.on_trial_error).
     sweep.close_trial("t2", labels[2], "FAILED", error="cdm.train.TrainingDiverged: loss became NaN at step 3")
+    # The driver's end of the sweep: the baselines once for the evaluation set, on the parent.
+    sweep.log_results({"point_size=0.02": {"f1": 0.42}}, {"e1": base}, "synth: a grid")
     sweep.end()
     return uri, sweep
 
@@ -131,8 +133,14 @@ def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, t
     assert "0/1 (1 failed)" in rows["point_size=0.08"] and "failed" in rows["point_size=0.08"].split("0/1 (1 failed)")[1]
     assert "0.420" in rows["point_size=0.02"] and "0.450" in rows["point_size=0.02"]  # ours beside the paper's
     assert rows["point_size=0.04"].startswith("point_size=0.04 ★")  # best F1
-    # Paired with the first cell on the same 3 objects: every object 20 lower, so Δcd is exactly -20.
-    assert "-20.00 [-20.00, -20.00]" in rows["point_size=0.04"] and "better" in rows["point_size=0.04"]
+    # Paired with the first cell on the same 3 objects: every object 20 lower, so Δcd is exactly -20
+    # (in results.md: the terminal shows the Δ of the sweep's metric, F1, within 120 columns).
+    assert "+0.020 [+0.020, +0.020]" in rows["point_size=0.04"] and "better" in rows["point_size=0.04"]
+    assert max(len(line) for line in text.split("\nresults: ")[0].splitlines()) <= 120  # the table, not the paths after it
+    md_row = next(line for line in (out / "results.md").read_text().splitlines() if line.startswith("| point_size=0.04"))
+    assert "-20.00 [-20.00, -20.00]" in md_row
+    # The baseline comes from the parent run (logged once there, not on the children).
+    assert "baseline: sphere" in text and "best cell point_size=0.04: beats sphere" in text
     assert "failed: point_size=0.08 · seed 0 — cdm.train.TrainingDiverged: loss became NaN at step 3" in text
     records = list(csv.DictReader((out / "results.csv").open()))
     assert [r["cell"] for r in records[:3]] == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
@@ -167,7 +175,33 @@ def test_shared_view_groups_the_sweeps_children_by_cell(grid_store):
     state = json.loads(MlflowClient(uri).get_experiment(sweep.experiment_id).tags[f"mlflow.sharedViewState.sweep-{sweep.run_id}"])
     assert state["searchFilter"] == f"tags.mlflow.parentRunId = '{sweep.run_id}'"
     assert state["groupBy"]["groupByKeys"] == [{"mode": "tag", "groupByData": "cell"}]
-    assert state["selectedColumns"] == ["params.`priors.point_size`", "metrics.`final/f1`", "metrics.`final/cd`", "tags.`seed`"]
+    # The sweep's metric first; rows in the swept value's order, whatever order the trials ran in.
+    assert state["selectedColumns"] == ["metrics.`final/f1`", "metrics.`final/cd`", "params.`priors.point_size`", "tags.`seed`"]
+    assert (state["orderByKey"], state["orderByAsc"]) == ("params.`priors.point_size`", True)
+
+
+def test_baselines_once_on_the_parent_and_no_per_trial_paths_in_params(grid_store):
+    uri, sweep = grid_store
+    client = MlflowClient(uri)
+    parent = client.get_run(sweep.run_id)
+    assert parent.data.metrics["baseline/sphere/f1"] == 0.2 and parent.data.metrics["point_size 0.02/f1"] == 0.42
+    assert parent.data.tags["mlflow.note.content"] == "synth: a grid"
+    for child in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'"):
+        assert not [k for k in child.data.metrics if k.startswith("baseline/")]
+        assert "train.out_dir" not in child.data.params
+        assert child.data.params or child.data.tags.get("error")  # the failed one never logged its config
+
+
+def test_parent_description_reads_spec_profile_verdicts_and_table(grid_store):
+    uri, _ = grid_store
+    record = report.open_sweep(uri, "synth")
+    table = report.results_table(record, report.trial_records(record))
+    text = report.describe_sweep(record.spec, "smoke", "tiny", table, sections=["**Protocol**: 3 objects"])
+    blocks = text.split("\n\n")
+    assert blocks[1] == "Profile **smoke**: tiny"
+    assert blocks[2].startswith("- best cell point_size=0.04: beats sphere")
+    assert blocks[3] == "**Protocol**: 3 objects"
+    assert blocks[4].startswith("| cell | paper setting | trials | eval/f1 |")
 
 
 def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
