@@ -16,7 +16,11 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = ["PlotPoint", "metric_vs_value", "optuna_plots", "partner", "read_ply", "training_curves", "view_cloud"]
+__all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "partner", "read_ply", "training_curves",
+           "view_cloud"]
+
+DPI = 150
+"""Resolution of every saved figure: 7-point labels stay legible when the PNG is shown at full size."""
 
 
 @dataclass(frozen=True)
@@ -29,6 +33,8 @@ class PlotPoint:
     metrics: dict[str, float]
     paper: dict[str, float] = field(default_factory=dict)
     """The paper's numbers for this cell, by metric name (``eval/f1``, ``eval/f1/teddybear``)."""
+    paper_label: str | None = None
+    """The paper's table row those numbers come from (``10 frames + 0.04 point size``)."""
 
 
 def _pyplot():
@@ -61,14 +67,34 @@ def _axis(points: Sequence[PlotPoint]) -> tuple[list[str], dict[str, float], str
     return cells, {c: float(i) for i, c in enumerate(cells)}, None
 
 
-def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: Path) -> Path:
+def log_spaced(values: Sequence[float]) -> bool:
+    """Whether a grid of swept values reads better on a log axis: all positive, spanning at least 4×,
+    and more evenly spaced in log than in linear terms (0.0075, 0.01, 0.02, 0.04, 0.08: yes; 1, 2, 3, 4: no)."""
+    xs = sorted(set(values))
+    if len(xs) < 3 or xs[0] <= 0 or xs[-1] / xs[0] < 4:
+        return False
+
+    def unevenness(steps: np.ndarray) -> float:
+        return float(np.std(steps) / np.mean(steps))
+
+    return unevenness(np.diff(np.log(xs))) < unevenness(np.diff(xs))
+
+
+def _baseline_label(name: str) -> str:
+    return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
+
+
+def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: Path, paper_table: str = "paper") -> Path:
     """``metric`` (and its CD/F1 partner) against the swept value: mean ± std over seeds per cell, one
-    line for all objects and one per category, and the paper's numbers as stars of the same colour."""
+    line for all objects and one per category; the baselines (``baseline/<name>/…`` in the points'
+    metrics) as dashed horizontal lines; the paper's numbers as stars of the same colour, each labelled
+    with its ``paper_table`` row."""
     plt = _pyplot()
     shown = [m for m in (metric, partner(metric)) if m is not None]
     cells, x, xlabel = _axis(points)
     categories = sorted({k.rsplit("/", 1)[1] for p in points for k in p.metrics if k.startswith(metric + "/")})
-    fig, axes = plt.subplots(1, len(shown), figsize=(5.5 * len(shown), 3.8), squeeze=False)
+    baselines = sorted({k.split("/")[1] for p in points for k in p.metrics if k.startswith("baseline/")})
+    fig, axes = plt.subplots(1, len(shown), figsize=(6.5 * len(shown), 4.5), squeeze=False)
     for ax, m in zip(axes[0], shown):
         for i, series in enumerate(["all", *categories]):
             key = m if series == "all" else f"{m}/{series}"
@@ -83,17 +109,27 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
             if xs:
                 ax.errorbar(xs, means, yerr=stds, fmt="o-", color=colour, capsize=3, lw=2 if series == "all" else 1,
                             label=f"ours: {series}")
-            paper = {p.cell: p.paper[key] for p in points if key in p.paper}
+            paper = {p.cell: (p.paper[key], p.paper_label) for p in points if key in p.paper}
             if paper:
-                ax.scatter([x[c] for c in paper], list(paper.values()), marker="*", s=160, color=colour,
-                           edgecolor="black", zorder=3, label=f"paper: {series}")
+                ax.scatter([x[c] for c in paper], [v for v, _ in paper.values()], marker="*", s=160, color=colour,
+                           edgecolor="black", zorder=3, label=f"{paper_table}: {'all objects' if series == 'all' else series}")
+                for c, (value, row) in paper.items():
+                    ax.annotate(row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=6, color=colour)
+        short = m.removeprefix("eval/")
+        for i, b in enumerate(baselines):
+            values = [p.metrics[f"baseline/{b}/{short}"] for p in points if f"baseline/{b}/{short}" in p.metrics]
+            if values:
+                ax.axhline(statistics.fmean(values), color="0.45", lw=1, ls=(0, (4, 2 + 2 * i)), zorder=1)
+                ax.annotate(f"baseline: {_baseline_label(b)}", (1.0, statistics.fmean(values)), xycoords=("axes fraction", "data"),
+                            xytext=(-2, 2), textcoords="offset points", ha="right", va="bottom", fontsize=6, color="0.35")
         if xlabel is None:
             ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=8)
         else:
             ax.set_xlabel(xlabel)
-            positive = [v for v in x.values() if v > 0]
-            if len(positive) == len(x) and max(positive) / min(positive) >= 20:
+            if log_spaced(list(x.values())):
                 ax.set_xscale("log")
+                ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
+                ax.minorticks_off()
         ax.set_ylabel(m + (" (×1000, lower is better)" if m.endswith("cd") else " (higher is better)"))
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
@@ -203,6 +239,6 @@ def view_cloud(points: np.ndarray, elevation: float = 20.0, azimuth: float = 30.
 
 def _save(fig, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80, bbox_inches="tight")
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
     _pyplot().close(fig)
     return path

@@ -292,10 +292,11 @@ def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) ->
     spec, folder = record.spec, Path(folder)
     metric = spec.metric.name
     done = [t for t in trials if t.outcome.status in ("ok", "stopped")]
-    points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper) for t in done]
+    points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done]
     paths = []
     if points:
-        paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png"))
+        paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
+                                     spec.paper.table if spec.paper else "paper"))
     curves = _histories(record, trials, ("train/loss", metric))
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}

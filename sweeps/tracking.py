@@ -230,29 +230,34 @@ def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
     return [{k: (v if k in text else float(v)) for k, v in row.items()} for row in rows]
 
 
-def learning_curve_png(client: MlflowClient, run_id: str, folder: Path) -> Path:
-    """Plot the run's training loss and evaluation CD against wall-clock minutes, from its MLflow history.
+def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path:
+    """Plot the run's training loss and ``metric`` (the sweep's) against wall-clock minutes, from its
+    MLflow history, titled ``title`` (the cell).
 
     Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
     """
+    from sweeps.plots import DPI
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     loss = client.get_metric_history(run_id, "train/loss")
-    cd = client.get_metric_history(run_id, "eval/cd")
-    t0 = min(m.timestamp for m in loss + cd)
+    evals = client.get_metric_history(run_id, metric)
+    t0 = min(m.timestamp for m in loss + evals)
     fig, ax = plt.subplots(figsize=(6, 3.2))
     ax.plot([(m.timestamp - t0) / 60000 for m in loss], [m.value for m in loss], color="tab:blue")
     ax.set_xlabel("wall-clock minutes")
     ax.set_ylabel("train/loss", color="tab:blue")
     ax2 = ax.twinx()
-    ax2.plot([(m.timestamp - t0) / 60000 for m in cd], [m.value for m in cd], "o-", color="tab:red")
-    ax2.set_ylabel("eval/cd (×1000)", color="tab:red")
+    ax2.plot([(m.timestamp - t0) / 60000 for m in evals], [m.value for m in evals], "o-", color="tab:red")
+    ax2.set_ylabel(metric + (" (×1000)" if metric.split("/")[1:2] == ["cd"] else ""), color="tab:red")
+    if title:
+        ax.set_title(title, fontsize=9)
     fig.tight_layout()
     path = folder / "learning_curve.png"
-    fig.savefig(path, dpi=80)
+    fig.savefig(path, dpi=DPI)
     plt.close(fig)
     return path
 
@@ -273,8 +278,10 @@ class TrialRun(Callback):
         run_name: str,
         tags: dict[str, str],
         config: Config,
+        metric: str = "eval/cd",
     ):
         self.client = MlflowClient(uri)
+        self.run_name, self.metric = run_name, metric
         found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
         # Last step already in the run, per kind: a crash between a step's log and its evaluation
         # must not make the re-run evaluation look logged.
@@ -321,7 +328,8 @@ class TrialRun(Callback):
         for path in files:
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}")
         if files:
-            self.client.log_artifact(self.run_id, str(learning_curve_png(self.client, self.run_id, files[0].parent)))
+            curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name)
+            self.client.log_artifact(self.run_id, str(curve))
 
     def on_checkpoint(self, step: int, path: Path) -> None:
         self.client.set_tag(self.run_id, "checkpoint", str(path))

@@ -119,7 +119,7 @@ def train_loop(loop_config: dict[str, Any]) -> None:
             TrialProgress(loop_config["label"], config.train.steps, loop_config["metric"]),
             StepReporter(t["parent_run_id"], loop_config["label"]),
             TrialRun(t["uri"], t["experiment_id"], t["parent_run_id"], loop_config["trial_id"],
-                     loop_config["label"], loop_config["tags"], config),
+                     loop_config["label"], loop_config["tags"], config, loop_config["metric"]),
         ]
     checkpoint = ray.tune.get_checkpoint() if local else ray.train.get_checkpoint()
     with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:

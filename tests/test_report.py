@@ -266,3 +266,27 @@ def test_panel_views_match_where_the_clouds_match_and_differ_where_they_differ(t
     for k in range(3):
         assert _overlap(moved[k], moved[3 + k]) < 0.4
         assert _overlap(moved[3 + k], same[3 + k]) > 0.95  # the GT half does not depend on the prediction
+
+
+def test_metric_vs_value_log_axis_baseline_lines_and_resolution(tmp_path):
+    from PIL import Image
+
+    from sweeps.plots import PlotPoint, log_spaced, metric_vs_value
+
+    assert log_spaced([0.0075, 0.01, 0.02, 0.04, 0.08]) and log_spaced([1e-3, 1e-2, 1e-1, 1.0])
+    assert not log_spaced([1, 2, 3, 4]) and not log_spaced([0.02, 0.04]) and not log_spaced([0.0, 0.1, 1.0])
+    points = [PlotPoint(f"point_size={v}", {"priors.point_size": v}, {"eval/f1": 0.3 + v, "eval/cd": 50 - v,
+                                                                      "baseline/sphere/f1": 0.1, "baseline/sphere/cd": 20.0})
+              for v in (0.0075, 0.01, 0.02, 0.04, 0.08)]
+    with_baseline = metric_vs_value(points, "eval/f1", "t", tmp_path / "a.png", "Table 5")
+    without = metric_vs_value([PlotPoint(p.cell, p.values, {k: v for k, v in p.metrics.items() if k.startswith("eval/")})
+                               for p in points], "eval/f1", "t", tmp_path / "b.png")
+    image = Image.open(with_baseline)
+    assert image.info["dpi"][0] == pytest.approx(150, abs=1)
+    pixels = np.asarray(image.convert("RGB")).astype(int)
+
+    def grey(px):  # pixels of the 0.45-grey dashed reference lines (antialiased: roughly that grey)
+        return int(((np.abs(px - 115).max(axis=2) < 40) & (np.ptp(px, axis=2) < 6)).sum())
+
+    # Two panels × one baseline line across each (~600 px wide, ~2 px thick, dashed).
+    assert grey(pixels) - grey(np.asarray(Image.open(without).convert("RGB")).astype(int)) > 1000
