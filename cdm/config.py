@@ -276,7 +276,8 @@ class EvalConfig(_Group):
     seed: int = 1234
     """Sampling seed, identical across runs so cells are compared on the same noise."""
     save_clouds: int = Field(4, ge=0)
-    """Reconstructions written as PLY per evaluation."""
+    """Categories drawn per evaluation: the first evaluated object of each, up to this many, gets a PNG
+    panel and PLY clouds (prediction, ground truth, each baseline). Drawing never changes a score."""
     retrieval_bank: int = Field(64, ge=1)
     """Training images per category searched by the nearest-image retrieval baseline."""
 

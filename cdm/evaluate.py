@@ -70,6 +70,8 @@ class EvalSet:
     baseline_metrics: dict[str, float] = field(default_factory=dict)
     baseline_rows: dict[str, dict[str, float]] = field(default_factory=dict)
     """Per object id: ``{"baseline/<name>/cd": …, "baseline/<name>/f1": …}``."""
+    baseline_clouds: dict[str, dict[str, Tensor]] = field(default_factory=dict)
+    """The first object of each category (the drawn ones): baseline name → its ``(N, 3)`` cloud."""
 
 
 @dataclass
@@ -108,9 +110,13 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
     means = _category_medoids(train, set(per_cat), cfg.eval.num_points)
     bank = RetrievalBank.build(train, set(per_cat), cfg.eval.retrieval_bank)
     gen = torch.Generator().manual_seed(seed)
+    first_of = {cat: val.objects[idx[0]].object_id for cat, idx in per_cat.items()}
     scores: dict[str, list[tuple[str, float, float]]] = {name: [] for name in BASELINES}
     for batch, factor in zip(batches, eval_set.factors):
         clouds = {**baseline_clouds(batch.points, batch.category, means, gen), "retrieval": bank.nearest(batch.mask)}
+        for j, (oid, cat) in enumerate(zip(batch.object_id, batch.category)):
+            if oid == first_of[cat]:
+                eval_set.baseline_clouds[oid] = {name: clouds[name][j].clone() for name in BASELINES}
         for name in BASELINES:
             m = _score(clouds[name], batch.points, cfg, gen, factor)
             scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
@@ -258,14 +264,17 @@ def run_evaluation(
 ) -> EvalOutput:
     """Reconstruct every object of ``eval_set`` with a fixed seed and score it (CD ×1000, F1).
 
-    Writes ``objects.csv`` (one row per object: ours and every baseline), PLY clouds and PNG panels of the first
-    ``eval.save_clouds`` objects into ``out_dir`` when given.
+    Writes ``objects.csv`` (one row per object: ours and every baseline) into ``out_dir`` when given,
+    and for the first object of each of the first ``eval.save_clouds`` categories a PNG panel and PLY
+    clouds: ``<id>.ply`` (ours), ``<id>.gt.ply`` and ``<id>.<baseline>.ply``. Which objects are drawn
+    never changes which are scored.
     """
     network.eval()
     sample_gen = torch.Generator(device=device).manual_seed(cfg.eval.seed)
     metric_gen = torch.Generator().manual_seed(cfg.eval.seed + 1)
     rows: list[dict[str, object]] = []
     files: list[Path] = []
+    drawn: set[str] = set()
     for batch, factor in zip(eval_set.batches, eval_set.factors):
         batch_d = batch.to(device)
         pred = reconstruct(network, diffusion, batch_d, cfg, sample_gen).cpu()
@@ -274,9 +283,12 @@ def run_evaluation(
             oid = batch.object_id[j]
             rows.append({"object_id": oid, "category": batch.category[j], "eval_set": eval_set.fingerprint,
                          "cd": m.cd[j].item(), "f1": m.f1[j].item(), **eval_set.baseline_rows[oid]})
-            if out_dir is not None and len(rows) <= cfg.eval.save_clouds:
-                stem = batch.object_id[j].replace("/", "_")
+            if out_dir is not None and oid in eval_set.baseline_clouds and len(drawn) < cfg.eval.save_clouds:
+                drawn.add(oid)
+                stem = oid.replace("/", "_")
                 files.append(write_ply(out_dir / f"{stem}.ply", pred[j]))
+                files.append(write_ply(out_dir / f"{stem}.gt.ply", batch.points[j]))
+                files += [write_ply(out_dir / f"{stem}.{name}.ply", cloud) for name, cloud in eval_set.baseline_clouds[oid].items()]
                 files.append(save_panel(out_dir / f"{stem}.png", batch, j, pred[j], m.cd[j].item(), m.f1[j].item()))
     network.train()
     metrics = _summarise([(r["category"], r["cd"], r["f1"]) for r in rows], "eval")

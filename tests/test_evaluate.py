@@ -150,3 +150,31 @@ def test_reference_scoring_scales_cd_by_the_factor_squared_and_paper_protocol_ta
     paper = _shapenet_cfg(tree.root, **{"eval.num_objects": 1, "eval.protocol": "paper"})
     every = build_eval_set(paper, val, train, 0)
     assert sum(len(x) for x in every.batches) == len(val) == 6
+
+
+def test_one_drawn_object_per_category_and_drawing_changes_no_score(tmp_path):
+    from cdm.diffusion import GaussianDiffusion
+    from cdm.evaluate import run_evaluation
+    from cdm.model import CDMNetwork
+    from cdm.priors import PRIOR_2D_CHANNELS
+    from sweeps.plots import read_ply
+
+    cfg = tiny_config(tmp_path, **{"data.categories": ["chair", "airplane"], "data.val_objects": 2,
+                                   "eval.num_objects": 2, "eval.save_clouds": 8, "eval.retrieval_bank": 2})
+    eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
+    torch.manual_seed(0)
+    network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d])
+    diffusion = GaussianDiffusion.from_config(cfg.diffusion)
+    drawn = run_evaluation(network, diffusion, eval_set, cfg, torch.device("cpu"), tmp_path / "eval")
+    plain = run_evaluation(network, diffusion, eval_set, cfg, torch.device("cpu"), None)
+    assert drawn.rows == plain.rows and drawn.metrics == plain.metrics
+    ids = [str(r["object_id"]) for r in drawn.rows]
+    firsts = {c: next(i for i, r in zip(ids, drawn.rows) if r["category"] == c) for c in ("chair", "airplane")}
+    assert len(ids) == 4 and sorted(p.stem for p in tmp_path.joinpath("eval").glob("*.png")) == sorted(
+        i.replace("/", "_") for i in firsts.values())
+    for oid in firsts.values():
+        stem = tmp_path / "eval" / oid.replace("/", "_")
+        gt = next(b for b in eval_set.batches if oid in b.object_id)
+        assert torch.allclose(torch.from_numpy(read_ply(stem.with_suffix(".gt.ply"))), gt.points[gt.object_id.index(oid)], atol=1e-6)
+        for name in BASELINES:
+            assert read_ply(stem.parent / f"{stem.name}.{name}.ply").shape[1] == 3
