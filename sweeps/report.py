@@ -19,22 +19,26 @@ import os
 import statistics
 import sys
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Any
 
 if __package__ in (None, ""):  # `python sweeps/report.py` puts sweeps/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+import numpy as np
 from mlflow import MlflowClient
 from mlflow.entities import Run
 
+from cdm.evaluate import BASELINES
+from sweeps.gallery import grid_png, viewer_html
 from sweeps.plots import (
     PlotPoint,
     metric_vs_value,
     optuna_plots,
     partner,
+    read_ply,
     training_curves,
 )
 from sweeps.protocol import CARD_TAG
@@ -53,6 +57,7 @@ __all__ = [
     "panels",
     "paper_layout",
     "publish",
+    "reconstructions",
     "results_table",
     "share_view",
     "trial_records",
@@ -338,6 +343,54 @@ def describe_sweep(spec: Spec, profile: str, profile_description: str, table: Re
     return "\n\n".join(out)
 
 
+def _best_baseline(record: SweepRecord, trials: list[TrialRecord]) -> str | None:
+    """The baseline scoring best on the sweep's metric (F1 when the metric is neither CD nor F1)."""
+    metric, mode = record.spec.metric.name, record.spec.metric.mode
+    short = metric.removeprefix("eval/") if metric in ("eval/cd", "eval/f1") else "f1"
+    mode = mode if short == metric.removeprefix("eval/") else "max"
+    means = {}
+    for b in BASELINES:
+        values = [t.outcome.metrics[f"baseline/{b}/{short}"] for t in trials if f"baseline/{b}/{short}" in t.outcome.metrics]
+        if values:
+            means[b] = statistics.fmean(values)
+    return (min if mode == "min" else max)(means, key=means.__getitem__) if means else None
+
+
+def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path) -> list[Path]:
+    """``reconstructions.png`` (a grid) and ``reconstructions.html`` (a 3D viewer) of the drawn objects:
+    rows the objects every cell drew at its last evaluation, columns each cell (its first finished
+    seed), the ground truth and the best baseline. Empty when no finished trial drew an object."""
+    folder = Path(folder)
+    firsts: dict[str, TrialRecord] = {}
+    for t in trials:
+        if t.run_id is not None and t.outcome.status in ("ok", "stopped"):
+            firsts.setdefault(t.outcome.cell, t)
+    files = {cell: last_eval_files(record.client, t.run_id) for cell, t in firsts.items()}
+    stems = [f.removesuffix(".gt.ply") for f in next(iter(files.values()), []) if f.endswith(".gt.ply")]
+    # The same objects in every column; evaluation folders differ by step, so match on the file name.
+    names = [Path(s).name for s in stems if all(any(Path(f).name == Path(s).name + ".ply" for f in fs) for fs in files.values())]
+    if not names:
+        return []
+    best = _best_baseline(record, trials)
+    baseline = f"baseline: {best}" if best else None
+    gallery: dict[str, dict[str, np.ndarray]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for cell, t in firsts.items():
+            folder_of = {Path(f).name: f for f in files[cell]}
+            for name in names:
+                wanted = {cell: f"{name}.ply"}
+                if cell == next(iter(firsts)):
+                    wanted |= {"ground truth": f"{name}.gt.ply"} | ({baseline: f"{name}.{best}.ply"} if baseline else {})
+                for label, file in wanted.items():
+                    if file in folder_of:
+                        local = record.client.download_artifacts(t.run_id, folder_of[file], str(Path(tmp) / t.run_id))
+                        gallery.setdefault(name, {})[label] = read_ply(Path(local))
+    columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
+    title = f"{record.title}: reconstructions at the last evaluation"
+    return [grid_png(gallery, columns, title, folder / "reconstructions.png"),
+            viewer_html(gallery, columns, title, folder / "reconstructions.html")]
+
+
 def share_view(record: SweepRecord) -> str:
     """Save an MLflow UI view of this sweep and return its path on the UI server (``#/experiments/…``).
 
@@ -362,10 +415,14 @@ def share_view(record: SweepRecord) -> str:
 
 
 def publish(uri: str, parent_run_id: str, folder: Path) -> str:
-    """End of a sweep: plots into ``folder`` and onto the parent run (``plots/``), and the UI view; returns its path."""
+    """End of a sweep: plots and reconstructions into ``folder`` and onto the parent run (``plots/``,
+    ``reconstructions/``), and the UI view; returns its path."""
     record = open_sweep(uri, parent_run_id=parent_run_id)
-    for path in write_plots(record, trial_records(record, objects=False), folder):
+    trials = trial_records(record, objects=False)
+    for path in write_plots(record, trials, folder):
         record.client.log_artifact(parent_run_id, str(path), "plots")
+    for path in reconstructions(record, trials, folder):
+        record.client.log_artifact(parent_run_id, str(path), "reconstructions")
     return share_view(record)
 
 
@@ -393,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     trials = trial_records(record)
     table = results_table(record, trials)
     md, csv = table.write(out)
-    plots = write_plots(record, trials, out)
+    plots = write_plots(record, trials, out) + reconstructions(record, trials, out)
     print(table.text() + "\n")
     print(f"results: {md} and {csv}")
     print("plots: " + ", ".join(str(p) for p in plots))

@@ -290,3 +290,43 @@ def test_metric_vs_value_log_axis_baseline_lines_and_resolution(tmp_path):
 
     # Two panels × one baseline line across each (~600 px wide, ~2 px thick, dashed).
     assert grey(pixels) - grey(np.asarray(Image.open(without).convert("RGB")).astype(int)) > 1000
+
+
+def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_path):
+    from PIL import Image
+
+    from cdm.evaluate import write_ply
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep, plan = _start(tmp_path, uri, GRID)
+    labels = [c.label for c in plan.cells]
+    rng = np.random.default_rng(0)
+    clouds = {}
+    base = {"baseline/sphere/f1": 0.2, "baseline/retrieval/f1": 0.6, "baseline/sphere/cd": 90.0, "baseline/retrieval/cd": 30.0}
+    for i, label in enumerate(labels[:2]):
+        folder = tmp_path / f"eval{i}"
+        files = []
+        for oid in ("chair_0001", "mug_0002"):
+            for suffix in ("", ".gt", ".sphere", ".retrieval", ".gaussian", ".category_mean"):
+                cloud = clouds.setdefault((oid, suffix if suffix else label), torch.from_numpy(rng.uniform(-0.5, 0.5, (300, 3))).float())
+                files.append(write_ply(folder / f"{oid}{suffix}.ply", cloud))
+        run = TrialRun(uri, sweep.experiment_id, sweep.run_id, f"t{i}", label, {"cell": label.split(" · ")[0], "seed": "0"},
+                       tiny_config(tmp_path))
+        run.on_eval(20, {"eval/f1": 0.4, "eval/cd": 50.0}, files)
+        sweep.close_trial(f"t{i}", label, "FINISHED")
+    sweep.log_results({}, {"e1": base}, "grid")
+    sweep.end()
+    record = report.open_sweep(uri, "synth")
+    png, page = report.reconstructions(record, report.trial_records(record, objects=False), tmp_path / "out")
+    width, height = Image.open(png).size
+    assert width > 1.5 * height  # 4 columns (2 cells, GT, best baseline) × 2 rows
+    text = page.read_text()
+    assert "<canvas" not in text and 'createElement("canvas")' in text  # drawn by the inline script
+    assert "src=" not in text and "http" not in text  # self-contained: nothing fetched
+    data = json.loads(text.split('type="application/json">', 1)[1].split("</script>", 1)[0])
+    cells = [label.split(" · ")[0] for label in labels[:2]]
+    assert data["columns"] == [*cells, "ground truth", "baseline: retrieval"]  # retrieval: the best F1
+    first = data["objects"][0]
+    assert [o["id"] for o in data["objects"]] == ["chair_0001", "mug_0002"] and set(first["clouds"]) == set(data["columns"])
+    assert np.allclose(first["clouds"][cells[1]], clouds[("chair_0001", labels[1])].numpy(), atol=5e-4)
+    assert np.allclose(first["clouds"]["ground truth"], clouds[("chair_0001", ".gt")].numpy(), atol=5e-4)

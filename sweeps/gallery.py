@@ -1,0 +1,157 @@
+"""Reconstructions of a sweep side by side: a PNG grid and a self-contained 3D viewer (HTML).
+
+Rows are the same evaluated objects (one per category), columns the sweep's cells, then the ground
+truth and the best baseline. Knows nothing of MLflow: :mod:`sweeps.report` downloads the clouds and
+hands them in as arrays. The viewer is one HTML file with its data and its JavaScript inline (no
+network, no library), so MLflow's artifact view shows it as it is and it opens offline.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["Gallery", "grid_png", "viewer_html"]
+
+Gallery = Mapping[str, Mapping[str, np.ndarray]]
+"""Object id → column label (a cell, ``ground truth``, ``baseline: …``) → its ``(N, 3)`` cloud."""
+
+ELEVATION, AZIMUTH = 20.0, 30.0
+"""Degrees of the grid's fixed view (the panels' first view)."""
+
+
+def _view(points: np.ndarray, elevation: float = ELEVATION, azimuth: float = AZIMUTH) -> tuple[np.ndarray, np.ndarray]:
+    """Orthographic screen ``(x, y)`` and depth of an ``(N, 3)`` cloud (world +Y up) seen from the
+    given elevation/azimuth; larger depth is nearer the viewer."""
+    a, e = math.radians(azimuth), math.radians(elevation)
+    yaw = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    pitch = np.array([[1, 0, 0], [0, math.cos(e), -math.sin(e)], [0, math.sin(e), math.cos(e)]])
+    p = points @ yaw.T @ pitch.T
+    return p[:, :2], p[:, 2]
+
+
+def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path) -> Path:
+    """One row per object, one column per label in ``columns`` (missing clouds: an empty square)."""
+    from sweeps.plots import DPI, _pyplot
+
+    plt = _pyplot()
+    rows = list(gallery)
+    fig, axes = plt.subplots(len(rows), len(columns), figsize=(1.9 * len(columns), 1.9 * len(rows) + 0.4), squeeze=False)
+    for r, oid in enumerate(rows):
+        for c, label in enumerate(columns):
+            ax = axes[r][c]
+            cloud = gallery[oid].get(label)
+            if cloud is not None:
+                xy, depth = _view(cloud)
+                order = np.argsort(depth)  # far points first, near ones drawn over them
+                colour = "tab:green" if label == "ground truth" else "0.4" if label.startswith("baseline") else "tab:blue"
+                ax.scatter(xy[order, 0], xy[order, 1], s=0.6, c=colour, alpha=0.85, linewidths=0)
+            ax.set_xlim(-1, 1)
+            ax.set_ylim(-1, 1)
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(label, fontsize=7)
+            if c == 0:
+                ax.set_ylabel(oid, fontsize=6)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+_PAGE = """<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{title}</title>
+<style>
+body {{ font: 13px sans-serif; margin: 12px; background: #fafafa; color: #222; }}
+#views {{ display: flex; flex-wrap: wrap; gap: 8px; }}
+figure {{ margin: 0; text-align: center; }}
+canvas {{ background: #fff; border: 1px solid #ccc; cursor: grab; }}
+</style></head><body>
+<h3>{title}</h3>
+<p>Drag a view to turn every cloud together; the clouds turn on their own until you do.
+Object: <select id="object"></select></p>
+<div id="views"></div>
+<script id="clouds" type="application/json">{data}</script>
+<script>
+"use strict";
+const data = JSON.parse(document.getElementById("clouds").textContent);
+const select = document.getElementById("object"), views = document.getElementById("views");
+let yaw = 0.5, pitch = 0.35, spinning = true, drag = null, canvases = [];
+data.objects.forEach((o, i) => select.add(new Option(o.id, i)));
+function colour(label) {{
+  return label === "ground truth" ? [44, 160, 44] : label.startsWith("baseline") ? [110, 110, 110] : [31, 119, 180];
+}}
+function build() {{
+  views.innerHTML = ""; canvases = [];
+  const object = data.objects[select.value];
+  data.columns.forEach(label => {{
+    const points = object.clouds[label];
+    if (!points) return;
+    const figure = document.createElement("figure"), canvas = document.createElement("canvas");
+    canvas.width = canvas.height = 260;
+    figure.appendChild(canvas);
+    figure.appendChild(Object.assign(document.createElement("figcaption"), {{ textContent: label }}));
+    views.appendChild(figure);
+    canvas.addEventListener("pointerdown", e => {{ spinning = false; drag = [e.clientX, e.clientY]; }});
+    canvases.push({{ canvas, points, rgb: colour(label) }});
+  }});
+}}
+function draw() {{
+  const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
+  canvases.forEach(({{ canvas, points, rgb }}) => {{
+    const g = canvas.getContext("2d"), half = canvas.width / 2;
+    g.clearRect(0, 0, canvas.width, canvas.height);
+    const screen = points.map(([x, y, z]) => {{
+      const x1 = cy * x + sy * z, z1 = -sy * x + cy * z;
+      return [x1, cp * y - sp * z1, sp * y + cp * z1];
+    }}).sort((a, b) => a[2] - b[2]);
+    screen.forEach(([x, y, depth]) => {{
+      const shade = 0.55 + 0.45 * Math.max(0, Math.min(1, (depth + 1) / 2));
+      g.fillStyle = `rgb(${{rgb.map(v => Math.round(255 - (255 - v) * shade)).join(",")}})`;
+      g.fillRect(half + x * half * 0.9 - 1, half - y * half * 0.9 - 1, 2, 2);
+    }});
+  }});
+}}
+window.addEventListener("pointermove", e => {{
+  if (!drag) return;
+  yaw += (e.clientX - drag[0]) * 0.01;
+  pitch = Math.max(-1.5, Math.min(1.5, pitch + (e.clientY - drag[1]) * 0.01));
+  drag = [e.clientX, e.clientY];
+  draw();
+}});
+window.addEventListener("pointerup", () => {{ drag = null; }});
+select.addEventListener("change", () => {{ build(); draw(); }});
+function tick() {{ if (spinning) {{ yaw += 0.01; draw(); }} requestAnimationFrame(tick); }}
+build(); draw(); requestAnimationFrame(tick);
+</script></body></html>
+"""
+
+
+def viewer_html(gallery: Gallery, columns: Sequence[str], title: str, path: Path, max_points: int = 2048) -> Path:
+    """A self-contained page that turns the clouds of each object, one canvas per column, in step.
+
+    Clouds are thinned to ``max_points`` (evenly, keeping their order) and rounded to 1/1000 of
+    the unit cube, so a sweep of 8 objects × 7 columns stays a few MB at most.
+    """
+    objects = []
+    for oid, clouds in gallery.items():
+        shown = {}
+        for label in columns:
+            if label in clouds:
+                cloud = clouds[label][:: max(1, math.ceil(len(clouds[label]) / max_points))]
+                shown[label] = np.round(cloud.astype(float), 3).tolist()
+        objects.append({"id": oid, "clouds": shown})
+    # "</" cannot end the inline script early: JSON allows the escaped form.
+    data = json.dumps({"columns": list(columns), "objects": objects}, separators=(",", ":")).replace("</", "<\\/")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(_PAGE.format(title=html.escape(title), data=data))
+    return path
