@@ -12,23 +12,19 @@ import json
 import os
 import re
 import shutil
-import signal
-import socket
-import subprocess
 import tempfile
-import time
-import urllib.parse
-import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
 import nbformat
+import numpy as np
 import pytest
 import ray
 from mlflow import MlflowClient
 from mlflow.entities import Run
 from nbclient import NotebookClient
 
+from docs import screenshots
 from sweeps import report, run
 from sweeps.tracking import last_objects
 from tests.test_report import _overlap, panel_views
@@ -104,8 +100,21 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
             assert row["cd"] > 50 and max(_overlap(views[k], views[3 + k]) for k in range(3)) < 0.8
     parent_files = {a.path for a in client.list_artifacts(smoke.parent.info.run_id)}
     parent_files |= {a.path for a in client.list_artifacts(smoke.parent.info.run_id, "plots")}
-    assert parent_files >= {"results.md", "results.csv", "spec.yaml", "plan.json",
-                            "plots/metric_vs_value.png", "plots/training_curves.png"}
+    parent_files |= {a.path for a in client.list_artifacts(smoke.parent.info.run_id, "reconstructions")}
+    assert parent_files >= {"results.md", "results.csv", "spec.yaml", "plan.json", "plots/metric_vs_value.png",
+                            "plots/training_curves.png", "reconstructions/reconstructions.png", "reconstructions/reconstructions.html"}
+    # The parent carries the results: per cell and per baseline, under readable names, and a description.
+    parent = client.get_run(smoke.parent.info.run_id)
+    for cell, child in zip(("point_size 0.02", "point_size 0.04"), smoke.children):
+        assert parent.data.metrics[f"{cell}/f1"] == child.data.metrics["final/f1"]
+        assert parent.data.metrics[f"{cell}/cd"] == child.data.metrics["final/cd"]
+        assert parent.data.metrics[f"{cell}/f1/chair"] == child.data.metrics["final/f1/chair"]
+        assert not [k for k in child.data.metrics if k.startswith("baseline/")]  # once, on the parent
+        assert "train.out_dir" not in child.data.params
+    assert {f"baseline/{b}/f1" for b in ("sphere", "gaussian", "category_mean", "retrieval")} <= set(parent.data.metrics)
+    description = parent.data.tags["mlflow.note.content"]
+    assert description.startswith("**compare**") and "Profile **smoke**" in description and "- best cell point_size=0.0" in description
+    assert "| cell | paper setting | trials |" in description
 
 
 def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, monkeypatch):
@@ -143,62 +152,18 @@ def test_notebook_runs_top_to_bottom_and_shows_the_paper_layout(smoke, tmp_path,
     assert len(images) == 2 + 4  # two plots, then 2 panels for each of the 2 trials
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def mlflow_server(smoke, tmp_path):
     """``mlflow server`` on the smoke store, bound to 127.0.0.1; stopped (its whole process group) also on failure."""
-    port = _free_port()
-    # No background job runner (a pool of worker processes) and one web worker: the UI needs neither.
-    env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
-    log = (tmp_path / "server.log").open("w")
-    server = subprocess.Popen(["mlflow", "server", "--backend-store-uri", smoke.uri, "--host", "127.0.0.1", "--port", str(port),
-                               "--workers", "1"], env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 90
-        while True:
-            try:
-                urllib.request.urlopen(f"{url}/health", timeout=2)
-                break
-            except OSError:
-                assert server.poll() is None and time.monotonic() < deadline, (tmp_path / "server.log").read_text()[-3000:]
-                time.sleep(0.5)
+    with screenshots.mlflow_server(smoke.uri, tmp_path / "server.log") as url:
         yield url
-    finally:
-        os.killpg(server.pid, signal.SIGTERM)
-        try:
-            server.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            os.killpg(server.pid, signal.SIGKILL)
-            server.wait()
-        log.close()
-
-
-def _chromium(chromium: str, url: str, screenshot: Path, profile: Path) -> str:
-    """The DOM of ``url`` once the app has rendered (15 s of virtual time), and a screenshot of it."""
-    cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-           "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars",
-           f"--user-data-dir={profile}", "--virtual-time-budget=15000", "--window-size=1600,800",
-           f"--screenshot={screenshot}", "--dump-dom", url]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=profile, check=False)
-    assert done.returncode == 0, done.stderr[-2000:]
-    return done.stdout
 
 
 def _keep(screenshot: Path, name: str) -> None:
-    """With CDM_UPDATE_SCREENSHOTS=1, a downscaled copy for the README (docs/)."""
-    if os.environ.get("CDM_UPDATE_SCREENSHOTS") != "1":
-        return
-    from PIL import Image
-
-    img = Image.open(screenshot).convert("RGB")
-    img = img.resize((1000, round(img.height * 1000 / img.width)), Image.LANCZOS)
-    img.quantize(colors=64).save(ROOT / "docs" / name, optimize=True)
+    """With CDM_UPDATE_SCREENSHOTS=1, a downscaled copy for the README (docs/); ``docs/screenshots.py``
+    takes the same pictures from any store (the main job's)."""
+    if os.environ.get("CDM_UPDATE_SCREENSHOTS") == "1":
+        screenshots.shrink(screenshot, ROOT / "docs" / name)
 
 
 @pytest.fixture(scope="module")  # module scope: checked before the module's smoke sweep, so a skip costs nothing
@@ -211,26 +176,48 @@ def chromium() -> str:
 
 def test_mlflow_ui_shows_the_child_runs_and_swept_params(chromium, smoke, mlflow_server, tmp_path):
     names = [c.info.run_name for c in smoke.children]
-    view = f"#/experiments/{smoke.experiment_id}/runs?viewStateShareKey=sweep-{smoke.parent.info.run_id}"
+    urls = screenshots.pages(mlflow_server, smoke.experiment_id, smoke.parent.info.run_id, [c.info.run_id for c in smoke.children])
     runs_png = tmp_path / "runs.png"
-    dom = _chromium(chromium, f"{mlflow_server}/{view}", runs_png, tmp_path)
-    # The sweep's view: children grouped by cell, with the swept param and the final metrics as columns.
+    dom = screenshots.chromium_page(chromium, urls["mlflow_sweep_view.png"], runs_png, tmp_path)
+    # The sweep's view: children grouped by cell, with the final metrics and the swept param as columns.
     for name in names:
         assert name in dom
     assert "Group: point_size=0.02" in dom and "Group: point_size=0.04" in dom
     assert "priors.point_size" in dom and "final/f1" in dom and "final/cd" in dom
-    ids = json.dumps([c.info.run_id for c in smoke.children], separators=(",", ":"))
-    compare = f"#/compare-runs?runs={urllib.parse.quote(ids)}&experiments={urllib.parse.quote(json.dumps([smoke.experiment_id]))}"
+    # Sorted by the swept value, the sweep's metric (final/f1) the first column, before the param.
+    text = _text(dom)
+    assert text.index("Group: point_size=0.02") < text.index("Group: point_size=0.04")
+    assert text.index("final/f1") < text.index("final/cd") < text.index("priors.point_size")
+    assert "train.out_dir" not in dom
     compare_png = tmp_path / "compare.png"
-    dom = _chromium(chromium, f"{mlflow_server}/{compare}", compare_png, tmp_path)
+    dom = screenshots.chromium_page(chromium, urls["mlflow_compare.png"], compare_png, tmp_path)
     assert "Comparing 2 Runs" in dom
     for child in smoke.children:
         assert child.info.run_name in dom and child.info.run_id in dom
     assert "priors.point_size 0.02 0.04" in _text(dom)  # the params table: one column per run
-    for png in (runs_png, compare_png):
+    parent_png = tmp_path / "parent.png"
+    dom = screenshots.chromium_page(chromium, urls["mlflow_parent_run.png"], parent_png, tmp_path)
+    assert "best cell point_size=0.0" in _text(dom)  # the description's verdict sentence, rendered
+    for png in (runs_png, compare_png, parent_png):
         assert png.stat().st_size > 20_000  # a rendered page, not a blank one
     _keep(runs_png, "mlflow_sweep_view.png")
     _keep(compare_png, "mlflow_compare.png")
+    _keep(parent_png, "mlflow_parent_run.png")
+
+
+def test_reconstruction_viewer_draws_its_canvases_offline(chromium, smoke, tmp_path):
+    client = MlflowClient(smoke.uri)
+    page = Path(client.download_artifacts(smoke.parent.info.run_id, "reconstructions/reconstructions.html", str(tmp_path)))
+    shot = tmp_path / "viewer.png"
+    dom = screenshots.chromium_page(chromium, page.as_uri(), shot, tmp_path, 1600, 700)
+    # One canvas per column (2 cells, ground truth, best baseline), created and drawn by the inline script.
+    assert dom.count("<canvas") == 4 and "ground truth" in dom and "baseline: " in dom
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    blue = ((np.abs(pixels - [31, 119, 180]).max(axis=2) < 60) & (pixels[..., 2] > pixels[..., 0] + 60)).sum()
+    assert blue > 200  # the cells' clouds are drawn, not only the empty canvases
+    _keep(shot, "reconstructions_viewer.png")
 
 
 def _text(html: str) -> str:
