@@ -333,13 +333,15 @@ def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_tri
     return out
 
 
-def describe_sweep(spec: Spec, profile: str, profile_description: str, table: ResultsTable, sections: Sequence[str] = ()) -> str:
+def describe_sweep(spec: Spec, profile: str, profile_description: str, table: ResultsTable, card: Sequence[str] = ()) -> str:
     """The parent run's description (Markdown, the run page's first block): what was swept, with which
-    profile, the verdict sentences, any further ``sections`` (e.g. the evaluation protocol), the table."""
+    profile, the verdict sentences, the protocol card's lines (``sweeps/protocol.py``), the table."""
     out = [f"**{spec.name}**: {spec.description}".rstrip(": "), f"Profile **{profile}**: {profile_description}".rstrip(": ")]
     out += ["\n".join(f"- {line}" for line in table.summary)] if table.summary else []
-    out += list(sections)
-    out.append(table.markdown().split("\n", 2)[2])  # the table and its notes, without its "## title"
+    out += ["**Protocol card**\n\n" + "\n".join(f"- {line}" for line in card)] if card else []
+    # The table and its notes, without its "## title" and without the card's lines said just above.
+    body = table.markdown().split("\n", 2)[2]
+    out.append("\n".join(line for line in body.splitlines() if not (card and line.startswith("- protocol: "))))
     return "\n\n".join(out)
 
 

@@ -389,7 +389,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         md, csv = table.write(staging)
         sweep_run.log_artifacts([md, csv])
         sweep_run.log_results(cell_means(table), baselines_by_eval_set(outcomes),
-                              describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table))
+                              describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table, plan_card(plan).lines()))
         view = publish(uri, sweep_run.run_id, staging / "plots")
         if _is_uri(sweep_dir):
             _publish_files(staging, sweep_dir)

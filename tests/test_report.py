@@ -196,12 +196,14 @@ def test_parent_description_reads_spec_profile_verdicts_and_table(grid_store):
     uri, _ = grid_store
     record = report.open_sweep(uri, "synth")
     table = report.results_table(record, report.trial_records(record))
-    text = report.describe_sweep(record.spec, "smoke", "tiny", table, sections=["**Protocol**: 3 objects"])
+    card = report.protocol_card_lines(record)
+    text = report.describe_sweep(record.spec, "smoke", "tiny", table, card)
     blocks = text.split("\n\n")
     assert blocks[1] == "Profile **smoke**: tiny"
     assert blocks[2].startswith("- best cell point_size=0.04: beats sphere")
-    assert blocks[3] == "**Protocol**: 3 objects"
-    assert blocks[4].startswith("| cell | paper setting | trials | eval/f1 |")
+    assert blocks[3:5] == ["**Protocol card**", "\n".join(f"- {line}" for line in card)]
+    assert blocks[5].startswith("| cell | paper setting | trials | eval/f1 |")
+    assert text.count(card[0]) == 1  # the card once, not again in the table's notes
 
 
 def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
