@@ -43,8 +43,9 @@ def mlflow_server(uri: str, log: Path) -> Iterator[str]:
     # No background job runner (a pool of worker processes) and one web worker: the UI needs neither.
     env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
     with log.open("w") as out:
-        server = subprocess.Popen([sys.executable, "-m", "mlflow", "server", "--backend-store-uri", uri, "--host", "127.0.0.1", "--port", str(port),
-                                   "--workers", "1"], env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+        command = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", uri, "--host", "127.0.0.1",
+                   "--port", str(port), "--workers", "1"]
+        server = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
         url = f"http://127.0.0.1:{port}"
         try:
             deadline = time.monotonic() + 90
