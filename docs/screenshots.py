@@ -107,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--experiment", default="point_size", help="the sweep's experiment (= its spec's name)")
     p.add_argument("--out", type=Path, default=Path(__file__).resolve().parent, help="folder for the PNGs (default: docs/)")
     args = p.parse_args(argv)
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     from mlflow import MlflowClient
 
     chromium = shutil.which("chromium")

@@ -398,8 +398,8 @@ def share_view(record: SweepRecord) -> str:
 
     The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
     reads) lists the sweep's child runs grouped by cell — the group row averages the seeds — with
-    ``final/<metric>`` (the sweep's metric selected first; MLflow's table still lays out params before
-    metrics and metrics by name), the swept params and seed as columns, sorted by the swept value (one
+    ``final/<metric>`` (the sweep's metric selected first; MLflow's table still lays out columns by
+    kind and metrics by name), the swept params and seed as columns, sorted by the swept value (one
     swept field; MLflow orders params as text, which orders plain decimals right)."""
     metric = record.spec.metric.name
     swept = list(dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])]))
