@@ -8,6 +8,7 @@ a separate process joined to that cluster, kills it with SIGKILL, and resumes in
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -206,3 +207,31 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(cluster, tm
     client.set_tag(child.info.run_id, "repro.config_hash", "0" * 16)
     assert run.main(rerun_argv) == 2
     assert f"differs from the recorded {'0' * 16}" in capsys.readouterr().err
+
+
+def test_progress_line_counts_steps_across_trials_in_place_on_a_terminal(cluster):
+    import io
+    from types import SimpleNamespace
+
+    from sweeps.progress import StepReporter, SweepProgress
+
+    for tty in (True, False):
+        out = io.StringIO()
+        progress = SweepProgress(f"p{tty}", trials=3, steps=100, label=lambda t: t.label, predicted_s=600.0, tty=tty,
+                                 stream=out, refresh_s=0.05, every_s=0.05)
+        a, b = SimpleNamespace(label="a", last_result={"step": 100}), SimpleNamespace(label="b", last_result={"step": 40})
+        progress.on_trial_start(0, [], a)
+        progress.on_trial_start(0, [], b)
+        reporter = StepReporter(f"p{tty}", "b")  # as a trial reports, through the sweep's named actor
+        reporter.on_step(40, {})
+        ray.get(reporter.counter.snapshot.remote())  # the fire-and-forget record has landed
+        progress.on_trial_complete(0, [], a)
+        time.sleep(0.3)
+        progress.close()
+        text = out.getvalue()
+        # 140 of 300 steps done: 600 s × (1 − 140/300) = 5.3 min left by the calibration.
+        last = r"sweep: 1/3 done, 1 running, 0 failed · 140/300 steps · \d+:\d\d elapsed, ~5\.3 min left \(calibrated\)"
+        if tty:  # redrawn over itself: clear the line, draw, back to its start; a newline only at the end
+            assert re.fullmatch(r"(\x1b\[2K[^\n]*\r)*\x1b\[2K" + last + r"\r\n", text) and text.count("\n") == 1
+        else:
+            assert re.fullmatch(last, text.splitlines()[-1]) and "\x1b" not in text and "\r" not in text
