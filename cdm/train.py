@@ -37,6 +37,7 @@ from cdm.objective import LossTerms, cdm_loss
 from cdm.optim import Optimiser, TrainingDiverged
 from cdm.provenance import run_record
 from cdm.runtime import start_run
+from cdm.shared import SharedStore, SharedViews
 
 __all__ = ["Callback", "FitResult", "Trainer", "TrainingDiverged", "fit", "metric_names"]
 
@@ -74,7 +75,7 @@ class FitResult:
 
 def metric_names(config: Config, categories: Sequence[str] = ()) -> list[str]:
     """Every metric name :func:`fit` can report (per-category names for the given categories)."""
-    names = ["train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/steps_per_s", "train/elapsed_s"]
+    names = ["train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s"]
     for prefix in ["eval"] + [f"baseline/{b}" for b in BASELINES]:
         names += [f"{prefix}/cd", f"{prefix}/f1"]
         names += [f"{prefix}/{m}/{c}" for c in categories for m in ("cd", "f1")]
@@ -101,13 +102,16 @@ class Trainer:
     """State of one run: data, network, optimiser, RNGs and step. :func:`fit` drives it; benchmarks and
     the sweep runner's cost estimate time its steps directly."""
 
-    def __init__(self, config: Config):
+    def __init__(self, config: Config, shared: SharedStore | None = None):
         self.cfg = config
+        self.shared = shared
         self.device = start_run(config.train)
         check_inputs(config)
         self.train_set = build_dataset(config, "train")
         self.val_set = build_dataset(config, "val")
         check_coverage(config, (self.train_set, self.val_set))
+        # Where a store holds this data's rendered rounds (a sweep's cells share them), batches read them.
+        self._samples = self.train_set if shared is None else SharedViews(shared, config, self.train_set)
         self.network = CDMNetwork(config.model, PRIOR_2D_CHANNELS[config.priors.prior_2d], device=self.device).to(self.device)
         log.info(
             "voxel back-end: %s (model.voxel_backend=%s, device %s)",
@@ -160,14 +164,14 @@ class Trainer:
     def next_batch(self) -> Batch:
         if self.cfg.data.num_workers == 0:
             idx = batch_indices(self.step * self.world + self.rank, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed)
-            return collate([self.train_set.sample(i, epoch) for epoch, i in idx]).to(self.device)
+            return collate([self._samples.sample(i, epoch) for epoch, i in idx]).to(self.device)
         # Workers decode the coming steps' batches while this one trains. The batches are the same
         # function of the step as above, so results do not depend on data.num_workers; a loader is
         # (re)started at the current step, e.g. after a resume.
         if self._loader is None or self._loader_step != self.step:
             sampler = StepBatches(self.step, self.cfg.train.steps, self.world, self.rank, self.cfg.train.batch_size,
                                   len(self.train_set), self.cfg.train.seed)
-            self._loader = iter(DataLoader(ByRound(self.train_set), batch_sampler=sampler, collate_fn=collate,
+            self._loader = iter(DataLoader(ByRound(self._samples), batch_sampler=sampler, collate_fn=collate,
                                            num_workers=self.cfg.data.num_workers))
             self._loader_step = self.step
         self._loader_step += 1
@@ -207,7 +211,8 @@ class Trainer:
 
     def evaluate(self) -> tuple[dict[str, float], list[Path]]:
         if self._eval_set is None:
-            self._eval_set = build_eval_set(self.cfg, self.val_set, self.train_set, self.cfg.eval.seed)
+            self._eval_set = (build_eval_set(self.cfg, self.val_set, self.train_set, self.cfg.eval.seed) if self.shared is None
+                              else self.shared.eval_set(self.cfg, self.val_set, self.train_set))
         network = self.ema if self.ema is not None else self.network
         out = run_evaluation(network, self.diffusion, self._eval_set, self.cfg, self.device, self.out_dir / "eval" / f"step_{self.step:07d}")
         return out.metrics, out.files
@@ -239,19 +244,26 @@ def _ema_update(ema: torch.nn.Module, network: torch.nn.Module, decay: float) ->
         e.copy_(b)
 
 
-def fit(config: Config, callbacks: Sequence[Callback] = (), resume_from: str | Path | None = None) -> FitResult:
+def fit(
+    config: Config,
+    callbacks: Sequence[Callback] = (),
+    resume_from: str | Path | None = None,
+    shared: SharedStore | None = None,
+) -> FitResult:
     """Train CDM per ``config``; evaluate and checkpoint every ``train.eval_every`` steps and at the end.
 
     Args:
         config: the resolved configuration.
         callbacks: hooks receiving metrics, evaluation files and checkpoints.
         resume_from: a checkpoint directory written by an earlier run; training continues from its step.
+        shared: a store of training views and evaluation sets computed once for many runs
+            (:mod:`cdm.shared`); the run's numbers are the same with or without it.
     Raises:
         ValueError: bad data set or incompatible checkpoint (before any training).
         TrainingDiverged: the loss became NaN or infinite.
     """
     state = load_checkpoint(resume_from) if resume_from is not None else None
-    trainer = Trainer(config)
+    trainer = Trainer(config, shared)
     if state is not None:
         trainer.restore(state)
     record = run_record(config, trainer.train_set, trainer.val_set, trainer.device)
@@ -263,25 +275,28 @@ def fit(config: Config, callbacks: Sequence[Callback] = (), resume_from: str | P
     sums = [0.0, 0.0, 0.0]
     window = 0
     start = time.perf_counter()
-    window_start = start
+    window_start, cpu_start = start, time.process_time()
     while trainer.step < t_cfg.steps:
         losses = trainer.train_step(trainer.next_batch())
         sums = [s + v for s, v in zip(sums, losses)]
         window += 1
         stop = any(cb.should_stop() for cb in callbacks)
         if trainer.step % t_cfg.log_every == 0 or trainer.step == t_cfg.steps:
-            now = time.perf_counter()
+            now, cpu_now = time.perf_counter(), time.process_time()
             logged = {
                 "train/loss": sums[0] / window,
                 "train/loss_diffusion": sums[1] / window,
                 "train/loss_prior_3d": sums[2] / window,
                 "train/lr": trainer.optimiser.lr,
                 "train/steps_per_s": window / max(now - window_start, 1e-9),
+                # This process's CPU time (all its threads) per step: what a step costs inside a sweep,
+                # beside other trials, compared with benchmarks' isolated step (benchmarks/RESULTS.md).
+                "train/cpu_s_per_step": (cpu_now - cpu_start) / window,
                 "train/elapsed_s": now - start,
             }
             for cb in callbacks:
                 cb.on_step(trainer.step, logged)
-            sums, window, window_start = [0.0, 0.0, 0.0], 0, now
+            sums, window, window_start, cpu_start = [0.0, 0.0, 0.0], 0, now, cpu_now
         if stop:
             break
         if trainer.step % t_cfg.eval_every == 0 or trainer.step == t_cfg.steps:
@@ -291,5 +306,5 @@ def fit(config: Config, callbacks: Sequence[Callback] = (), resume_from: str | P
             checkpoint = trainer.save_checkpoint()
             for cb in callbacks:
                 cb.on_checkpoint(trainer.step, checkpoint)
-            window_start = time.perf_counter()  # steps/s measures training, not evaluation
+            window_start, cpu_start = time.perf_counter(), time.process_time()  # steps/s measures training, not evaluation
     return FitResult(trainer.step, metrics, checkpoint)

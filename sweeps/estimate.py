@@ -1,11 +1,13 @@
 """What a sweep will cost, said before it starts: trials, wall time on this machine, paper-profile GPU-hours.
 
 Local time comes from a short calibration in this process: a few training steps of a few cells and one
-evaluation, on one torch thread (how trials run on a small machine). Trials run one thread each, so
-``w`` concurrent trials on ``c`` CPUs share ``min(w, c)`` cores:
+evaluation, on one torch thread (how trials run on a small machine). Trials run one thread each; when
+the sweep shares its training views and evaluation set (:mod:`sweeps.precompute`), they are rendered
+once before the trials, on every CPU, and the trials no longer pay them:
 
-    trial ≈ start-up + set-up + steps × step + evaluations × evaluation
-    wall  ≈ Σ trials ÷ min(concurrent trials, CPUs)
+    trial ≈ start-up + set-up + steps × (step [+ batch]) + evaluations × evaluation [− building the set]
+    wall  ≈ shared work + ⌈trials ÷ concurrent⌉ × trial       (concurrent ≤ CPUs: waves)
+    wall  ≈ shared work + Σ trials ÷ CPUs                     (more trials than CPUs share the cores)
 
 The paper profile's GPU-hours use per-step GPU figures measured by ``benchmarks/run.py --device cuda``
 (``benchmarks/gpu_costs.json``; absent: not estimated); an evaluation samples with the profile's sampler
@@ -28,6 +30,7 @@ from cdm.config import Config, load_config
 from cdm.data import build_dataset, list_categories
 from cdm.prior_model import ensure_priors
 from cdm.optim import TrainingDiverged
+from cdm.evaluate import build_eval_set
 from cdm.train import Trainer
 from sweeps.spec import SweepPlan, expand
 
@@ -44,12 +47,18 @@ class TrialCost:
     setup_s: float
     """Building the data sets and the model (once per trial)."""
     step_s: float
-    """One training step, data included, one thread."""
+    """One training step on a ready batch, one thread."""
     eval_s: float
     """One evaluation, building the evaluation set included (paid once per trial; counted every time)."""
+    batch_s: float = 0.0
+    """Rendering one training batch (the samples of one step)."""
+    eval_set_s: float = 0.0
+    """Building the evaluation set: held-out views, baselines, retrieval bank."""
 
-    def trial_s(self, steps: int, eval_every: int) -> float:
-        return STARTUP_S + self.setup_s + steps * self.step_s + math.ceil(steps / eval_every) * self.eval_s
+    def trial_s(self, steps: int, eval_every: int, shared: bool = False) -> float:
+        data = 0.0 if shared else steps * self.batch_s
+        evals = math.ceil(steps / eval_every) * self.eval_s - (self.eval_set_s if shared else 0.0)
+        return STARTUP_S + self.setup_s + steps * self.step_s + data + evals
 
 
 @dataclass(frozen=True)
@@ -80,14 +89,20 @@ def calibrate(config: Config, steps: int = 3) -> TrialCost:
         trainer = Trainer(config.replace(**{"train.out_dir": tmp, "train.threads": 1}))
         setup_s = time.perf_counter() - start
         trainer.train_step(trainer.next_batch())
-        times = []
+        times, batches = [], []
         for _ in range(steps):
             start = time.perf_counter()
-            trainer.train_step(trainer.next_batch())
+            batch = trainer.next_batch()
+            batches.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            trainer.train_step(batch)
             times.append(time.perf_counter() - start)
         start = time.perf_counter()
         trainer.evaluate()
-        return TrialCost(setup_s, statistics.median(times), time.perf_counter() - start)
+        eval_s = time.perf_counter() - start
+        start = time.perf_counter()
+        build_eval_set(trainer.cfg, trainer.val_set, trainer.train_set, trainer.cfg.eval.seed)
+        return TrialCost(setup_s, statistics.median(times), eval_s, statistics.median(batches), time.perf_counter() - start)
 
 
 def _calibration_configs(plan: SweepPlan) -> list[Config]:
@@ -126,8 +141,10 @@ def paper_trial_gpu_hours(paper: SweepPlan) -> tuple[float | None, str]:
     return per_trial * gpus / 3600.0, figures["device"]
 
 
-def estimate(plan: SweepPlan, cpus: float, concurrent: int) -> Estimate:
+def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False) -> Estimate:
     """Calibrate on this machine and estimate the sweep's wall time and paper-profile GPU-hours.
+
+    ``shared``: the sweep renders its cells' training views and evaluation sets once (:mod:`sweeps.precompute`).
 
     Raises:
         TrainingDiverged: every calibrated cell diverged in its first steps (the sweep's trials will
@@ -141,9 +158,22 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int) -> Estimate:
             diverged = exc
     if not costs:
         raise diverged
-    trial_s = statistics.fmean(c.trial_s(plan.profile.steps, plan.profile.eval_every) for c in costs)
+    steps = plan.profile.steps
+    trial_s = statistics.fmean(c.trial_s(steps, plan.profile.eval_every, shared) for c in costs)
     lanes = max(1.0, min(float(concurrent), cpus))
+    if concurrent <= cpus:
+        trials_wall = math.ceil(plan.num_trials / max(1, concurrent)) * trial_s
+    else:
+        trials_wall = plan.num_trials * trial_s / lanes
+    shared_s = 0.0
+    if shared and plan.cells:
+        cost = statistics.fmean(c.batch_s for c in costs)
+        eval_set = statistics.fmean(c.eval_set_s for c in costs)
+        world = max(1, plan.profile.resources.workers_per_trial)
+        # One view set and one evaluation set per distinct data (the usual sweep varies the model or
+        # loss, not the data): the batches of the longest run, spread over the CPUs.
+        shared_s = (steps * world * cost + eval_set) / max(1.0, cpus)
     paper = expand(plan.spec, "paper", plan.sets)
     trial_hours, gpu = paper_trial_gpu_hours(paper)
     gpu_hours = None if trial_hours is None else trial_hours * paper.num_trials
-    return Estimate(plan.num_trials, trial_s, concurrent, plan.num_trials * trial_s / lanes, gpu_hours, gpu)
+    return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, gpu_hours, gpu)

@@ -29,6 +29,7 @@ from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
 from sweeps.claim import ClaimError, SweepClaim, claim
 from sweeps.limits import MAX_TRIALS, LimitError, check_trials
+from sweeps.precompute import shared_root
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.spec import Spec, SpecError, SweepPlan, expand, load_spec, plan_concurrency
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
@@ -100,13 +101,13 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None) -> str:
     return "\n".join(out)
 
 
-def _estimate(plan: SweepPlan, cpus: float, concurrent: int):
+def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
     """Print the cost estimate (:mod:`sweeps.estimate`) and return it; None when calibration diverged."""
     from cdm.train import TrainingDiverged
     from sweeps.estimate import estimate
 
     try:
-        predicted = estimate(plan, cpus, concurrent)
+        predicted = estimate(plan, cpus, concurrent, shared)
     except TrainingDiverged as exc:
         print(f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way", flush=True)
         return None
@@ -280,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
         except SpecError:
             return 0  # describe() has said why this machine cannot run it
         print("calibrating (a few training steps and one evaluation) ...", flush=True)
-        _estimate(plan, cpus, concurrent)
+        _estimate(plan, cpus, concurrent, shared_root(sweep_dir, remote) is not None and bool(plan.cells))
         return 0
     print(describe(plan, None, None), flush=True)
     try:
@@ -370,7 +371,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             if now is None:
                 print("estimate: none — no node up yet fits one trial; trials wait for the autoscaler to add one", flush=True)
             else:
-                predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent)
+                predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent,
+                                      shared_root(sweep_dir, remote) is not None and bool(plan.cells))
         started_at = time.perf_counter()
         # A resumed sweep keeps the callbacks it started with (Tune restores them): no line of its own.
         progress = None if args.resume else SweepProgress(

@@ -35,7 +35,10 @@ from ray.train.torch import TorchTrainer
 from cdm.config import load_config
 from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
+from cdm.shared import SharedStore
 from cdm.train import Callback, fit
+from sweeps.cores import CoreLease, lease_cores
+from sweeps.precompute import precompute, shared_root
 from sweeps.progress import StepReporter, quiet_loggers
 from sweeps.results import TrialOutcome
 from sweeps.spec import Cell, SweepPlan, plan_concurrency
@@ -58,6 +61,10 @@ class TrialSetup:
     parent_run_id: str
     code: dict[str, str]
     """The driver's :func:`cdm.provenance.code_version` (trials may run on a copy without git)."""
+    shared_root: str | None = None
+    """The sweep's store of shared training views and evaluation sets (:mod:`sweeps.precompute`)."""
+    lease_cores: int = 0
+    """Core leases the trials take turns on (:mod:`sweeps.cores`); 0 = none."""
 
 
 class _RayReporter(Callback):
@@ -113,6 +120,9 @@ def train_loop(loop_config: dict[str, Any]) -> None:
     # in its folder (the first trial to need it trains it, the others wait on its lock).
     config = ensure_priors(config, loop_config["prior_dir"], lambda line: print(f"[{loop_config['label']}] {line}", flush=True))
     callbacks: list[Callback] = [_RayReporter(local, rank)]
+    lease = CoreLease(**loop_config["lease"]) if loop_config["lease"] else None
+    if lease is not None:
+        callbacks.append(lease)
     if rank == 0:
         t = loop_config["tracking"]
         callbacks += [
@@ -125,7 +135,12 @@ def train_loop(loop_config: dict[str, Any]) -> None:
     with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
         if resume_from is not None:
             print(f"[{loop_config['label']}] resuming from {resume_from}", flush=True)
-        fit(config, callbacks, resume_from=resume_from)
+        shared = None if loop_config["shared_root"] is None else SharedStore(loop_config["shared_root"])
+        try:
+            fit(config, callbacks, resume_from=resume_from, shared=shared)
+        finally:
+            if lease is not None:  # reused actors outlive the trial: the next one must find the core free
+                lease.release()
 
 
 def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
@@ -158,6 +173,8 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         "metric": plan.spec.metric.name,
         "tags": tags,
         "prior_dir": _prior_dir(setup.sweep_dir, ctx.get_trial_dir()),
+        "shared_root": setup.shared_root,
+        "lease": {"folder": f"{setup.sweep_dir}/cores", "cores": setup.lease_cores} if setup.lease_cores else None,
         "tracking": {"uri": setup.tracking_uri, "experiment_id": setup.experiment_id, "parent_run_id": setup.parent_run_id},
     }
     per_worker = {"CPU": r.cpus_per_worker, **({"GPU": r.gpus_per_worker} if r.gpus_per_worker else {})}
@@ -347,10 +364,18 @@ def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
     cluster = cluster_capacity(remote)
     conc = plan_concurrency(plan.profile.resources, cluster["CPU"], cluster["GPU"], plan.num_trials, remote)
-    setup = TrialSetup(plan, sweep_dir, sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version())
+    root = shared_root(sweep_dir, remote)
+    if root is not None and plan.cells:
+        done = precompute(plan, root, int(cluster["CPU"]))
+        print(f"shared by every cell: {done.rounds} view rounds of {done.view_sets} training set(s), "
+              f"{done.eval_sets} evaluation set(s) with baselines, in {done.seconds:.1f} s", flush=True)
+    r = plan.profile.resources
+    cores = 0 if "://" in sweep_dir else lease_cores(cluster["CPU"], r.cpus_per_worker, r.workers_per_trial, remote)
+    setup = TrialSetup(plan, sweep_dir, sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version(), root, cores)
     trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
     print(f"cluster{' (at most)' if remote else ''}: {cluster['CPU']:g} CPUs, {cluster['GPU']:g} GPUs → up to {conc.max_concurrent} "
-          f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)", flush=True)
+          f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)"
+          + (f", taking turns on {cores} cores (one computing trial per core)" if cores else ""), flush=True)
     if resume:
         tuner = ray.tune.Tuner.restore(sweep_dir, trainable=trainable, resume_unfinished=True,
                                        resume_errored=False, restart_errored=False)

@@ -20,6 +20,18 @@ def test_trial_time_counts_steps_and_every_evaluation():
     assert cost.trial_s(steps=20, eval_every=15) == STARTUP_S + 3.0 + 10.0 + 20.0  # evaluates at 15 and at the end
 
 
+def test_shared_work_leaves_the_trial_and_waves_round_up():
+    cost = TrialCost(setup_s=3.0, step_s=0.5, eval_s=10.0, batch_s=0.1, eval_set_s=4.0)
+    assert cost.trial_s(steps=800, eval_every=400) == STARTUP_S + 3.0 + 400.0 + 80.0 + 20.0
+    # With the shared store the trial renders no batch and builds no evaluation set.
+    assert cost.trial_s(steps=800, eval_every=400, shared=True) == STARTUP_S + 3.0 + 400.0 + 20.0 - 4.0
+    plan = expand(load_spec(SWEEPS / "point_size.yaml"), "smoke")
+    waves = estimate(plan, cpus=2, concurrent=2)
+    assert waves.wall_s == pytest.approx(3 * waves.trial_s)  # 5 trials, 2 at a time: 3 waves
+    shared = estimate(plan, cpus=2, concurrent=2, shared=True)
+    assert shared.wall_s > 3 * shared.trial_s  # plus the shared work, once, before the trials
+
+
 def test_paper_gpu_hours_follow_the_measured_figures():
     figures = json.loads(GPU_COSTS.read_text())
     plan = expand(load_spec(SWEEPS / "shapenet.yaml"), "local")
