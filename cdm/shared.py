@@ -27,13 +27,13 @@ from torch import Tensor
 
 from cdm.cameras import Cameras
 from cdm.config import Config
-from cdm.data.sample import Batch, Sample, collate
+from cdm.data.sample import Batch, ConditionViews, Sample, collate
 from cdm.data.views import ObjectDataset
 from cdm.evaluate import EvalSet, build_eval_set
 
 __all__ = ["SharedStore", "SharedViews", "eval_key", "rounds_needed", "views_key"]
 
-_FORMAT = 1
+_FORMAT = 2
 """Bumped whenever the files' layout changes, so stale files are never read."""
 
 
@@ -41,10 +41,17 @@ def _hash(identity: object) -> str:
     return hashlib.sha256(json.dumps([_FORMAT, identity], sort_keys=True).encode()).hexdigest()[:16]
 
 
+_LOSS_ONLY = {"lambda_3d", "point_size", "render_kind", "render_size", "target"}
+"""``priors`` fields only the loss reads (:mod:`cdm.objective`): samples do not depend on them."""
+
+
 def views_key(cfg: Config, train: ObjectDataset) -> str:
     """Name of the training samples of ``train`` under ``cfg``: the objects (the split's fingerprint,
-    which covers the ``data`` group), the 2D prior channels and the number of prior-view cameras."""
-    return _hash({"train": train.fingerprint(), "prior_2d": cfg.priors.prior_2d, "num_views": train.num_views})
+    which covers the ``data`` group), the number of prior-view cameras and every ``priors`` field a
+    sample depends on (2D prior, depth source). Files a data set reads (generated images, depth maps)
+    are named by their folders, not hashed: a store lives in one sweep's folder, over which they do not change."""
+    priors = {k: v for k, v in cfg.priors.model_dump(mode="json").items() if k not in _LOSS_ONLY}
+    return _hash({"train": train.fingerprint(), "priors": priors, "num_views": train.num_views})
 
 
 def eval_key(cfg: Config, val: ObjectDataset, train: ObjectDataset) -> str:
@@ -64,17 +71,26 @@ def _cameras_dict(c: Cameras) -> dict[str, Tensor]:
 
 
 def _batch_dict(b: Batch) -> dict[str, object]:
+    c = b.conditions
     return {
         "image": b.image, "mask": b.mask, "depth": b.depth, "prior_2d": b.prior_2d, "points": b.points,
         "camera": _cameras_dict(b.camera), "view_cameras": _cameras_dict(b.view_cameras),
         "category": list(b.category), "object_id": list(b.object_id),
+        "conditions": None if c is None else {"image": c.image, "mask": c.mask, "prior_2d": c.prior_2d,
+                                              "camera": _cameras_dict(c.camera), "valid": c.valid},
     }
+
+
+def _conditions(d: dict | None) -> ConditionViews | None:
+    if d is None:
+        return None
+    return ConditionViews(d["image"], d["mask"], d["prior_2d"], Cameras(**d["camera"]), d["valid"])
 
 
 def _batch(d: dict) -> Batch:
     return Batch(image=d["image"], mask=d["mask"], depth=d["depth"], prior_2d=d["prior_2d"],
                  camera=Cameras(**d["camera"]), view_cameras=Cameras(**d["view_cameras"]), points=d["points"],
-                 category=tuple(d["category"]), object_id=tuple(d["object_id"]))
+                 category=tuple(d["category"]), object_id=tuple(d["object_id"]), conditions=_conditions(d["conditions"]))
 
 
 def _save(obj: object, path: Path) -> None:
@@ -146,4 +162,10 @@ class SharedViews:
                       depth=None if stored.depth is None else stored.depth[index], prior_2d=stored.prior_2d[index],
                       camera=stored.camera[index], view_cameras=stored.view_cameras[index],
                       points=stored.points[index], category=stored.category[index],
-                      object_id=stored.object_id[index])
+                      object_id=stored.object_id[index], conditions=_row(stored.conditions, index))
+
+
+def _row(c: ConditionViews | None, index: int) -> ConditionViews | None:
+    if c is None:
+        return None
+    return ConditionViews(c.image[index], c.mask[index], c.prior_2d[index], c.camera[index], c.valid[index])

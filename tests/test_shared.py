@@ -49,6 +49,16 @@ def test_stored_samples_equal_rendered_ones(tmp_path):
     assert torch.equal(views.sample(0, 2).image, train.sample(0, 2).image)
 
 
+def test_condition_views_are_stored_too(tmp_path):
+    cfg = tiny_config(tmp_path, **{"data.condition_views": 2, "data.condition_views_random": True})
+    train = Trainer(cfg).train_set
+    store = SharedStore(tmp_path / "shared")
+    store.write_round(cfg, train, 0)
+    a, b = SharedViews(store, cfg, train).sample(1, 0), train.sample(1, 0)
+    assert torch.equal(a.conditions.image, b.conditions.image) and torch.equal(a.conditions.valid, b.conditions.valid)
+    assert torch.equal(a.conditions.camera.R, b.conditions.camera.R)
+
+
 def test_keys_follow_what_decides_the_content(tmp_path):
     cfg = tiny_config(tmp_path)
     t = Trainer(cfg)
@@ -58,6 +68,8 @@ def test_keys_follow_what_decides_the_content(tmp_path):
     other_data = cfg.replace(**{"data.image_size": 16, "priors.render_size": 16})
     t2 = Trainer(other_data)
     assert views_key(other_data, t2.train_set) != views_key(cfg, t.train_set)
+    other_2d = cfg.replace(**{"priors.prior_2d": "none"})
+    assert views_key(other_2d, t.train_set) != views_key(cfg, t.train_set)
     other_eval = cfg.replace(**{"eval.num_points": 64})
     assert eval_key(other_eval, t.val_set, t.train_set) != eval_key(cfg, t.val_set, t.train_set)
 
