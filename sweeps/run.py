@@ -202,6 +202,13 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
         return _fail("give one of a sweep spec (e.g. sweeps/point_size.yaml), --rerun RUN_ID or --report EXPERIMENT")
+    if args.report is not None or args.rerun is not None:
+        from sweeps.tracking import resolve_tracking_uri
+
+        try:
+            check_tracking_uri(resolve_tracking_uri(args.tracking_uri))
+        except StoreError as exc:
+            return _fail(str(exc))
     if args.report is not None:
         from sweeps import report
 

@@ -219,3 +219,12 @@ def test_a_claimed_folder_is_refused_naming_the_running_parent_run(tmp_path, cap
     err = capsys.readouterr().err
     assert "a sweep is already running there" in err and "parent run is abc123" in err, err
     assert not ray.is_initialized() and not (tmp_path / "results" / "s" / "smoke").exists()
+
+
+@pytest.mark.parametrize("mode", ["--report", "--rerun"])
+def test_report_and_rerun_refuse_a_bad_tracking_uri(tmp_path, capsys, monkeypatch, mode):
+    monkeypatch.chdir(tmp_path)
+    assert run.main([mode, "abc", "--tracking-uri", "ftp://nope"]) == 2
+    err = capsys.readouterr().err
+    assert "unsupported scheme 'ftp'" in err and len(err.strip().splitlines()) == 1, err
+    assert not list(tmp_path.iterdir())
