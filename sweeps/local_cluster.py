@@ -25,12 +25,13 @@ import signal
 import tempfile
 from pathlib import Path
 
-__all__ = ["LOOPBACK_ENV", "reap_stale_sessions", "session_pids", "start"]
+__all__ = ["LOOPBACK_ENV", "SESSION_RECORDS", "reap_stale_sessions", "session_pids", "start"]
 
 LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 """Ray's switch that, set to ``0``, keeps a node's address (and so its listeners) on loopback."""
 
-_RECORDS = Path(tempfile.gettempdir()) / "cdm-ray-sessions"
+SESSION_RECORDS = Path(tempfile.gettempdir()) / "cdm-ray-sessions"
+"""One ``<driver pid>.json`` per running local sweep: its session folder, for the next start's clean-up."""
 
 
 def _alive(pid: int) -> bool:
@@ -63,10 +64,10 @@ def session_pids(session_dir: str) -> set[int]:
 
 def reap_stale_sessions() -> list[int]:
     """End the leftover processes of local sessions whose driver died; returns their ids."""
-    if not _RECORDS.is_dir():
+    if not SESSION_RECORDS.is_dir():
         return []
     ended = []
-    for record in _RECORDS.glob("*.json"):
+    for record in SESSION_RECORDS.glob("*.json"):
         try:
             info = json.loads(record.read_text())
             driver, session_dir = int(info["pid"]), str(info["session_dir"])
@@ -89,8 +90,8 @@ def reap_stale_sessions() -> list[int]:
 
 
 def _record(session_dir: str) -> None:
-    _RECORDS.mkdir(parents=True, exist_ok=True)
-    record = _RECORDS / f"{os.getpid()}.json"
+    SESSION_RECORDS.mkdir(parents=True, exist_ok=True)
+    record = SESSION_RECORDS / f"{os.getpid()}.json"
     record.write_text(json.dumps({"pid": os.getpid(), "session_dir": session_dir}))
     atexit.register(record.unlink, missing_ok=True)
 

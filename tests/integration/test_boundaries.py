@@ -28,7 +28,7 @@ import ray
 from mlflow import MlflowClient
 
 from sweeps import run
-from sweeps.local_cluster import session_pids
+from sweeps.local_cluster import SESSION_RECORDS, session_pids
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -166,7 +166,7 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
         while not any("/trial_" in p and "/checkpoint_000002/" in p for p in _s3_files(s3, "results/s3kill/smoke")):
             assert driver.poll() is None and time.monotonic() < deadline, logs[1 - refused].read_text()[-3000:]
             time.sleep(0.5)
-        record = json.loads((Path("/tmp") / "cdm-ray-sessions" / f"{driver.pid}.json").read_text())
+        record = json.loads((SESSION_RECORDS / f"{driver.pid}.json").read_text())
         pids = descendants(driver.pid) | session_pids(record["session_dir"])
         sockets = listening_sockets(pids)
         # GCS, raylet (node manager + object manager), driver, worker, two agents, metrics servers.
