@@ -283,12 +283,14 @@ def run_evaluation(
             oid = batch.object_id[j]
             rows.append({"object_id": oid, "category": batch.category[j], "eval_set": eval_set.fingerprint,
                          "cd": m.cd[j].item(), "f1": m.f1[j].item(), **eval_set.baseline_rows[oid]})
-            if out_dir is not None and oid in eval_set.baseline_clouds and len(drawn) < cfg.eval.save_clouds:
-                drawn.add(oid)
+            category = batch.category[j]
+            if out_dir is not None and category not in drawn and len(drawn) < cfg.eval.save_clouds:
+                drawn.add(category)  # objects come grouped by category: this is its first one
                 stem = oid.replace("/", "_")
                 files.append(write_ply(out_dir / f"{stem}.ply", pred[j]))
                 files.append(write_ply(out_dir / f"{stem}.gt.ply", batch.points[j]))
-                files += [write_ply(out_dir / f"{stem}.{name}.ply", cloud) for name, cloud in eval_set.baseline_clouds[oid].items()]
+                files += [write_ply(out_dir / f"{stem}.{name}.ply", cloud)
+                          for name, cloud in eval_set.baseline_clouds.get(oid, {}).items()]
                 files.append(save_panel(out_dir / f"{stem}.png", batch, j, pred[j], m.cd[j].item(), m.f1[j].item()))
     network.train()
     metrics = _summarise([(r["category"], r["cd"], r["f1"]) for r in rows], "eval")

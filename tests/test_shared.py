@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+from cdm.evaluate import build_eval_set
 from cdm.shared import SharedStore, SharedViews, eval_key, rounds_needed, views_key
 from cdm.train import Callback, Trainer, fit
 from tests.conftest import tiny_config
@@ -86,3 +87,10 @@ def test_a_run_with_the_store_is_bit_identical(tmp_path):
     fit(cfg.replace(**{"train.out_dir": str(tmp_path / "shared_run")}), [shared], shared=store)
     assert plain.steps == shared.steps and plain.steps
     assert plain.evals == shared.evals and plain.evals
+    # The drawn objects' baseline clouds come back from the store too (the panels' PLY files).
+    built = build_eval_set(cfg, trainer.val_set, trainer.train_set, cfg.eval.seed)
+    read = store.eval_set(cfg, trainer.val_set, trainer.train_set)
+    assert read.baseline_clouds.keys() == built.baseline_clouds.keys() and built.baseline_clouds
+    assert all(torch.equal(read.baseline_clouds[o][b], c) for o, v in built.baseline_clouds.items() for b, c in v.items())
+    files = {p.name for p in (tmp_path / "shared_run").rglob("*.ply")}
+    assert any(name.endswith(".gt.ply") for name in files) and any(name.endswith(".retrieval.ply") for name in files)
