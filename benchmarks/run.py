@@ -26,6 +26,7 @@ from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
 from benchmarks.quality import quick_config_quality  # noqa: E402
 from benchmarks.render import rendering  # noqa: E402
 from benchmarks.scaling import paper_scaling  # noqa: E402
+from benchmarks.step_reference import step_vs_reference  # noqa: E402
 from benchmarks.sweep_efficiency import sweep_efficiency  # noqa: E402
 from benchmarks.throughput import throughput  # noqa: E402
 from benchmarks.training_step import prior_overhead, voxel_backends  # noqa: E402
@@ -34,6 +35,7 @@ BENCHMARKS = {
     "metrics": lambda quick, out: metrics_vs_scipy(quick),
     "prior_overhead": prior_overhead,
     "voxel_backends": voxel_backends,
+    "step_reference": step_vs_reference,
     "memory": peak_rss,
     "render": rendering,
     "sweep_efficiency": sweep_efficiency,

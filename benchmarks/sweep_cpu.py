@@ -1,0 +1,91 @@
+"""CPU per training step inside a real sweep ÷ the isolated step (issue 19: ≤ 1.15, was ~1.85).
+
+Reads a finished sweep from its MLflow store (``--tracking-uri``, ``--experiment``: run the sweep
+first, e.g. the main job ``python sweeps/run.py sweeps/point_size.yaml`` on the local profile) and
+times the isolated step of its first cell here: one thread, on a ready batch, nothing else running
+(run this with the machine otherwise idle). Two rows:
+
+- in-trial: the trials' own CPU seconds per step (``train/cpu_s_per_step``, the process's CPU time
+  over its logging windows, data included) ÷ the isolated step: what sharing the cores costs a step;
+- whole sweep: ``CPUs × wall of the trial phase ÷ Σ steps`` ÷ the isolated step: everything else a
+  sweep spends (driver, evaluations, set-up, idle cores) counted against its training steps.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+
+__all__ = ["sweep_cpu_per_step"]
+
+
+def _isolated_step(overrides: dict) -> float:
+    import torch
+
+    from cdm.config import load_config
+    from cdm.train import Trainer
+
+    torch.set_num_threads(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = Trainer(load_config(None, {**overrides, "train.out_dir": tmp, "train.threads": 1}))
+        batch = trainer.next_batch()
+        trainer.train_step(batch)
+        times = []
+        for _ in range(8):
+            start = time.process_time()
+            trainer.train_step(batch)
+            times.append(time.process_time() - start)
+    return statistics.median(times)
+
+
+def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = None) -> list[dict]:
+    from mlflow import MlflowClient
+
+    from sweeps.spec import expand, load_spec
+
+    client = MlflowClient(tracking_uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        raise ValueError(f"--experiment: no experiment {experiment!r} in {tracking_uri}")
+    runs = client.search_runs([exp.experiment_id])
+    children = [r for r in runs if "mlflow.parentRunId" in r.data.tags and r.info.end_time]
+    if not children:
+        raise ValueError(f"--experiment {experiment!r}: no finished trial runs")
+    in_trial = []
+    steps = 0
+    for r in children:
+        history = client.get_metric_history(r.info.run_id, "train/cpu_s_per_step")
+        in_trial += [m.value for m in history]
+        steps += int(max(m.step for m in client.get_metric_history(r.info.run_id, "train/loss")))
+    spec_name = children[0].data.tags.get("spec", experiment)
+    profile = children[0].data.tags.get("profile", "local")
+    plan = expand(load_spec(f"sweeps/{spec_name}.yaml"), profile)
+    isolated = _isolated_step(plan.cells[0].overrides)
+    spans = [(r.info.start_time / 1000, r.info.end_time / 1000) for r in children]
+    wall = max(e for _, e in spans) - min(b for b, _ in spans)
+    cpus = cpus or float(os.cpu_count() or 1)
+    per_step = cpus * wall / steps
+    return [
+        {"benchmark": "CPU per step in a sweep ÷ isolated", "case": f"{spec_name}, {profile}: in-trial train/cpu_s_per_step",
+         "without_s": isolated, "with_s": statistics.fmean(in_trial), "ratio": statistics.fmean(in_trial) / isolated,
+         "target": "<= 1.15"},
+        {"benchmark": "CPU per step in a sweep ÷ isolated", "case": f"{spec_name}, {profile}: {cpus:g} CPUs × trial-phase wall ÷ Σ steps",
+         "without_s": isolated, "with_s": per_step, "ratio": per_step / isolated, "target": "<= 1.15"},
+    ]
+
+
+if __name__ == "__main__":
+    import argparse
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tracking-uri", required=True)
+    parser.add_argument("--experiment", default="point_size")
+    parser.add_argument("--cpus", type=float, default=None)
+    args = parser.parse_args()
+    for row in sweep_cpu_per_step(args.tracking_uri, args.experiment, args.cpus):
+        print(f"| {row['benchmark']} | {row['case']} | {row['without_s']:.4f} | {row['with_s']:.4f} | {row['ratio']:.3f} | {row['target']} |")
