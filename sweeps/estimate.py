@@ -23,7 +23,7 @@ import math
 import statistics
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from cdm.config import Config, load_config
@@ -78,8 +78,9 @@ class Estimate:
                 f"~{self.wall_s / 60:.1f} min wall on this machine; {gpu}")
 
 
-def calibrate(config: Config, steps: int = 3) -> TrialCost:
-    """Time the set-up, ``steps`` training steps (after one warm-up) and one evaluation of ``config``."""
+def calibrate(config: Config, steps: int = 3, eval_set: bool = True) -> TrialCost:
+    """Time the set-up, ``steps`` training steps (after one warm-up) and one evaluation of ``config``;
+    with ``eval_set``, also building its evaluation set alone (else ``eval_set_s`` is 0)."""
     with tempfile.TemporaryDirectory() as tmp:
         # A blended cell (sampling.blend.prior_checkpoint: auto) samples with category priors; one-step
         # priors on one object sample as fast as trained ones, and are not part of the timed set-up.
@@ -101,7 +102,8 @@ def calibrate(config: Config, steps: int = 3) -> TrialCost:
         trainer.evaluate()
         eval_s = time.perf_counter() - start
         start = time.perf_counter()
-        build_eval_set(trainer.cfg, trainer.val_set, trainer.train_set, trainer.cfg.eval.seed)
+        if eval_set:
+            build_eval_set(trainer.cfg, trainer.val_set, trainer.train_set, trainer.cfg.eval.seed)
         return TrialCost(setup_s, statistics.median(times), eval_s, statistics.median(batches), time.perf_counter() - start)
 
 
@@ -153,13 +155,15 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
     costs, diverged = [], None
     for cfg in _calibration_configs(plan):
         try:
-            costs.append(calibrate(cfg))
+            # The cells of a sweep share one evaluation set as a rule: building it is timed once.
+            costs.append(calibrate(cfg, eval_set=not costs))
         except TrainingDiverged as exc:  # a cell meant to diverge (a test of failure handling, a bad lr)
             diverged = exc
     if not costs:
         raise diverged
     steps = plan.profile.steps
-    trial_s = statistics.fmean(c.trial_s(steps, plan.profile.eval_every, shared) for c in costs)
+    trial_s = statistics.fmean(replace(c, eval_set_s=costs[0].eval_set_s).trial_s(steps, plan.profile.eval_every, shared)
+                               for c in costs)
     lanes = max(1.0, min(float(concurrent), cpus))
     if concurrent <= cpus:
         trials_wall = math.ceil(plan.num_trials / max(1, concurrent)) * trial_s
@@ -168,7 +172,7 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
     shared_s = 0.0
     if shared and plan.cells:
         cost = statistics.fmean(c.batch_s for c in costs)
-        eval_set = statistics.fmean(c.eval_set_s for c in costs)
+        eval_set = costs[0].eval_set_s
         world = max(1, plan.profile.resources.workers_per_trial)
         # One view set and one evaluation set per distinct data (the usual sweep varies the model or
         # loss, not the data): the batches of the longest run, spread over the CPUs.
