@@ -20,6 +20,7 @@ never wait on each other for CPUs.
 from __future__ import annotations
 
 import os
+import shutil
 import uuid
 from collections.abc import Sequence
 from contextlib import nullcontext
@@ -409,6 +410,10 @@ def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool
             ),
         )
     grid = tuner.fit()
+    if root is not None:
+        # A cache, gigabytes at the local profile: kept only while trials may still read it (a killed
+        # driver leaves it for --resume; a resumed sweep that finds it gone renders it again).
+        shutil.rmtree(root, ignore_errors=True)
     # A trial whose worker never started has no config; grid sweeps list it as pending below.
     outcomes = [_outcome(plan, r, sweep_run) for r in grid if r.config is not None]
     if plan.spec.search.kind == "grid":
