@@ -1,7 +1,7 @@
 """Shared helpers for benchmarks: paired timing (ratios measured side by side) and fixtures.
 
 These machines are shared and noisy: absolute times drift ±10 % between blocks, so every comparison
-alternates its variants in one process and reports the median of paired ratios (NOTES §6).
+alternates its variants in one process and reports the median of paired ratios.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-__all__ = ["Paired", "paired", "timed"]
+__all__ = ["Paired", "median_s", "paired", "timed"]
 
 
 @dataclass
@@ -27,6 +27,26 @@ def timed(fn: Callable[[], object]) -> float:
     start = time.perf_counter()
     fn()
     return time.perf_counter() - start
+
+
+def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, sync: Callable[[], object] | None = None) -> float:
+    """Median seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones.
+
+    ``sync`` (e.g. ``torch.cuda.synchronize``) runs before and after each timed call, so queued
+    device work is counted in the call that queued it.
+    """
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        if sync is not None:
+            sync()
+        start = time.perf_counter()
+        fn()
+        if sync is not None:
+            sync()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
 
 
 def paired(a: Callable[[], object], b: Callable[[], object], repeats: int, warmup: int = 1) -> Paired:

@@ -9,12 +9,10 @@ pairs, and per-image costs (the z-buffer, the blur) keep the slope below 1 at th
 
 from __future__ import annotations
 
-import statistics
-
 import numpy as np
 import torch
 
-from benchmarks.common import timed
+from benchmarks.common import median_s
 from cdm.cameras import orbit_cameras
 from cdm.render import rasterize_points, splat_points
 
@@ -29,8 +27,7 @@ def growth_exponent(points: list[int], seconds: list[float]) -> float:
 
 
 def _per_image(fn, images: int, repeats: int) -> float:
-    fn()
-    return statistics.median(timed(fn) for _ in range(repeats)) / images
+    return median_s(fn, repeats) / images
 
 
 def rendering(quick: bool, out_dir: str) -> list[dict]:

@@ -14,7 +14,8 @@ import math
 from pathlib import Path
 
 from sweeps.estimate import paper_trial_gpu_hours
-from sweeps.spec import expand, load_spec
+from sweeps.plan import expand
+from sweeps.spec import load_spec
 
 __all__ = ["GPUS", "paper_scaling"]
 

@@ -10,7 +10,7 @@ time (on 2 CPUs, two). From the MLflow child runs (start = the trial opens its r
   checkpoint, tracking), reported.
 
 A Train worker group per trial (workers_per_trial ≥ 1, what multi-GPU trials need) adds 12–25 s per
-trial here (NOTES §5); that is why small machines use local mode.
+trial here (benchmarks/RESULTS.md, trade-off of target (5)); that is why small machines use local mode.
 """
 
 from __future__ import annotations
@@ -23,7 +23,9 @@ from pathlib import Path
 
 from mlflow import MlflowClient
 
-from sweeps.spec import expand, load_spec, plan_concurrency
+from sweeps.plan import expand
+from sweeps.resources import plan_concurrency
+from sweeps.spec import load_spec
 
 __all__ = ["sweep_efficiency"]
 

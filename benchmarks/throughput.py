@@ -11,12 +11,12 @@ per cloud size), which ``sweeps/estimate.py`` reads for paper-profile GPU-hours 
 from __future__ import annotations
 
 import json
-import statistics
 import time
 from pathlib import Path
 
 import torch
 
+from benchmarks.common import median_s
 from cdm.config import load_config
 from cdm.train import Trainer
 
@@ -27,21 +27,9 @@ PAPER = {"data.image_size": 224, "priors.render_size": 224, "diffusion.predictio
          "data.val_objects": 1}
 
 
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def _median_s(fn, device: torch.device, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        _sync(device)
-        start = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else None
+    return median_s(fn, repeats, sync=sync)
 
 
 def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:

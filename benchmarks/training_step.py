@@ -9,10 +9,9 @@
 
 from __future__ import annotations
 
-import statistics
 from pathlib import Path
 
-from benchmarks.common import paired, timed
+from benchmarks.common import median_s, paired
 from cdm.config import Config, load_config
 from cdm.train import Trainer
 
@@ -53,9 +52,7 @@ def voxel_backends(quick: bool, out_dir: str) -> list[dict]:
         result = paired(_step_fn(sparse, out_dir), _step_fn(dense, out_dir), repeats=2 if quick else 4)
         rows.append({"benchmark": "dense / sparse step", "case": f"paper widths, N={n}", "without_s": result.a_s,
                      "with_s": result.b_s, "ratio": result.ratio, "target": target})
-    step = _step_fn(load_config(QUICK), out_dir)
-    step()
-    seconds = statistics.median(timed(step) for _ in range(10))
+    seconds = median_s(_step_fn(load_config(QUICK), out_dir), 10)
     rows.append({"benchmark": "quick config step", "case": "B=8, 1 thread, with 3D prior", "without_s": seconds,
                  "with_s": seconds, "ratio": seconds / 0.25, "target": "<= 1.0 (step / 0.25 s)"})
     return rows

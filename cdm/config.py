@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import copy
 import itertools
+import typing
 from pathlib import Path
 from typing import Any, Literal
 
@@ -34,6 +35,7 @@ __all__ = [
     "TrainConfig",
     "apply_overrides",
     "config_field_paths",
+    "format_validation_error",
     "load_config",
     "parse_override",
 ]
@@ -399,19 +401,40 @@ class Config(_Group):
         return out
 
 
-def _format_errors(err: ValidationError) -> str:
+def format_validation_error(err: ValidationError, schema: type[BaseModel]) -> str:
+    """One readable line for a pydantic error of ``schema``: ``loc: message; loc: message``.
+
+    An unknown key lists the fields allowed where it stands (list indices and dict keys in ``loc``
+    are stepped over); a wrong literal shows the value given. Shared by configs and sweep specs.
+    """
     lines = []
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"])
-        msg = e["msg"]
+        msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
-            parent = ".".join(str(p) for p in e["loc"][:-1])
-            allowed = config_field_paths(parent) if parent else list(Config.model_fields)
-            msg = f"unknown key; allowed: {', '.join(a.split('.')[-1] for a in allowed)}"
+            msg = f"unknown key; allowed: {', '.join(_fields_at(schema, e['loc'][:-1]))}"
         elif e["type"] == "literal_error":
             msg = f"{msg} (got {e['input']!r})"
         lines.append(f"{loc}: {msg}" if loc else msg)
     return "; ".join(lines)
+
+
+def _model_in(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in typing.get_args(annotation):
+        found = _model_in(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _fields_at(schema: type[BaseModel], loc: tuple) -> list[str]:
+    model = schema
+    for part in loc:
+        if isinstance(part, str) and part in model.model_fields:
+            model = _model_in(model.model_fields[part].annotation) or model
+    return list(model.model_fields)
 
 
 def _leaf_fields(model: type[BaseModel], prefix: str) -> list[str]:
@@ -487,4 +510,4 @@ def load_config(source: str | Path | dict[str, Any] | None = None, overrides: di
     try:
         return Config.model_validate(tree)
     except ValidationError as exc:
-        raise ConfigError(_format_errors(exc)) from None
+        raise ConfigError(format_validation_error(exc, Config)) from None

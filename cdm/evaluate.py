@@ -20,8 +20,6 @@ cell can be compared with each of them pairwise on the same objects.
 from __future__ import annotations
 
 import csv
-import hashlib
-import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -36,6 +34,7 @@ from cdm.config import Config
 from cdm.data.sample import Batch, collate
 from cdm.data.views import ObjectDataset
 from cdm.diffusion import GaussianDiffusion
+from cdm.digest import json_digest
 from cdm.metrics import ChamferF1, chamfer_f1
 from cdm.model import CDMNetwork
 from cdm.normalise import score_factor
@@ -105,7 +104,7 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
         scoring.append(cfg.eval.normalise)
     identity = {"data": [cfg.data.kind, cfg.data.root, cfg.data.seed, cfg.data.num_points, cfg.data.image_size],
                 "objects": [s.object_id for s in chosen], "scoring": scoring}
-    fingerprint = hashlib.sha256(json.dumps(identity).encode()).hexdigest()[:16]
+    fingerprint = json_digest(identity)
     eval_set = EvalSet(batches, fingerprint, [factors[i : i + bs] for i in range(0, len(chosen), bs)])
     means = _category_medoids(train, set(per_cat), cfg.eval.num_points)
     bank = RetrievalBank.build(train, set(per_cat), cfg.eval.retrieval_bank)

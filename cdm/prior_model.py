@@ -19,8 +19,6 @@ caches them for ``sampling.blend.prior_checkpoint: auto`` (sweep trials).
 from __future__ import annotations
 
 import fcntl
-import hashlib
-import json
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -36,6 +34,7 @@ from cdm.config import Config, DiffusionConfig, ModelConfig
 from cdm.data import build_dataset, list_categories
 from cdm.data.order import batch_indices
 from cdm.diffusion import GaussianDiffusion
+from cdm.digest import json_digest
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
 from cdm.optim import Optimiser, TrainingDiverged
@@ -198,7 +197,7 @@ def _prior_key(config: Config) -> str:
     for group, fields in _NOT_IN_KEY.items():
         for name in fields or list(tree[group]):
             del tree[group][name]
-    return hashlib.sha256(json.dumps(tree, sort_keys=True).encode()).hexdigest()[:10]
+    return json_digest(tree, 10)
 
 
 @contextmanager

@@ -7,8 +7,6 @@ again. All values are strings so they fit tracking tags.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import subprocess
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -17,6 +15,7 @@ import torch
 
 from cdm.config import Config
 from cdm.data.views import ObjectDataset
+from cdm.digest import json_digest
 
 __all__ = ["PACKAGES", "code_version", "config_hash", "run_record"]
 
@@ -28,7 +27,7 @@ def config_hash(config: Config) -> str:
     """Hash of the resolved config, leaving out ``train.out_dir`` (where files go changes no result)."""
     tree = config.to_dict()
     tree["train"] = {k: v for k, v in tree["train"].items() if k != "out_dir"}
-    return hashlib.sha256(json.dumps(tree, sort_keys=True).encode()).hexdigest()[:16]
+    return json_digest(tree)
 
 
 def code_version(root: Path | None = None) -> dict[str, str]:

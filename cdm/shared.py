@@ -16,8 +16,6 @@ them), so one set of round files serves every seed.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import os
 from pathlib import Path
@@ -27,6 +25,7 @@ from torch import Tensor
 
 from cdm.cameras import Cameras
 from cdm.config import Config
+from cdm.digest import json_digest
 from cdm.data.sample import Batch, ConditionViews, Sample, collate
 from cdm.data.views import ObjectDataset
 from cdm.evaluate import EvalSet, build_eval_set
@@ -38,7 +37,7 @@ _FORMAT = 2
 
 
 def _hash(identity: object) -> str:
-    return hashlib.sha256(json.dumps([_FORMAT, identity], sort_keys=True).encode()).hexdigest()[:16]
+    return json_digest([_FORMAT, identity])
 
 
 _LOSS_ONLY = {"lambda_3d", "point_size", "render_kind", "render_size", "target"}

@@ -32,13 +32,13 @@ from cdm.prior_model import ensure_priors
 from cdm.optim import TrainingDiverged
 from cdm.evaluate import build_eval_set
 from cdm.train import Trainer
-from sweeps.spec import SweepPlan, expand
+from sweeps.plan import SweepPlan, expand
 
 __all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate", "paper_trial_gpu_hours"]
 
 GPU_COSTS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_costs.json"
 STARTUP_S = 2.0
-"""Seconds per trial outside training in local mode with reused actors (measured, NOTES §5)."""
+"""Seconds per trial outside training in local mode with reused actors (measured with ray 2.60 on 2 CPUs; benchmarks/RESULTS.md, sweep efficiency)."""
 CALIBRATED_CELLS = 3
 
 

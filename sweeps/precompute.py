@@ -12,8 +12,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from sweeps.spec import SweepPlan
+from sweeps.plan import SweepPlan
+
+if TYPE_CHECKING:
+    from cdm.config import Config
 
 __all__ = ["Precomputed", "precompute", "shared_root"]
 
@@ -35,30 +39,26 @@ def shared_root(sweep_dir: str, remote: bool) -> str | None:
     return str(Path(sweep_dir) / "shared")
 
 
-def _write_rounds(overrides: dict, root: str, rounds: list[int]) -> None:
+def _write_rounds(cfg: Config, root: str, rounds: list[int]) -> None:
     import torch
 
-    from cdm.config import load_config
     from cdm.data import build_dataset
     from cdm.shared import SharedStore
 
     torch.set_num_threads(1)
-    cfg = load_config(None, overrides)
     train = build_dataset(cfg, "train")
     store = SharedStore(root)
     for r in rounds:
         store.write_round(cfg, train, r)
 
 
-def _write_eval(overrides: dict, root: str) -> None:
+def _write_eval(cfg: Config, root: str) -> None:
     import torch
 
-    from cdm.config import load_config
     from cdm.data import build_dataset
     from cdm.shared import SharedStore
 
     torch.set_num_threads(1)
-    cfg = load_config(None, overrides)
     SharedStore(root).eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"))
 
 
@@ -73,23 +73,23 @@ def precompute(plan: SweepPlan, root: str, lanes: int) -> Precomputed:
     rounds_task, eval_task = (ray.remote(num_cpus=1)(f) for f in (_write_rounds, _write_eval))
     start = time.perf_counter()
     world = max(1, plan.profile.resources.workers_per_trial)
-    views: dict[str, tuple[dict, int]] = {}
-    evals: dict[str, dict] = {}
+    views: dict[str, tuple[Config, int]] = {}
+    evals: dict[str, Config] = {}
     for cell in plan.cells:
         cfg = cell.config
         train = build_dataset(cfg, "train")
         key = views_key(cfg, train)
         need = rounds_needed(cfg, len(train), world)
-        if need > views.get(key, ({}, 0))[1]:
-            views[key] = (cell.overrides, need)
-        evals.setdefault(eval_key(cfg, build_dataset(cfg, "val"), train), cell.overrides)
-    jobs = [(overrides, r) for overrides, need in views.values() for r in range(need)]
+        if need > views.get(key, (cfg, 0))[1]:
+            views[key] = (cfg, need)
+        evals.setdefault(eval_key(cfg, build_dataset(cfg, "val"), train), cfg)
+    jobs = [(config, r) for config, need in views.values() for r in range(need)]
     tasks = []
     lanes = max(1, lanes)
     for lane in range(lanes):
         mine = jobs[lane::lanes]
-        for overrides in {id(o): o for o, _ in mine}.values():
-            tasks.append(rounds_task.remote(overrides, root, [r for o, r in mine if o is overrides]))
-    tasks += [eval_task.remote(overrides, root) for overrides in evals.values()]
+        for config in {id(c): c for c, _ in mine}.values():
+            tasks.append(rounds_task.remote(config, root, [r for c, r in mine if c is config]))
+    tasks += [eval_task.remote(config, root) for config in evals.values()]
     ray.get(tasks)
     return Precomputed(len(views), len(jobs), len(evals), time.perf_counter() - start)

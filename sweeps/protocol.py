@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 from cdm.config import Config, load_config
 
 if TYPE_CHECKING:
-    from sweeps.spec import SweepPlan
+    from sweeps.plan import SweepPlan
 
 __all__ = ["CARD_TAG", "CHECKS", "NO_DEVIATIONS", "CardContext", "ProtocolCard", "plan_card", "protocol_card", "sweep_card"]
 

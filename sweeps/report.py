@@ -31,8 +31,10 @@ import numpy as np
 from mlflow import MlflowClient
 from mlflow.entities import Run
 
+from cdm.config import PriorsConfig
 from cdm.evaluate import BASELINES
 from sweeps.gallery import grid_png, viewer_html
+from sweeps.plan import lambda_source, optuna_distributions
 from sweeps.plots import (
     PlotPoint,
     metric_vs_value,
@@ -42,7 +44,7 @@ from sweeps.plots import (
     training_curves,
 )
 from sweeps.protocol import CARD_TAG
-from sweeps.results import ResultsTable, TrialOutcome, build_table, settings_note
+from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, settings_note
 from sweeps.spec import SpaceParam, Spec, load_spec
 from sweeps.tracking import last_eval_files, last_objects, parent_baselines, resolve_tracking_uri
 
@@ -181,7 +183,7 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         # Baselines live on the parent run, once per evaluation set (older sweeps: on every child).
         metrics = parent_baselines(record.parent.data.metrics, tags.get("eval_set")) | {
             k: v for k, v in run.data.metrics.items() if "/" in k}
-        rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in ("ok", "stopped") else ()
+        rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in FINISHED else ()
         outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
                                tags.get("error") if status == "failed" else None, rows)
         out.append(TrialRecord(outcome, values, run.info.run_id))
@@ -208,12 +210,17 @@ def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:
 
 def _settings(record: SweepRecord) -> list[str]:
     """The runner's settings note (``sweeps/run.py``'s ``_settings``), from what MLflow recorded: the
-    profile's budget on the parent run and each trial's resolved prediction target in its params."""
+    profile's budget on the parent run and each trial's resolved prediction target and λ in its params."""
+    spec, plan = record.spec, record.plan
     targets = sorted({r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params})
     if not targets:
-        plan = record.plan
         targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", "eps")]
-    return [settings_note(record.profile, record.parent.data.params.get("steps", "?"), targets),
+    lambdas = [] if "priors.lambda_3d" in spec.search.space else sorted(
+        {float(r.data.params["priors.lambda_3d"]) for r in record.children if "priors.lambda_3d" in r.data.params})
+    if not lambdas and "priors.lambda_3d" not in spec.search.space:
+        lambdas = [float({**plan.get("fixed", {}), **plan.get("sets", {})}.get("priors.lambda_3d", PriorsConfig().lambda_3d))]
+    return [settings_note(record.profile, record.parent.data.params.get("steps", "?"), targets, lambdas,
+                          lambda_source(spec, record.profile, plan.get("fixed", {}), plan.get("sets", {}))),
             *(f"protocol: {line}" for line in protocol_card_lines(record))]
 
 
@@ -250,7 +257,7 @@ def paper_layout(trials: list[TrialRecord]):
         cells.setdefault(t.outcome.cell, []).append(t.outcome)
     rows = {}
     for name, group in cells.items():
-        done = [o for o in group if o.status in ("ok", "stopped")]
+        done = [o for o in group if o.finished]
         failed = sum(o.status == "failed" for o in group)
         row: dict[tuple[str, str], Any] = {("", "paper setting"): group[0].paper_label or "",
                                            ("", "trials"): f"{len(done)}/{len(group)}" + (f" ({failed} failed)" if failed else "")}
@@ -278,25 +285,11 @@ def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, 
     return out
 
 
-def _distributions(space: dict[str, SpaceParam]) -> dict[str, Any]:
-    import optuna.distributions as od
-
-    out: dict[str, Any] = {}
-    for key, p in space.items():
-        if p.type == "categorical":
-            out[key] = od.CategoricalDistribution(p.choices)
-        elif p.type == "int":
-            out[key] = od.IntDistribution(int(p.low), int(p.high), step=int(p.step or 1))
-        else:
-            out[key] = od.FloatDistribution(p.low, p.high, log=p.type == "log_float", step=p.step)
-    return out
-
-
 def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) -> list[Path]:
     """``metric_vs_value.png``, ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
     spec, folder = record.spec, Path(folder)
     metric = spec.metric.name
-    done = [t for t in trials if t.outcome.status in ("ok", "stopped")]
+    done = [t for t in trials if t.outcome.finished]
     points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done]
     paths = []
     if points:
@@ -307,10 +300,10 @@ def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) ->
         cells = {t.outcome.label: t.outcome.cell for t in trials}
         paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
     if spec.search.kind == "optuna":
-        searched = [(t.values, t.outcome.metrics.get(metric) if t.outcome.status in ("ok", "stopped") else None)
+        searched = [(t.values, t.outcome.metrics.get(metric) if t.outcome.finished else None)
                     for t in trials if set(t.values) == set(spec.search.space)]
         if searched:
-            paths += optuna_plots(searched, _distributions(spec.search.space), spec.metric.mode, metric, folder)
+            paths += optuna_plots(searched, optuna_distributions(spec.search.space), spec.metric.mode, metric, folder)
     return paths
 
 
@@ -322,7 +315,7 @@ def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_tri
     """
     out = {}
     for t in trials:
-        if t.run_id is None or t.outcome.status not in ("ok", "stopped"):
+        if t.run_id is None or not t.outcome.finished:
             continue
         files = last_eval_files(record.client, t.run_id)
         pngs = sorted(f for f in files if f.endswith(".png"))[:per_trial]
@@ -365,7 +358,7 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
     folder = Path(folder)
     firsts: dict[str, TrialRecord] = {}
     for t in trials:
-        if t.run_id is not None and t.outcome.status in ("ok", "stopped"):
+        if t.run_id is not None and t.outcome.finished:
             firsts.setdefault(t.outcome.cell, t)
     files = {cell: last_eval_files(record.client, t.run_id) for cell, t in firsts.items()}
     stems = [f.removesuffix(".gt.ply") for f in next(iter(files.values()), []) if f.endswith(".gt.ply")]

@@ -3,7 +3,8 @@
 Knows nothing of Ray or MLflow: the runner turns finished trials into :class:`TrialOutcome` s and
 this module aggregates and formats them — plain text for the terminal, Markdown and CSV for the
 sweep folder. Trivial baselines the trainer reports (``baseline/<name>/<metric>``: sphere, Gaussian,
-category mean, retrieval) get their own rows, so a local result is never read without them (NOTES §6).
+category mean, retrieval) get their own rows, so a local result is never read without them (the
+local recipes land near them: benchmarks/RESULTS.md, "Which recipe learns").
 
 When trials carry their per-object scores, every cell (and every baseline) is also compared pairwise
 with a reference cell (:mod:`sweeps.paired`): mean difference, 95% bootstrap interval and a verdict,
@@ -24,9 +25,13 @@ from typing import Literal
 from cdm.evaluate import BASELINES
 from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
 
-__all__ = ["ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "settings_note"]
+__all__ = [
+    "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "settings_note",
+]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
+FINISHED: tuple[Status, ...] = ("ok", "stopped")
+"""Statuses whose trial has metrics to aggregate: ran to the end, or stopped early by the scheduler."""
 
 
 @dataclass(frozen=True)
@@ -45,6 +50,11 @@ class TrialOutcome:
     error: str | None = None
     objects: tuple[dict[str, object], ...] = ()
     """Per-object rows of the last evaluation (``object_id``, ``category``, ``cd``, ``f1``, ``baseline/…``)."""
+
+    @property
+    def finished(self) -> bool:
+        """Ran to the end or was stopped early: its last evaluation counts."""
+        return self.status in FINISHED
 
 
 @dataclass(frozen=True)
@@ -150,15 +160,23 @@ def _categories(outcomes: Sequence[TrialOutcome], metric: str) -> list[str]:
     return sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
 
 
-def settings_note(profile: str, steps: object, targets: Iterable[str]) -> str:
-    """The table's first note: what produced the numbers (profile, budget, prediction target)."""
+def settings_note(profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float], lambda_from: str) -> str:
+    """The table's first note: what produced the numbers (profile, budget, prediction target, λ).
+
+    ``lambda_from`` says where the λ of Eq. 6 (``priors.lambda_3d``) was set (``profile local``,
+    ``--set``, ``the spec``, ``the config default``): the paper gives no value, so the paper's column
+    was not measured with it.
+    """
     targets = sorted(set(targets))
     shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
-    return f"profile {profile}: {steps} steps per trial; prediction target {shown}"
+    values = sorted(set(lambdas))
+    lam = f"{values[0]:g}" if len(values) == 1 else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")" if values else "searched"
+    return (f"profile {profile}: {steps} steps per trial; prediction target {shown}; "
+            f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")
 
 
 def _finished(group: Sequence[TrialOutcome]) -> list[TrialOutcome]:
-    return [o for o in group if o.status in ("ok", "stopped")]
+    return [o for o in group if o.finished]
 
 
 def _object_column(metric: str) -> tuple[str, str | None] | None:
@@ -267,7 +285,7 @@ def build_table(
     if pairing:
         header += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in shown] + ["verdict", "beats baselines"]
 
-    stats = {name: _Stat.of([o.metrics[metric] for o in group if o.status in ("ok", "stopped") and metric in o.metrics])
+    stats = {name: _Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
              for name, group in cells.items()}
     ranked = [(s.mean, name) for name, s in stats.items() if s is not None]
     best = (min(ranked) if mode == "min" else max(ranked))[1] if ranked else None
@@ -281,7 +299,7 @@ def build_table(
             f" ({counts[s]} {s})" for s in ("stopped", "failed", "pending") if counts[s])
         row = [name + (" ★" if name == best else "")] + ([first.paper_label or ""] if has_paper_label else []) + [trials]
         record: dict[str, object] = {"cell": name, "paper_setting": first.paper_label or "", "best": name == best, **counts}
-        done = [o for o in group if o.status in ("ok", "stopped")]
+        done = _finished(group)
         for m in shown + [f"{metric}/{c}" for c in categories]:
             stat = _Stat.of([o.metrics[m] for o in done if m in o.metrics])
             paper = first.paper.get(m)
@@ -300,7 +318,7 @@ def build_table(
 
     suffix = metric.removeprefix("eval/") if metric.startswith("eval/") else None
     for b in baselines if suffix else []:
-        done = [o for o in outcomes if o.status in ("ok", "stopped")]
+        done = _finished(outcomes)
         # Baselines depend on the evaluation data only, not on the cell: their mean is the number.
         row = [f"baseline: {b}"] + ([""] if has_paper_label else []) + [""]
         record = {"cell": f"baseline: {b}"}

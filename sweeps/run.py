@@ -29,9 +29,11 @@ from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
 from sweeps.claim import ClaimError, SweepClaim, claim
 from sweeps.limits import MAX_TRIALS, LimitError, check_trials
+from sweeps.plan import SweepPlan, expand, lambda_source
 from sweeps.precompute import shared_root
 from sweeps.protocol import CARD_TAG, plan_card
-from sweeps.spec import Spec, SpecError, SweepPlan, expand, load_spec, plan_concurrency
+from sweeps.resources import plan_concurrency
+from sweeps.spec import Spec, SpecError, load_spec
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
 
 __all__ = ["describe", "main"]
@@ -122,7 +124,9 @@ def _settings(plan: SweepPlan) -> list[str]:
     # Optuna plans have no cells yet: the fixed settings and --set values stand for every trial.
     configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
     card = [f"protocol: {line}" for line in plan_card(plan).lines()]
-    return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs)), *card]
+    lambdas = [] if "priors.lambda_3d" in plan.spec.search.space else [c.priors.lambda_3d for c in configs]
+    return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs), lambdas,
+                          lambda_source(plan.spec, plan.profile.name, plan.fixed, plan.sets)), *card]
 
 
 def _ui_hint(uri: str, path: str) -> str:
@@ -321,7 +325,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     from sweeps.report import describe_sweep, publish
     from sweeps.results import baselines_by_eval_set, build_table, cell_means
     from sweeps.tracking import SweepRun, resolve_tracking_uri
-    from sweeps.trial import cluster_capacity, cluster_machines, connect, run_sweep
+    from sweeps.cluster import cluster_capacity, cluster_machines, connect
+    from sweeps.trial import run_sweep
 
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
     # in a staging folder, copied at once (sweep.json, so a crashed sweep can be resumed) and at the end.
@@ -339,7 +344,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                          "--host <private ip> --port 5000 …`, cluster/README.md) and pass --tracking-uri http://<private ip>:5000")
         capacity = cluster_capacity(remote)
         try:
-            plan_concurrency(plan.profile.resources, capacity["CPU"], capacity["GPU"], plan.num_trials, remote)
+            conc = plan_concurrency(plan.profile.resources, capacity["CPU"], capacity["GPU"], plan.num_trials, remote)
         except SpecError as exc:
             return _fail(str(exc))
         if args.resume:
@@ -371,10 +376,12 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         predicted = None
         if not args.resume:  # a resumed sweep has only its unfinished trials left: the estimate would not apply
             cluster = ray.cluster_resources()
-            try:
-                now = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
-            except SpecError:  # remote only (checked above otherwise): no node up fits a trial before the autoscaler adds one
-                now = None
+            now = conc
+            if remote:  # sized above by the most the cluster could offer; the estimate wants the nodes up now
+                try:
+                    now = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
+                except SpecError:  # no node up fits a trial before the autoscaler adds one
+                    now = None
             if now is None:
                 print("estimate: none — no node up yet fits one trial; trials wait for the autoscaler to add one", flush=True)
             else:
@@ -383,10 +390,10 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         started_at = time.perf_counter()
         # A resumed sweep keeps the callbacks it started with (Tune restores them): no line of its own.
         progress = None if args.resume else SweepProgress(
-            sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.trial(t.config).label,
+            sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.names(t.config)[1],
             predicted.wall_s if predicted else None, tty)
         try:
-            outcomes = run_sweep(plan, sweep_dir, sweep_run, args.resume, remote, callbacks=[progress] if progress else [])
+            outcomes = run_sweep(plan, conc, sweep_dir, sweep_run, args.resume, remote, callbacks=[progress] if progress else [])
         finally:
             if progress is not None:
                 progress.close()
@@ -417,7 +424,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     print(f"MLflow: {_ui_hint(uri, view)}")
     if unfinished:
         print(f"some trials did not finish; continue with: python sweeps/run.py {args.spec} --profile {plan.profile.name} --resume")
-    return 0 if any(o.status in ("ok", "stopped") for o in outcomes) else 1
+    return 0 if any(o.finished for o in outcomes) else 1
 
 
 if __name__ == "__main__":

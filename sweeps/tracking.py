@@ -3,7 +3,7 @@
 The driver opens the parent run (spec, expanded grid and results table as artifacts) and closes
 each child with Tune's verdict (finished, stopped early, failed + reason). The child run itself is
 written from exactly one place — the trial's rank-0 training process, as a :class:`cdm.train.Callback`
-— because SQLite locks under many writers (NOTES §5). A child is found again by its ``trial_id`` tag,
+— because SQLite locks under many writers. A child is found again by its ``trial_id`` tag,
 so a resumed trial continues its own run and skips steps it had already logged: no duplicates.
 
 All calls go through an explicit :class:`mlflow.MlflowClient` (no global active run), so a Ray actor
@@ -40,7 +40,7 @@ compare view shows only what the cells set."""
 def resolve_tracking_uri(cli: str | None, cwd: Path | None = None) -> str:
     """``--tracking-uri``, else ``MLFLOW_TRACKING_URI``, else ``sqlite:///<cwd>/mlflow.db``; always absolute.
 
-    A relative SQLite path would resolve inside each Ray trial's own directory (NOTES §5), so it is
+    A relative SQLite path would resolve inside each Ray trial's own working directory, so it is
     made absolute against ``cwd`` here, on the driver.
     """
     cwd = (cwd or Path.cwd()).resolve()

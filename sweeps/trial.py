@@ -1,24 +1,26 @@
 """Ray glue of a sweep: the Tune trainable, the Ray Train loop around ``cdm.train.fit``, and the Tuner.
 
-Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (the Train V2 pattern, NOTES §5) whose
-loop is :func:`train_loop`. ``resources.workers_per_trial`` picks how:
+Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pattern;
+``Tuner(trainer)`` is deprecated) whose loop is :func:`train_loop`, given the trial's
+:class:`TrialJob`. ``resources.workers_per_trial`` picks how:
 
 - ``0`` — Train's local mode: the loop runs inside the trial's own actor. On 2 CPUs a nested
   one-worker ``TorchTrainer`` costs 12–25 s of start-up per trial (controller, worker group, sync
-  actors; no supported way keeps a worker group alive between trials; NOTES §5), local mode with
-  reused actors ~2 s including the MLflow run's set-up (measured with the smoke profile: trial
-  ≈ fit + 2 s here, fit + 12.5 s with one worker). So small machines run local mode, the default
-  of the smoke and local profiles.
+  actors; no supported way keeps a worker group alive between trials in ray 2.60;
+  benchmarks/RESULTS.md, trade-off of target (5)), local mode with reused actors ~2 s including
+  the MLflow run's set-up (measured with the smoke profile: trial ≈ fit + 2 s here, fit + 12.5 s
+  with one worker). So small machines run local mode, the default of the smoke and local profiles.
 - ``>= 1`` — real Train workers (DDP over gloo on CPU, NCCL on GPU), what scales on a cluster.
 
 Local mode only accepts ``ray.tune.report``/``ray.tune.get_checkpoint`` and real workers only
 ``ray.train.report``/``ray.train.get_checkpoint``; :class:`_RayReporter` picks the pair once.
-Concurrency comes from the cluster's resources (:func:`sweeps.spec.plan_concurrency`), so trials
-never wait on each other for CPUs.
+Concurrency comes from the cluster's resources (:func:`sweeps.resources.plan_concurrency`, sized
+once by the runner), so trials never wait on each other for CPUs.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import uuid
@@ -33,22 +35,20 @@ import ray.train
 import ray.tune
 from ray.train.torch import TorchTrainer
 
-from cdm.config import load_config
+from cdm.config import Config
 from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
 from sweeps.cores import CoreLease, lease_cores
 from sweeps.precompute import precompute, shared_root
+from sweeps.plan import SweepPlan, optuna_distributions
 from sweeps.progress import StepReporter, quiet_loggers
+from sweeps.resources import Concurrency
 from sweeps.results import TrialOutcome
-from sweeps.spec import Cell, SweepPlan, plan_concurrency
 from sweeps.tracking import SweepRun, TrialRun, finished_trial_metrics
 
-__all__ = [
-    "TrialProgress", "TrialSetup", "cluster_capacity", "cluster_machines", "connect", "error_summary", "run_sweep",
-    "run_trial", "train_loop",
-]
+__all__ = ["TrialJob", "TrialProgress", "TrialSetup", "error_summary", "run_sweep", "run_trial", "train_loop"]
 
 
 @dataclass(frozen=True)
@@ -108,35 +108,56 @@ class TrialProgress(Callback):
         print(f"[{self.label}] eval at step {step}: {shown}", flush=True)
 
 
-def train_loop(loop_config: dict[str, Any]) -> None:
-    """Ray Train loop (local mode or each worker): rebuild the config, resume if Ray has a checkpoint, fit."""
-    local = loop_config["local"]
+@dataclass(frozen=True)
+class TrialJob:
+    """One trial's input to :func:`train_loop`, built once by :func:`run_trial` from its cell."""
+
+    config: Config
+    """The trial's validated config (resolved once, by :mod:`sweeps.plan`), writing into the trial's folder."""
+    local: bool
+    """Train's local mode: the loop runs in the trial's own actor (``resources.workers_per_trial == 0``)."""
+    label: str
+    trial_id: str
+    metric: str
+    tags: dict[str, str]
+    prior_dir: str
+    """Where ``prior_checkpoint: auto`` caches category priors (:func:`_prior_dir`)."""
+    tracking_uri: str
+    experiment_id: str
+    parent_run_id: str
+    shared_root: str | None
+    """The sweep's store of shared training views and evaluation sets (:mod:`sweeps.precompute`)."""
+    lease_folder: str
+    lease_cores: int
+    """Core leases the trial takes turns on, in ``lease_folder`` (:mod:`sweeps.cores`); 0 = none."""
+
+
+def train_loop(job: TrialJob) -> None:
+    """Ray Train loop (local mode or each worker): resume if Ray has a checkpoint, fit."""
     quiet_loggers()
-    rank = 0 if local else ray.train.get_context().get_world_rank()
-    overrides = dict(loop_config["overrides"])
+    rank = 0 if job.local else ray.train.get_context().get_world_rank()
+    config = job.config
     if rank > 0:  # workers on one node must not overwrite rank 0's checkpoints and evaluation files
-        overrides["train.out_dir"] = str(Path(overrides["train.out_dir"]) / f"rank_{rank}")
-    config = load_config(None, overrides)
+        config = config.replace(**{"train.out_dir": str(Path(config.train.out_dir) / f"rank_{rank}")})
     # sampling.blend.prior_checkpoint: auto — one category prior per category, trained once per sweep
     # in its folder (the first trial to need it trains it, the others wait on its lock).
-    config = ensure_priors(config, loop_config["prior_dir"], lambda line: print(f"[{loop_config['label']}] {line}", flush=True))
-    callbacks: list[Callback] = [_RayReporter(local, rank)]
-    lease = CoreLease(**loop_config["lease"]) if loop_config["lease"] else None
+    config = ensure_priors(config, job.prior_dir, lambda line: print(f"[{job.label}] {line}", flush=True))
+    callbacks: list[Callback] = [_RayReporter(job.local, rank)]
+    lease = CoreLease(job.lease_folder, job.lease_cores) if job.lease_cores else None
     if lease is not None:
         callbacks.append(lease)
     if rank == 0:
-        t = loop_config["tracking"]
         callbacks += [
-            TrialProgress(loop_config["label"], config.train.steps, loop_config["metric"]),
-            StepReporter(t["parent_run_id"], loop_config["label"]),
-            TrialRun(t["uri"], t["experiment_id"], t["parent_run_id"], loop_config["trial_id"],
-                     loop_config["label"], loop_config["tags"], config, loop_config["metric"]),
+            TrialProgress(job.label, config.train.steps, job.metric),
+            StepReporter(job.parent_run_id, job.label),
+            TrialRun(job.tracking_uri, job.experiment_id, job.parent_run_id, job.trial_id, job.label, job.tags, config,
+                     job.metric),
         ]
-    checkpoint = ray.tune.get_checkpoint() if local else ray.train.get_checkpoint()
+    checkpoint = ray.tune.get_checkpoint() if job.local else ray.train.get_checkpoint()
     with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
         if resume_from is not None:
-            print(f"[{loop_config['label']}] resuming from {resume_from}", flush=True)
-        shared = None if loop_config["shared_root"] is None else SharedStore(loop_config["shared_root"])
+            print(f"[{job.label}] resuming from {resume_from}", flush=True)
+        shared = None if job.shared_root is None else SharedStore(job.shared_root)
         try:
             fit(config, callbacks, resume_from=resume_from, shared=shared)
         finally:
@@ -157,7 +178,6 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         ray.tune.report(done)
         return
     r = plan.profile.resources
-    out_dir = Path(ctx.get_trial_dir()) / "cdm"
     categories = ",".join(cell.config.data.categories) or "all"
     tags = {
         "cell": cell.name, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
@@ -166,29 +186,32 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         "ray_node_id": ray.get_runtime_context().get_node_id(),
         **{f"repro.{k}": v for k, v in setup.code.items()},
     }
-    loop_config = {
-        "local": r.workers_per_trial == 0,
-        "overrides": {**cell.overrides, "train.out_dir": str(out_dir)},
-        "label": cell.label,
-        "trial_id": trial_id,
-        "metric": plan.spec.metric.name,
-        "tags": tags,
-        "prior_dir": _prior_dir(setup.sweep_dir, ctx.get_trial_dir()),
-        "shared_root": setup.shared_root,
-        "lease": {"folder": f"{setup.sweep_dir}/cores", "cores": setup.lease_cores} if setup.lease_cores else None,
-        "tracking": {"uri": setup.tracking_uri, "experiment_id": setup.experiment_id, "parent_run_id": setup.parent_run_id},
-    }
+    job = TrialJob(
+        config=cell.config.replace(**{"train.out_dir": str(Path(ctx.get_trial_dir()) / "cdm")}),
+        local=r.workers_per_trial == 0,
+        label=cell.label,
+        trial_id=trial_id,
+        metric=plan.spec.metric.name,
+        tags=tags,
+        prior_dir=_prior_dir(setup.sweep_dir, ctx.get_trial_dir()),
+        tracking_uri=setup.tracking_uri,
+        experiment_id=setup.experiment_id,
+        parent_run_id=setup.parent_run_id,
+        shared_root=setup.shared_root,
+        lease_folder=f"{setup.sweep_dir}/cores",
+        lease_cores=setup.lease_cores,
+    )
     per_worker = {"CPU": r.cpus_per_worker, **({"GPU": r.gpus_per_worker} if r.gpus_per_worker else {})}
     trainer = TorchTrainer(
-        train_loop,
-        train_loop_config=loop_config,
+        # Bound, not passed as train_loop_config: Train hands that on as a plain dict.
+        functools.partial(train_loop, job),
         scaling_config=ray.train.ScalingConfig(
             num_workers=r.workers_per_trial,
             use_gpu=r.gpus_per_worker > 0,
             resources_per_worker=per_worker if r.workers_per_trial else None,
         ),
         run_config=ray.train.RunConfig(
-            # Named after the trial so a restored trial resumes its own Train run (NOTES §5).
+            # Named after the trial so a restored trial resumes its own Train run.
             name=f"trial_{trial_id}",
             storage_path=f"{setup.sweep_dir}/train",
             failure_config=ray.train.FailureConfig(max_failures=plan.spec.failure.max_retries),
@@ -230,8 +253,8 @@ class _TrialCloser(ray.tune.Callback):
     def __init__(self, plan: SweepPlan, sweep_run: SweepRun):
         self.plan, self.sweep_run = plan, sweep_run
 
-    def _cell(self, trial) -> Cell:
-        return self.plan.trial(trial.config)
+    def _label(self, trial) -> str:
+        return self.plan.names(trial.config)[1]
 
     def _count(self, trials, ending=None) -> str:
         # Counted from Tune's trial list, so trials finished before a resume count too.
@@ -239,64 +262,24 @@ class _TrialCloser(ray.tune.Callback):
         return f"{len(done)}/{self.plan.num_trials} trials done"
 
     def on_trial_start(self, iteration, trials, trial, **info) -> None:
-        print(f"▶ started [{self._cell(trial).label}] ({self._count(trials)})", flush=True)
+        print(f"▶ started [{self._label(trial)}] ({self._count(trials)})", flush=True)
 
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
-        cell = self._cell(trial)
+        label = self._label(trial)
         step = trial.last_result.get("step", 0)
         early = step < self.plan.profile.steps
-        self.sweep_run.close_trial(trial.trial_id, cell.label, "FINISHED", stopped_early=early)
+        self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early)
         value = trial.last_result.get(self.plan.spec.metric.name)
         shown = "no evaluation" if value is None else f"{self.plan.spec.metric.name} {value:.4g}"
-        print(f"{'■ stopped early' if early else '✓ finished'} [{cell.label}] at step {step}: {shown} "
+        print(f"{'■ stopped early' if early else '✓ finished'} [{label}] at step {step}: {shown} "
               f"({self._count(trials, trial)})", flush=True)
 
     def on_trial_error(self, iteration, trials, trial, **info) -> None:
-        cell = self._cell(trial)
+        label = self._label(trial)
         # Tune has just written the traceback to the trial's local error file (before syncing it).
         reason = error_summary(Path(trial.error_file).read_text()) if trial.error_file else "unknown error"
-        self.sweep_run.close_trial(trial.trial_id, cell.label, "FAILED", error=reason)
-        print(f"✗ failed [{cell.label}]: {reason} ({self._count(trials, trial)})", flush=True)
-
-
-def connect(address: str | None) -> bool:
-    """Join the Ray cluster at ``address``/``RAY_ADDRESS``, or start a local one bound to loopback.
-
-    Returns:
-        True when this call connected (the caller disconnects with ``ray.shutdown()``); False when
-        the process was already connected (a test session, a notebook).
-    """
-    if ray.is_initialized():
-        return False
-    address = address or os.environ.get("RAY_ADDRESS")
-    if address:
-        ray.init(address=address, logging_level="WARNING")
-    else:
-        from sweeps import local_cluster
-
-        local_cluster.start()
-    return True
-
-
-def cluster_capacity(remote: bool) -> dict[str, float]:
-    """CPUs and GPUs for :func:`sweeps.spec.plan_concurrency`: the nodes up now, or, on a ``remote``
-    cluster, the most it could offer — the larger of its nodes and the node-group bounds an
-    autoscaler publishes in the GCS (none on a fixed cluster: then its nodes).
-    """
-    present = ray.cluster_resources()
-    # The record Ray Data sizes itself by (ray.data's cluster_autoscaler); no public API reads it yet.
-    bounds = (ray._private.state.state.get_max_resources_from_cluster_config() or {}) if remote else {}
-    return {k: max(float(present.get(k, 0.0)), float(bounds.get(k, 0))) for k in ("CPU", "GPU")}
-
-
-def cluster_machines(remote: bool) -> int:
-    """Machines the cluster spans (distinct node addresses: nodes of one host share its files), or on a
-    ``remote`` cluster whose autoscaler publishes its bounds, the most it could grow to (unbounded: 2).
-    """
-    hosts = {n["NodeManagerAddress"] for n in ray.nodes() if n["Alive"]}
-    config = ray._private.state.state.get_cluster_config() if remote else None
-    bound = sum(2 if g.max_count == -1 else g.max_count for g in config.node_group_configs) if config else 0
-    return max(len(hosts), bound)
+        self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason)
+        print(f"✗ failed [{label}]: {reason} ({self._count(trials, trial)})", flush=True)
 
 
 def _search(plan: SweepPlan) -> tuple[dict[str, Any], Any, int]:
@@ -307,18 +290,10 @@ def _search(plan: SweepPlan) -> tuple[dict[str, Any], Any, int]:
     import optuna
     from ray.tune.search.optuna import OptunaSearch
 
-    dists = {}
-    for key, p in s.space.items():
-        if p.type == "categorical":
-            dists[key] = optuna.distributions.CategoricalDistribution(p.choices)
-        elif p.type == "int":
-            dists[key] = optuna.distributions.IntDistribution(int(p.low), int(p.high), step=int(p.step or 1))
-        else:
-            dists[key] = optuna.distributions.FloatDistribution(p.low, p.high, log=p.type == "log_float", step=p.step)
     sampler = (optuna.samplers.TPESampler if s.sampler == "tpe" else optuna.samplers.RandomSampler)(seed=s.seed)
-    study = f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # unique per sweep (NOTES §5)
+    study = f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # Optuna study names must be unique per sweep
     # Given its own space, OptunaSearch never receives TuneConfig's metric/mode: pass them here too.
-    searcher = OptunaSearch(space=dists, metric=plan.spec.metric.name, mode=plan.spec.metric.mode, sampler=sampler,
+    searcher = OptunaSearch(space=optuna_distributions(s.space), metric=plan.spec.metric.name, mode=plan.spec.metric.mode, sampler=sampler,
                             study_name=study)
     return {}, searcher, plan.num_trials
 
@@ -335,7 +310,8 @@ def _scheduler(plan: SweepPlan):
 
 
 def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
-    cell = plan.trial(result.config)
+    name, label = plan.names(result.config)
+    cell = plan.grid_cell(label)
     trial_id = (result.metrics or {}).get("trial_id")
     metrics = {k: float(v) for k, v in (result.metrics or {}).items() if "/" in k and isinstance(v, (int, float))}
     if result.error is not None:
@@ -345,36 +321,37 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
         step = (result.metrics or {}).get("step")
         status = "pending" if step is None else ("stopped" if step < plan.profile.steps else "ok")
     objects = tuple(sweep_run.trial_objects(trial_id)) if trial_id and status != "failed" else ()
-    return TrialOutcome(cell.label, cell.name, status, metrics, cell.paper_label, cell.paper, error, objects)
+    paper_label, paper = (cell.paper_label, cell.paper) if cell else (None, {})
+    return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects)
 
 
-def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool, remote: bool = False,
+def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: SweepRun, resume: bool, remote: bool = False,
               callbacks: Sequence[ray.tune.Callback] = ()) -> list[TrialOutcome]:
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
     ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
     (``s3://…``, ``file://…``). Resume re-runs only unfinished trials, each from its last
-    checkpoint; errored trials stay failed. ``remote``: the cluster was joined by address and may
-    autoscale (concurrency as :func:`sweeps.spec.plan_concurrency` says). ``callbacks`` (e.g. the
+    checkpoint; errored trials stay failed. ``conc``: how trials fit the cluster
+    (:func:`sweeps.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
+    joined by address and may autoscale. ``callbacks`` (e.g. the
     progress line, :class:`sweeps.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
     started with.
     """
     # Snapshot the experiment state every second (and sync it to storage as often, below), so a
-    # killed driver resumes trials from their checkpoints instead of from step 0 (NOTES §5).
+    # killed driver resumes trials from their checkpoints instead of from step 0 (with
+    # Tune's default period the snapshot a kill found was still the initial one).
     os.environ["TUNE_GLOBAL_CHECKPOINT_S"] = "1"
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
-    cluster = cluster_capacity(remote)
-    conc = plan_concurrency(plan.profile.resources, cluster["CPU"], cluster["GPU"], plan.num_trials, remote)
     root = shared_root(sweep_dir, remote)
     if root is not None and plan.cells:
-        done = precompute(plan, root, int(cluster["CPU"]))
+        done = precompute(plan, root, int(conc.cpus))
         print(f"shared by every cell: {done.rounds} view rounds of {done.view_sets} training set(s), "
               f"{done.eval_sets} evaluation set(s) with baselines, in {done.seconds:.1f} s", flush=True)
     r = plan.profile.resources
-    cores = 0 if "://" in sweep_dir else lease_cores(cluster["CPU"], r.cpus_per_worker, r.workers_per_trial, remote)
+    cores = 0 if "://" in sweep_dir else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
     setup = TrialSetup(plan, sweep_dir, sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version(), root, cores)
     trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
-    print(f"cluster{' (at most)' if remote else ''}: {cluster['CPU']:g} CPUs, {cluster['GPU']:g} GPUs → up to {conc.max_concurrent} "
+    print(f"cluster{' (at most)' if remote else ''}: {conc.cpus:g} CPUs, {conc.gpus:g} GPUs → up to {conc.max_concurrent} "
           f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)"
           + (f", taking turns on {cores} cores (one computing trial per core)" if cores else ""), flush=True)
     if resume:
@@ -393,7 +370,7 @@ def run_sweep(plan: SweepPlan, sweep_dir: str, sweep_run: SweepRun, resume: bool
                 num_samples=num_samples,
                 max_concurrent_trials=conc.max_concurrent,
                 reuse_actors=True,
-                trial_name_creator=lambda t: plan.trial(t.config).label,
+                trial_name_creator=lambda t: plan.names(t.config)[1],
                 trial_dirname_creator=lambda t: f"trial_{t.trial_id}",
             ),
             run_config=ray.tune.RunConfig(

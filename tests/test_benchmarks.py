@@ -47,3 +47,12 @@ def test_rendering_and_paper_scaling_rows(tmp_path):
     assert point_size["wall_h_1_gpus"] == pytest.approx(5 * point_size["trial_gpu_hours"])
     assert point_size["wall_h_8_gpus"] == pytest.approx(point_size["trial_gpu_hours"])  # one wave
     assert "| point_size | 5 |" in out.stdout
+
+
+def test_median_s_warms_up_untimed_and_brackets_each_timed_call_with_sync():
+    from benchmarks.common import median_s
+
+    events = []
+    seconds = median_s(lambda: events.append("call"), repeats=3, warmup=2, sync=lambda: events.append("sync"))
+    assert events == ["call", "call"] + ["sync", "call", "sync"] * 3
+    assert 0 <= seconds < 1

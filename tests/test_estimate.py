@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from sweeps.estimate import GPU_COSTS, STARTUP_S, TrialCost, calibrate, estimate, paper_trial_gpu_hours
-from sweeps.spec import expand, load_spec
+from sweeps.plan import expand
+from sweeps.spec import load_spec
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
 

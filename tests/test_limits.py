@@ -21,7 +21,8 @@ from sweeps import run
 from sweeps.claim import ClaimError, claim
 from cdm.memory import check_memory, estimate_train_bytes
 from sweeps.limits import LimitError, check_trials, load_yaml
-from sweeps.spec import Spec, expand, load_spec
+from sweeps.plan import expand
+from sweeps.spec import Spec, load_spec
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,8 +8,9 @@ import pytest
 
 from cdm.data.shapenet import SYNSETS
 from sweeps import run
+from sweeps.plan import expand
 from sweeps.protocol import NO_DEVIATIONS, ProtocolCard, plan_card, protocol_card
-from sweeps.spec import SpecError, expand, load_spec
+from sweeps.spec import SpecError, load_spec
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"

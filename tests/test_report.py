@@ -23,7 +23,8 @@ from cdm.data import build_dataset
 from cdm.data.sample import collate
 from cdm.evaluate import save_panel
 from sweeps import report
-from sweeps.spec import expand, load_spec
+from sweeps.plan import expand
+from sweeps.spec import load_spec
 from sweeps.tracking import SweepRun, TrialRun
 from tests.conftest import tiny_config
 

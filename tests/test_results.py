@@ -8,7 +8,7 @@ import statistics
 import pytest
 import torch
 
-from sweeps.results import TrialOutcome, build_table
+from sweeps.results import TrialOutcome, build_table, settings_note
 
 
 def _trial(cell, seed, status="ok", **metrics):
@@ -147,3 +147,11 @@ def test_terminal_table_fits_120_columns_at_the_main_jobs_size_and_says_where_th
         assert baseline[table.header.index(column)] == ""
     assert table.rows[3][table.header.index("verdict")] == "better"
     assert table.records[-1]["eval/f1 mean"] == pytest.approx(0.60)
+
+
+def test_settings_note_says_lambda_and_where_it_was_set():
+    note = settings_note("local", 800, ["x0"], [0.1, 0.1], "profile local")
+    assert note == ("profile local: 800 steps per trial; prediction target x0; "
+                    "λ (priors.lambda_3d, Eq. 6) 0.1, from profile local, not from the paper")
+    assert "λ (priors.lambda_3d, Eq. 6) per cell (0.01, 1)," in settings_note("local", 800, ["x0"], [1.0, 0.01], "the spec's cells")
+    assert "λ (priors.lambda_3d, Eq. 6) searched," in settings_note("local", 800, ["x0"], [], "the spec's search")

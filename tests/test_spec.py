@@ -6,16 +6,11 @@ from pathlib import Path
 
 import pytest
 
+from cdm.config import ConfigError
 from sweeps import run
-from sweeps.spec import (
-    Resources,
-    Spec,
-    SpecError,
-    expand,
-    load_profiles,
-    load_spec,
-    plan_concurrency,
-)
+from sweeps.plan import expand, lambda_source
+from sweeps.resources import plan_concurrency
+from sweeps.spec import Resources, Spec, SpecError, load_profiles, load_spec
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
 SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
@@ -133,6 +128,11 @@ def test_optuna_trial_from_sampled_values():
     cell = plan.trial({"priors.lambda_3d": 0.0123456})
     assert cell.label == "λ=0.01235 · seed 0"
     assert cell.config.priors.lambda_3d == 0.0123456 and cell.config.train.steps == 20
+    assert plan.names({"priors.lambda_3d": 0.0123456}) == (cell.name, cell.label)
+    # Naming a trial (the driver's callbacks) resolves no config: a value the config rejects still has a name.
+    assert plan.names({"priors.lambda_3d": -1.0}) == ("λ=-1", "λ=-1 · seed 0")
+    with pytest.raises(ConfigError, match="priors.lambda_3d"):
+        plan.trial({"priors.lambda_3d": -1.0})
 
 
 @pytest.mark.parametrize(
@@ -237,3 +237,13 @@ def test_a_remote_cluster_that_could_never_fit_a_trial_is_refused():
         plan_concurrency(Resources(**PAPER_RESOURCES), 16, 0, 3)
     with pytest.raises(SpecError, match="could offer at most 16 and 0; .* min_workers: 1"):
         plan_concurrency(Resources(**PAPER_RESOURCES), 16, 0, 3, remote=True)
+
+
+def test_lambda_source_names_the_profile_that_sets_it():
+    spec = load_spec(SWEEPS / "point_size.yaml")
+    local, smoke = expand(spec, "local"), expand(spec, "smoke")
+    assert {c.config.priors.lambda_3d for c in local.cells} == {0.1}
+    assert lambda_source(spec, "local", local.fixed, local.sets) == "profile local"
+    assert lambda_source(spec, "smoke", smoke.fixed, smoke.sets) == "the config default"
+    assert lambda_source(spec, "smoke", smoke.fixed, {"priors.lambda_3d": 0.5}) == "--set"
+    assert lambda_source(load_spec(SWEEPS / "lambda.yaml"), "local", {}, {}) == "the spec's search"

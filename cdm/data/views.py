@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import colorsys
 import hashlib
-import json
 from abc import ABC, abstractmethod
 from typing import ClassVar, Literal, NamedTuple
 
@@ -39,6 +38,7 @@ from cdm.data.condition_images import ConditionImages, condition_views
 from cdm.data.lru import ByteLRU
 from cdm.data.priors2d import prior_2d_channels
 from cdm.data.sample import ConditionViews, Sample
+from cdm.digest import json_digest
 from cdm.render import rasterize_points
 
 __all__ = [
@@ -346,7 +346,8 @@ class ObjectDataset(Dataset, ABC):
         """
         identity = [self.kind, self.split, self.cfg.data.model_dump(mode="json"), [list(o) for o in self.objects],
                     self._content_version()]
-        return hashlib.sha256(json.dumps(identity).encode()).hexdigest()[:16]
+        # Unsorted, as recorded on every run so far: --rerun compares against those records.
+        return json_digest(identity, sort_keys=False)
 
     def _content_version(self) -> str:
         """Subclasses whose content is not fixed by their object ids and config say what fixes it."""

@@ -14,7 +14,8 @@ import ray
 from mlflow import MlflowClient
 
 from sweeps import run
-from sweeps.spec import expand, load_spec
+from sweeps.plan import expand
+from sweeps.spec import load_spec
 from tests.input_fixtures import object_ids, write_condition_images, write_embeddings
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]

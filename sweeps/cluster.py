@@ -1,0 +1,53 @@
+"""The Ray cluster a sweep runs on: joining it (or starting a loopback one) and what it can offer.
+
+:func:`cluster_capacity` is the input of :func:`sweeps.resources.plan_concurrency`;
+:func:`cluster_machines` decides whether a SQLite MLflow store can serve every trial.
+"""
+
+from __future__ import annotations
+
+import os
+
+import ray
+
+__all__ = ["cluster_capacity", "cluster_machines", "connect"]
+
+
+def connect(address: str | None) -> bool:
+    """Join the Ray cluster at ``address``/``RAY_ADDRESS``, or start a local one bound to loopback.
+
+    Returns:
+        True when this call connected (the caller disconnects with ``ray.shutdown()``); False when
+        the process was already connected (a test session, a notebook).
+    """
+    if ray.is_initialized():
+        return False
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        ray.init(address=address, logging_level="WARNING")
+    else:
+        from sweeps import local_cluster
+
+        local_cluster.start()
+    return True
+
+
+def cluster_capacity(remote: bool) -> dict[str, float]:
+    """CPUs and GPUs for :func:`sweeps.resources.plan_concurrency`: the nodes up now, or, on a ``remote``
+    cluster, the most it could offer — the larger of its nodes and the node-group bounds an
+    autoscaler publishes in the GCS (none on a fixed cluster: then its nodes).
+    """
+    present = ray.cluster_resources()
+    # The record Ray Data sizes itself by (ray.data's cluster_autoscaler); no public API reads it yet.
+    bounds = (ray._private.state.state.get_max_resources_from_cluster_config() or {}) if remote else {}
+    return {k: max(float(present.get(k, 0.0)), float(bounds.get(k, 0))) for k in ("CPU", "GPU")}
+
+
+def cluster_machines(remote: bool) -> int:
+    """Machines the cluster spans (distinct node addresses: nodes of one host share its files), or on a
+    ``remote`` cluster whose autoscaler publishes its bounds, the most it could grow to (unbounded: 2).
+    """
+    hosts = {n["NodeManagerAddress"] for n in ray.nodes() if n["Alive"]}
+    config = ray._private.state.state.get_cluster_config() if remote else None
+    bound = sum(2 if g.max_count == -1 else g.max_count for g in config.node_group_configs) if config else 0
+    return max(len(hosts), bound)

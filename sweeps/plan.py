@@ -1,0 +1,299 @@
+"""Sweep plan: a validated spec expanded into its trials, each with its validated ``cdm.Config``, before Ray starts.
+
+One trial's config is resolved in this order, later wins::
+
+    cdm defaults < shared profile overrides < spec base < spec profile overrides
+      < budget (train.steps, train.eval_every) and train.threads (= CPUs per worker)
+      < cell values < seed (train.seed) < --set
+
+:func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
+the grid, minus ``exclude``, at every seed), validates the Optuna space at its bounds, and checks
+the metric against :func:`cdm.train.metric_names`, so a typo fails with one
+:class:`sweeps.spec.SpecError` naming the field. :func:`optuna_distributions` is the one mapping of a
+spec's ``search.space`` onto Optuna.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from pydantic import BaseModel
+
+from cdm.config import Config, ConfigError, load_config
+from sweeps.spec import (
+    Budget,
+    DatasetRun,
+    ExplicitCell,
+    PaperRow,
+    Profile,
+    Resources,
+    SpaceParam,
+    Spec,
+    SpecError,
+    field_error,
+    load_profiles,
+)
+
+__all__ = [
+    "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "lambda_source", "optuna_distributions", "resolve_profile",
+]
+
+# Paper notation for readable cell names; other fields use their last dotted part.
+_SHORT_NAMES = {"priors.num_views": "H", "priors.lambda_3d": "λ", "data.categories": "categories"}
+
+
+@dataclass(frozen=True)
+class ResolvedProfile:
+    name: str
+    description: str
+    steps: int
+    eval_every: int
+    overrides: dict[str, Any]
+    resources: Resources
+    num_samples: int | None
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One trial of a grid sweep: a cell of the grid at one seed."""
+
+    name: str
+    """Readable cell name without the seed, e.g. ``point_size=0.04`` (an explicit cell's label)."""
+    label: str
+    """Unique trial label, ``<name> · seed <seed>``; names the MLflow child run."""
+    values: dict[str, Any]
+    seed: int
+    config: Config
+    """The trial's validated config: every override resolved, in the order this module's docstring gives."""
+    paper_label: str | None = None
+    paper: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    spec: Spec
+    profile: ResolvedProfile
+    fixed: dict[str, Any]
+    """Overrides shared by every trial (profile, base, budget, threads); cells and seeds add to them."""
+    sets: dict[str, Any]
+    cells: tuple[Cell, ...]
+    """Every trial of a grid search; empty for Optuna (trials are sampled while the sweep runs)."""
+    metric_names: tuple[str, ...]
+
+    @property
+    def num_trials(self) -> int:
+        if self.spec.search.kind == "optuna":
+            return self.profile.num_samples or self.spec.search.num_samples
+        return len(self.cells)
+
+    def grid_cell(self, label: str) -> Cell | None:
+        """The grid cell of this trial label (its config built by :func:`expand`); None in an Optuna sweep."""
+        return next((c for c in self.cells if c.label == label), None)
+
+    def names(self, tune_config: dict[str, Any]) -> tuple[str, str]:
+        """(cell name, trial label) of a Tune config, without resolving its config: for the driver's callbacks."""
+        if self.spec.search.kind == "grid":
+            cell = self.grid_cell(tune_config["cell"])
+            return cell.name, cell.label
+        name = cell_name({k: tune_config[k] for k in self.spec.search.space})
+        return name, f"{name} · seed {self.spec.seeds[0]}"
+
+    def trial(self, tune_config: dict[str, Any]) -> Cell:
+        """The trial a Tune config stands for: ``{"cell": label}`` (grid) or sampled values (Optuna).
+
+        A grid cell's config was resolved by :func:`expand`; an Optuna trial's is resolved here, once,
+        in the trial that runs it.
+        """
+        if self.spec.search.kind == "grid":
+            return self.grid_cell(tune_config["cell"])
+        values = {k: tune_config[k] for k in self.spec.search.space}
+        seed = self.spec.seeds[0]
+        overrides = {**self.fixed, **values, "train.seed": seed, **self.sets}
+        name, label = self.names(tune_config)
+        return Cell(name, label, values, seed, load_config(None, overrides))
+
+
+def _patch(model: BaseModel, patch: BaseModel) -> dict[str, Any]:
+    return {**model.model_dump(exclude_unset=True), **patch.model_dump(exclude_unset=True)}
+
+
+def resolve_profile(spec: Spec, name: str, shared: dict[str, Profile]) -> ResolvedProfile:
+    if name not in shared and name not in spec.profiles:
+        raise SpecError(f"profile {name!r}: unknown; available: {', '.join(sorted({*shared, *spec.profiles}))}")
+    base = shared.get(name, Profile())
+    local = spec.profiles.get(name, Profile())
+    budget = Budget.model_validate(_patch(base.budget, local.budget))
+    if budget.steps is None or budget.eval_every is None:
+        raise SpecError(f"profiles.{name}.budget: give both steps and eval_every")
+    resources = Resources.model_validate({**_patch(base.resources, spec.resources), **local.resources.model_dump(exclude_unset=True)})
+    return ResolvedProfile(
+        name=name,
+        description=local.description or base.description,
+        steps=budget.steps,
+        eval_every=budget.eval_every,
+        overrides={**base.overrides, **spec.base, **local.overrides},
+        resources=resources,
+        num_samples=local.num_samples or base.num_samples,
+    )
+
+
+def _fmt_value(value: Any) -> str:
+    if isinstance(value, (list, tuple)):
+        return "+".join(str(v) for v in value) or "all"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def cell_name(values: dict[str, Any]) -> str:
+    """Readable name of swept ``values``: ``point_size=0.04 · H=10`` (paper notation where it has one)."""
+    return " · ".join(f"{_SHORT_NAMES.get(k, k.split('.')[-1])}={_fmt_value(v)}" for k, v in values.items())
+
+
+def _cell_values(spec: Spec) -> list[tuple[str, dict[str, Any]]]:
+    """(name, swept values) per cell: explicit cells crossed with the grid, minus excluded combinations."""
+    keys = list(spec.grid)
+    combos = [dict(zip(keys, vals)) for vals in itertools.product(*spec.grid.values())]
+    combos = [c for c in combos if not any(all(c[k] == v for k, v in rule.items()) for rule in spec.exclude)]
+    explicit = spec.cells or [ExplicitCell(label="")]
+    out = []
+    for cell in explicit:
+        for combo in combos:
+            name = " · ".join(p for p in (cell.label, cell_name(combo)) if p)
+            out.append((name, {**cell.set, **combo}))
+    return out
+
+
+def _build(overrides: dict[str, Any], where: str) -> Config:
+    try:
+        return load_config(None, overrides)
+    except ConfigError as exc:
+        raise SpecError(f"{where}: {exc}") from None
+
+
+def _matches(row: PaperRow, config: Config) -> bool:
+    flat = config.flat()
+    return all(_same(flat[k], v) for k, v in row.when.items())
+
+
+def _same(actual: Any, wanted: Any) -> bool:
+    if isinstance(actual, float) and isinstance(wanted, (int, float)):
+        return math.isclose(actual, wanted, rel_tol=1e-9)
+    if isinstance(actual, (list, tuple)) and isinstance(wanted, (list, tuple)):
+        return list(actual) == list(wanted)
+    return actual == wanted
+
+
+def _check_metric(spec: Spec, configs: list[Config]) -> tuple[str, ...]:
+    from cdm.data import list_categories
+    from cdm.train import metric_names
+
+    names: set[str] = set()
+    for cfg in configs:
+        try:
+            names.update(metric_names(cfg, list_categories(cfg)))
+        except ValueError as exc:
+            raise SpecError(str(exc)) from None
+    if spec.metric.name not in names:
+        headline = sorted(n for n in names if n.count("/") == 1)
+        raise SpecError(f"metric.name: {spec.metric.name!r} is not reported by the trainer; choose one of "
+                        f"{', '.join(headline)} or a per-category name like eval/f1/<category>")
+    return tuple(sorted(names))
+
+
+def _dataset_run(spec: Spec, profile: str, sets: dict[str, Any]) -> DatasetRun | None:
+    """The paper's run on the data set ``--set data.root`` points at (paper profile only); sets
+    ``data.kind`` in ``sets`` when the spec names one data set and ``--set`` gives none."""
+    if profile != "paper" or "data.root" not in sets or not spec.datasets:
+        return None
+    if "data.kind" not in sets:
+        if len(spec.datasets) > 1:
+            raise SpecError(f"--set data.kind: this table ran on {' and '.join(spec.datasets)}; say which data.root holds")
+        sets["data.kind"] = next(iter(spec.datasets))
+    return spec.datasets.get(sets["data.kind"])
+
+
+def expand(
+    spec: Spec,
+    profile: str = "local",
+    sets: dict[str, Any] | None = None,
+    shared: dict[str, Profile] | None = None,
+) -> SweepPlan:
+    """Resolve ``profile`` and ``--set`` values and build every cell's config.
+
+    Raises:
+        SpecError: unknown profile, unknown field, a value the config rejects, or a metric the trainer
+            does not report; the message names the field.
+    """
+    sets = dict(sets or {})
+    prof = resolve_profile(spec, profile, load_profiles() if shared is None else shared)
+    for key in sets:
+        if error := field_error(f"--set {key}", key):
+            raise SpecError(error)
+        if key in spec.grid or key in spec.search.space or any(key in c.set for c in spec.cells):
+            raise SpecError(f"--set {key}: this spec sweeps it; change the spec's grid, cells or space instead")
+    run = _dataset_run(spec, profile, sets)
+    if run is not None:
+        spec = spec.model_copy(update={"grid": {**spec.grid, **run.grid}})
+    fixed = {**prof.overrides, **(run.overrides if run else {}), "train.steps": prof.steps, "train.eval_every": prof.eval_every}
+    fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
+    _build({**fixed, **sets}, f"profile {profile}")
+    rows = spec.paper.rows if spec.paper else []
+    cells: list[Cell] = []
+    configs: list[Config] = []
+    if spec.search.kind == "grid":
+        for name, values in _cell_values(spec):
+            for seed in spec.seeds:
+                overrides = {**fixed, **values, "train.seed": seed, **sets}
+                config = _build(overrides, f"cell {name}")
+                paper = next((r for r in rows if _matches(r, config)), None)
+                cells.append(Cell(name, f"{name} · seed {seed}", values, seed, config,
+                                  paper.label if paper else None, dict(paper.values) if paper else {}))
+                configs.append(config)
+    else:
+        for key, param in spec.search.space.items():
+            for probe in param.probes():
+                configs.append(_build({**fixed, key: probe, "train.seed": spec.seeds[0], **sets}, f"search.space.{key}={probe!r}"))
+    labels = [c.label for c in cells]
+    if len(set(labels)) != len(labels):
+        twice = sorted({label for label in labels if labels.count(label) > 1})
+        raise SpecError(f"cells: two cells share the name {twice[0]!r}; give explicit cells distinct labels")
+    if spec.compare_to is not None and spec.compare_to not in {c.name for c in cells}:
+        known = ", ".join(dict.fromkeys(c.name for c in cells))
+        raise SpecError(f"compare_to: {spec.compare_to!r} is not a cell of this spec; cells: {known}")
+    names = _check_metric(spec, configs)
+    return SweepPlan(spec, prof, fixed, sets, tuple(cells), names)
+
+
+def optuna_distributions(space: dict[str, SpaceParam]) -> dict[str, Any]:
+    """The spec's ``search.space`` as Optuna distributions (what the searcher samples, what plots read)."""
+    import optuna.distributions as od
+
+    out: dict[str, Any] = {}
+    for key, p in space.items():
+        if p.type == "categorical":
+            out[key] = od.CategoricalDistribution(p.choices)
+        elif p.type == "int":
+            out[key] = od.IntDistribution(int(p.low), int(p.high), step=int(p.step or 1))
+        else:
+            out[key] = od.FloatDistribution(p.low, p.high, log=p.type == "log_float", step=p.step)
+    return out
+
+
+def lambda_source(spec: Spec, profile: str, fixed: dict[str, Any], sets: dict[str, Any]) -> str:
+    """Where a sweep's λ (``priors.lambda_3d``) comes from, for the results table's settings note."""
+    key = "priors.lambda_3d"
+    if key in spec.search.space:
+        return "the spec's search"
+    if key in spec.grid or any(key in c.set for c in spec.cells):
+        return "the spec's cells"
+    if key in sets:
+        return "--set"
+    if key in spec.base:
+        return "the spec's base"
+    if key in fixed:
+        return f"profile {profile}"
+    return "the config default"
