@@ -25,9 +25,9 @@ from torch import Tensor
 
 from cdm.cameras import Cameras
 from cdm.config import Config
-from cdm.digest import json_digest
 from cdm.data.sample import Batch, ConditionViews, Sample, collate
 from cdm.data.views import ObjectDataset
+from cdm.digest import json_digest
 from cdm.evaluate import EvalSet, build_eval_set
 
 __all__ = ["SharedStore", "SharedViews", "eval_key", "rounds_needed", "views_key"]
