@@ -29,8 +29,10 @@ def timed(fn: Callable[[], object]) -> float:
     return time.perf_counter() - start
 
 
-def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, sync: Callable[[], object] | None = None) -> float:
-    """Median seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones.
+def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, sync: Callable[[], object] | None = None,
+             clock: Callable[[], float] = time.perf_counter) -> float:
+    """Median seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones, by ``clock``
+    (wall time; ``time.process_time`` for this process's CPU time).
 
     ``sync`` (e.g. ``torch.cuda.synchronize``) runs before and after each timed call, so queued
     device work is counted in the call that queued it.
@@ -41,11 +43,11 @@ def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, sync: Call
     for _ in range(repeats):
         if sync is not None:
             sync()
-        start = time.perf_counter()
+        start = clock()
         fn()
         if sync is not None:
             sync()
-        times.append(time.perf_counter() - start)
+        times.append(clock() - start)
     return statistics.median(times)
 
 

@@ -17,33 +17,33 @@ import os
 import statistics
 import tempfile
 import time
+from typing import TYPE_CHECKING
+
+from benchmarks.common import median_s
+
+if TYPE_CHECKING:
+    from cdm.config import Config
 
 __all__ = ["sweep_cpu_per_step"]
 
 
-def _isolated_step(overrides: dict) -> float:
+def _isolated_step(config: Config) -> float:
     import torch
 
-    from cdm.config import load_config
     from cdm.train import Trainer
 
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as tmp:
-        trainer = Trainer(load_config(None, {**overrides, "train.out_dir": tmp, "train.threads": 1}))
+        trainer = Trainer(config.replace(**{"train.out_dir": tmp, "train.threads": 1}))
         batch = trainer.next_batch()
-        trainer.train_step(batch)
-        times = []
-        for _ in range(8):
-            start = time.process_time()
-            trainer.train_step(batch)
-            times.append(time.process_time() - start)
-    return statistics.median(times)
+        return median_s(lambda: trainer.train_step(batch), 8, clock=time.process_time)
 
 
 def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = None) -> list[dict]:
     from mlflow import MlflowClient
 
-    from sweeps.spec import expand, load_spec
+    from sweeps.plan import expand
+    from sweeps.spec import load_spec
 
     client = MlflowClient(tracking_uri)
     exp = client.get_experiment_by_name(experiment)
@@ -62,7 +62,7 @@ def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = 
     spec_name = children[0].data.tags.get("spec", experiment)
     profile = children[0].data.tags.get("profile", "local")
     plan = expand(load_spec(f"sweeps/{spec_name}.yaml"), profile)
-    isolated = _isolated_step(plan.cells[0].overrides)
+    isolated = _isolated_step(plan.cells[0].config)
     spans = [(r.info.start_time / 1000, r.info.end_time / 1000) for r in children]
     wall = max(e for _, e in spans) - min(b for b, _ in spans)
     cpus = cpus or float(os.cpu_count() or 1)

@@ -56,3 +56,11 @@ def test_median_s_warms_up_untimed_and_brackets_each_timed_call_with_sync():
     seconds = median_s(lambda: events.append("call"), repeats=3, warmup=2, sync=lambda: events.append("sync"))
     assert events == ["call", "call"] + ["sync", "call", "sync"] * 3
     assert 0 <= seconds < 1
+
+
+def test_median_s_reads_the_clock_it_is_given():
+    from benchmarks.common import median_s
+
+    ticks = iter(range(100))
+    # Each timed call spans one tick of this clock (read before and after): the median is 1.
+    assert median_s(lambda: None, repeats=4, clock=lambda: float(next(ticks))) == 1.0
