@@ -11,18 +11,45 @@ from sweeps import run
 from sweeps.plan import expand, lambda_source
 from sweeps.resources import plan_concurrency
 from sweeps.spec import Resources, Spec, SpecError, load_profiles, load_spec
+from tests.input_fixtures import object_ids, write_condition_images, write_embeddings
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
 SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
+NEEDS_INPUTS = [p for p in SHIPPED if "$CDM_INPUTS" in p.read_text()]  # Tables 7 and 8: embeddings, generated images
 
 EXPECTED_TRIALS = {  # cells × seeds per shipped spec (Optuna: num_samples of the profile)
     "point_size": 5, "frames": 7, "frames_point_size": 3, "priors_2d_3d": 4, "prior_type": 2,
-    "global_features": 3, "conditions": 1, "prediction": 3, "bdm_blend": 20, "shapenet": 10, "co3d": 6, "lambda": {"smoke": 4, "local": 8, "paper": 32},
+    "global_features": 6, "conditions": 7, "prediction": 3, "bdm_blend": 20, "shapenet": 10, "co3d": 6, "lambda": {"smoke": 4, "local": 8, "paper": 32},
 }
 
 
 def test_the_specs_of_the_issues_are_shipped():
     assert {p.stem for p in SHIPPED} == set(EXPECTED_TRIALS)
+    assert {p.stem for p in NEEDS_INPUTS} == {"global_features", "conditions"}
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> Path:
+    """``$CDM_INPUTS`` for the specs that read it: OpenCLIP-like embeddings and generated condition images
+    for every object of every profile. The smoke objects get all views at the smoke image size (the
+    estimate's calibration trains on them); the other profiles' only round 0's input view, 8 px (a dry
+    run checks that each object has its entry, and reads no image)."""
+    folder = tmp_path_factory.mktemp("inputs")
+    baseline = {p: expand(load_spec(SWEEPS / "conditions.yaml"), p).cells[0].config for p in ("smoke", "local", "paper")}
+    smoke = object_ids(baseline["smoke"])
+    ids = sorted({o for cfg in baseline.values() for o in object_ids(cfg)})
+    for seed, kind in enumerate(("text", "image", "depth")):
+        write_embeddings(folder / "openclip" / f"{kind}.npz", ids, (16,), seed)
+    write_condition_images(folder / "controlnet", smoke, views=3, size=baseline["smoke"].data.image_size)
+    write_condition_images(folder / "controlnet", sorted(set(ids) - set(smoke)), views=0, size=8)
+    return folder
+
+
+@pytest.fixture
+def given_inputs(path, request, monkeypatch):
+    """Point ``$CDM_INPUTS`` at the written inputs when the test's spec reads them."""
+    if path in NEEDS_INPUTS:
+        monkeypatch.setenv("CDM_INPUTS", str(request.getfixturevalue("inputs")))
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
@@ -39,7 +66,7 @@ def test_every_shipped_spec_expands_in_every_profile(path, profile):
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
-def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, tmp_path, monkeypatch, capsys):
+def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, given_inputs, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(path), "--dry-run", "--smoke"]) == 0  # smoke: the calibration takes a second
     out = capsys.readouterr().out
@@ -57,13 +84,26 @@ def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, t
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
 @pytest.mark.parametrize("profile", ["smoke", "local", "paper"])
-def test_every_spec_dry_runs_in_every_profile_with_its_protocol_card(path, profile, tmp_path, monkeypatch, capsys):
+def test_every_spec_dry_runs_in_every_profile_with_its_protocol_card(path, profile, given_inputs, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(path), "--dry-run", "--no-estimate", "--profile", profile]) == 0
     out = capsys.readouterr().out
     card = out.split("protocol card:\n", 1)[1].splitlines()
     assert card[0].startswith("  deviation: data set: the procedural data set stands in")  # no data.root given
     assert f"profile {profile}" in out and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("path", "field"), [(SWEEPS / "global_features.yaml", "model.global_embeddings"),
+                                             (SWEEPS / "conditions.yaml", "data.condition_folder")], ids=lambda v: getattr(v, "stem", v))
+def test_a_dry_run_without_the_external_inputs_exits_2_naming_the_field(path, field, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("CDM_INPUTS", raising=False)
+    assert run.main([str(path), "--dry-run", "--smoke"]) == 2
+    captured = capsys.readouterr()
+    assert f"{field}=$CDM_INPUTS/" in captured.out and "(MISSING)" in captured.out
+    error = captured.err.strip().splitlines()[-1]
+    assert error.startswith(f"error: {field}: $CDM_INPUTS/") and "set the environment variable it names" in error
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_profiles_differ_in_size_and_the_paper_profile_has_the_paper_settings():

@@ -114,8 +114,13 @@ def test_resume_accepts_auto_resolved_to_the_same_backend_and_refuses_other_math
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     bad = tmp_path / "checkpoint.pt"
-    bad.write_bytes(b"not a checkpoint")
-    with pytest.raises(ValueError, match="not a readable CDM checkpoint"):
+    bad.write_bytes(b"not a checkpoint")  # not a pickle: weights_only refuses it, in our words (issue 23)
+    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt holds Python objects other than tensors and plain data; refused") as err:
+        load_checkpoint(tmp_path)
+    assert "weights_only" not in str(err.value)
+    torch.save({"step": 0, "model": torch.zeros(1000)}, bad)
+    bad.write_bytes(bad.read_bytes()[:600])  # a truncated archive: torch cannot open it at all
+    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt is not a readable CDM checkpoint"):
         load_checkpoint(tmp_path)
 
 
