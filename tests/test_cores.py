@@ -55,3 +55,39 @@ def test_a_handoff_lets_the_waiting_trial_compute_first(tmp_path):
     thread.join(5.0)
     assert order == ["waiting", "running"]
     running.release()
+
+
+def test_waiting_trials_are_served_first_come_first_served(tmp_path):
+    holder = CoreLease(tmp_path, cores=1)
+    holder.acquire()
+    order = []
+    waiters = [CoreLease(tmp_path, cores=1) for _ in range(3)]
+
+    def wait(i):
+        waiters[i].acquire()
+        order.append(i)
+        time.sleep(0.05)
+        waiters[i].release()
+
+    threads = []
+    for i in range(3):
+        threads.append(threading.Thread(target=wait, args=(i,), daemon=True))
+        threads[-1].start()
+        time.sleep(0.05)  # queued in the order 0, 1, 2
+    holder.on_step(100, {})  # hands on, queues behind all three
+    order.append("holder")
+    for t in threads:
+        t.join(5.0)
+    assert order == [0, 1, 2, "holder"]
+    holder.release()
+
+
+def test_a_dead_trials_ticket_does_not_block_the_queue(tmp_path):
+    (tmp_path / "queue").mkdir()
+    (tmp_path / "queue" / "00000000000000000001_999_1").touch()  # unlocked: its process is gone
+    lease = CoreLease(tmp_path, cores=1)
+    done = threading.Event()
+    threading.Thread(target=lambda: (lease.acquire(), done.set()), daemon=True).start()
+    assert done.wait(5.0) and lease.held
+    assert not (tmp_path / "queue" / "00000000000000000001_999_1").exists()
+    lease.release()
