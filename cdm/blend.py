@@ -33,14 +33,14 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable, Sequence
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from cdm.config import Config
 from cdm.data.sample import Batch
-from cdm.diffusion import GaussianDiffusion, ModelFn
+from cdm.diffusion import GaussianDiffusion, ModelFn, SamplerSettings
 from cdm.prior_model import CategoryPrior, load_prior, prior_path
 
 __all__ = ["BlendResult", "blend_windows", "blended_reconstruction", "blended_sample", "matched_timesteps"]
@@ -100,10 +100,8 @@ def blended_sample(
     milestones: Sequence[int],
     window_steps: int,
     select_prob: float,
+    settings: SamplerSettings = SamplerSettings(),
     device: torch.device | str = "cpu",
-    sampler: Literal["ddim", "ddpm"] = "ddim",
-    steps: int = 50,
-    clip_x0: float | None = 1.0,
     progress: Callable[[int, int], None] | None = None,
 ) -> BlendResult:
     """:meth:`GaussianDiffusion.sample` with BDM blending windows (module docstring).
@@ -116,18 +114,18 @@ def blended_sample(
         generator: sampling noise (x_T and the reconstruction branch's DDPM noise).
         blend_generator: the prior branch's DDPM noise and the per-point selection.
         milestones, window_steps, select_prob: ``sampling.blend`` (checked by the config).
-        device, sampler, steps, clip_x0, progress: as for ``sample``; ``clip_x0`` clamps both x̂₀.
+        settings, device, progress: as for ``sample``; ``settings.clip_x0`` clamps both x̂₀.
     """
     x = torch.randn(shape, generator=generator, device=device)
     # The same timesteps and step functions as GaussianDiffusion.sample, so that outside windows
     # (and everywhere at select_prob 0) every operation on x is the plain sampler's.
-    timesteps = diffusion.timesteps(sampler, steps)
+    timesteps = diffusion.timesteps(settings.sampler, settings.steps)
     windows = blend_windows(timesteps, milestones, window_steps)
     opens = {w[0] for w in windows}
     closes = {w[-1] for w in windows}
 
     def step(x_t: Tensor, t: Tensor, i: int, x0_hat: Tensor, gen: torch.Generator | None) -> Tensor:
-        return diffusion.step(x_t, t, i, timesteps, x0_hat, sampler=sampler, clip_x0=clip_x0, generator=gen)
+        return diffusion.step(x_t, t, i, timesteps, x0_hat, settings, gen)
 
     x_prior: Tensor | None = None
     masks = []
@@ -214,9 +212,7 @@ def blended_reconstruction(
         milestones=blend.milestones,
         window_steps=blend.window_steps,
         select_prob=blend.select_prob,
+        settings=SamplerSettings.from_config(cfg.diffusion),
         device=device,
-        sampler=cfg.diffusion.sampler,
-        steps=cfg.diffusion.sample_steps,
-        clip_x0=cfg.diffusion.clip_x0,
         progress=progress,
     )

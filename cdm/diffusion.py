@@ -16,6 +16,7 @@ Whatever the target, the loss is the MSE to that target, and every sampler works
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -23,11 +24,32 @@ from torch import Tensor
 
 from cdm.config import DiffusionConfig
 
-__all__ = ["GaussianDiffusion", "Prediction"]
+__all__ = ["GaussianDiffusion", "Prediction", "SamplerSettings"]
 
 Prediction = Literal["eps", "x0", "v"]
 ModelFn = Callable[[Tensor, Tensor], Tensor]
 """``model_fn(x_t (B, N, 3), t (B,) long) -> raw network output (B, N, 3)``."""
+
+
+@dataclass(frozen=True)
+class SamplerSettings:
+    """How the reverse process runs: one value for :meth:`GaussianDiffusion.sample` and the BDM
+    blended sampler (:func:`cdm.blend.blended_sample`), so the two cannot drift apart.
+
+    Attributes:
+        sampler: ``ddim`` (deterministic, η = 0, over ``steps`` evenly spaced timesteps) or ``ddpm``
+            (ancestral, all T steps; PC²'s sampler).
+        steps: DDIM's number of steps; ignored by DDPM.
+        clip_x0: clamp x̂₀ to ``[-clip_x0, clip_x0]`` at every step; ``None`` leaves it unclipped (PC²).
+    """
+
+    sampler: Literal["ddim", "ddpm"] = "ddim"
+    steps: int = 50
+    clip_x0: float | None = 1.0
+
+    @classmethod
+    def from_config(cls, cfg: DiffusionConfig) -> SamplerSettings:
+        return cls(cfg.sampler, cfg.sample_steps, cfg.clip_x0)
 
 
 class GaussianDiffusion:
@@ -92,27 +114,22 @@ class GaussianDiffusion:
         self,
         model_fn: ModelFn,
         shape: tuple[int, int, int],
+        settings: SamplerSettings = SamplerSettings(),
         *,
         generator: torch.Generator | None = None,
         device: torch.device | str = "cpu",
-        sampler: Literal["ddim", "ddpm"] = "ddim",
-        steps: int = 50,
-        clip_x0: float | None = 1.0,
         progress: Callable[[int, int], None] | None = None,
     ) -> Tensor:
-        """Draw ``(B, N, 3)`` clouds by reverse diffusion from ``x_T ~ N(0, I)``.
+        """Draw ``(B, N, 3)`` clouds by reverse diffusion from ``x_T ~ N(0, I)`` (see :class:`SamplerSettings`).
 
-        ``ddim`` is deterministic DDIM (η = 0) over ``steps`` evenly spaced timesteps; ``ddpm`` is the
-        full ancestral sampler over all T steps. ``clip_x0`` clamps x̂₀ at every step, which keeps
-        short-trained models from diverging (unclipped 100-step DDIM after minutes of CPU training gave
-        diverged clouds). Noise comes from ``generator`` only.
+        Clipping x̂₀ keeps short-trained models from diverging (unclipped 100-step DDIM after minutes of
+        CPU training gave diverged clouds). Noise comes from ``generator`` only.
         """
         x = torch.randn(shape, generator=generator, device=device)
-        timesteps = self.timesteps(sampler, steps)
+        timesteps = self.timesteps(settings.sampler, settings.steps)
         for i, t_int in enumerate(timesteps):
             t = torch.full((shape[0],), t_int, dtype=torch.long, device=device)
-            x = self.step(x, t, i, timesteps, self.predict_x0(x, t, model_fn(x, t)),
-                          sampler=sampler, clip_x0=clip_x0, generator=generator)
+            x = self.step(x, t, i, timesteps, self.predict_x0(x, t, model_fn(x, t)), settings, generator)
             if progress is not None:
                 progress(i + 1, len(timesteps))
         return x
@@ -124,9 +141,7 @@ class GaussianDiffusion:
         i: int,
         timesteps: list[int],
         x0_hat: Tensor,
-        *,
-        sampler: Literal["ddim", "ddpm"],
-        clip_x0: float | None,
+        settings: SamplerSettings,
         generator: torch.Generator | None,
     ) -> Tensor:
         """One reverse step from ``timesteps[i]`` (``t``, per sample) to the next, given the clean estimate.
@@ -134,9 +149,9 @@ class GaussianDiffusion:
         Clamps ``x0_hat`` to ``[-clip_x0, clip_x0]`` first, then takes the DDIM (η = 0) or DDPM step;
         ``generator`` feeds the DDPM noise. Shared by :meth:`sample` and the BDM blended sampler.
         """
-        if clip_x0 is not None:
-            x0_hat = x0_hat.clamp(-clip_x0, clip_x0)
-        if sampler == "ddim":
+        if settings.clip_x0 is not None:
+            x0_hat = x0_hat.clamp(-settings.clip_x0, settings.clip_x0)
+        if settings.sampler == "ddim":
             return self._ddim_step(x_t, t, x0_hat, timesteps[i + 1] if i + 1 < len(timesteps) else -1)
         return self._ddpm_step(x_t, timesteps[i], x0_hat, generator)
 

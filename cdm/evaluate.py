@@ -33,7 +33,7 @@ from cdm.cameras import Cameras, orbit_cameras, project_points
 from cdm.config import Config
 from cdm.data.sample import Batch, collate
 from cdm.data.views import ObjectDataset
-from cdm.diffusion import GaussianDiffusion
+from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.digest import json_digest
 from cdm.metrics import ChamferF1, chamfer_f1
 from cdm.model import CDMNetwork
@@ -241,16 +241,8 @@ def reconstruct(
 
     if cfg.sampling.blend.enabled:
         return blended_reconstruction(model_fn, diffusion, batch, cfg, generator, progress).points
-    return diffusion.sample(
-        model_fn,
-        shape,
-        generator=generator,
-        device=batch.points.device,
-        sampler=cfg.diffusion.sampler,
-        steps=cfg.diffusion.sample_steps,
-        clip_x0=cfg.diffusion.clip_x0,
-        progress=progress,
-    )
+    return diffusion.sample(model_fn, shape, SamplerSettings.from_config(cfg.diffusion),
+                            generator=generator, device=batch.points.device, progress=progress)
 
 
 def run_evaluation(

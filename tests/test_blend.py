@@ -19,7 +19,7 @@ from cdm.config import load_config
 from cdm.data import build_dataset
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import collate
-from cdm.diffusion import GaussianDiffusion
+from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.evaluate import reconstruct
 from cdm.model import CDMNetwork
 from cdm.prior_model import (
@@ -50,14 +50,14 @@ def _prior_x0(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
 def _blend(diffusion, model_fn, prior_x0, sampler, steps, select_prob, milestones=BDM_MILESTONES, window=16, shape=(2, 64, 3)):
     return blended_sample(
         diffusion, model_fn, prior_x0, shape, generator=_gen(0), blend_generator=_gen(1), milestones=milestones,
-        window_steps=window, select_prob=select_prob, sampler=sampler, steps=steps,
+        window_steps=window, select_prob=select_prob, settings=SamplerSettings(sampler, steps),
     )
 
 
 @pytest.mark.parametrize("sampler,steps", [("ddim", 50), ("ddpm", 1000)])
 def test_select_prob_zero_is_exactly_the_plain_sampler(sampler, steps):
     diffusion = GaussianDiffusion(prediction="eps")
-    plain = diffusion.sample(_recon_eps, (2, 64, 3), generator=_gen(0), sampler=sampler, steps=steps)
+    plain = diffusion.sample(_recon_eps, (2, 64, 3), SamplerSettings(sampler, steps), generator=_gen(0))
     blended = _blend(diffusion, _recon_eps, _prior_x0, sampler, steps, select_prob=0.0)
     assert torch.equal(blended.points, plain)
     assert len(blended.from_prior) == 5 and not any(m.any() for m in blended.from_prior)
@@ -79,11 +79,11 @@ def test_select_prob_one_follows_the_prior_trajectory_inside_windows():
     def switched(x, t):
         return _prior_x0(x, t) if int(t[0]) in in_window else recon_x0(x, t)
 
-    reference = diffusion.sample(switched, (2, 64, 3), generator=_gen(0), sampler="ddim", steps=50)
+    reference = diffusion.sample(switched, (2, 64, 3), SamplerSettings("ddim", 50), generator=_gen(0))
     blended = _blend(diffusion, recon_x0, _prior_x0, "ddim", 50, select_prob=1.0)
     assert torch.equal(blended.points, reference)
     assert all(m.all() for m in blended.from_prior)
-    assert not torch.equal(reference, diffusion.sample(recon_x0, (2, 64, 3), generator=_gen(0), sampler="ddim", steps=50))
+    assert not torch.equal(reference, diffusion.sample(recon_x0, (2, 64, 3), SamplerSettings("ddim", 50), generator=_gen(0)))
 
 
 @pytest.mark.parametrize("sampler,steps", [("ddim", 50), ("ddpm", 1000)])

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from cdm.diffusion import GaussianDiffusion
+from cdm.diffusion import GaussianDiffusion, SamplerSettings
 
 
 @pytest.mark.parametrize("prediction", ["eps", "x0", "v"])
@@ -48,8 +48,8 @@ def analytic_model(d: GaussianDiffusion, target_cloud: torch.Tensor):
 def test_samplers_recover_the_single_data_point(prediction, sampler, steps):
     d = GaussianDiffusion(1000, 1e-4, 2e-2, prediction)
     cloud = torch.rand(1, 32, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
-    out = d.sample(analytic_model(d, cloud), (2, 32, 3), generator=torch.Generator().manual_seed(4),
-                   sampler=sampler, steps=steps, clip_x0=None)
+    out = d.sample(analytic_model(d, cloud), (2, 32, 3), SamplerSettings(sampler, steps, clip_x0=None),
+                   generator=torch.Generator().manual_seed(4))
     assert torch.allclose(out, cloud.expand(2, -1, -1), atol=1e-4)
 
 
@@ -61,8 +61,8 @@ def test_ddim_is_deterministic_given_the_generator_and_clips():
         calls.append(int(t[0]))
         return torch.full_like(x_t, 5.0)
 
-    a = d.sample(wild, (1, 8, 3), generator=torch.Generator().manual_seed(0), steps=10, clip_x0=1.0)
-    b = d.sample(wild, (1, 8, 3), generator=torch.Generator().manual_seed(0), steps=10, clip_x0=1.0)
+    a = d.sample(wild, (1, 8, 3), SamplerSettings("ddim", 10, clip_x0=1.0), generator=torch.Generator().manual_seed(0))
+    b = d.sample(wild, (1, 8, 3), SamplerSettings("ddim", 10, clip_x0=1.0), generator=torch.Generator().manual_seed(0))
     assert torch.equal(a, b)
     assert torch.all(a == 1.0)  # the last DDIM step returns the clipped x̂₀
     assert calls[:10] == sorted(set(calls[:10]), reverse=True) and calls[0] == 99 and calls[9] == 0
