@@ -34,7 +34,8 @@ from sweeps.precompute import shared_root
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.resources import plan_concurrency
 from sweeps.spec import Spec, SpecError, load_spec
-from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
+from sweeps.storage import (StoreError, check_storage, check_tracking_uri, exists, is_uri, parse_state, publish_files,
+                            read_text, sweep_location)
 
 __all__ = ["describe", "main"]
 
@@ -166,42 +167,6 @@ def _check_inputs(plan: SweepPlan, remote: bool) -> None:
             check_coverage(cfg, (build_dataset(cfg, "train"), build_dataset(cfg, "val")))
 
 
-def _is_uri(storage: str) -> bool:
-    """``s3://…``, ``gs://…``, ``file://…``: kept as written and read through pyarrow; else a local path."""
-    return "://" in storage
-
-
-def _sweep_location(storage: str, spec: str, profile: str) -> str:
-    """``<storage>/<spec>/<profile>``: an absolute path, or a URI joined as a string (no Path: it eats ``//``)."""
-    if _is_uri(storage):
-        return f"{storage.rstrip('/')}/{spec}/{profile}"
-    return str((Path(storage) / spec / profile).resolve())
-
-
-def _exists(location: str) -> bool:
-    from pyarrow import fs
-
-    filesystem, path = fs.FileSystem.from_uri(location)
-    return filesystem.get_file_info(path).type != fs.FileType.NotFound
-
-
-def _read_text(location: str) -> str:
-    from pyarrow import fs
-
-    filesystem, path = fs.FileSystem.from_uri(location)
-    with filesystem.open_input_stream(path) as stream:
-        return stream.read().decode(errors="replace")  # a damaged file fails as JSON, with its name
-
-
-def _publish_files(local: Path, location: str) -> None:
-    """Copy the staging folder ``local`` into the sweep folder ``location`` (a URI; local paths write in place)."""
-    from pyarrow import fs
-
-    filesystem, path = fs.FileSystem.from_uri(location)
-    filesystem.create_dir(path, recursive=True)
-    fs.copy_files(str(local), path, source_filesystem=fs.LocalFileSystem(), destination_filesystem=filesystem)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
@@ -221,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         from sweeps.rerun import RerunError, rerun
         from sweeps.tracking import resolve_tracking_uri
 
-        if _is_uri(args.storage):
+        if is_uri(args.storage):
             return _fail(f"--rerun trains in this process and writes its files here: give --storage a local folder, not {args.storage}")
         try:
             return rerun(args.rerun, resolve_tracking_uri(args.tracking_uri), (Path(args.storage) / "reruns").resolve(), args.force)
@@ -231,7 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--smoke means --profile smoke; got --profile {args.profile} too")
     profile = "smoke" if args.smoke else (args.profile or "local")
     remote = args.address is not None or "RAY_ADDRESS" in os.environ
-    if remote and not args.dry_run and not _is_uri(args.storage) and not Path(args.storage).is_absolute():
+    if remote and not args.dry_run and not is_uri(args.storage) and not Path(args.storage).is_absolute():
         # Under `ray job submit` the driver's working directory is the job's temporary copy of the
         # repository: checkpoints there vanish with the job and other nodes never see them.
         return _fail(f"--storage {args.storage}: on a cluster give an absolute path that every node shares "
@@ -239,16 +204,16 @@ def main(argv: list[str] | None = None) -> int:
     state = None
     try:
         spec = load_spec(args.spec)
-        sweep_dir = _sweep_location(args.storage, spec.name, profile)
+        sweep_dir = sweep_location(args.storage, spec.name, profile)
         state_file = f"{sweep_dir}/{STATE_FILE}"
         sets = dict(parse_override(text) for text in args.set)
         if args.resume:
-            if not _exists(state_file):
+            if not exists(state_file):
                 return _fail(f"--resume: {sweep_dir} holds no sweep to resume (no {STATE_FILE})")
             if sets:
                 return _fail("--resume continues a sweep with the spec and --set values it started with; drop --set")
             # The spec as it started, even if the file was edited since: trials must stay the same.
-            state = parse_state(_read_text(state_file), state_file)
+            state = parse_state(read_text(state_file), state_file)
             try:
                 spec, sets = Spec.model_validate(state["spec"]), state["sets"]
             except ValidationError as exc:
@@ -274,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
             held = claim(sweep_dir)
         except (StoreError, ClaimError) as exc:
             return _fail(str(exc))
-        if not args.resume and _exists(sweep_dir):
+        if not args.resume and exists(sweep_dir):
             held.release()
             return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
     if args.dry_run:
@@ -330,12 +295,13 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
 
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
     # in a staging folder, copied at once (sweep.json, so a crashed sweep can be resumed) and at the end.
-    staging = Path(tempfile.mkdtemp(prefix="cdm-sweep-")) if _is_uri(sweep_dir) else Path(sweep_dir)
+    staging = Path(tempfile.mkdtemp(prefix="cdm-sweep-")) if is_uri(sweep_dir) else Path(sweep_dir)
     # A resumed sweep keeps logging into the store it started with, wherever it is resumed from.
-    stored = json.loads(_read_text(state_file)) if args.resume else {}
+    stored = json.loads(read_text(state_file)) if args.resume else {}
     uri = resolve_tracking_uri(args.tracking_uri or stored.get("tracking_uri"))
     started = connect(args.address)
     quiet_loggers()
+    sweep_run = None
     try:
         machines = cluster_machines(remote)
         if uri.startswith("sqlite:") and machines > 1:
@@ -366,8 +332,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                 {"fixed": plan.fixed, "sets": sets, "cells": [
                     {"label": c.label, "values": c.values, "seed": c.seed, "paper": c.paper} for c in plan.cells]},
                 indent=2, default=str))
-            if _is_uri(sweep_dir):
-                _publish_files(staging, sweep_dir)
+            if is_uri(sweep_dir):
+                publish_files(staging, sweep_dir)
             sweep_run.log_artifacts([args.spec.resolve(), plan_file])
         held.record(uri, sweep_run.run_id)
         print(f"profile in force: {plan.profile.name}; MLflow: {uri} (parent run {sweep_run.run_id})", flush=True)
@@ -407,14 +373,19 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         sweep_run.log_results(cell_means(table), baselines_by_eval_set(outcomes),
                               describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table, plan_card(plan).lines()))
         view = publish(uri, sweep_run.run_id, staging / "plots")
-        if _is_uri(sweep_dir):
-            _publish_files(staging, sweep_dir)
+        if is_uri(sweep_dir):
+            publish_files(staging, sweep_dir)
         unfinished = any(o.status == "pending" for o in outcomes)
         sweep_run.end("KILLED" if unfinished else "FINISHED")
+    except BaseException as exc:
+        # Whatever stopped the sweep, its parent run must not stay RUNNING in the UI; re-raised as is.
+        if sweep_run is not None:
+            sweep_run.end("KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
+        raise
     finally:
         if started:
             ray.shutdown()
-        if _is_uri(sweep_dir):
+        if is_uri(sweep_dir):
             shutil.rmtree(staging)
     print("\n" + table.text() + "\n")
     if predicted is not None:

@@ -8,6 +8,8 @@
   ``AWS_ENDPOINT_URL`` for an S3-compatible server other than AWS, as pyarrow reads them; Ray's
   processes inherit them from the driver).
 - :func:`parse_state`: a sweep's ``sweep.json`` as ``--resume`` needs it.
+- :func:`sweep_location`, :func:`exists`, :func:`read_text`, :func:`publish_files`: a sweep folder
+  named by a local path or a URI, read and written through pyarrow's file systems.
 
 Each refusal is a :class:`StoreError` of one line naming the URI or file and what is allowed.
 """
@@ -24,7 +26,8 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TRACKING_SCHEMES", "StoreError", "check_storage", "check_tracking_uri", "parse_state"]
+__all__ = ["TRACKING_SCHEMES", "StoreError", "check_storage", "check_tracking_uri", "exists", "is_uri", "parse_state",
+           "publish_files", "read_text", "sweep_location"]
 
 TRACKING_SCHEMES = ("sqlite", "file", "http", "https", "postgresql", "mysql", "mssql")
 """MLflow stores a sweep can log to."""
@@ -84,7 +87,7 @@ def check_storage(sweep_dir: str) -> None:
     to take (and delete) a small probe object at the bucket's top, where removing it leaves no folder
     marker behind in the sweep's own path.
     """
-    if "://" not in sweep_dir:
+    if not is_uri(sweep_dir):
         _writable_folder(Path(sweep_dir), "--storage")
         return
     from pyarrow import fs
@@ -128,3 +131,39 @@ def parse_state(text: str, where: str) -> dict[str, Any]:
             raise StoreError(f"--resume: {where} is damaged ({key}: expected a JSON "
                              f"{'object' if kind is dict else 'string'}); remove the folder to start over")
     return state
+
+
+def is_uri(storage: str) -> bool:
+    """``s3://…``, ``gs://…``, ``file://…``: kept as written and read through pyarrow; else a local path."""
+    return "://" in storage
+
+
+def sweep_location(storage: str, spec: str, profile: str) -> str:
+    """``<storage>/<spec>/<profile>``: an absolute path, or a URI joined as a string (no Path: it eats ``//``)."""
+    if is_uri(storage):
+        return f"{storage.rstrip('/')}/{spec}/{profile}"
+    return str((Path(storage) / spec / profile).resolve())
+
+
+def exists(location: str) -> bool:
+    from pyarrow import fs
+
+    filesystem, path = fs.FileSystem.from_uri(location)
+    return filesystem.get_file_info(path).type != fs.FileType.NotFound
+
+
+def read_text(location: str) -> str:
+    from pyarrow import fs
+
+    filesystem, path = fs.FileSystem.from_uri(location)
+    with filesystem.open_input_stream(path) as stream:
+        return stream.read().decode(errors="replace")  # a damaged file fails as JSON, with its name
+
+
+def publish_files(local: Path, location: str) -> None:
+    """Copy the staging folder ``local`` into the sweep folder ``location`` (a URI; local paths write in place)."""
+    from pyarrow import fs
+
+    filesystem, path = fs.FileSystem.from_uri(location)
+    filesystem.create_dir(path, recursive=True)
+    fs.copy_files(str(local), path, source_filesystem=fs.LocalFileSystem(), destination_filesystem=filesystem)

@@ -235,3 +235,19 @@ def test_progress_line_counts_steps_across_trials_in_place_on_a_terminal(cluster
             assert re.fullmatch(r"(\x1b\[2K[^\n]*\r)*\x1b\[2K" + last + r"\r\n", text) and text.count("\n") == 1
         else:
             assert re.fullmatch(last, text.splitlines()[-1]) and "\x1b" not in text and "\r" not in text
+
+
+def test_a_crash_after_the_parent_run_exists_marks_it_failed(cluster, tmp_path, monkeypatch):
+    """An unexpected error once the parent run is open (here: the trials' runner itself raising) reaches
+    the user as it is, and leaves the parent run FAILED, not RUNNING forever in the UI."""
+    import sweeps.trial
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("the trials' runner broke")
+
+    monkeypatch.setattr(sweeps.trial, "run_sweep", broken)
+    argv, uri = _sweep(tmp_path, "name: crash\ngrid: {priors.point_size: [0.02]}\n")
+    with pytest.raises(RuntimeError, match="runner broke"):
+        run.main(argv)
+    _, parents, children = _children(uri, "crash")
+    assert [p.info.status for p in parents] == ["FAILED"] and children == []
