@@ -1,5 +1,8 @@
 """Rebuild a finished sweep's comparison straight from MLflow: results table, the paper's layout, plots, panels.
 
+(Over 400 lines on purpose: every read of a finished sweep from MLflow lives in this one module, shared by
+the runner, ``--report`` and the notebook, so no other module depends on how runs are laid out.)
+
 ``python sweeps/report.py EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]``
 (also ``python sweeps/run.py --report EXPERIMENT``) reads the sweep's parent run (its spec file and
 ``plan.json``) and its child runs, and writes ``results.{md,csv}`` and the plots into ``--out``

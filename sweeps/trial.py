@@ -1,5 +1,8 @@
 """Ray glue of a sweep: the Tune trainable, the Ray Train loop around ``cdm.train.fit``, and the Tuner.
 
+(Just over 400 lines: the Tune trainable, the Train loop and the Tuner they run in are read together;
+splitting them would scatter one trial's life over three files.)
+
 Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pattern;
 ``Tuner(trainer)`` is deprecated) whose loop is :func:`train_loop`, given the trial's
 :class:`TrialJob`. ``resources.workers_per_trial`` picks how:
