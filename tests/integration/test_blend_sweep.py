@@ -10,7 +10,6 @@ import csv
 from pathlib import Path
 
 import pytest
-import ray
 import yaml
 from mlflow import MlflowClient
 
@@ -20,13 +19,6 @@ from sweeps import run
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 SPEC = Path(__file__).resolve().parents[2] / "sweeps" / "bdm_blend.yaml"
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
-    yield
-    ray.shutdown()
 
 
 def test_bdm_blend_smoke_sweep(cluster, tmp_path, capsys):

@@ -19,13 +19,13 @@ from pathlib import Path
 import nbformat
 import numpy as np
 import pytest
-import ray
 from mlflow import MlflowClient
 from mlflow.entities import Run
 from nbclient import NotebookClient
 
 from docs import screenshots
 from sweeps import report, run
+from tests.integration.local_ray import local_ray
 from sweeps.tracking import last_objects
 from tests.test_report import _overlap, panel_views
 
@@ -61,13 +61,9 @@ def smoke(tmp_path_factory) -> Smoke:
     folder = tmp_path_factory.mktemp("compare")
     (folder / "spec.yaml").write_text(SPEC)
     uri = f"sqlite:///{folder}/mlflow.db"
-    # address="local": a cluster of our own even when another one runs on this machine (`ray start`).
-    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
-    try:
+    with local_ray():  # shut down after the sweep: the notebook and the browser need the CPUs
         argv = [str(folder / "spec.yaml"), "--smoke", "--storage", str(folder / "results"), "--tracking-uri", uri]
         assert run.main(argv) == 0
-    finally:
-        ray.shutdown()  # the notebook and the browser need the CPUs
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name("compare")
     runs = client.search_runs([exp.experiment_id])

@@ -9,21 +9,12 @@ from __future__ import annotations
 import time
 
 import pytest
-import ray
 from mlflow import MlflowClient
 
 from sweeps import run
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    # address="local": our own cluster even when another `ray start` cluster runs on this machine.
-    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
-    yield
-    ray.shutdown()
 
 
 def _smoke(tmp_path, kind: str, root, *sets: str) -> float:

@@ -10,13 +10,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-import ray
 from mlflow import MlflowClient
 
 from sweeps import run
 from sweeps.plan import expand
 from sweeps.spec import load_spec
 from tests.input_fixtures import object_ids, write_condition_images, write_embeddings
+from tests.integration.local_ray import local_ray
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -38,9 +38,8 @@ def inputs(tmp_path_factory):
 def cluster(inputs):
     mp = pytest.MonkeyPatch()
     mp.setenv("CDM_INPUTS", str(inputs))  # before Ray starts: its workers inherit the environment
-    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
-    yield
-    ray.shutdown()
+    with local_ray():
+        yield
     mp.undo()
 
 

@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 
 import pytest
-import ray
 from mlflow import MlflowClient
 
 from sweeps import run
@@ -22,13 +21,6 @@ from sweeps import run
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def cluster():
-    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
-    yield ray.get_runtime_context().gcs_address
-    ray.shutdown()
 
 
 def test_finished_trial_missing_from_tunes_snapshot_is_not_rerun(cluster, tmp_path, capfd):

@@ -26,13 +26,6 @@ pytestmark = [pytest.mark.ray, pytest.mark.slow]
 ROOT = Path(__file__).resolve().parents[2]
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, num_cpus=2, logging_level="WARNING")
-    yield ray.get_runtime_context().gcs_address
-    ray.shutdown()
-
-
 def _sweep(tmp_path: Path, body: str, *extra: str) -> tuple[list[str], str]:
     """Write the spec; the runner's argv (smoke profile, storage and MLflow under tmp_path) and MLflow URI."""
     spec = tmp_path / "spec.yaml"
