@@ -4,8 +4,11 @@
 together both pass the check. So the runner first takes an ``flock`` on a lock file beside the
 sweep folder (``<storage>/<spec>/.<profile>.lock``; for an object-store URI, in this machine's
 temporary folder, keyed by the URI) and holds it until it exits. The kernel drops the lock when the
-process dies, SIGKILL included, so a killed sweep never leaves a stale claim; the file stays (removing
-it would let a third copy lock a new file while the second still holds the old one).
+process dies, SIGKILL included, so a killed sweep never leaves a stale claim (its file stays, and the
+next copy locks it again). A sweep that ends removes the file while it still holds the lock, and the
+folders the claim created if they stayed empty, so a sweep refused after its claim (say, a SQLite
+store on a cluster of several machines) leaves nothing behind. A copy that locked the file just
+before it was removed finds that it no longer is the file at that path, and tries again.
 
 The lock file records who holds it (process id, host, and once created the MLflow parent run), so
 the copy that is refused can say where the running sweep logs.
@@ -13,6 +16,7 @@ the copy that is refused can say where the running sweep logs.
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
@@ -39,8 +43,8 @@ def _lock_path(sweep_dir: str) -> Path:
 class SweepClaim:
     """The held lock of one sweep folder; :meth:`record` notes the parent run for a refused copy."""
 
-    def __init__(self, sweep_dir: str, fd: int):
-        self.sweep_dir, self._fd = sweep_dir, fd
+    def __init__(self, sweep_dir: str, fd: int, path: Path, created: list[Path]):
+        self.sweep_dir, self._fd, self._path, self._created = sweep_dir, fd, path, created
 
     def record(self, tracking_uri: str, parent_run_id: str) -> None:
         self._write({"pid": os.getpid(), "host": socket.gethostname(), "sweep_dir": self.sweep_dir,
@@ -52,9 +56,19 @@ class SweepClaim:
         os.pwrite(self._fd, data, 0)
 
     def release(self) -> None:
-        if self._fd >= 0:
-            os.close(self._fd)  # closing the descriptor drops the flock
-            self._fd = -1
+        """Remove the lock file and the folders :func:`claim` created that stayed empty; drop the lock."""
+        if self._fd < 0:
+            return
+        self._path.unlink(missing_ok=True)  # while still locked: see the module's docstring
+        for folder in self._created:  # deepest first
+            try:
+                folder.rmdir()
+            except OSError as exc:
+                if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOENT):
+                    raise
+                break  # the sweep (or another claim) put something there: keep it and what holds it
+        os.close(self._fd)  # closing the descriptor drops the flock
+        self._fd = -1
 
 
 def _holder_text(fd: int) -> str:
@@ -75,15 +89,32 @@ def claim(sweep_dir: str) -> SweepClaim:
         ClaimError: another live process holds it.
     """
     path = _lock_path(sweep_dir)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        text = _holder_text(fd)
-        os.close(fd)
-        raise ClaimError(f"{sweep_dir}: a sweep is already running there ({text}); wait for it to end, "
-                         "or stop it and pass --resume") from None
-    held = SweepClaim(sweep_dir, fd)
+    while True:
+        created = [p for p in [path.parent, *path.parent.parents] if not p.exists()]  # deepest first
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except (FileNotFoundError, FileExistsError):  # an ending claim removed a folder meanwhile
+            continue
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            text = _holder_text(fd)
+            os.close(fd)
+            raise ClaimError(f"{sweep_dir}: a sweep is already running there ({text}); wait for it to end, "
+                             "or stop it and pass --resume") from None
+        if _same_file(fd, path):
+            break
+        os.close(fd)  # locked a file its holder removed on release: lock the one at the path now
+    held = SweepClaim(sweep_dir, fd, path, created)
     held._write({"pid": os.getpid(), "host": socket.gethostname(), "sweep_dir": sweep_dir})
     return held
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        at_path = path.stat()
+    except FileNotFoundError:
+        return False
+    held = os.fstat(fd)
+    return (held.st_dev, held.st_ino) == (at_path.st_dev, at_path.st_ino)

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from typing import TextIO
 
 import ray
+import ray._private.ray_logging as ray_logging
 import ray.tune
 
 from cdm.train import Callback
@@ -36,9 +37,17 @@ def quiet_environment(tty: bool) -> None:
 
     Ray's legacy progress engine at ``verbose=0`` prints nothing (the new one still prints its config
     box and a TensorBoard hint); off a terminal, Ray's worker-line prefixes carry no colour codes.
+
+    Progress lines of concurrent trials differ only in numbers, and Ray's log de-duplication would
+    fold them into "[repeated 3x across cluster]", a suffix it colours green whatever
+    ``RAY_COLOR_PREFIX`` says (and it holds the folded lines back into the next sweep's output). Ray
+    reads ``RAY_DEDUP_LOGS`` once, on import, so in a process that imported Ray before (a notebook,
+    the test suite, a second sweep) the driver's de-duplicator is switched here too, for every sweep.
     """
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
     os.environ.setdefault("MLFLOW_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    ray_logging.RAY_DEDUP_LOGS = os.environ["RAY_DEDUP_LOGS"].lower() in ("1", "true")  # Ray's own parsing
     if not tty:
         os.environ.setdefault("RAY_COLOR_PREFIX", "0")
 

@@ -276,9 +276,6 @@ def _local_concurrency(plan: SweepPlan) -> int:
 
 def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: str, sets: dict, remote: bool,
          held: SweepClaim) -> int:
-    # Read when ray is imported: progress lines of concurrent trials differ only in numbers, and
-    # Ray's log de-duplication would fold them into "[repeated 3x]".
-    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
     # The results table downloads each trial's per-object scores: no progress bar per small file.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     from sweeps.progress import SweepProgress, is_tty, quiet_environment, quiet_loggers

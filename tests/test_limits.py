@@ -170,6 +170,22 @@ def test_claim_is_exclusive_across_processes_and_dies_with_its_holder(tmp_path):
     held.release()
 
 
+def test_a_released_claim_leaves_only_what_the_sweep_wrote(tmp_path):
+    folder = tmp_path / "results" / "spec" / "smoke"
+    held = claim(str(folder))
+    assert (tmp_path / "results" / "spec" / ".smoke.lock").is_file()
+    held.release()
+    assert list(tmp_path.iterdir()) == []  # nothing written in it: the lock file and its new folders go
+    held.release()  # a second release does nothing
+    held = claim(str(folder))
+    folder.mkdir()
+    (folder / "sweep.json").write_text("{}")
+    held.release()
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == [
+        "results", "results/spec", "results/spec/smoke", "results/spec/smoke/sweep.json"]
+    claim(str(folder)).release()  # the next copy claims it again
+
+
 BAD_SPECS = {
     "binary": (b"\x89PNG\r\n\x1a\n\x00\x00", [], "not UTF-8 text"),
     "bomb": (BOMB.encode(), [], "expand to more than"),

@@ -35,7 +35,6 @@ from pathlib import Path
 
 import pytest
 import ray
-import ray._private.ray_logging
 from mlflow import MlflowClient
 
 from sweeps import run
@@ -71,9 +70,6 @@ def machines() -> Iterator[TwoMachines]:
     # ray#59110 workaround, as in test_multinode.py: keep the loopback GCS address as given.
     patch = pytest.MonkeyPatch()
     patch.setattr(ray._private.ray_constants, "ENABLE_RAY_CLUSTER", False)
-    # Ray was imported before the runner could set RAY_DEDUP_LOGS=0: concurrent trials' step lines
-    # differ only in numbers, and folding them ("[repeated 2x]") would hide the steps checked below.
-    patch.setattr(ray._private.ray_logging, "RAY_DEDUP_LOGS", False)
     cluster = Cluster(initialize_head=True, head_node_args={
         "num_cpus": 1, "node_ip_address": "127.0.0.1", "temp_dir": temp_dir, "include_dashboard": False,
         # The GCS declares a silent node dead after 5 missed 3-s health checks by default; 3 × 1 s
