@@ -21,6 +21,7 @@ from typing import TextIO
 import ray
 import ray._private.ray_logging as ray_logging
 import ray.tune
+from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from cdm.train import Callback
 
@@ -112,7 +113,10 @@ class SweepProgress(ray.tune.Callback):
         self.trials, self.steps, self.label, self.predicted_s, self.tty = trials, steps, label, predicted_s, tty
         self.stream = stream or sys.stdout
         self.period = refresh_s if tty else every_s
-        self.counter = StepCounter.options(name=counter_name(parent_run_id)).remote()
+        # On the driver's own node: Ray would place it on any node, and a lost worker node would take
+        # the counter (and the line, and the sweep with it) down while its trials carry on elsewhere.
+        here = NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=False)
+        self.counter = StepCounter.options(name=counter_name(parent_run_id), scheduling_strategy=here).remote()
         self.running: set[str] = set()
         self.done: set[str] = set()
         self.failed: set[str] = set()
