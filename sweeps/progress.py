@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import sys
 import threading
 import time
@@ -25,8 +26,8 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from cdm.train import Callback
 
-__all__ = ["QUIET_LOGGERS", "StepCounter", "StepReporter", "SweepProgress", "counter_name", "is_tty", "quiet_environment",
-           "quiet_loggers"]
+__all__ = ["QUIET_LOGGERS", "StepCounter", "StepReporter", "SweepProgress", "counter_name", "is_tty", "plain_log_handlers",
+           "quiet_environment", "quiet_loggers"]
 
 QUIET_LOGGERS = ("ray.train", "ray.tune", "mlflow", "alembic")
 """Loggers whose INFO lines are boilerplate in a sweep ("Checkpoint successfully created at", "Running
@@ -57,6 +58,33 @@ def quiet_loggers() -> None:
     """INFO of :data:`QUIET_LOGGERS` off in this process (the driver, and each trial's process)."""
     for name in QUIET_LOGGERS:
         logging.getLogger(name).setLevel(logging.WARNING)
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+class _NoColour(logging.Formatter):
+    """A handler's own formatter with terminal colour codes taken out of what it writes."""
+
+    def __init__(self, inner: logging.Formatter | None):
+        super().__init__()
+        self.inner = inner or logging.Formatter()
+
+    def format(self, record: logging.LogRecord) -> str:
+        return _ANSI.sub("", self.inner.format(record))
+
+
+def plain_log_handlers() -> None:
+    """No colour codes from any stream handler of this process (for output that is not a terminal).
+
+    Ray colours the ``ray::…()`` line of every task error it formats (``RayTaskError``) whatever
+    ``RAY_COLOR_PREFIX`` says, and Tune logs a failed trial's error with it.
+    """
+    loggers = [logging.getLogger(), *(x for x in logging.root.manager.loggerDict.values() if isinstance(x, logging.Logger))]
+    for logger in loggers:
+        for handler in logger.handlers:
+            if isinstance(handler, logging.StreamHandler) and not isinstance(handler.formatter, _NoColour):
+                handler.setFormatter(_NoColour(handler.formatter))
 
 
 def counter_name(parent_run_id: str) -> str:

@@ -278,7 +278,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
          held: SweepClaim) -> int:
     # The results table downloads each trial's per-object scores: no progress bar per small file.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    from sweeps.progress import SweepProgress, is_tty, quiet_environment, quiet_loggers
+    from sweeps.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
 
     tty = is_tty(sys.stdout)
     quiet_environment(tty)
@@ -298,6 +298,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     uri = resolve_tracking_uri(args.tracking_uri or stored.get("tracking_uri"))
     started = connect(args.address)
     quiet_loggers()
+    if not tty:
+        plain_log_handlers()
     sweep_run = None
     try:
         machines = cluster_machines(remote)

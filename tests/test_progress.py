@@ -1,0 +1,30 @@
+"""The sweep's terminal hygiene (sweeps/progress.py): output that is not a terminal carries no colour codes."""
+
+from __future__ import annotations
+
+import io
+import logging
+
+from sweeps.progress import plain_log_handlers
+
+
+def test_plain_log_handlers_take_colour_codes_out_of_every_stream_handler_once():
+    stream = io.StringIO()
+    handler = logging.StreamHandler(stream)
+    handler.setFormatter(logging.Formatter("%(levelname)s -- %(message)s"))
+    logger = logging.getLogger("test_progress.colours")
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        plain_log_handlers()
+        plain_log_handlers()  # a second sweep in the same process wraps nothing twice
+        try:
+            raise RuntimeError("\x1b[36mray::ImplicitFunc.train()\x1b[39m (pid=1)")
+        except RuntimeError:
+            logger.exception("Trial task failed for \x1b[1mtrial\x1b[0m")
+    finally:
+        logger.removeHandler(handler)
+    text = stream.getvalue()
+    assert "\x1b[" not in text
+    assert text.startswith("ERROR -- Trial task failed for trial\n") and "RuntimeError: ray::ImplicitFunc.train() (pid=1)" in text
+    assert type(handler.formatter.inner) is logging.Formatter  # the handler's own format, kept inside
