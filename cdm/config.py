@@ -189,8 +189,9 @@ class PriorsConfig(_Group):
     num_views: int = Field(10, ge=0)
     """H, views rendered for the constraint, evenly spaced from the input view (Table 5: 10 best)."""
     point_size: float = Field(0.04, gt=0.0, le=1.0)
-    """The paper's point size of the constraint's renderings (0.04), NDC units (one pixel is 2/S): today
-    the standard deviation σ of each point's Gaussian splat, cut at 2σ (:func:`cdm.render.splat_points`)."""
+    """The paper's point size of the constraint's renderings (0.04), NDC units (one pixel is 2/S): the
+    point radius of PyTorch3D's point rasteriser, each point's footprint integrated over the pixels
+    (:func:`cdm.render.splat_points`)."""
     render_kind: Literal["depth", "planar"] = "depth"
     """Constraint images: soft depth maps (Co3D) or planar point images (ShapeNet), Fig. 3."""
     render_size: int = Field(224, ge=8, le=1024)
