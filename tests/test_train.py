@@ -38,7 +38,9 @@ def test_loss_falls_over_a_few_hundred_steps(tmp_path, backend):
     result = fit(cfg, [rec])
     losses = [rec.steps[s]["train/loss"] for s in sorted(rec.steps)]
     assert result.step == 300 and len(losses) == 6
-    assert losses[-1] < 0.85 * losses[0], losses  # measured: 2.61 -> 1.95 at seed 0
+    # Measured at seed 0: 2.13 -> 1.82 (sparse). The 3D prior's share of the loss shrank when the
+    # splat took PyTorch3D's point radius (it was 2.61 -> 1.95 with the twice as wide Gaussian splat).
+    assert losses[-1] < 0.9 * losses[0], losses
     assert all(math.isfinite(v) for v in losses)
     step, metrics, files = rec.evals[-1]
     assert step == 300
