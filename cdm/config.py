@@ -194,6 +194,11 @@ class PriorsConfig(_Group):
     (:func:`cdm.render.splat_points`)."""
     render_kind: Literal["depth", "planar"] = "depth"
     """Constraint images: soft depth maps (Co3D) or planar point images (ShapeNet), Fig. 3."""
+    depth_layer: float | None = Field(0.4, gt=0.0)
+    """Depth maps only: thickness (view depth, world units; objects have half-extent 1) of the front
+    layer drawn, as PyTorch3D's z-buffer keeps the nearest point; null averages front and back surfaces
+    (:func:`cdm.render.splat_points`). 0.4 came nearest a naive z-buffered reference of the ones measured
+    (``benchmarks/RESULTS.md``, "Depth renders")."""
     render_size: int = Field(224, ge=8, le=1024)
     """Side of the constraint renderings in pixels (paper: 224)."""
     target: Literal["x0_hat", "x_t_literal"] = "x0_hat"
@@ -229,7 +234,7 @@ class TrainConfig(_Group):
     weight_decay: float = Field(1e-6, ge=0.0)
     """AdamW weight decay."""
     betas: tuple[float, float] = (0.95, 0.999)
-    """AdamW betas."""
+    """AdamW betas (PC²: 0.95, 0.999)."""
     warmup_steps: int = Field(2000, ge=0)
     """Steps of linear warm-up before the cosine decay to zero at ``steps`` (PC²: 2,000)."""
     grad_clip: float = Field(50.0, gt=0.0)

@@ -90,7 +90,8 @@ def cdm_loss(
     cloud = diffusion.predict_x0(x_t, t, output) if priors.target == "x0_hat" else x_t
     if not torch.isfinite(cloud).all():
         raise diverged("the predicted clean cloud x̂₀")
-    loss_prior = prior_3d_loss(cloud, x0, batch.view_cameras, priors.render_size, priors.point_size, priors.render_kind).loss
+    loss_prior = prior_3d_loss(cloud, x0, batch.view_cameras, priors.render_size, priors.point_size, priors.render_kind,
+                               depth_layer=priors.depth_layer).loss
     return LossTerms(loss_diff + priors.lambda_3d * loss_prior, loss_diff, loss_prior)
 
 
@@ -102,6 +103,7 @@ def prior_3d_loss(
     point_size: float,
     kind: Literal["depth", "planar"],
     target_images: Tensor | None = None,
+    depth_layer: float | None = None,
 ) -> Prior3DLoss:
     """3D prior constraint (Eq. 6): ``Σ_{i=1..H} ‖proj(x, v_i) − proj(x₀, v_i)‖²``, batch mean.
 
@@ -123,6 +125,7 @@ def prior_3d_loss(
             point rasteriser (:func:`cdm.render.splat_points`).
         kind: ``"depth"`` (Co3D) or ``"planar"`` (ShapeNet) renderings (Fig. 3).
         target_images: optional cached ``(B, H, S, S)`` renderings of ``gt_points``.
+        depth_layer: depth maps' front-layer thickness (``priors.depth_layer``); ignored for planar images.
     Returns:
         :class:`Prior3DLoss`.
     """
@@ -141,7 +144,8 @@ def prior_3d_loss(
     cameras = view_cameras.flatten()
 
     def render(points: Tensor) -> Tensor:
-        return splat_points(points.repeat_interleave(h, 0), cameras, s, point_size, kind).view(b, h, s, s)
+        layer = depth_layer if kind == "depth" else None
+        return splat_points(points.repeat_interleave(h, 0), cameras, s, point_size, kind, layer).view(b, h, s, s)
 
     pred_images = render(pred_points)
     if target_images is None:

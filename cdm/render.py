@@ -19,6 +19,7 @@ import math
 from typing import Literal, NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from cdm.cameras import Cameras, ndc_to_pixel, project_points
@@ -229,12 +230,31 @@ def _filter_and_crop(canvas: Tensor, footprint: _Footprint) -> Tensor:
     return ((left @ bands.transpose(1, 2)) * lam.view(r, 1, 1)).sum(dim=2)
 
 
+def _front_layer(z: Tensor, col: Tensor, row: Tensor, front: Tensor, side: int, half: int, depth_layer: float) -> Tensor:
+    """``(B, N)`` 1.0 for the points within ``depth_layer`` of their pixel's nearest surface, else 0.0.
+
+    A pixel's nearest surface is the smallest depth among the in-front points whose footprint reaches
+    it: the points' depths z-buffered at the canvas pixel holding each projection, then a minimum
+    over the footprint's window (``2h+1`` pixels plus one for the bilinear deposit). Each point is
+    tested at its own pixel, so at a silhouette a back point is dropped whole, within ``h + 1``
+    pixels of the front surface's edge.
+    """
+    b, n = z.shape
+    inside = (col >= 0) & (col < side) & (row >= 0) & (row < side) & (front > 0)
+    pixel = (row.clamp(0, side - 1).long() * side + col.clamp(0, side - 1).long())
+    zbuf = z.new_full((b, side * side), math.inf).scatter_reduce(1, pixel, torch.where(inside, z, math.inf), reduce="amin")
+    window = 2 * half + 1
+    nearest = -F.max_pool2d(-zbuf.view(b, 1, side, side), window, stride=1, padding=window // 2).view(b, -1)
+    return (z <= nearest.gather(1, pixel) + depth_layer).to(z.dtype)
+
+
 def splat_points(
     points: Tensor,
     cameras: Cameras,
     image_size: int,
     point_size: float,
     kind: Literal["depth", "planar"],
+    depth_layer: float | None = None,
 ) -> Tensor:
     """Differentiable soft splatting of points into depth maps or planar point images (Eq. 6, Fig. 3).
 
@@ -247,8 +267,12 @@ def splat_points(
     pixel centres, bilinear in between; a few separable GEMMs, not one splat per point).
 
     - ``"depth"``: ``Σwz / (Σw + SPLAT_DEPTH_EPS)``, view depth in world units, falling smoothly to
-      ~0 on the background. Overlapping points average their depths by weight (PyTorch3D keeps the
-      nearest; a soft z-test, weights ``w·exp(−z/τ)``, stalled optimisation of the prior loss).
+      ~0 on the background. With ``depth_layer = None`` overlapping points average their depths by
+      weight, front and back surfaces alike. PyTorch3D's z-buffer keeps the nearest point; with
+      ``depth_layer = δ`` a point is drawn only if its depth is within ``δ`` of the nearest point whose
+      footprint reaches its pixel (:func:`_front_layer`, a hard z-test with no gradient of its own), so
+      the map shows the front surface, still averaged smoothly within it. A soft z-test (weights
+      ``w·exp(−z/τ)``) had stalled optimisation of the prior loss.
     - ``"planar"``: soft coverage ``1 − exp(−Σw)`` in ``[0, 1)``, ``≈ 1 − Π(1 − w_i)`` as PyTorch3D's
       alpha compositing of unit features gives: → 1 inside a dense cloud, never saturated flat, so
       every covered pixel has gradient.
@@ -259,6 +283,8 @@ def splat_points(
         image_size: ``S``, side of the square image in pixels.
         point_size: the paper's point size (0.04): the point radius, NDC units (one pixel is ``2/S``).
         kind: ``"depth"`` or ``"planar"``.
+        depth_layer: ``"depth"`` only: thickness ``δ`` (view depth, world units) of the front layer
+            drawn; ``None`` averages every point.
     Returns:
         ``(B, S, S)`` image, differentiable w.r.t. ``points``. Points behind the camera add nothing.
     """
@@ -267,6 +293,8 @@ def splat_points(
         raise ValueError(f"point_size must be > 0 (the point radius, NDC units), got {point_size}")
     if kind not in ("depth", "planar"):
         raise ValueError(f"kind must be 'depth' or 'planar', got {kind!r}")
+    if depth_layer is not None and (kind != "depth" or not depth_layer > 0.0):
+        raise ValueError(f"depth_layer must be None or > 0 and only with kind='depth', got {depth_layer!r} with {kind!r}")
     b, n, _ = points.shape
     s = image_size
     proj = project_points(points, cameras, eps=Z_NEAR)
@@ -281,6 +309,8 @@ def splat_points(
     col, row = pix[..., 0] + half, pix[..., 1] + half
     col0, row0 = torch.floor(col).detach(), torch.floor(row).detach()
     fc, fr = col - col0, row - row0
+    if depth_layer is not None:
+        front = front * _front_layer(z.detach(), col.detach(), row.detach(), front, side, half, depth_layer)
     values = []
     indices = []
     for dr, wr in ((0, 1.0 - fr), (1, fr)):

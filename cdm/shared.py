@@ -40,7 +40,7 @@ def _hash(identity: object) -> str:
     return json_digest([_FORMAT, identity])
 
 
-_LOSS_ONLY = {"lambda_3d", "point_size", "render_kind", "render_size", "target"}
+_LOSS_ONLY = {"lambda_3d", "point_size", "render_kind", "render_size", "target", "depth_layer"}
 """``priors`` fields only the loss reads (:mod:`cdm.objective`): samples do not depend on them."""
 
 

@@ -127,7 +127,17 @@ def _training(cfg: Config, ctx: CardContext) -> str | None:
         out.append(f"batch {t.batch_size} (paper: 8)")
     if cfg.data.image_size != 224:
         out.append(f"{cfg.data.image_size}² images (paper: 224²)")
+    if (t.lr, tuple(t.betas), t.warmup_steps) != (1e-3, (0.95, 0.999), 2000):
+        out.append(f"AdamW lr {t.lr:g}, betas ({t.betas[0]:g}, {t.betas[1]:g}), {t.warmup_steps:,} warm-up steps "
+                   "(PC²: 1e-3, (0.95, 0.999), 2,000)")
     return "training: " + ", ".join(out) if out else None
+
+
+def _depth_renders(cfg: Config, ctx: CardContext) -> str | None:
+    p = cfg.priors
+    if not p.prior_3d or p.render_kind != "depth" or p.depth_layer is not None:
+        return None
+    return "3D prior: depth renders average front and back surfaces (the paper's PyTorch3D z-buffer keeps the nearest)"
 
 
 def _encoder(cfg: Config, ctx: CardContext) -> str | None:
@@ -144,7 +154,7 @@ def _depth_source(cfg: Config, ctx: CardContext) -> str | None:
 
 
 CHECKS: list[Check] = [_data_set, _split, _objects, _normalisation, _points, _metric, _sampler, _diffusion,
-                       _training, _encoder, _depth_source]
+                       _training, _depth_renders, _encoder, _depth_source]
 """The card's checks, in the order the card lists them; append a function to check one more aspect."""
 
 

@@ -67,7 +67,8 @@ def test_shapenet_without_bdms_split_file_and_small_profiles_say_so(shapenet, tm
     for aspect in ("data set: the procedural data set stands in", "objects: the first 4 held-out objects per category",
                    "normalisation: per-shape bounding box", "points: 512 per cloud, 512 scored (the reference: 4096)",
                    "sampler: DDIM over 25 steps, x̂₀ clipped to ±1", "diffusion: x0-prediction (paper: ε)",
-                   "training: 800 steps (PC²: 100,000), 64² images (paper: 224²)", ENCODER):
+                   "training: 2,000 steps (PC²: 100,000), batch 4 (paper: 8), 64² images (paper: 224²), AdamW lr 0.001, "
+                   "betas (0.9, 0.99), 150 warm-up steps (PC²: 1e-3, (0.95, 0.999), 2,000)", ENCODER):
         assert aspect in text, aspect
     assert not local.faithful and NO_DEVIATIONS not in local.lines()
     assert ProtocolCard(()).lines() == [NO_DEVIATIONS]
@@ -82,6 +83,13 @@ def test_table_2_on_shapenet_uses_car_and_lamp_stands_in_only_on_procedural_data
     procedural = expand(spec, "paper")
     assert "CDM, car (lamp stands in)" in {c.paper_label for c in procedural.cells}
     assert any("lamp stands in for car" in d for d in plan_card(procedural).deviations)
+
+
+def test_depth_renders_that_average_surfaces_are_a_deviation():
+    cfg = expand(load_spec(SWEEPS / "point_size.yaml"), "paper").cells[0].config
+    assert not any(d.startswith("3D prior:") for d in protocol_card(cfg).deviations)  # the front layer, as PyTorch3D
+    averaged = protocol_card(cfg.replace(**{"priors.depth_layer": None})).deviations
+    assert "3D prior: depth renders average front and back surfaces (the paper's PyTorch3D z-buffer keeps the nearest)" in averaged
 
 
 def test_table_5_cells_are_the_papers_co3d_cdm():

@@ -267,3 +267,47 @@ def test_splat_is_batched_and_validates_kind():
     torch.testing.assert_close(together, apart)
     with pytest.raises(ValueError, match="kind"):
         splat_points(points, cams, 24, 0.05, "silhouette")
+
+
+def _plane(depth: float, half: float = 0.5, side: int = 48) -> torch.Tensor:
+    lin = torch.linspace(-half, half, side)
+    y, x = torch.meshgrid(lin, lin, indexing="ij")
+    return torch.stack([x, y, torch.full_like(x, 3.0 - depth)], dim=-1).view(1, -1, 3)  # camera at z = 3
+
+
+def test_depth_front_layer_shows_the_nearest_surface_as_a_zbuffered_reference():
+    """A plane at view depth 2.4 in front of a wider one at 3.0: PyTorch3D's z-buffer (the naive loop
+    reference) sees 2.4 where both overlap and 3.0 around; the front layer matches it, the average not."""
+    cam = _front_camera(3.0)
+    scene = torch.cat([_plane(2.4, 0.3, 30), _plane(3.0, 1.2, 80)], dim=1)
+    s, r = 24, 0.1
+    _, ref = _naive_rasterize(scene, cam, s, r)
+    layered = splat_points(scene, cam, s, r, "depth", depth_layer=0.4)[0]
+    averaged = splat_points(scene, cam, s, r, "depth")[0]
+    front = _naive_rasterize(_plane(2.4, 0.3, 30), cam, s, r)[0][0] >= 0
+    inner = (-F.max_pool2d(-front[None, None].float(), 5, stride=1, padding=2) > 0.5)[0, 0]  # 2 px inside its edge
+    assert inner.sum() >= 9
+    torch.testing.assert_close(ref[0][inner], torch.full((int(inner.sum()),), 2.4))
+    assert (layered[inner] - 2.4).abs().max() < 0.02 * 2.4
+    assert (averaged[inner] - 2.4).abs().min() > 0.1  # the back plane pulls the average away
+    back = _naive_rasterize(_plane(3.0, 1.2, 80), cam, s, r)[0][0] >= 0
+    back_inner = -F.max_pool2d(-back[None, None].float(), 5, stride=1, padding=2)[0, 0] > 0.5
+    away = F.max_pool2d(front[None, None].float(), 7, stride=1, padding=3)[0, 0] < 0.5  # 3 px from the front plane
+    back_only = back_inner & away
+    assert back_only.sum() >= 9
+    assert (layered[back_only] - 3.0).abs().max() < 0.02 * 3.0
+
+
+def test_depth_front_layer_gradcheck_float64():
+    gen = torch.Generator().manual_seed(0)
+    cams = _double(look_at_cameras(torch.tensor([20.0]), torch.tensor([35.0]), torch.tensor([2.5])))
+    points = (torch.rand(1, 4, 3, generator=gen, dtype=torch.float64) - 0.5).requires_grad_()
+    assert torch.autograd.gradcheck(lambda p: splat_points(p, cams, 8, 0.2, "depth", depth_layer=0.3), (points,),
+                                    eps=1e-6, atol=1e-5)
+
+
+def test_depth_layer_is_refused_for_planar_images_and_non_positive_values():
+    points = torch.rand(1, 5, 3) - 0.5
+    for kind, layer in (("planar", 0.4), ("depth", 0.0)):
+        with pytest.raises(ValueError, match="depth_layer"):
+            splat_points(points, _front_camera(), 16, 0.1, kind, depth_layer=layer)
