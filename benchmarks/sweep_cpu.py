@@ -15,11 +15,15 @@ from __future__ import annotations
 
 import os
 import statistics
+import sys
 import tempfile
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING
 
-from benchmarks.common import median_s
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script, as the README does
+
+from benchmarks.common import median_s  # noqa: E402
 
 if TYPE_CHECKING:
     from cdm.config import Config
@@ -78,10 +82,7 @@ def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = 
 
 if __name__ == "__main__":
     import argparse
-    import sys
-    from pathlib import Path
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tracking-uri", required=True)
     parser.add_argument("--experiment", default="point_size")
