@@ -15,11 +15,9 @@ import ipaddress
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
-import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,6 +27,7 @@ from mlflow import MlflowClient
 
 from sweeps import run
 from sweeps.local_cluster import SESSION_RECORDS, session_pids
+from tests.integration.servers import free_port, wait_http
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -36,32 +35,21 @@ ROOT = Path(__file__).resolve().parents[2]
 BUCKET = "cdm-sweeps"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
-def s3() -> Iterator[dict[str, str]]:
+def s3(tmp_path_factory) -> Iterator[dict[str, str]]:
     """moto's S3 server on 127.0.0.1 with IAM auth; yields the environment of a user with a bucket."""
     import boto3
 
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
+    log = tmp_path_factory.mktemp("moto") / "server.log"
     # The first 4 requests (user, policy, attachment, key) may go unsigned; every later one is checked.
-    server = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
-                              env={**os.environ, "INITIAL_NO_AUTH_ACTION_COUNT": "4"},
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    with log.open("w") as out:
+        server = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
+                                  env={**os.environ, "INITIAL_NO_AUTH_ACTION_COUNT": "4"},
+                                  stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                urllib.request.urlopen(f"{url}/moto-api/", timeout=2)
-                break
-            except OSError:
-                assert time.monotonic() < deadline and server.poll() is None, "moto server did not start"
-                time.sleep(0.2)
+        wait_http(f"{url}/moto-api/", server, log)
         setup = dict(endpoint_url=url, region_name="us-east-1", aws_access_key_id="setup", aws_secret_access_key="setup")
         iam = boto3.client("iam", **setup)
         iam.create_user(UserName="cdm")

@@ -23,7 +23,6 @@ import re
 import secrets
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -37,17 +36,12 @@ from pathlib import Path
 
 import pytest
 
+from tests.integration.servers import free_port, wait_http
+
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent  # the venv's `ray` and `mlflow` CLIs sit beside its python
-
-
-def _free_port() -> int:
-    # Checked on all interfaces: Ray's GCS and raylet listen on all of them in Ray 2.60.
-    with socket.socket() as s:
-        s.bind(("", 0))
-        return s.getsockname()[1]
 
 
 def _pids_of(pgid: int, temp_dir: str | None) -> list[int]:
@@ -88,32 +82,6 @@ def _stop(proc: subprocess.Popen, temp_dir: str | None, grace_s: float = 10.0) -
         time.sleep(0.2)
     _signal(_pids_of(proc.pid, temp_dir), signal.SIGKILL)
     proc.wait(timeout=10)
-
-
-STARTUP_S = 240.0
-"""How long a server of these tests may take to answer. On a loaded 2-core machine (load average
-13, test processes under ``nice``) ``mlflow server`` first answered ``/health`` 43 s after it was
-started, and that first answer took 2.3 s; a 60-s wait has run out under the full suite."""
-
-
-def _wait_http(url: str, headers: dict[str, str], proc: subprocess.Popen, log: Path, timeout_s: float = STARTUP_S) -> None:
-    """Poll ``url`` until it answers 200; fail early with the log if the server process died."""
-    t0 = time.monotonic()
-    last = "no answer yet"
-    while time.monotonic() - t0 < timeout_s:
-        assert proc.poll() is None, f"server exited with {proc.returncode}:\n{log.read_text()[-3000:]}"
-        try:
-            # A long read timeout: a slow first answer abandoned would only queue the next request behind it.
-            with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=30) as resp:
-                if resp.status == 200:
-                    return
-                last = f"HTTP {resp.status}"
-        except urllib.error.HTTPError as exc:
-            last = f"HTTP {exc.code}"
-        except (urllib.error.URLError, ConnectionError, TimeoutError) as exc:
-            last = repr(exc)  # not listening yet, or busy starting
-        time.sleep(0.5)
-    pytest.fail(f"{url} did not answer within {timeout_s:.0f} s (last: {last}); server log:\n{log.read_text()[-3000:]}")
 
 
 def _http_status(url: str, headers: dict[str, str] | None = None) -> int:
@@ -167,20 +135,20 @@ def ray_head() -> Iterator[Head]:
         "PYTHONUNBUFFERED": "1",  # `ray start`'s lines reach its log (read below) as they are printed
     }
     env.pop("RAY_ADDRESS", None)
-    dash = _free_port()
+    dash = free_port()
     # Every port with a fixed default gets a free one, so two heads on one host never collide.
     cmd = [str(BIN / "ray"), "start", "--head", "--block", "--node-ip-address", "127.0.0.1",
-           "--port", str(_free_port()), "--dashboard-host", "127.0.0.1", "--dashboard-port", str(dash),
-           "--dashboard-agent-listen-port", str(_free_port()),
+           "--port", str(free_port()), "--dashboard-host", "127.0.0.1", "--dashboard-port", str(dash),
+           "--dashboard-agent-listen-port", str(free_port()),
            "--num-cpus", "2", "--num-gpus", "0", "--temp-dir", temp_dir, "--disable-usage-stats"]
     log = Path(temp_dir) / "ray_start.log"
     with log.open("w") as out:
         proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         auth = {"Authorization": f"Bearer {env['RAY_AUTH_TOKEN']}"}
-        _wait_http(f"http://127.0.0.1:{dash}/api/version", auth, proc, log)
+        wait_http(f"http://127.0.0.1:{dash}/api/version", proc, log, auth)
         # The job API needs the head's dashboard agent too; it is up once jobs can be listed.
-        _wait_http(f"http://127.0.0.1:{dash}/api/jobs/", auth, proc, log)
+        wait_http(f"http://127.0.0.1:{dash}/api/jobs/", proc, log, auth)
         yield Head(f"http://127.0.0.1:{dash}", dash, env, temp_dir)
     finally:
         _stop(proc, temp_dir)
@@ -190,7 +158,7 @@ def ray_head() -> Iterator[Head]:
 @contextmanager
 def serve_mlflow(store: Path, grace_s: float = 10.0) -> Iterator[str]:
     """``mlflow server`` on 127.0.0.1 with a SQLite backend and proxied artifacts in ``store``; its URL."""
-    port = _free_port()
+    port = free_port()
     store.mkdir(parents=True, exist_ok=True)
     cmd = [str(BIN / "mlflow"), "server", "--host", "127.0.0.1", "--port", str(port),
            "--backend-store-uri", f"sqlite:///{store / 'mlflow.db'}",
@@ -200,7 +168,7 @@ def serve_mlflow(store: Path, grace_s: float = 10.0) -> Iterator[str]:
     with log.open("w") as out:
         proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
-        _wait_http(f"http://127.0.0.1:{port}/health", {}, proc, log)
+        wait_http(f"http://127.0.0.1:{port}/health", proc, log)
         yield f"http://127.0.0.1:{port}"
     finally:
         _stop(proc, None, grace_s=grace_s)
