@@ -28,7 +28,7 @@ from cdm.blend import blend_windows
 from cdm.config import Config, load_config
 from cdm.data import build_dataset
 from cdm.data.sample import collate
-from cdm.diffusion import GaussianDiffusion
+from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.evaluate import reconstruct
 from cdm.model import CDMNetwork
 from cdm.prior_model import load_prior, prior_config, train_prior
@@ -72,7 +72,7 @@ def blend_overhead(quick: bool, out_dir: str) -> list[dict]:
         blended = load_config(plain.to_dict(), {"sampling.blend.enabled": True, "sampling.blend.prior_checkpoint": str(prior_dir),
                                                 "sampling.blend.select_prob": select_prob})
         d, b = plain.diffusion, blended.sampling.blend
-        timesteps = GaussianDiffusion.from_config(d).timesteps(d.sampler, d.sample_steps)
+        timesteps = GaussianDiffusion.from_config(d).timesteps(SamplerSettings.from_config(d))
         share = sum(len(w) for w in blend_windows(timesteps, b.milestones, b.window_steps)) / len(timesteps)
         result = paired(_sampler(plain, network, batch), _sampler(blended, network, batch), repeats=repeats)
         rows.append({"benchmark": "BDM blending: sampling with ÷ without",

@@ -119,7 +119,7 @@ def blended_sample(
     x = torch.randn(shape, generator=generator, device=device)
     # The same timesteps and step functions as GaussianDiffusion.sample, so that outside windows
     # (and everywhere at select_prob 0) every operation on x is the plain sampler's.
-    timesteps = diffusion.timesteps(settings.sampler, settings.steps)
+    timesteps = diffusion.timesteps(settings)
     windows = blend_windows(timesteps, milestones, window_steps)
     opens = {w[0] for w in windows}
     closes = {w[-1] for w in windows}

@@ -167,6 +167,9 @@ class DiffusionConfig(_Group):
     """Evaluation sampler: DDIM (η=0) over ``sample_steps`` or full ancestral DDPM."""
     sample_steps: int = Field(50, ge=1)
     """Steps of the DDIM sampler."""
+    timestep_spacing: Literal["linspace", "trailing"] = "linspace"
+    """Where the DDIM steps sit: ``linspace`` ends with a prediction at t = 0, ``trailing`` at
+    t = T/sample_steps − 1 (Lin et al., 2024; better for x₀-prediction, ``cdm.diffusion``); DDPM ignores it."""
     clip_x0: float | None = Field(1.0, gt=0.0)
     """Clamp x̂₀ to [-clip_x0, clip_x0] while sampling (data are normalised into [-1, 1]); null = off."""
 

@@ -104,7 +104,8 @@ def _sampler(cfg: Config, ctx: CardContext) -> str | None:
     d = cfg.diffusion
     if d.sampler == "ddpm" and d.clip_x0 is None:
         return None
-    how = f"DDIM over {d.sample_steps} steps" if d.sampler == "ddim" else f"DDPM over {d.num_steps} steps"
+    how = (f"DDIM over {d.sample_steps} steps, {d.timestep_spacing} spacing" if d.sampler == "ddim"
+           else f"DDPM over {d.num_steps} steps")
     clip = f", x̂₀ clipped to ±{d.clip_x0:g}" if d.clip_x0 is not None else ""
     return f"sampler: {how}{clip} (PC²: DDPM over 1,000 steps, unclipped)"
 

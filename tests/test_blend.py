@@ -69,7 +69,7 @@ def test_select_prob_one_follows_the_prior_trajectory_inside_windows():
     """DDIM is deterministic: with p = 1 the result is the plain sampler run with the prior's x̂₀ at
     exactly the window steps and the reconstruction model's everywhere else."""
     diffusion = GaussianDiffusion(prediction="x0")
-    timesteps = diffusion.timesteps("ddim", 50)
+    timesteps = diffusion.timesteps(SamplerSettings("ddim", 50))
     in_window = {timesteps[i] for w in blend_windows(timesteps, BDM_MILESTONES, 16) for i in w}
     assert len(in_window) == 9  # 938, 877, 856, 143, 122, 82, 61, 41, 20
 
@@ -117,17 +117,17 @@ def test_fraction_taken_from_the_prior_is_select_prob():
 
 def test_windows_cover_window_steps_timesteps():
     diffusion = GaussianDiffusion()
-    ddpm = diffusion.timesteps("ddpm", 0)
+    ddpm = diffusion.timesteps(SamplerSettings("ddpm", 0))
     windows = blend_windows(ddpm, BDM_MILESTONES, 16)
     # BDM numbering: milestone 936 runs x_936 → x_920, our steps t = 935 … 920.
     assert [(ddpm[w[0]], ddpm[w[-1]], len(w)) for w in windows] == [
         (935, 920, 16), (871, 856, 16), (127, 112, 16), (63, 48, 16), (31, 16, 16)]
-    ddim = diffusion.timesteps("ddim", 50)
+    ddim = diffusion.timesteps(SamplerSettings("ddim", 50))
     for m, w in zip(BDM_MILESTONES, blend_windows(ddim, BDM_MILESTONES, 16)):
         covered = {s for i in w for s in range(ddim[i + 1] + 1 if i + 1 < len(ddim) else 0, ddim[i] + 1)}
         assert set(range(m - 16, m)) <= covered and len(w) <= 2
     # Five DDIM steps: 936 and 872 share the first step, 128/64/32 the fourth; each step blends once.
-    assert blend_windows(diffusion.timesteps("ddim", 5), BDM_MILESTONES, 16) == [(0,), (3,)]
+    assert blend_windows(diffusion.timesteps(SamplerSettings("ddim", 5)), BDM_MILESTONES, 16) == [(0,), (3,)]
 
 
 def test_prior_noise_level_matches_the_reconstruction_schedule():

@@ -44,13 +44,25 @@ def analytic_model(d: GaussianDiffusion, target_cloud: torch.Tensor):
 
 
 @pytest.mark.parametrize("prediction", ["eps", "x0", "v"])
-@pytest.mark.parametrize("sampler,steps", [("ddim", 20), ("ddpm", 1000)])
-def test_samplers_recover_the_single_data_point(prediction, sampler, steps):
+@pytest.mark.parametrize("sampler,steps,spacing", [("ddim", 20, "linspace"), ("ddim", 20, "trailing"), ("ddpm", 1000, "linspace")])
+def test_samplers_recover_the_single_data_point(prediction, sampler, steps, spacing):
     d = GaussianDiffusion(1000, 1e-4, 2e-2, prediction)
     cloud = torch.rand(1, 32, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
-    out = d.sample(analytic_model(d, cloud), (2, 32, 3), SamplerSettings(sampler, steps, clip_x0=None),
+    out = d.sample(analytic_model(d, cloud), (2, 32, 3), SamplerSettings(sampler, steps, clip_x0=None, spacing=spacing),
                    generator=torch.Generator().manual_seed(4))
     assert torch.allclose(out, cloud.expand(2, -1, -1), atol=1e-4)
+
+
+def test_ddim_timestep_spacings():
+    """``linspace`` spans T−1…0; ``trailing`` is diffusers' (``round(arange(T, 0, −T/n)) − 1``): it starts
+    at T−1, steps by T/n and never asks the network about t = 0."""
+    d = GaussianDiffusion(1000, 1e-5, 8e-3, "x0")
+    assert d.timesteps(SamplerSettings("ddim", 25)) == [round(999 - 999 * i / 24) for i in range(25)]
+    trailing = d.timesteps(SamplerSettings("ddim", 25, spacing="trailing"))
+    assert trailing == list(range(999, 38, -40)) and trailing[-1] == 39
+    assert d.timesteps(SamplerSettings("ddim", 3, spacing="trailing")) == [999, 666, 332]
+    assert d.timesteps(SamplerSettings("ddim", 1000, spacing="trailing")) == list(range(999, -1, -1))
+    assert d.timesteps(SamplerSettings("ddpm", 25, spacing="trailing")) == list(range(999, -1, -1))
 
 
 def test_ddim_is_deterministic_given_the_generator_and_clips():
@@ -92,7 +104,7 @@ def test_paper_profile_samples_with_pc2s_schedule_and_sampler():
     steps = d.betas[1:] - d.betas[:-1]  # linear: every increment (8e-3 − 1e-5) / 999
     assert torch.allclose(steps, torch.full_like(steps, (8e-3 - 1e-5) / 999), rtol=1e-9, atol=0)
     assert torch.allclose(d.alphas_cumprod, torch.cumprod(1 - d.betas, 0))
-    assert d.timesteps(cfg.diffusion.sampler, cfg.diffusion.sample_steps) == list(range(999, -1, -1))  # all 1,000 steps
+    assert d.timesteps(SamplerSettings.from_config(cfg.diffusion)) == list(range(999, -1, -1))  # all 1,000 steps
     for profile in ("smoke", "local"):  # the small profiles keep the clipped DDIM they had
         small = expand(load_spec(spec), profile).cells[0].config.diffusion
         assert small.sampler == "ddim" and small.clip_x0 == 1.0
