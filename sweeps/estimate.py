@@ -1,7 +1,9 @@
 """What a sweep will cost, said before it starts: trials, wall time on this machine, paper-profile GPU-hours.
 
-Local time comes from a short calibration in this process: a few training steps of a few cells and one
-evaluation, on one torch thread (how trials run on a small machine). Trials run one thread each; when
+Local time comes from a short calibration in this process, on one torch thread (how trials run on a
+small machine): a few training steps of every distinct cell (up to :data:`CALIBRATED_CELLS`, spread over
+the grid; a cell's loss can cost more than its neighbour's, e.g. depth renders against none) and one
+evaluation per distinct evaluation cost (:func:`_eval_signature`, at most :data:`EVALUATED_CELLS`). Trials run one thread each; when
 the sweep shares its training views and evaluation set (:mod:`sweeps.precompute`), they are rendered
 once before the trials, on every CPU, and the trials no longer pay them:
 
@@ -39,7 +41,11 @@ __all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate", "paper
 GPU_COSTS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_costs.json"
 STARTUP_S = 2.0
 """Seconds per trial outside training in local mode with reused actors (measured with ray 2.60 on 2 CPUs; benchmarks/RESULTS.md, sweep efficiency)."""
-CALIBRATED_CELLS = 3
+CALIBRATED_CELLS = 8
+"""At most this many distinct cells have their set-up and steps timed (evenly spread over the grid)."""
+EVALUATED_CELLS = 3
+"""At most this many of them are also evaluated; the others take the evaluation time of a calibrated
+cell with the same :func:`_eval_signature`, else the mean of those measured."""
 
 
 @dataclass(frozen=True)
@@ -78,9 +84,10 @@ class Estimate:
                 f"~{self.wall_s / 60:.1f} min wall on this machine; {gpu}")
 
 
-def calibrate(config: Config, steps: int = 3, eval_set: bool = True) -> TrialCost:
-    """Time the set-up, ``steps`` training steps (after one warm-up) and one evaluation of ``config``;
-    with ``eval_set``, also building its evaluation set alone (else ``eval_set_s`` is 0)."""
+def calibrate(config: Config, steps: int = 3, eval_set: bool = True, evaluate: bool = True) -> TrialCost:
+    """Time the set-up, ``steps`` training steps (after one warm-up) and, with ``evaluate``, one
+    evaluation of ``config`` (else ``eval_s`` is 0); with ``eval_set``, also building its evaluation
+    set alone (else ``eval_set_s`` is 0)."""
     with tempfile.TemporaryDirectory() as tmp:
         # A blended cell (sampling.blend.prior_checkpoint: auto) samples with category priors; one-step
         # priors on one object sample as fast as trained ones, and are not part of the timed set-up.
@@ -99,12 +106,22 @@ def calibrate(config: Config, steps: int = 3, eval_set: bool = True) -> TrialCos
             trainer.train_step(batch)
             times.append(time.perf_counter() - start)
         start = time.perf_counter()
-        trainer.evaluate()
-        eval_s = time.perf_counter() - start
+        if evaluate:
+            trainer.evaluate()
+        eval_s = time.perf_counter() - start if evaluate else 0.0
         start = time.perf_counter()
         if eval_set:
             build_eval_set(trainer.cfg, trainer.val_set, trainer.train_set, trainer.cfg.eval.seed)
-        return TrialCost(setup_s, statistics.median(times), eval_s, statistics.median(batches), time.perf_counter() - start)
+        eval_set_s = time.perf_counter() - start if eval_set else 0.0
+        return TrialCost(setup_s, statistics.median(times), eval_s, statistics.median(batches), eval_set_s)
+
+
+def _eval_signature(cfg: Config) -> str:
+    """What an evaluation's cost depends on: every setting but the loss's (``priors``) and the training
+    schedule's (of ``train`` only the batch size, which is also the sampling batch)."""
+    d = cfg.to_dict()
+    kept = {k: v for k, v in d.items() if k not in ("priors", "train")}
+    return json.dumps({**kept, "train.batch_size": d["train"]["batch_size"]}, sort_keys=True, default=str)
 
 
 def _calibration_configs(plan: SweepPlan) -> list[Config]:
@@ -153,14 +170,26 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
             fail the same way and say so; the caller reports the estimate as unavailable).
     """
     costs, diverged = [], None
+    evaluated: dict[str, float] = {}
+    unevaluated: list[tuple[int, str]] = []
     for cfg in _calibration_configs(plan):
+        signature = _eval_signature(cfg)
+        evaluate = signature not in evaluated and len(evaluated) < EVALUATED_CELLS
         try:
             # The cells of a sweep share one evaluation set as a rule: building it is timed once.
-            costs.append(calibrate(cfg, eval_set=not costs))
+            cost = calibrate(cfg, eval_set=not costs, evaluate=evaluate)
         except TrainingDiverged as exc:  # a cell meant to diverge (a test of failure handling, a bad lr)
             diverged = exc
+            continue
+        if evaluate:
+            evaluated[signature] = cost.eval_s
+        else:
+            unevaluated.append((len(costs), signature))
+        costs.append(cost)
     if not costs:
         raise diverged
+    for i, signature in unevaluated:
+        costs[i] = replace(costs[i], eval_s=evaluated.get(signature, statistics.fmean(evaluated.values())))
     steps = plan.profile.steps
     trial_s = statistics.fmean(replace(c, eval_set_s=costs[0].eval_set_s).trial_s(steps, plan.profile.eval_every, shared)
                                for c in costs)

@@ -8,7 +8,16 @@ from pathlib import Path
 
 import pytest
 
-from sweeps.estimate import GPU_COSTS, STARTUP_S, TrialCost, calibrate, estimate, paper_trial_gpu_hours
+from sweeps.estimate import (
+    GPU_COSTS,
+    STARTUP_S,
+    TrialCost,
+    _calibration_configs,
+    _eval_signature,
+    calibrate,
+    estimate,
+    paper_trial_gpu_hours,
+)
 from sweeps.plan import expand
 from sweeps.spec import load_spec
 
@@ -54,3 +63,24 @@ def test_calibration_and_wall_time_on_this_machine():
     est = estimate(plan, cpus=2, concurrent=5)
     assert est.trials == 5 and est.concurrent == 5
     assert est.wall_s == pytest.approx(5 * est.trial_s / 2)  # five one-thread trials share two cores
+
+
+def test_every_cell_of_a_small_grid_is_calibrated_and_evaluations_are_timed_once_per_cost():
+    """A grid's cells can differ in step cost (the priors sweep: depth renders or none), so every distinct
+    cell's steps are timed; evaluation costs depend on the sampler and model, not the loss."""
+    point_size = expand(load_spec(SWEEPS / "point_size.yaml"), "local")
+    assert [c.priors.point_size for c in _calibration_configs(point_size)] == [c.config.priors.point_size for c in point_size.cells]
+    assert len({_eval_signature(c.config) for c in point_size.cells}) == 1  # point size is the loss's
+    priors = expand(load_spec(SWEEPS / "priors_2d_3d.yaml"), "local")
+    assert len({_eval_signature(c.config) for c in priors.cells}) == 1
+    prediction = expand(load_spec(SWEEPS / "prediction.yaml"), "local")
+    assert len({_eval_signature(c.config) for c in prediction.cells}) == len(prediction.cells)  # the target is the model's
+    bigger = point_size.cells[0].config.replace(**{"train.batch_size": 8})  # also the sampling batch
+    assert _eval_signature(bigger) != _eval_signature(point_size.cells[0].config)
+    assert _eval_signature(point_size.cells[0].config.replace(**{"train.lr": 3e-3})) == _eval_signature(point_size.cells[0].config)
+
+
+def test_a_cell_calibrated_without_evaluation_times_no_evaluation():
+    plan = expand(load_spec(SWEEPS / "point_size.yaml"), "smoke")
+    cost = calibrate(plan.cells[1].config, eval_set=False, evaluate=False)
+    assert cost.eval_s == 0.0 and cost.eval_set_s == 0.0 and cost.step_s > 0
