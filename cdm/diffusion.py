@@ -173,7 +173,9 @@ class GaussianDiffusion:
         if settings.sampler == "ddpm":
             return list(range(self.num_steps - 1, -1, -1))
         if settings.spacing == "trailing":
-            grid = (torch.arange(self.num_steps, 0, -self.num_steps / settings.steps, dtype=torch.float64).round().long() - 1).tolist()
+            # T − i·T/n for i < n, not arange(T, 0, −T/n): its float step can add an n+1-th value ≈ 0 (t = −1).
+            stride = self.num_steps / settings.steps
+            grid = ((self.num_steps - torch.arange(settings.steps, dtype=torch.float64) * stride).round().long() - 1).tolist()
         else:
             grid = torch.linspace(self.num_steps - 1, 0, settings.steps).round().long().tolist()
         return sorted(set(grid), reverse=True)

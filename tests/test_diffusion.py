@@ -63,6 +63,9 @@ def test_ddim_timestep_spacings():
     assert d.timesteps(SamplerSettings("ddim", 3, spacing="trailing")) == [999, 666, 332]
     assert d.timesteps(SamplerSettings("ddim", 1000, spacing="trailing")) == list(range(999, -1, -1))
     assert d.timesteps(SamplerSettings("ddpm", 25, spacing="trailing")) == list(range(999, -1, -1))
+    for n in range(1, 1001):  # 61 steps once drew 62 timesteps, the last t = −1
+        grid = d.timesteps(SamplerSettings("ddim", n, spacing="trailing"))
+        assert len(grid) == n and grid[0] == 999 and grid[-1] == round(1000 / n) - 1 >= 0, n
 
 
 def test_ddim_is_deterministic_given_the_generator_and_clips():
