@@ -64,9 +64,9 @@ def test_shapenet_without_bdms_split_file_and_small_profiles_say_so(shapenet, tm
     assert {c.config.priors.render_kind for c in plan.cells} == {"planar"}  # Table 6's ShapeNet cells
     local = plan_card(expand(load_spec(SWEEPS / "point_size.yaml"), "local"))
     text = "\n".join(local.deviations)
-    for aspect in ("data set: the procedural data set stands in", "objects: the first 4 held-out objects per category",
+    for aspect in ("data set: the procedural data set stands in", "objects: the first 16 held-out objects per category",
                    "normalisation: per-shape bounding box", "points: 512 per cloud, 512 scored (the reference: 4096)",
-                   "sampler: DDIM over 25 steps, trailing spacing, x̂₀ clipped to ±1", "diffusion: x0-prediction (paper: ε)",
+                   "sampler: DDIM over 10 steps, trailing spacing, x̂₀ clipped to ±1", "diffusion: x0-prediction (paper: ε)",
                    "training: 1,800 steps (PC²: 100,000), batch 4 (paper: 8), 64² images (paper: 224²), AdamW lr 0.001, "
                    "betas (0.9, 0.99), 150 warm-up steps (PC²: 1e-3, (0.95, 0.999), 2,000)", ENCODER):
         assert aspect in text, aspect
