@@ -1,16 +1,17 @@
-"""CPU per training step inside a real sweep ÷ the isolated step (issue 19: ≤ 1.15, was ~1.85).
+"""CPU per training step inside a real sweep ÷ the same cells' steps alone (issue 19: ≤ 1.15, was ~1.85).
 
 Reads a finished sweep from its MLflow store (``--tracking-uri``, ``--experiment``: run the sweep
 first, e.g. the main job ``python sweeps/run.py sweeps/point_size.yaml`` on the local profile) and
-times the isolated step of its first cell here: one thread, on ready batches, nothing else running
-(run this with the machine otherwise idle). Three rows:
+then times every cell's step alone here: one thread, on ready batches, nothing else running (run
+this right after the sweep, with the machine otherwise idle). Cells cost different amounts a step
+(point_size.yaml's 0.08 draws a wider footprint than 0.0075), so each cell is set against itself:
 
-- in-trial: the trials' own CPU seconds per step (``train/cpu_s_per_step``, the process's CPU time
-  over its logging windows, data included) ÷ the isolated step: what sharing the cores costs a step.
-  The isolated step is the mean over the cell's first 40 batches (the ratio's target row) and, for
-  comparison with earlier figures, the median on one fixed batch;
-- whole sweep: ``CPUs × wall of the trial phase ÷ Σ steps`` ÷ the isolated step: everything else a
-  sweep spends (driver, evaluations, set-up, idle cores) counted against its training steps.
+- in-trial: each trial's own CPU seconds per step (``train/cpu_s_per_step``, the process's CPU time
+  over its logging windows, data included) ÷ that cell's mean over its first 40 batches alone; a row
+  per cell and one for the sweep (the mean over cells of in-trial ÷ the mean of alone): what sharing
+  the cores costs a step;
+- whole sweep: ``CPUs × wall of the trial phase ÷ Σ steps`` ÷ the cells' mean step alone:
+  everything else a sweep spends (driver, evaluations, set-up, idle cores) counted against its steps.
 """
 
 from __future__ import annotations
@@ -25,18 +26,16 @@ from typing import TYPE_CHECKING
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script, as the README does
 
-from benchmarks.common import median_s  # noqa: E402
-
 if TYPE_CHECKING:
     from cdm.config import Config
 
 __all__ = ["sweep_cpu_per_step"]
 
 
-def _isolated_steps(config: Config, steps: int = 40) -> tuple[float, float]:
-    """CPU seconds of one step alone: the median on one fixed batch, and the mean over the run's first
-    ``steps`` batches (drawn before timing), as a trial computes them: batches differ in how many
-    voxels their clouds fill, so one batch's step is not the run's average step."""
+def _isolated_steps(config: Config, steps: int = 40) -> float:
+    """Mean CPU seconds of one step alone over the run's first ``steps`` batches (drawn before timing),
+    as a trial computes them: batches differ in how many voxels their clouds fill, so one batch's step
+    is not the run's average step."""
     import torch
 
     from cdm.train import Trainer
@@ -49,13 +48,12 @@ def _isolated_steps(config: Config, steps: int = 40) -> tuple[float, float]:
             trainer.step = step
             batches.append(trainer.next_batch())
         trainer.step = 0
-        fixed = median_s(lambda: trainer.train_step(batches[0]), 8, clock=time.process_time)
         times = []
         for batch in batches:
             start = time.process_time()
             trainer.train_step(batch)
             times.append(time.process_time() - start)
-        return fixed, statistics.fmean(times)
+        return statistics.fmean(times)
 
 
 def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = None) -> list[dict]:
@@ -72,28 +70,29 @@ def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = 
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags and r.info.end_time]
     if not children:
         raise ValueError(f"--experiment {experiment!r}: no finished trial runs")
-    in_trial = []
-    steps = 0
-    for r in children:
-        history = client.get_metric_history(r.info.run_id, "train/cpu_s_per_step")
-        in_trial += [m.value for m in history]
-        steps += int(max(m.step for m in client.get_metric_history(r.info.run_id, "train/loss")))
     spec_name = children[0].data.tags.get("spec", experiment)
     profile = children[0].data.tags.get("profile", "local")
-    plan = expand(load_spec(f"sweeps/{spec_name}.yaml"), profile)
-    fixed, isolated = _isolated_steps(plan.cells[0].config)
+    cells = {c.label: c for c in expand(load_spec(f"sweeps/{spec_name}.yaml"), profile).cells}
+    rows, in_trial, alone, steps = [], [], [], 0
+    for r in sorted(children, key=lambda r: r.data.tags["mlflow.runName"]):
+        cell = cells[r.data.tags["mlflow.runName"]]
+        trial_s = statistics.fmean(m.value for m in client.get_metric_history(r.info.run_id, "train/cpu_s_per_step"))
+        steps += int(max(m.step for m in client.get_metric_history(r.info.run_id, "train/loss")))
+        alone_s = _isolated_steps(cell.config)
+        in_trial.append(trial_s)
+        alone.append(alone_s)
+        rows.append({"benchmark": "CPU per step in a sweep ÷ alone", "case": f"{spec_name}, {profile}: {cell.label}",
+                     "without_s": alone_s, "with_s": trial_s, "ratio": trial_s / alone_s, "target": "report"})
     spans = [(r.info.start_time / 1000, r.info.end_time / 1000) for r in children]
     wall = max(e for _, e in spans) - min(b for b, _ in spans)
     cpus = cpus or float(os.cpu_count() or 1)
     per_step = cpus * wall / steps
-    in_trial_s = statistics.fmean(in_trial)
-    return [
-        {"benchmark": "CPU per step in a sweep ÷ isolated", "case": f"{spec_name}, {profile}: in-trial train/cpu_s_per_step ÷ one fixed batch alone",
-         "without_s": fixed, "with_s": in_trial_s, "ratio": in_trial_s / fixed, "target": "report"},
-        {"benchmark": "CPU per step in a sweep ÷ isolated", "case": f"{spec_name}, {profile}: in-trial train/cpu_s_per_step ÷ the run's first batches alone",
-         "without_s": isolated, "with_s": in_trial_s, "ratio": in_trial_s / isolated, "target": "<= 1.15"},
-        {"benchmark": "CPU per step in a sweep ÷ isolated", "case": f"{spec_name}, {profile}: {cpus:g} CPUs × trial-phase wall ÷ Σ steps",
-         "without_s": isolated, "with_s": per_step, "ratio": per_step / isolated, "target": "<= 1.15"},
+    alone_s, trial_s = statistics.fmean(alone), statistics.fmean(in_trial)
+    return rows + [
+        {"benchmark": "CPU per step in a sweep ÷ alone", "case": f"{spec_name}, {profile}: every cell, in-trial train/cpu_s_per_step ÷ the cell's first 40 batches alone",
+         "without_s": alone_s, "with_s": trial_s, "ratio": trial_s / alone_s, "target": "<= 1.15"},
+        {"benchmark": "CPU per step in a sweep ÷ alone", "case": f"{spec_name}, {profile}: {cpus:g} CPUs × trial-phase wall ÷ Σ steps",
+         "without_s": alone_s, "with_s": per_step, "ratio": per_step / alone_s, "target": "<= 1.15"},
     ]
 
 
