@@ -43,6 +43,7 @@ from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
+from sweeps.checkpoints import CheckpointPruner, prune_finished
 from sweeps.cores import CoreLease, lease_cores
 from sweeps.precompute import precompute, shared_root
 from sweeps.plan import SweepPlan, optuna_distributions
@@ -381,15 +382,18 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
                 name=sweep_dir.rsplit("/", 1)[1],
                 storage_path=sweep_dir.rsplit("/", 1)[0],
                 failure_config=ray.tune.FailureConfig(max_failures=plan.spec.failure.max_retries),
-                checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=2),
+                # Every checkpoint stays until CheckpointPruner (sweeps/checkpoints.py) deletes it
+                # safely: Tune's num_to_keep deletes before the state naming the newer one is uploaded.
+                checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=None),
                 sync_config=ray.tune.SyncConfig(sync_period=1),
-                callbacks=[_TrialCloser(plan, sweep_run), *callbacks],
+                callbacks=[_TrialCloser(plan, sweep_run), CheckpointPruner(), *callbacks],
                 # Tune's own tables list every reported metric (dozens, per category); the trials'
                 # step/eval lines and _TrialCloser's lines are the progress display instead.
                 verbose=0,
             ),
         )
     grid = tuner.fit()
+    prune_finished(grid)  # fit() has uploaded Tune's final state: no trial's older checkpoints are needed
     if root is not None:
         # A cache, gigabytes at the local profile: kept only while trials may still read it (a killed
         # driver leaves it for --resume; a resumed sweep that finds it gone renders it again).

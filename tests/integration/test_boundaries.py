@@ -187,6 +187,15 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
         assert sorted(steps) == list(range(5, 61, 5)), (child.info.run_name, steps)
     stored = set(_s3_files(s3, "results/s3kill/smoke"))
     assert {f"{BUCKET}/results/s3kill/smoke/{name}" for name in ("sweep.json", "results.md", "results.csv")} <= stored
+    # Six checkpoints per trial were written; the finished sweep keeps each trial's newest two.
+    per_trial: dict[str, set[str]] = {}
+    for path in stored:
+        parts = path.split("/")
+        found = [(parts[i], parts[i + 1]) for i in range(len(parts) - 1)
+                 if parts[i].startswith("trial_") and parts[i + 1].startswith("checkpoint_")]
+        for trial, checkpoint in found:
+            per_trial.setdefault(trial, set()).add(checkpoint)
+    assert list(per_trial.values()) == [{"checkpoint_000004", "checkpoint_000005"}] * 2, per_trial
 
 
 @pytest.mark.parametrize("change,needle", [
