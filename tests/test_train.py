@@ -10,7 +10,7 @@ import torch
 from cdm.checkpoint import load_checkpoint
 from cdm.data.order import batch_indices
 from cdm.optim import TrainingDiverged, lr_factor
-from cdm.train import Callback, fit, metric_names
+from cdm.train import Callback, Trainer, fit, metric_names
 from tests.conftest import tiny_config
 
 
@@ -30,6 +30,16 @@ class Recorder(Callback):
         self.checkpoints.append((step, path))
 
 
+def _fixed_batch_loss(trainer: Trainer, batches: list) -> float:
+    """Mean loss over ``batches`` with the same timesteps and noise every call (the generator reseeded)."""
+    state = trainer.generator.get_state()
+    trainer.generator.manual_seed(1234)
+    with torch.no_grad():
+        total = sum(trainer.losses(b)[0].item() for b in batches)
+    trainer.generator.set_state(state)
+    return total / len(batches)
+
+
 @pytest.mark.parametrize("backend", ["sparse", "dense"])
 def test_loss_falls_over_a_few_hundred_steps(tmp_path, backend):
     cfg = tiny_config(tmp_path, **{"train.steps": 300, "train.eval_every": 300, "train.log_every": 50,
@@ -38,10 +48,18 @@ def test_loss_falls_over_a_few_hundred_steps(tmp_path, backend):
     result = fit(cfg, [rec])
     losses = [rec.steps[s]["train/loss"] for s in sorted(rec.steps)]
     assert result.step == 300 and len(losses) == 6
-    # Measured at seed 0: 2.13 -> 1.82 (sparse). The 3D prior's share of the loss shrank when the
-    # splat took PyTorch3D's point radius (it was 2.61 -> 1.95 with the twice as wide Gaussian splat).
-    assert losses[-1] < 0.9 * losses[0], losses
     assert all(math.isfinite(v) for v in losses)
+    # The same 8 training batches, timesteps and noise scored at fit's initial weights (a new Trainer
+    # of the same seed) and at its last checkpoint. Not the logged 50-step means: most of the fall
+    # happens within the first 50 steps, and how much of it does depends on the CPU's float kernels
+    # (first window 2.13 on an AMD EPYC, 1.87 on an Intel Xeon, same seed). Measured on the Xeon:
+    # 2.19 -> 1.77 sparse, 2.20 -> 1.79 dense.
+    trainer = Trainer(cfg)
+    batches = [trainer.next_batch() for _ in range(8)]
+    before = _fixed_batch_loss(trainer, batches)
+    trainer.restore(load_checkpoint(rec.checkpoints[-1][1]))
+    after = _fixed_batch_loss(trainer, batches)
+    assert after < 0.9 * before, (before, after)
     step, metrics, files = rec.evals[-1]
     assert step == 300
     for name in ("eval/cd", "eval/f1", "eval/cd/chair", "baseline/sphere/cd", "baseline/category_mean/f1"):
