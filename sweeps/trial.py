@@ -43,7 +43,7 @@ from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
-from sweeps.checkpoints import CheckpointPruner, prune_finished
+from sweeps.checkpoints import KEEP, CheckpointPruner, prune_finished
 from sweeps.cores import CoreLease, lease_cores
 from sweeps.precompute import precompute, shared_root
 from sweeps.plan import SweepPlan, optuna_distributions
@@ -219,6 +219,9 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
             name=f"trial_{trial_id}",
             storage_path=f"{setup.sweep_dir}/train",
             failure_config=ray.train.FailureConfig(max_failures=plan.spec.failure.max_retries),
+            # Safe here, unlike Tune's (sweeps/checkpoints.py): Train writes the state naming its newest
+            # checkpoints before deleting older ones (ray/train/v2/.../checkpoint_manager.py).
+            checkpoint_config=ray.train.CheckpointConfig(num_to_keep=KEEP),
             callbacks=_tune_report_callbacks() if r.workers_per_trial else None,
         ),
     )
