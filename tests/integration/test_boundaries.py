@@ -14,6 +14,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -189,12 +190,8 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
     assert {f"{BUCKET}/results/s3kill/smoke/{name}" for name in ("sweep.json", "results.md", "results.csv")} <= stored
     # Six checkpoints per trial were written; the finished sweep keeps each trial's newest two.
     per_trial: dict[str, set[str]] = {}
-    for path in stored:
-        parts = path.split("/")
-        found = [(parts[i], parts[i + 1]) for i in range(len(parts) - 1)
-                 if parts[i].startswith("trial_") and parts[i + 1].startswith("checkpoint_")]
-        for trial, checkpoint in found:
-            per_trial.setdefault(trial, set()).add(checkpoint)
+    for found in filter(None, (re.search(r"/(trial_[^/]+)/(checkpoint_[^/]+)/", p) for p in stored)):
+        per_trial.setdefault(found[1], set()).add(found[2])
     assert list(per_trial.values()) == [{"checkpoint_000004", "checkpoint_000005"}] * 2, per_trial
 
 
