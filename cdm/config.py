@@ -93,6 +93,35 @@ class DataConfig(_Group):
     ``<object_id>/<position>.png`` (captured kinds); README, "External inputs"."""
     condition_grey: bool = False
     """Use grey versions (ITU-R 601 luma in all three channels) of the generated images (Table 8 rows 4, 7)."""
+    train_view: int | None = Field(None, ge=0, le=23)
+    """ShapeNet only: the one R2N2 rendering (``00`` … ``23``) every training sample shows; null = any of
+    the 24, drawn per view round. BDM trains on view 00 only (``which_view_from24: '00'`` in its
+    ``experiments/config/structured.py``); the held-out input is view 00 either way."""
+    mask_rgb: bool = False
+    """Co3D only: multiply the RGB by the foreground mask (soft, at full resolution, before the crop):
+    background black, as PC²'s ``mask_images=True`` (PyTorch3D's ``image_rgb *= fg_probability``)."""
+    drop_outliers: bool = True
+    """Co3D only: drop the cloud's points outside its 0.5–99.5 % quantile box widened by 10 % before
+    sampling. PC² keeps every point (PyTorch3D's ``_load_pointcloud`` subsamples, nothing else)."""
+    exclude_sequences: bool = False
+    """Co3D only: leave out PC²'s bad and low-quality sequences (:mod:`cdm.data.co3d_lists`; hydrant 73,
+    teddybear 295) from every split, as PC²'s ``experiments/dataset/__init__.py``."""
+    frames_per_sequence: int | None = Field(None, ge=1)
+    """Co3D only: input frames kept per sequence, chosen as PyTorch3D's ``JsonIndexDataset``
+    (``n_frames_per_sequence``) before the split's set list is applied (a sequence whose chosen frames
+    are all in another split drops out); null = every frame of the split's set list. PC²: 1."""
+
+    @model_validator(mode="after")
+    def _check_protocol(self) -> DataConfig:
+        co3d_only = {"data.mask_rgb": self.mask_rgb, "data.drop_outliers": not self.drop_outliers,
+                     "data.exclude_sequences": self.exclude_sequences, "data.frames_per_sequence": self.frames_per_sequence is not None}
+        wrong = [name for name, changed in co3d_only.items() if changed and self.kind != "co3d"]
+        if self.train_view is not None and self.kind != "shapenet_r2n2":
+            wrong.insert(0, "data.train_view")
+        if wrong:
+            only = "shapenet_r2n2" if wrong[0] == "data.train_view" else "co3d"
+            raise ValueError(f"{wrong[0]}: only data.kind={only} reads it (got data.kind={self.kind}); leave it at its default")
+        return self
 
 
 class ModelConfig(_Group):
@@ -127,6 +156,10 @@ class ModelConfig(_Group):
     global_embeddings: str | None = None
     """``.npz`` of per-object embeddings for ``global_source: embeddings``: one float array per object id,
     shape ``(E,)`` or ``(T, E)`` (``T`` tokens), the same for all (``cdm/tools/openclip_embeddings.py``)."""
+    mask_channels: bool = True
+    """Project the input mask and its distance transform onto the points with the image channels
+    (:func:`cdm.model.conditioning.conditioning_map`): PC²'s ``use_mask``/``use_distance_transform``
+    (true in its ``experiments/config/structured.py``, its Co3D runs); BDM sets both false for ShapeNet."""
 
     @model_validator(mode="after")
     def _check_blocks(self) -> ModelConfig:
@@ -319,6 +352,10 @@ class BlendConfig(_Group):
     seed: int = 0
     """Seed of the per-point selection and of the prior branch's DDPM noise; apart from the sampling
     seed, so select_prob 0 reproduces the plain sampler exactly."""
+    prior_timestep: Literal["same_index", "log_snr"] = "same_index"
+    """Timestep the prior is evaluated at for the reconstruction's x_t: ``same_index`` passes the same t, as
+    BDM's ``experiments/main_blending.py`` (its ``prior_milestones``), though the two schedules' noise
+    levels differ; ``log_snr`` the prior schedule's t of nearest log-SNR (:func:`cdm.blend.matched_timesteps`)."""
 
     @model_validator(mode="after")
     def _check_windows(self) -> BlendConfig:
