@@ -42,7 +42,7 @@ class ExternalInput(NamedTuple):
         path: as given (``~`` expanded).
         what: what it holds, in words.
         kind: ``file`` or ``folder``.
-        source: where to get it.
+        source: the command that makes it (the user runs it: nothing is downloaded at run time).
     """
 
     field: str
@@ -56,22 +56,32 @@ class ExternalInput(NamedTuple):
         return self.path.is_file() if self.kind == "file" else self.path.is_dir()
 
 
+_MSN_URL = "https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar"
+
+
 def required_inputs(cfg: Config) -> list[ExternalInput]:
-    """Every external input ``cfg`` reads, in config order."""
+    """Every external input ``cfg`` reads, in config order; ``source`` is the command that makes it."""
     out = []
+    export = "python -m cdm.tools.export_views --out views/ " + " ".join(
+        f"--set data.{k}={v}" for k, v in (("kind", cfg.data.kind), ("root", cfg.data.root)) if v is not None)
     if cfg.model.encoder == "vit_s16":
-        out.append(ExternalInput("model.encoder_weights", input_path(cfg.model.encoder_weights),
-                                 "MSN ViT-S/16 weights", "file", "https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar"))
+        path = input_path(cfg.model.encoder_weights)
+        out.append(ExternalInput("model.encoder_weights", path, "MSN ViT-S/16 weights", "file",
+                                 f"curl -L --create-dirs -o {cfg.model.encoder_weights} {_MSN_URL}"))
     if cfg.model.global_source == "embeddings":
         out.append(ExternalInput("model.global_embeddings", input_path(cfg.model.global_embeddings),
-                                 "per-object global embeddings (.npz)", "file", "cdm/tools/openclip_embeddings.py"))
+                                 "per-object global embeddings (.npz)", "file",
+                                 f"{export}, then python -m cdm.tools.openclip_embeddings --views views/ "
+                                 f"--kind text|image|depth --out {cfg.model.global_embeddings}"))
     if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps" and cfg.priors.depth_maps is not None:
-        out.append(ExternalInput("priors.depth_maps", input_path(cfg.priors.depth_maps),
-                                 "estimated depth maps", "folder", "your depth estimator on `python -m cdm.tools.export_views` crops"))
+        out.append(ExternalInput("priors.depth_maps", input_path(cfg.priors.depth_maps), "estimated depth maps", "folder",
+                                 f"{export}, then your depth estimator on the crops, writing "
+                                 f"{cfg.priors.depth_maps}/<object_id>/<position>.npy (README, 'External inputs')"))
     d = cfg.data
     if d.condition_folder is not None and (d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")):
-        out.append(ExternalInput("data.condition_folder", input_path(d.condition_folder),
-                                 "generated condition images", "folder", "your generator on `python -m cdm.tools.export_views` renderings"))
+        out.append(ExternalInput("data.condition_folder", input_path(d.condition_folder), "generated condition images",
+                                 "folder", f"{export} --rounds R, then your generator on the point renderings, writing "
+                                 f"{d.condition_folder}/<object_id>/<round>/<view>.png (README, 'External inputs')"))
     return out
 
 
@@ -80,13 +90,16 @@ def missing_inputs(cfg: Config) -> list[ExternalInput]:
     return [i for i in required_inputs(cfg) if not i.present]
 
 
-def check_inputs(cfg: Config) -> None:
-    """Raise ``ValueError`` naming the first absent input's field, path and where to get it."""
-    missing = missing_inputs(cfg)
+def check_inputs(*configs: Config) -> None:
+    """Raise ``ValueError`` naming every input absent for any of ``configs``, once each: its field, path
+    and the command that makes it."""
+    missing = {(i.field, str(i.path)): i for cfg in configs for i in missing_inputs(cfg)}
     if missing:
-        i = missing[0]
-        unset = " — set the environment variable it names" if "$" in str(i.path) else ""
-        raise ValueError(f"{i.field}: {i.path} does not exist{unset} (a {i.kind} of {i.what}; get it from {i.source})")
+        def say(i: ExternalInput) -> str:
+            unset = " — set the environment variable it names" if "$" in str(i.path) else ""
+            return f"{i.field}: {i.path} does not exist{unset} (a {i.kind} of {i.what}; make it with: {i.source})"
+
+        raise ValueError("; ".join(say(i) for i in missing.values()))
 
 
 def describe_inputs(cfg: Config) -> str:

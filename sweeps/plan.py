@@ -3,7 +3,8 @@
 One trial's config is resolved in this order, later wins::
 
     cdm defaults < shared profile overrides < spec base < spec profile overrides
-      < budget (train.steps, train.eval_every) and train.threads (= CPUs per worker)
+      < the profile's fields for the run's data set (``datasets.<data.kind>``) < the spec's paper run
+      on that data set (``--profile paper --set data.root=...``) < budget (train.steps, train.eval_every) and train.threads (= CPUs per worker)
       < cell values < seed (train.seed) < --set
 
 :func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
@@ -54,6 +55,8 @@ class ResolvedProfile:
     overrides: dict[str, Any]
     resources: Resources
     num_samples: int | None
+    datasets: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """Fields set when a run reads one of these data sets (:attr:`sweeps.spec.Profile.datasets`)."""
 
 
 @dataclass(frozen=True)
@@ -137,6 +140,7 @@ def resolve_profile(spec: Spec, name: str, shared: dict[str, Profile]) -> Resolv
         overrides={**base.overrides, **spec.base, **local.overrides},
         resources=resources,
         num_samples=local.num_samples or base.num_samples,
+        datasets={d: {**base.datasets.get(d, {}), **local.datasets.get(d, {})} for d in {*base.datasets, *local.datasets}},
     )
 
 
@@ -238,7 +242,8 @@ def expand(
     run = _dataset_run(spec, profile, sets)
     if run is not None:
         spec = spec.model_copy(update={"grid": {**spec.grid, **run.grid}})
-    fixed = {**prof.overrides, **(run.overrides if run else {}), "train.steps": prof.steps, "train.eval_every": prof.eval_every}
+    kind = sets.get("data.kind", prof.overrides.get("data.kind"))
+    fixed = {**prof.overrides, **prof.datasets.get(kind, {}), **(run.overrides if run else {}), "train.steps": prof.steps, "train.eval_every": prof.eval_every}
     fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
     _build({**fixed, **sets}, f"profile {profile}")
     rows = spec.paper.rows if spec.paper else []

@@ -158,9 +158,9 @@ def _check_inputs(plan: SweepPlan, remote: bool) -> None:
         print("external inputs: none (everything is generated or in data.root)", flush=True)
         return
     print("external inputs:\n" + "\n".join(f"  {n}: {describe_inputs(cfg)}" for n, cfg in zip(names, configs)), flush=True)
+    check_inputs(*configs)
     covered = set()
     for cfg in configs:
-        check_inputs(cfg)
         key = repr(required_inputs(cfg)) + repr(cfg.data)
         if not remote and required_inputs(cfg) and key not in covered:
             covered.add(key)

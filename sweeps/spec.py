@@ -184,6 +184,9 @@ class Profile(_Strict):
     resources: Resources = Resources()
     num_samples: int | None = Field(None, ge=1)
     """Optuna trials in this profile (overrides ``search.num_samples``)."""
+    datasets: dict[Literal["shapenet_r2n2", "co3d"], dict[str, Any]] = {}
+    """Dotted config fields this profile sets when a run reads that data set (``data.kind``), after its
+    ``overrides``: the paper profile's home for each reference's data protocol (BDM on ShapeNet, PC² on Co3D)."""
 
 
 class ExplicitCell(_Strict):
@@ -287,7 +290,9 @@ def load_profiles(path: str | Path = PROFILES_FILE) -> dict[str, Profile]:
     for name, prof in profiles.items():
         if prof.budget.steps is None or prof.budget.eval_every is None:
             raise SpecError(f"{path}: {name}.budget: give both steps and eval_every")
-        for key in prof.overrides:
-            if error := field_error(f"{path}: {name}.overrides.{key}", key):
+        keys = [(f"overrides.{k}", k) for k in prof.overrides]
+        keys += [(f"datasets.{d}.{k}", k) for d, fields in prof.datasets.items() for k in fields]
+        for where, key in keys:
+            if error := field_error(f"{path}: {name}.{where}", key):
                 raise SpecError(error)
     return profiles

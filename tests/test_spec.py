@@ -42,13 +42,15 @@ def inputs(tmp_path_factory) -> Path:
         write_embeddings(folder / "openclip" / f"{kind}.npz", ids, (16,), seed)
     write_condition_images(folder / "controlnet", smoke, views=3, size=baseline["smoke"].data.image_size)
     write_condition_images(folder / "controlnet", sorted(set(ids) - set(smoke)), views=0, size=8)
+    (folder / "msn").mkdir()
+    (folder / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # the paper profile's encoder: a dry run checks it is there
     return folder
 
 
 @pytest.fixture
 def given_inputs(path, request, monkeypatch):
-    """Point ``$CDM_INPUTS`` at the written inputs when the test's spec reads them."""
-    if path in NEEDS_INPUTS:
+    """Point ``$CDM_INPUTS`` at the written inputs when the test's spec or profile reads them."""
+    if path in NEEDS_INPUTS or request.node.callspec.params.get("profile") == "paper":
         monkeypatch.setenv("CDM_INPUTS", str(request.getfixturevalue("inputs")))
 
 
@@ -287,3 +289,24 @@ def test_lambda_source_names_the_profile_that_sets_it():
     assert lambda_source(spec, "smoke", smoke.fixed, smoke.sets) == "the config default"
     assert lambda_source(spec, "smoke", smoke.fixed, {"priors.lambda_3d": 0.5}) == "--set"
     assert lambda_source(load_spec(SWEEPS / "lambda.yaml"), "local", {}, {}) == "the spec's search"
+
+
+def test_the_paper_profile_names_every_missing_input_and_the_command_that_makes_it(tmp_path, monkeypatch, capsys):
+    from tests.datasets_fixtures import make_co3d
+
+    root = make_co3d(tmp_path / "co3d", categories=("teddybear",)).root
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("CDM_INPUTS", str(tmp_path / "inputs"))
+    args = [str(SWEEPS / "prior_type.yaml"), "--dry-run", "--no-estimate", "--profile", "paper",
+            "--set", f"data.root={root}", "--set", "data.kind=co3d"]
+    assert run.main(args) == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    weights, maps = error.removeprefix("error: ").split("; priors.")
+    assert weights.startswith(f"model.encoder_weights: {tmp_path}/inputs/msn/vits16_800ep.pth.tar does not exist")
+    assert "make it with: curl -L --create-dirs -o $CDM_INPUTS/msn/vits16_800ep.pth.tar https://dl.fbaipublicfiles.com" in weights
+    assert maps.startswith(f"depth_maps: {tmp_path}/inputs/depth_maps does not exist")
+    assert f"make it with: python -m cdm.tools.export_views --out views/ --set data.kind=co3d --set data.root={root}" in maps
+    # A user without the weights trains PC²'s trainable CNN instead: then only the depth maps are missing.
+    assert run.main([*args, "--set", "model.encoder=cnn"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"error: priors.depth_maps: {tmp_path}/inputs/depth_maps")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["co3d"]
