@@ -19,10 +19,13 @@ covers the window (BDM's own DDIM mode likewise blends one DDIM step of ≈16 ti
 earlier window took is not taken again.
 
 **Noise levels.** The prior keeps its own schedule (BDM's: β 1e-4 → 0.02, against PC²'s 1e-5 → 8e-3).
-BDM hands the prior the same x_t *and the same timestep index*, although ᾱ_t differs between the two
-schedules; here the prior is evaluated at the timestep of its schedule whose log-SNR is nearest to
-that of the reconstruction model's ᾱ_t (identical schedules: the same t), and both branches take the
-reconstruction sampler's step from their x̂₀, so both end the window at the same noise level.
+BDM hands the prior the same x_t *and the same timestep index* (``main_blending.py``: the prior runs
+from ``prior_milestones[i + 1]``, the reconstruction's milestone itself under DDPM), although ᾱ_t
+differs between the two schedules; ``sampling.blend.prior_timestep: same_index`` (the default) does
+the same. ``log_snr`` instead evaluates the prior at the timestep of its schedule whose log-SNR is
+nearest to that of the reconstruction model's ᾱ_t (:func:`matched_timesteps`; identical schedules:
+the same t). Either way both branches take the reconstruction sampler's step from their x̂₀, so both
+end the window at the same noise level.
 
 **Randomness.** The reconstruction branch draws from the sampling ``generator`` exactly as
 :meth:`GaussianDiffusion.sample` does; the prior branch's DDPM noise and the selection draw from a
@@ -33,7 +36,7 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -43,7 +46,7 @@ from cdm.data.sample import Batch
 from cdm.diffusion import GaussianDiffusion, ModelFn, SamplerSettings
 from cdm.prior_model import CategoryPrior, load_prior, prior_path
 
-__all__ = ["BlendResult", "blend_windows", "blended_reconstruction", "blended_sample", "matched_timesteps"]
+__all__ = ["BlendResult", "blend_windows", "blended_reconstruction", "blended_sample", "matched_timesteps", "prior_timesteps"]
 
 PriorX0Fn = Callable[[Tensor, Tensor], Tensor]
 """``prior_x0(x_t (B, N, 3), t (B,) long, reconstruction timesteps) -> the prior's x̂₀ (B, N, 3)``."""
@@ -89,6 +92,22 @@ def matched_timesteps(alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor) -> T
     return (log_snr(alphas_cumprod)[:, None] - log_snr(prior_alphas_cumprod)[None, :]).abs().argmin(dim=1)
 
 
+def prior_timesteps(alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor, mode: Literal["same_index", "log_snr"]) -> Tensor:
+    """``(T,)`` long: the prior's timestep for each reconstruction timestep (``sampling.blend.prior_timestep``).
+
+    Args:
+        alphas_cumprod: ``(T,)`` ᾱ of the reconstruction schedule.
+        prior_alphas_cumprod: ``(T',)`` ᾱ of the prior's schedule.
+        mode: ``same_index`` (BDM: t itself; needs T' = T) or ``log_snr`` (:func:`matched_timesteps`).
+    """
+    if mode == "log_snr":
+        return matched_timesteps(alphas_cumprod, prior_alphas_cumprod)
+    if len(prior_alphas_cumprod) != len(alphas_cumprod):
+        raise ValueError(f"sampling.blend.prior_timestep: same_index needs a prior of {len(alphas_cumprod)} timesteps, "
+                         f"this one has {len(prior_alphas_cumprod)}; use log_snr or train the prior on diffusion.num_steps")
+    return torch.arange(len(alphas_cumprod))
+
+
 def blended_sample(
     diffusion: GaussianDiffusion,
     model_fn: ModelFn,
@@ -109,7 +128,7 @@ def blended_sample(
     Args:
         diffusion: the reconstruction model's schedule; both branches take its sampler's steps.
         model_fn: reconstruction model, ``(x_t, t) -> raw output`` as for ``sample``.
-        prior_x0: the prior's clean estimate at the reconstruction timestep's noise level.
+        prior_x0: the prior's clean estimate for the reconstruction timestep (``sampling.blend.prior_timestep``).
         shape: ``(B, N, 3)``.
         generator: sampling noise (x_T and the reconstruction branch's DDPM noise).
         blend_generator: the prior branch's DDPM noise and the per-point selection.
@@ -147,12 +166,13 @@ def blended_sample(
     return BlendResult(x, tuple(masks))
 
 
-def _prior_x0_fn(priors: dict[str, CategoryPrior], categories: Sequence[str], diffusion: GaussianDiffusion) -> PriorX0Fn:
-    """x̂₀ of each object's category prior, evaluated at the noise level of the reconstruction timestep."""
+def _prior_x0_fn(priors: dict[str, CategoryPrior], categories: Sequence[str], diffusion: GaussianDiffusion,
+                 mode: Literal["same_index", "log_snr"]) -> PriorX0Fn:
+    """x̂₀ of each object's category prior, evaluated at the timestep :func:`prior_timesteps` gives."""
     groups = []
     for category, prior in priors.items():
         index = torch.tensor([j for j, c in enumerate(categories) if c == category])
-        groups.append((prior, index, matched_timesteps(diffusion.alphas_cumprod, prior.diffusion.alphas_cumprod)))
+        groups.append((prior, index, prior_timesteps(diffusion.alphas_cumprod, prior.diffusion.alphas_cumprod, mode)))
 
     def prior_x0(x_t: Tensor, t: Tensor) -> Tensor:
         out = torch.empty_like(x_t)
@@ -205,7 +225,7 @@ def blended_reconstruction(
     return blended_sample(
         diffusion,
         model_fn,
-        _prior_x0_fn(priors, batch.category, diffusion),
+        _prior_x0_fn(priors, batch.category, diffusion, blend.prior_timestep),
         (len(batch), cfg.data.num_points, 3),
         generator=generator,
         blend_generator=blend_generator,

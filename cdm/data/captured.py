@@ -202,7 +202,7 @@ class CapturedDataset(ObjectDataset):
         object_id = self.objects[index].object_id
         if self.prepared is not None:
             return resize_view(self.prepared.view(self.published, object_id, view), size)
-        key = (self.kind, str(self.root), self.published, object_id, view, size)
+        key = (self.kind, str(self.root), self.published, object_id, view, size, self.cfg.data.mask_rgb)
         return DECODED.get(key, lambda: self._raw_view(index, self.surface(index), view, size))
 
     def sample(self, index: int, view_round: int = 0) -> Sample:
@@ -211,7 +211,9 @@ class CapturedDataset(ObjectDataset):
         surface = self.surface(index)
         ref = self.objects[index]
         choice = 0
-        if self.split == "train":
+        if self.split == "train" and self.cfg.data.train_view is not None:
+            choice = self._train_view(index, len(surface.views))
+        elif self.split == "train":
             choice = int(self._rng(index, _STREAM_VIEW, view_round).integers(len(surface.views)))
         v, image, mask, depth = self._view_tensors(index, choice)
         positions = select_sequence_views(len(surface.sequence), int(surface.views[choice]), self.num_views)
@@ -234,6 +236,13 @@ class CapturedDataset(ObjectDataset):
             object_id=ref.object_id,
             conditions=conditions,
         )
+
+    def _train_view(self, index: int, count: int) -> int:
+        """``data.train_view`` as an index into object ``index``'s ``count`` input views (BDM's ``which_view_from24``)."""
+        view = self.cfg.data.train_view
+        if view >= count:
+            raise ValueError(f"data.train_view: {view}, but {self.objects[index].object_id} has {count} input views")
+        return view
 
     def _view_tensors(self, index: int, choice: int) -> tuple[ViewImages, Tensor, Tensor, Tensor | None]:
         """Input view ``choice`` as RGB ``(3, S, S)``, mask ``(1, S, S)`` and view depth ``(1, S, S)`` or None."""

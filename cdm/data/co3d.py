@@ -13,10 +13,17 @@ cloud; its split is the ``fewview_dev`` set list (``train`` for training, ``data
 and its input views are the frames listed there (held-out input: the first). The prior views are
 H frames evenly spaced through the whole sequence from the input frame (the paper's procedure).
 
+PC²'s protocol (its ``experiments/dataset/__init__.py``, through PyTorch3D 0.7's ``JsonIndexDataset``)
+is four switches here, all set by the paper profile on Co3D: ``data.exclude_sequences`` leaves out its
+listed sequences (:mod:`cdm.data.co3d_lists`); ``data.frames_per_sequence`` (PC²: 1) keeps the frames
+PyTorch3D keeps (:func:`kept_frames`), so each sequence has one fixed input frame in every split it
+is still in; ``data.mask_rgb`` blacks out the background; ``data.drop_outliers: false`` keeps every
+point of the published cloud.
+
 Units and frames. Depth PNGs are 16-bit images whose bits are float16 values; × ``scale_adjustment``
 they are view depths in the sequence's world units, like its cameras and point cloud. The cloud is
 normalised as every data set here (its robust bounding box — 0.5–99.5 % quantiles widened by 10 %,
-points outside dropped as outliers — centred, largest half-extent 1), and ``data.num_points`` are
+points outside dropped as outliers unless ``data.drop_outliers`` is off — centred, largest half-extent 1), and ``data.num_points`` are
 drawn from it (the paper: 16,384); cameras and depths follow the same similarity transform.
 
 Cameras. Co3D stores PyTorch3D cameras: ``X_view = X_world @ R + T`` (row vectors), +X left, +Y up,
@@ -36,7 +43,9 @@ the object that fits its cloud to 90 % of the half-frame (no image is read for t
 from __future__ import annotations
 
 import gzip
+import hashlib
 import json
+import random
 from collections import defaultdict
 from functools import lru_cache
 from pathlib import Path
@@ -51,9 +60,10 @@ from cdm.cameras import Cameras
 from cdm.config import Config
 from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
+from cdm.data.co3d_lists import excluded_sequences
 from cdm.data.views import Split, interleave
 
-__all__ = ["CROP_MARGIN", "PRIOR_FILL", "SET_LIST", "Co3DDataset", "crop_camera", "load_depth"]
+__all__ = ["CROP_MARGIN", "PRIOR_FILL", "SET_LIST", "Co3DDataset", "crop_camera", "kept_frames", "load_depth"]
 
 SET_LIST = "set_lists_fewview_dev.json"
 """The set list read for splits (PC²'s ``fewview_dev``)."""
@@ -68,6 +78,10 @@ class Frame(NamedTuple):
     """One frame's annotation: files (relative to ``data.root``), image size and camera as published."""
 
     number: int
+    file_order: int
+    """Place of the entry among its sequence's entries in ``frame_annotations.jgz``."""
+    mask_mass: float | None
+    """Foreground pixels of the mask (``mask.mass``), None where the annotation has none."""
     image: str
     size: tuple[int, int]
     mask: str
@@ -100,11 +114,14 @@ def _read_json(path: Path, gzipped: bool):
         raise ValueError(f"data.root: {path} is not {'gzipped ' if gzipped else ''}JSON ({exc})") from None
 
 
-def _frame(entry: dict) -> Frame:
+def _frame(entry: dict, file_order: int) -> Frame:
     depth = entry.get("depth") or {}
     view = entry["viewpoint"]
+    mass = entry["mask"].get("mass")
     return Frame(
         number=int(entry["frame_number"]),
+        file_order=file_order,
+        mask_mass=None if mass is None else float(mass),
         image=entry["image"]["path"],
         size=(int(entry["image"]["size"][0]), int(entry["image"]["size"][1])),
         mask=entry["mask"]["path"],
@@ -125,7 +142,8 @@ def _category(folder: Path, stamp: tuple[int, ...]) -> Category:
     frames: dict[str, list[Frame]] = defaultdict(list)
     for entry in _read_json(files[0], gzipped=True):
         try:
-            frames[entry["sequence_name"]].append(_frame(entry))
+            seq = frames[entry["sequence_name"]]
+            seq.append(_frame(entry, len(seq)))
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise ValueError(f"data.root: {files[0]} has a malformed frame entry ({type(exc).__name__}: {exc})") from None
     for seq in frames.values():
@@ -147,6 +165,18 @@ def load_category(folder: Path) -> Category:
             raise ValueError(f"data.root: annotation file {path} is missing; expected {Co3DDataset.layout}")
         stamp.append(path.stat().st_mtime_ns)
     return _category(folder, tuple(stamp))
+
+
+def kept_frames(sequence: str, frames: list[Frame], count: int) -> set[int]:
+    """Frame numbers of ``sequence`` that PyTorch3D's ``JsonIndexDataset`` keeps with
+    ``n_frames_per_sequence=count`` and ``remove_empty_masks=True``, as PC² builds it (PyTorch3D 0.7.3,
+    ``pytorch3d/implicitron/dataset/json_index_dataset.py``, ``_filter_db``): frames whose mask mass is
+    over 1 pixel (unknown mass counts as non-empty), in annotation-file order, shuffled by
+    ``random.Random(int(sha1(sequence), 16) + 0)`` (``_seq_name_to_seed`` plus its default seed 0),
+    the first ``count`` taken. The choice ignores the set lists, which are applied afterwards."""
+    eligible = sorted((f for f in frames if f.mask_mass is None or f.mask_mass > 1), key=lambda f: f.file_order)
+    seed = int(hashlib.sha1(sequence.encode("utf-8")).hexdigest(), 16)
+    return {f.number for f in random.Random(seed).sample(eligible, len(eligible))[:count]}
 
 
 def load_depth(path: Path) -> np.ndarray:
@@ -221,6 +251,7 @@ class Co3DDataset(CapturedDataset):
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
         self._sequences: dict[str, tuple[list[Frame], list[int], str]] = {}
+        self._frames_per_sequence = cfg.data.frames_per_sequence  # read by _raw_index, before self.cfg is set
         super().__init__(cfg, split, cache_bytes)
 
     @classmethod
@@ -250,6 +281,8 @@ class Co3DDataset(CapturedDataset):
             refs = []
             for seq in sorted(listed):
                 frames = annotations.frames.get(seq, [])
+                if self._frames_per_sequence is not None:
+                    listed[seq] &= kept_frames(seq, frames, self._frames_per_sequence)
                 views = [i for i, f in enumerate(frames) if f.number in listed[seq]]
                 # Sequences without a point cloud have no ground truth: PC² skips them too.
                 if views and seq in annotations.clouds:
@@ -261,13 +294,31 @@ class Co3DDataset(CapturedDataset):
             per_category.append(refs)
         return interleave(per_category)
 
+    def _object_ids(self) -> list[tuple[str, str]]:
+        if not self.cfg.data.exclude_sequences:
+            return self._refs
+        kept = [(c, o) for c, o in self._refs if o.rsplit("/", 1)[1] not in excluded_sequences(c)]
+        if not kept:
+            raise ValueError(f"data.exclude_sequences: every {self.published!r} sequence of {self.root} is on PC²'s "
+                             "exclusion lists (cdm/data/co3d_lists.py)")
+        return kept
+
+    def record(self, index: int) -> ObjectRecord:
+        rec = super().record(index)
+        count = self.cfg.data.frames_per_sequence
+        if self.prepared is not None and count is not None and len(rec.views) > count:
+            raise ValueError(f"data.frames_per_sequence: {self.root} was prepared with {len(rec.views)} input frames for "
+                             f"{self.objects[index].object_id}; prepare it again with --set data.frames_per_sequence={count}")
+        return rec
+
     def _raw_record(self, index: int) -> ObjectRecord:
         object_id = self.objects[index].object_id
         frames, views, cloud_path = self._sequences[object_id]
         cloud = cap_cloud(_read_cloud(self.root / cloud_path), object_id)
-        lo, hi = np.quantile(cloud, 0.005, axis=0), np.quantile(cloud, 0.995, axis=0)
-        pad = 0.1 * (hi - lo)
-        cloud = cloud[np.all((cloud >= lo - pad) & (cloud <= hi + pad), axis=1)]
+        if self.cfg.data.drop_outliers:
+            lo, hi = np.quantile(cloud, 0.005, axis=0), np.quantile(cloud, 0.995, axis=0)
+            pad = 0.1 * (hi - lo)
+            cloud = cloud[np.all((cloud >= lo - pad) & (cloud <= hi + pad), axis=1)]
         lo, hi = cloud.min(0), cloud.max(0)
         centre, scale = (lo + hi) / 2, 1.0 / float((hi - lo).max() / 2)
         points = torch.from_numpy((cloud - centre) * scale).float().clamp(-1.0, 1.0)
@@ -300,7 +351,12 @@ class Co3DDataset(CapturedDataset):
         box = _crop_box(frame, mask)
         shrink = box[2] > size
         interp = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
-        image = cv2.resize(_crop(bgr[..., ::-1], box), (size, size), interpolation=interp)
+        rgb = bgr[..., ::-1]
+        if self.cfg.data.mask_rgb:
+            # PyTorch3D's mask_images: the soft mask times the full-resolution image, before the crop
+            # (rounded to 8 bits here, as every image is stored).
+            rgb = (rgb * (mask[..., None] / np.float32(255.0))).round().astype(np.uint8)
+        image = cv2.resize(_crop(rgb, box), (size, size), interpolation=interp)
         mask = np.where(cv2.resize(_crop(mask, box), (size, size), interpolation=interp) > 127, 255, 0).astype(np.uint8)
         depth = np.zeros((size, size), dtype=np.float16)  # 0 = unknown, for a frame published without depth
         if frame.depth is not None:

@@ -12,10 +12,14 @@ training, ``data.eval_split`` held out), unless ``<root>/pc_dict_v2.json`` is th
 synset → model → the PC15k folder holding its cloud; with it the splits are R2N2's, as BDM trains and
 scores (``data.eval_split: test``). Categories are the 13 R2N2 classes by name
 (:data:`SYNSETS`; ``data.categories`` also takes synset ids). The held-out input is view 00; training
-draws any of the 24 views per view round. The cloud is normalised like every data set here (bounding
+draws any of the 24 views per view round, or shows view ``data.train_view`` only (BDM: 00, its
+``which_view_from24``; the paper profile's ShapeNet protocol, with ``model.mask_channels: false`` as
+BDM's ShapeNet config sets no mask and no distance-transform channel). The cloud is normalised like every data set here (bounding
 box centred, largest half-extent 1) and ``data.num_points`` are drawn from it (the paper: 4,096).
 R2N2 renderings have no depth: use ``priors.prior_2d: contour`` (the default) and, as the paper does
-on ShapeNet, ``priors.render_kind: planar``.
+on ShapeNet, ``priors.render_kind: planar``; the depth prior (Table 6) reads estimated maps
+(``priors.depth_source: maps``, :mod:`cdm.data.depth_maps`), their ``position`` the view's place in
+the azimuth-sorted sequence.
 
 Frames. R2N2 rendered ShapeNetCore **v1** meshes; PC15k samples ShapeNetCore **v2**, whose model frame
 is v1's turned and mirrored. As BDM's ShapeNet data set code (``transform_v2_to_v1`` in mlpc-ucsd/BDM
@@ -120,8 +124,9 @@ class ShapeNetR2N2Dataset(CapturedDataset):
     layout = f"<root>/{_RENDERINGS}/<synset>/<model>/rendering/ and <root>/{_CLOUDS}/<synset>/<split>/<model>.npy"
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
-        if cfg.priors.prior_2d == "depth":
-            raise ValueError("priors.prior_2d: 'depth' needs depth maps and R2N2 renderings have none; use 'contour' or 'none'")
+        if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source != "maps":
+            raise ValueError("priors.prior_2d: 'depth' on ShapeNet needs estimated maps (R2N2 renderings have no depth): "
+                             "set priors.depth_source=maps and priors.depth_maps, or use 'contour' or 'none'")
         self._models: dict[str, tuple[str, str, str]] = {}
         """object id → (synset, model, PC15k folder)."""
         self._split_std: dict[str, float] = {}

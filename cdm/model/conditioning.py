@@ -1,7 +1,9 @@
 """PC² projection conditioning: lift per-pixel image channels onto the points of ``x_t``.
 
 Per image, once: the conditioning map stacks ``[image features, 2D prior (Eq. 7), RGB, mask, mask
-distance transform]`` into ``(B, C, S, S)`` (:func:`conditioning_map`). Per diffusion step: the
+distance transform]`` into ``(B, C, S, S)`` (:func:`conditioning_map`); the last two only with
+``model.mask_channels`` (PC²'s ``use_mask`` and ``use_distance_transform``, on in its Co3D runs; BDM
+turns both off for ShapeNet in its ``experiments/config/structured.py``). Per diffusion step: the
 points of ``x_t`` are rasterized from the input camera with a hard z-buffer (one point per pixel,
 radius 0.0075 NDC in PC²); each point that is front-most at the pixel containing its projection
 gets that pixel's channels, every hidden or off-image point gets zeros (:func:`project_conditioning`).
@@ -28,9 +30,10 @@ __all__ = [
     "project_views",
 ]
 
-def conditioning_channels(feature_dim: int, prior_2d_channels: int) -> int:
-    """Channels of :func:`conditioning_map`: features + 2D prior + RGB (3) + mask (1) + distance (1)."""
-    return feature_dim + prior_2d_channels + 5
+def conditioning_channels(feature_dim: int, prior_2d_channels: int, mask_channels: bool = True) -> int:
+    """Channels of :func:`conditioning_map`: features + 2D prior + RGB (3), + mask (1) + distance (1)
+    with ``mask_channels``."""
+    return feature_dim + prior_2d_channels + 3 + (2 if mask_channels else 0)
 
 
 @torch.no_grad()
@@ -70,7 +73,7 @@ def mask_distance_transform(mask: Tensor) -> Tensor:
     return dist[:, None].to(mask.dtype)
 
 
-def conditioning_map(features: Tensor, prior_2d: Tensor, image: Tensor, mask: Tensor) -> Tensor:
+def conditioning_map(features: Tensor, prior_2d: Tensor, image: Tensor, mask: Tensor, mask_channels: bool = True) -> Tensor:
     """Stack the per-pixel conditioning channels, once per image.
 
     Args:
@@ -78,9 +81,13 @@ def conditioning_map(features: Tensor, prior_2d: Tensor, image: Tensor, mask: Te
         prior_2d: ``(B, C2, S, S)`` 2D-prior channels (contour or depth, Eq. 7).
         image: ``(B, 3, S, S)`` RGB in [0, 1].
         mask: ``(B, 1, S, S)`` foreground in {0, 1}.
+        mask_channels: ``model.mask_channels``: append the mask and its distance transform.
     Returns:
-        ``(B, F + C2 + 5, S, S)``: ``[features, prior_2d, RGB, mask, distance transform]``.
+        ``(B, F + C2 + 5, S, S)``: ``[features, prior_2d, RGB, mask, distance transform]``, or
+        ``(B, F + C2 + 3, S, S)`` without the last two.
     """
+    if not mask_channels:
+        return torch.cat([features, prior_2d, image], dim=1)
     return torch.cat([features, prior_2d, image, mask, mask_distance_transform(mask)], dim=1)
 
 

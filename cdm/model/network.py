@@ -84,7 +84,8 @@ class CDMNetwork(nn.Module):
             raise ValueError(
                 f"encoder gives {self.encoder.out_channels} channels but model.feature_dim is {cfg.feature_dim}"
             )
-        cond = conditioning_channels(cfg.feature_dim, prior_2d_channels)
+        self.mask_channels = cfg.mask_channels
+        cond = conditioning_channels(cfg.feature_dim, prior_2d_channels, cfg.mask_channels)
         self.embeddings = load_embeddings(cfg.global_embeddings) if cfg.global_source == "embeddings" else None
         global_dim = cfg.feature_dim if self.embeddings is None else self.embeddings.dim
         self.denoiser = PVCNNDenoiser(
@@ -106,7 +107,7 @@ class CDMNetwork(nn.Module):
                 f"{self.prior_2d_channels}; build it with the data's priors.prior_2d"
             )
         features = self.encoder(batch.image, batch.mask, batch.prior_2d)
-        pixel = conditioning_map(features, batch.prior_2d, batch.image, batch.mask)
+        pixel = conditioning_map(features, batch.prior_2d, batch.image, batch.mask, self.mask_channels)
         concat, attend = self.global_feature == "concat", self.global_feature == "cross_attention"
         if self.embeddings is not None:
             given = self.embeddings.batch(batch.object_id).to(features)  # (B, T, E)
@@ -117,7 +118,7 @@ class CDMNetwork(nn.Module):
         if c is None:
             return context
         image, mask, prior = (t.flatten(0, 1) for t in (c.image, c.mask, c.prior_2d))
-        views = conditioning_map(self.encoder(image, mask, prior), prior, image, mask).unflatten(0, c.valid.shape)
+        views = conditioning_map(self.encoder(image, mask, prior), prior, image, mask, self.mask_channels).unflatten(0, c.valid.shape)
         return context._replace(views=views, view_cameras=c.camera, view_valid=c.valid)
 
     def forward(self, x_t: Tensor, t: Tensor, context: ImageContext, camera: Cameras) -> Tensor:
