@@ -1,162 +1,56 @@
 """The protocol card: every way a result's protocol differs from the paper's, said beside the number.
 
-A number from this platform reads as comparable with the paper's only when data set, scoring and
-sampler are the references' (PC², lukemelas/projection-conditioned-point-cloud-diffusion; BDM,
-mlpc-ucsd/BDM). :func:`protocol_card` runs :data:`CHECKS` — small functions, one per aspect, each
-returning the deviation it finds in one trial's config or None — and :func:`sweep_card` merges the
-cards of a sweep's cells. The card is printed by ``--dry-run``, shown in the results table, tagged on
-the parent MLflow run and in the report. "Paper protocol, no deviations" only when no check finds one.
+The card is a diff. :func:`protocol_card` compares every field of a trial's resolved config
+(:meth:`cdm.config.Config.flat`) with the reference record of the spec's paper table on the data set
+the trial reads (:func:`sweeps.references.record`: the paper's, PC²'s or BDM's value of each field, with
+its source) and adds what the config cannot say about the data on disk (a stand-in data set, BDM's
+split file). Any field that differs from a stated value is a deviation; fields no source fixes are not,
+though the card names the free choices that shape a result. Fields a spec sweeps (its grid, cells or
+search space) are the table's own axes and are not compared. "Paper protocol, no deviations" only when
+nothing differs.
 
-What the paper's protocol is, per data set (the references' defaults):
-
-- ShapeNet (BDM): R2N2 renderings + PC15k in the v1 frame, R2N2 ``test`` split (BDM's
-  ``pc_dict_v2.json``), every object, 4,096 points, BDM's global normalisation (``eval.normalise:
-  reference``); Co3D (PC²): ``fewview_dev`` ``val``, every sequence, 16,384 points, world units.
-- Both: 224² images, ε-prediction, PC²'s linear β 1e-5 → 8e-3 over 1,000 steps, sampled with DDPM over
-  all 1,000 steps without clipping (PC²'s ``experiments/config/structured.py``), 100k training steps
-  at batch 8, a frozen ViT-S/16 encoder; the 2D depth prior from an estimator, not ground truth.
-- λ (the 3D prior's weight): the paper gives no value, so every λ is ours; the card notes it.
+:func:`sweep_card` merges the cards of a sweep's cells and :func:`plan_card` builds it for a
+:class:`sweeps.plan.SweepPlan`. The card is printed by ``--dry-run``, shown in the results table, tagged on
+the parent MLflow run (:data:`CARD_TAG`) and in the report.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
-from cdm.config import Config, load_config
+from cdm.config import Config, config_field_paths, load_config
+from sweeps.references import DATA_SETS, TABLES, Entry, Kind, NotStated, Stated, record, show
 
 if TYPE_CHECKING:
     from sweeps.plan import SweepPlan
 
-__all__ = ["CARD_TAG", "CHECKS", "NO_DEVIATIONS", "CardContext", "ProtocolCard", "plan_card", "protocol_card", "sweep_card"]
+__all__ = ["CARD_TAG", "NO_DEVIATIONS", "CardContext", "ProtocolCard", "plan_card", "protocol_card", "sweep_card"]
 
 CARD_TAG = "protocol_card"
 """Tag of the parent MLflow run holding the card's lines, one per line."""
 
 NO_DEVIATIONS = "Paper protocol, no deviations"
-REFERENCE_KINDS = ("shapenet_r2n2", "co3d")
 _NAMES = {"shapenet_r2n2": "ShapeNet-R2N2 + PC15k", "co3d": "Co3D v2", "procedural": "the procedural data set",
           "meshes": "a mesh folder"}
-_EVAL_SPLIT = {"shapenet_r2n2": "test", "co3d": "val"}
-_POINTS = {"shapenet_r2n2": 4096, "co3d": 16384}
-"""Points per cloud the references train and score on: BDM 4,096 (``experiments/example_sample.sh``), PC² 16,384."""
+_PRIOR_SCALE = ("3D prior: each view's term is the mean over its pixels of the squared difference (Eq. 6's ‖·‖² "
+                "sums them), a free choice that scales the term by 1/render_size²")
 
 
 @dataclass(frozen=True)
 class CardContext:
-    """What a check needs beyond the trial's config: the spec's data sets and stand-in note."""
+    """What the card needs beyond the trial's config: the spec's table, data sets, stand-in and axes."""
 
-    datasets: tuple[str, ...] = REFERENCE_KINDS
+    datasets: tuple[Kind, ...] = DATA_SETS
+    """The data sets the paper ran this table on (the spec's ``datasets:``)."""
     stand_in: str = ""
-
-
-Check = Callable[[Config, CardContext], str | None]
-
-
-def _data_set(cfg: Config, ctx: CardContext) -> str | None:
-    if cfg.data.kind in ctx.datasets:
-        return None
-    paper = " or ".join(_NAMES[d] for d in ctx.datasets)
-    note = f"; {ctx.stand_in}" if ctx.stand_in and cfg.data.kind == "procedural" else ""
-    return f"data set: {_NAMES[cfg.data.kind]} stands in for {paper}{note}"
-
-
-def _split(cfg: Config, ctx: CardContext) -> str | None:
-    kind = cfg.data.kind
-    if kind not in REFERENCE_KINDS:
-        return None
-    if cfg.data.eval_split != _EVAL_SPLIT[kind]:
-        return f"split: {cfg.data.eval_split} held out (the reference scores {_EVAL_SPLIT[kind]})"
-    if kind == "shapenet_r2n2" and not (cfg.data.root and (Path(cfg.data.root) / "pc_dict_v2.json").is_file()):
-        return "split: PC15k's test folders, not BDM's R2N2 test split (put BDM's pc_dict_v2.json in data.root)"
-    return None
-
-
-def _objects(cfg: Config, ctx: CardContext) -> str | None:
-    if cfg.eval.protocol == "paper":
-        return None
-    return f"objects: the first {cfg.eval.num_objects} held-out objects per category (the references score all)"
-
-
-def _normalisation(cfg: Config, ctx: CardContext) -> str | None:
-    if cfg.eval.normalise == "reference" and cfg.data.kind in REFERENCE_KINDS:
-        return None
-    return "normalisation: per-shape bounding box to [-1, 1]³ (BDM: global mean/σ on ShapeNet; PC²: Co3D world units)"
-
-
-def _points(cfg: Config, ctx: CardContext) -> str | None:
-    want = _POINTS.get(cfg.data.kind, 4096)
-    have = {cfg.data.num_points, cfg.eval.num_points}
-    if have == {want}:
-        return None
-    return f"points: {cfg.data.num_points} per cloud, {cfg.eval.num_points} scored (the reference: {want})"
-
-
-def _metric(cfg: Config, ctx: CardContext) -> str | None:
-    if cfg.eval.f1_threshold == 0.01:
-        return None
-    return f"metric: F1 at τ = {cfg.eval.f1_threshold:g} on the squared distance (BDM: 0.01)"
-
-
-def _sampler(cfg: Config, ctx: CardContext) -> str | None:
-    d = cfg.diffusion
-    if d.sampler == "ddpm" and d.clip_x0 is None:
-        return None
-    how = (f"DDIM over {d.sample_steps} steps, {d.timestep_spacing} spacing" if d.sampler == "ddim"
-           else f"DDPM over {d.num_steps} steps")
-    clip = f", x̂₀ clipped to ±{d.clip_x0:g}" if d.clip_x0 is not None else ""
-    return f"sampler: {how}{clip} (PC²: DDPM over 1,000 steps, unclipped)"
-
-
-def _diffusion(cfg: Config, ctx: CardContext) -> str | None:
-    d = cfg.diffusion
-    out = []
-    if d.prediction != "eps":
-        out.append(f"{d.prediction}-prediction (paper: ε)")
-    if (d.num_steps, d.beta_start, d.beta_end) != (1000, 1e-5, 8e-3):
-        out.append(f"β {d.beta_start:g} → {d.beta_end:g} over {d.num_steps} steps (PC²: 1e-5 → 8e-3 over 1,000)")
-    return "diffusion: " + "; ".join(out) if out else None
-
-
-def _training(cfg: Config, ctx: CardContext) -> str | None:
-    t, out = cfg.train, []
-    if t.steps != 100_000:
-        out.append(f"{t.steps:,} steps (PC²: 100,000)")
-    if t.batch_size != 8:
-        out.append(f"batch {t.batch_size} (paper: 8)")
-    if cfg.data.image_size != 224:
-        out.append(f"{cfg.data.image_size}² images (paper: 224²)")
-    if (t.lr, tuple(t.betas), t.warmup_steps) != (1e-3, (0.95, 0.999), 2000):
-        out.append(f"AdamW lr {t.lr:g}, betas ({t.betas[0]:g}, {t.betas[1]:g}), {t.warmup_steps:,} warm-up steps "
-                   "(PC²: 1e-3, (0.95, 0.999), 2,000)")
-    return "training: " + ", ".join(out) if out else None
-
-
-def _depth_renders(cfg: Config, ctx: CardContext) -> str | None:
-    p = cfg.priors
-    if not p.prior_3d or p.render_kind != "depth" or p.depth_layer is not None:
-        return None
-    return "3D prior: depth renders average front and back surfaces (the paper's PyTorch3D z-buffer keeps the nearest)"
-
-
-def _encoder(cfg: Config, ctx: CardContext) -> str | None:
-    if cfg.model.encoder == "vit_s16":  # its weights are required (model.encoder_weights) and checked by hash
-        return None
-    return "encoder: a small CNN trained from scratch (PC²: frozen ViT-S/16, 384 channels)"
-
-
-def _depth_source(cfg: Config, ctx: CardContext) -> str | None:
-    # Estimated maps (priors.depth_source: maps) are the paper's route, whatever estimator made them.
-    if cfg.priors.prior_2d != "depth" or cfg.priors.depth_source == "maps":
-        return None
-    return "depth: the 2D depth prior reads ground-truth depth maps, an upper bound (the paper estimates depth)"
-
-
-CHECKS: list[Check] = [_data_set, _split, _objects, _normalisation, _points, _metric, _sampler, _diffusion,
-                       _training, _depth_renders, _encoder, _depth_source]
-"""The card's checks, in the order the card lists them; append a function to check one more aspect."""
+    """What the procedural data set stands in with (the spec's ``stand_in``)."""
+    table: str | None = None
+    """The spec's ``paper.table`` (a key of :data:`sweeps.references.TABLES`); None: the paper's CDM."""
+    swept: frozenset[str] = frozenset()
+    """Dotted fields the spec sweeps: the table's axes, not compared."""
 
 
 @dataclass(frozen=True)
@@ -164,7 +58,7 @@ class ProtocolCard:
     deviations: tuple[str, ...]
     """One line per deviation from the paper's protocol in force."""
     notes: tuple[str, ...] = ()
-    """Choices the paper leaves open (λ), stated so a reader knows their origin."""
+    """Free choices (no source fixes them), stated so a reader knows their origin."""
 
     @property
     def faithful(self) -> bool:
@@ -179,30 +73,100 @@ class ProtocolCard:
         return "; ".join(self.lines())
 
 
-def _notes(cfg: Config) -> list[str]:
-    if not cfg.priors.prior_3d:
-        return []
-    return [f"λ = {cfg.priors.lambda_3d:g} is ours: the paper gives no value for the 3D prior's weight"]
+def _reference(table: str | None, kinds: tuple[Kind, ...]) -> dict[str, Entry | None]:
+    """The record of ``table`` on ``kinds``; on several (a stand-in for a table of two data sets), each field's
+    entry where the records agree and None where they differ (the data set itself is then the deviation)."""
+    records = [record(table, kind) for kind in kinds]
+    first = records[0]
+    return {path: entry if all(r.get(path) == entry for r in records[1:]) else None for path, entry in first.items()}
+
+
+def _data_protocol(cfg: Config, ctx: CardContext) -> list[str]:
+    """What the config cannot say about the data the trial reads: a stand-in, BDM's split file."""
+    kind = cfg.data.kind
+    if kind not in ctx.datasets:
+        paper = " or ".join(_NAMES[d] for d in ctx.datasets)
+        note = f"; {ctx.stand_in}" if ctx.stand_in and kind == "procedural" else ""
+        return [f"data set: {_NAMES[kind]} stands in for {paper}{note}"]
+    if kind == "shapenet_r2n2" and not (cfg.data.root and (Path(cfg.data.root) / "pc_dict_v2.json").is_file()):
+        return ["split: PC15k's test folders, not BDM's R2N2 test split (put BDM's pc_dict_v2.json in data.root)"]
+    return []
+
+
+class _Diff(NamedTuple):
+    """One trial's comparison with its record, in config-field order."""
+
+    deviations: list[str]
+    free: list[str]
+    """``path = value`` of each noted free choice in force."""
+    prior_3d: bool
+    unreviewed: list[str]
+    """Config fields without an entry in the record."""
+
+
+def _diff(cfg: Config, ctx: CardContext) -> _Diff:
+    """Compare every field of ``cfg`` with the record (fields the record names but the config lacks are not read)."""
+    flat = cfg.flat()
+    kinds = (cfg.data.kind,) if cfg.data.kind in ctx.datasets else ctx.datasets
+    reference = _reference(ctx.table, kinds)
+    deviations = _data_protocol(cfg, ctx)
+    free: list[str] = []
+    unreviewed: list[str] = []
+    for path, value in flat.items():
+        if path in ctx.swept or path == "data.kind":  # data.kind: the data-set line of _data_protocol
+            continue
+        if path not in reference:
+            unreviewed.append(path)
+            continue
+        entry = reference[path]
+        if isinstance(entry, Stated) and entry.applies(flat) and not entry.holds(value):
+            deviations.append(f"{path}: {show(value)}, not {entry.shown} ({entry.source})")
+        elif isinstance(entry, NotStated) and entry.noted and entry.applies(flat):
+            free.append(f"{path} = {show(value)}")
+    return _Diff(deviations, free, cfg.priors.prior_3d, unreviewed)
+
+
+def sweep_card(configs: Iterable[Config], datasets: Iterable[Kind] = (), stand_in: str = "", table: str | None = None,
+               swept: Iterable[str] = ()) -> ProtocolCard:
+    """The cards of a sweep's cells merged: each deviation and free choice once, in config-field order.
+
+    Args:
+        configs: every cell's resolved config.
+        datasets: the data sets the table ran on (the spec's ``datasets:``; empty: both).
+        stand_in: what the procedural data set stands in with (the spec's ``stand_in``).
+        table: the spec's ``paper.table``; None compares with the paper's CDM.
+        swept: the fields the spec sweeps, not compared.
+    """
+    ctx = CardContext(tuple(datasets) or DATA_SETS, stand_in, table, frozenset(swept))
+    diffs = [_diff(cfg, ctx) for cfg in configs]
+    order = {path: i for i, path in enumerate(config_field_paths())}
+
+    def merged(lines: Iterable[str]) -> list[str]:  # data-protocol lines (no field name) first
+        return sorted(dict.fromkeys(lines), key=lambda line: order.get(line.split(":")[0].split(" = ")[0], -1))
+
+    notes = [_PRIOR_SCALE] if any(d.prior_3d for d in diffs) else []
+    if free := merged(line for d in diffs for line in d.free):
+        notes.append("free choices (no source states them): " + ", ".join(free))
+    if unreviewed := list(dict.fromkeys(path for d in diffs for path in d.unreviewed)):
+        notes.append("not compared (no entry in sweeps/references.py): " + ", ".join(unreviewed))
+    return ProtocolCard(tuple(merged(line for d in diffs for line in d.deviations)), tuple(notes))
 
 
 def protocol_card(cfg: Config, ctx: CardContext = CardContext()) -> ProtocolCard:
-    """The card of one trial's resolved config."""
-    return ProtocolCard(tuple(d for check in CHECKS if (d := check(cfg, ctx)) is not None), tuple(_notes(cfg)))
-
-
-def sweep_card(configs: Iterable[Config], datasets: Iterable[str] = (), stand_in: str = "") -> ProtocolCard:
-    """The cards of a sweep's cells merged: each deviation and note once, in check order."""
-    ctx = CardContext(tuple(datasets) or REFERENCE_KINDS, stand_in)
-    deviations: dict[str, None] = {}
-    notes: dict[str, None] = {}
-    for cfg in configs:
-        card = protocol_card(cfg, ctx)
-        deviations.update(dict.fromkeys(card.deviations))
-        notes.update(dict.fromkeys(card.notes))
-    return ProtocolCard(tuple(deviations), tuple(notes))
+    """The card of one trial's resolved config: its data protocol, then every field that differs from the record."""
+    return sweep_card([cfg], ctx.datasets, ctx.stand_in, ctx.table, ctx.swept)
 
 
 def plan_card(plan: SweepPlan) -> ProtocolCard:
-    """The card of a sweep plan: its cells' configs (an Optuna plan: the fixed settings and ``--set``)."""
+    """The card of a sweep plan: its cells' configs (an Optuna plan: the fixed settings and ``--set``).
+
+    A table without a record is compared with the paper's CDM and the card says so.
+    """
+    spec = plan.spec
     configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    return sweep_card(configs, plan.spec.datasets, plan.spec.stand_in)
+    swept = {*spec.grid, *spec.search.space, *(key for cell in spec.cells for key in cell.set)}
+    table = spec.paper.table if spec.paper else None
+    card = sweep_card(configs, spec.datasets, spec.stand_in, table if table in TABLES else None, swept)
+    if table is None or table in TABLES:
+        return card
+    return ProtocolCard(card.deviations, (*card.notes, f"{table}: no reference record; compared with the paper's CDM"))

@@ -1,4 +1,4 @@
-"""The protocol card: which deviations from the paper's protocol it lists, and where it is shown."""
+"""The protocol card: a diff of the whole resolved config against the table's reference record, and where it is shown."""
 
 from __future__ import annotations
 
@@ -6,23 +6,25 @@ from pathlib import Path
 
 import pytest
 
+from cdm.config import config_field_paths, load_config
 from cdm.data.shapenet import SYNSETS
-from sweeps import run
+from sweeps import references, run
 from sweeps.plan import expand
-from sweeps.protocol import NO_DEVIATIONS, ProtocolCard, plan_card, protocol_card
+from sweeps.protocol import NO_DEVIATIONS, CardContext, ProtocolCard, plan_card, protocol_card
+from sweeps.references import DATA_SETS, TABLES, Stated, record, show
 from sweeps.spec import SpecError, load_spec
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
-ENCODER = "encoder: a small CNN trained from scratch (PC²: frozen ViT-S/16, 384 channels)"
-DEPTH = "depth: the 2D depth prior reads ground-truth depth maps, an upper bound (the paper estimates depth)"
+SPECS = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
 
 
 @pytest.fixture(scope="module")
 def shapenet(tmp_path_factory):
-    """All 13 R2N2 classes, BDM's split file, two views each: enough for a plan, not for training."""
+    """All 13 R2N2 classes, BDM's split file, two views each: enough for a dry run (the first train model of
+    each class moves to BDM's test split, the second stays in train), not for training."""
     names = {name: synset for synset, name in SYNSETS.items()}
-    return make_shapenet(tmp_path_factory.mktemp("sn13"), per_split={"train": 1, "val": 0, "test": 1}, views=2,
+    return make_shapenet(tmp_path_factory.mktemp("sn13"), per_split={"train": 2, "val": 0, "test": 1}, views=2,
                          bdm_split=True, synsets=names)
 
 
@@ -32,45 +34,151 @@ def co3d(tmp_path_factory):
                      splits={"train": 1, "val": 1, "test": 0})
 
 
-def test_paper_profile_on_shapenet_lists_only_the_encoder(shapenet):
-    plan = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper", {"data.root": str(shapenet.root)})
-    assert {c.config.data.kind for c in plan.cells} == {"shapenet_r2n2"}
-    assert sorted({c.config.data.categories[0] for c in plan.cells}) == sorted(SYNSETS.values())  # Table 1's 13
-    assert plan.num_trials == 26 and all(c.paper for c in plan.cells)
+def _card(spec: str, profile: str = "paper", **sets) -> ProtocolCard:
+    return plan_card(expand(load_spec(SWEEPS / f"{spec}.yaml"), profile, sets))
+
+
+def _fields(card: ProtocolCard) -> list[str]:
+    """The config fields a card lists, in its order."""
+    return [line.split(":")[0] for line in card.deviations if line.split(":")[0] in config_field_paths()]
+
+
+@pytest.mark.parametrize("table", [None, *TABLES])
+@pytest.mark.parametrize("kind", DATA_SETS)
+def test_every_record_has_an_entry_for_every_config_field(table, kind):
+    assert sorted(set(config_field_paths()) - set(record(table, kind))) == []
+
+
+def test_every_table_of_the_shipped_specs_has_a_record():
+    tables = {load_spec(p).paper.table for p in SPECS if load_spec(p).paper}
+    assert tables == set(TABLES)
+    with pytest.raises(KeyError, match="'Table 9': no reference record"):
+        record("Table 9", "co3d")
+
+
+@pytest.mark.parametrize("kind", DATA_SETS)
+def test_a_config_made_of_the_records_values_has_no_deviations(kind, tmp_path):
+    """Every stated value is a valid value of its field, and a config holding them all has a clean card."""
+    (tmp_path / "pc_dict_v2.json").write_text("{}")
+    fields = set(config_field_paths())
+    rec = record(None, kind)
+    values = {p: e.value for p, e in rec.items() if isinstance(e, Stated) and e.accepts is None and p in fields}
+    cfg = load_config(None, {**values, "data.root": str(tmp_path), "data.categories": ["chair"],
+                             "model.encoder_weights": "vits16_800ep.pth.tar", "priors.depth_maps": "maps"})
+    card = protocol_card(cfg, CardContext((kind,)))
+    assert card.deviations == () and card.lines()[0] == NO_DEVIATIONS
+    assert not any(n.startswith("not compared") for n in card.notes)
+
+
+PLANTS = [  # (spec, data set, group, field, value): one or more per config group, on the paper profile
+    ("shapenet", "shapenet_r2n2", "data", "data.num_points", 2048),
+    ("co3d", "co3d", "data", "data.image_size", 128),
+    ("shapenet", "shapenet_r2n2", "model", "model.raster_radius", 0.02),
+    ("co3d", "co3d", "model", "model.time_embed_dim", 32),
+    ("shapenet", "shapenet_r2n2", "diffusion", "diffusion.beta_end", 0.02),
+    ("co3d", "co3d", "diffusion", "diffusion.num_steps", 500),
+    ("shapenet", "shapenet_r2n2", "priors", "priors.target", "x_t_literal"),
+    ("co3d", "co3d", "priors", "priors.point_size", 0.02),
+    ("shapenet", "shapenet_r2n2", "train", "train.ema_decay", 0.999),
+    ("co3d", "co3d", "train", "train.grad_clip", 5.0),
+    ("shapenet", "shapenet_r2n2", "eval", "eval.f1_threshold", 0.02),
+    ("co3d", "co3d", "eval", "eval.protocol", "quick"),
+    ("bdm_blend", "shapenet_r2n2", "sampling.blend", "sampling.blend.select_prob", 0.3),
+    ("bdm_blend", "shapenet_r2n2", "sampling.blend", "sampling.blend.window_steps", 8),
+]
+
+
+def test_the_plants_cover_every_config_group():
+    groups = {p.rsplit(".", 1)[0] for p in config_field_paths()}
+    assert {plant[2] for plant in PLANTS} == groups
+
+
+@pytest.mark.parametrize(("spec", "kind", "group", "field", "value"), PLANTS, ids=[p[3] for p in PLANTS])
+def test_a_deviation_planted_in_any_config_group_is_listed(spec, kind, group, field, value, shapenet, co3d):
+    root = str((shapenet if kind == "shapenet_r2n2" else co3d).root)
+    before = _card(spec, **{"data.root": root})
+    after = _card(spec, **{"data.root": root, field: value})
+    assert field not in _fields(before) and field in _fields(after)
+    line = next(d for d in after.deviations if d.startswith(f"{field}: "))
+    entry = record(load_spec(SWEEPS / f"{spec}.yaml").paper.table, kind)[field]
+    assert line == f"{field}: {show(value)}, not {entry.shown} ({entry.source})"
+    assert not after.faithful and NO_DEVIATIONS not in after.lines()
+
+
+def test_ema_and_raster_radius_set_together_are_both_listed_by_the_dry_run(shapenet, tmp_path, monkeypatch, capsys):
+    (tmp_path / "msn").mkdir()
+    (tmp_path / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # the paper profile's encoder weights: present
+    monkeypatch.setenv("CDM_INPUTS", str(tmp_path))
+    args = [str(SWEEPS / "shapenet.yaml"), "--dry-run", "--no-estimate", "--profile", "paper",
+            "--set", f"data.root={shapenet.root}", "--set", "train.ema_decay=0.999", "--set", "model.raster_radius=0.02"]
+    assert run.main(args) == 0
+    card = capsys.readouterr().out.split("protocol card:\n", 1)[1]
+    assert "  deviation: model.raster_radius: 0.02, not 0.0075 (PC² experiments/model/projection_model.py" in card
+    assert "  deviation: train.ema_decay: 0.999, not null (PC² experiments/config/structured.py: use_ema False)" in card
+
+
+def test_the_paper_profile_lists_the_encoder_and_the_denoiser_only_when_they_deviate(shapenet):
+    root = str(shapenet.root)
+    plan = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper", {"data.root": root})
     cfg = plan.cells[0].config
-    assert (cfg.data.eval_split, cfg.eval.protocol, cfg.eval.normalise, cfg.diffusion.sampler, cfg.diffusion.clip_x0) == (
-        "test", "paper", "reference", "ddpm", None)
-    card = plan_card(plan)
-    assert card.deviations == (ENCODER,)
-    looser = protocol_card(cfg.replace(**{"eval.f1_threshold": 0.02})).deviations
-    assert looser == ("metric: F1 at τ = 0.02 on the squared distance (BDM: 0.01)", ENCODER)
-    assert card.notes == ("λ = 1 is ours: the paper gives no value for the 3D prior's weight",)
+    fields = _fields(plan_card(plan))
+    assert ("model.encoder" in fields) == (cfg.model.encoder != "vit_s16")
+    if "model.denoiser" in config_field_paths():  # issue 32's field; the card compares it once the config has it
+        assert ("model.denoiser" in fields) == (cfg.flat()["model.denoiser"] != "pvcnn2")
+    cnn = _card("shapenet", **{"data.root": root, "model.encoder": "cnn", "model.feature_dim": 32})
+    assert "model.encoder: cnn, not vit_s16 (PC² experiments/config/structured.py: image_feature_model " \
+           "vit_small_patch16_224_msn, frozen)" in cnn.deviations
+    assert "model.feature_dim" in _fields(cnn)
 
 
-def test_paper_profile_on_co3d_lists_only_the_encoder_and_the_depth_source(co3d):
-    plan = expand(load_spec(SWEEPS / "co3d.yaml"), "paper", {"data.root": str(co3d.root)})
-    assert sorted(c.config.data.categories[0] for c in plan.cells) == ["hydrant", "hydrant", "teddybear", "teddybear",
-                                                                      "toytruck", "toytruck"]
-    assert {(c.config.data.num_points, c.config.eval.num_points) for c in plan.cells} == {(16384, 16384)}
-    assert plan_card(plan).deviations == (ENCODER, DEPTH)
-    pc2 = next(c for c in plan.cells if c.name.startswith("PC²"))
-    assert protocol_card(pc2.config).deviations == (ENCODER,)  # no depth prior, no depth deviation
+def test_batch_size_lambda_and_point_counts_are_compared_with_what_the_sources_say(shapenet, co3d):
+    bdm = "train.batch_size: 8, not 16 (BDM experiments/example_train.sh: dataloader.batch_size; the paper states none)"
+    assert bdm in _card("shapenet", **{"data.root": str(shapenet.root), "train.batch_size": 8}).deviations
+    assert "train.batch_size" not in _fields(_card("shapenet", **{"data.root": str(shapenet.root), "train.batch_size": 16}))
+    assert "train.batch_size" not in _fields(_card("co3d", **{"data.root": str(co3d.root), "train.batch_size": 8}))
+    assert "train.batch_size: 16, not 8 (PC² experiments/config/structured.py: DataloaderConfig.batch_size; " \
+           "the paper states none)" in _card("co3d", **{"data.root": str(co3d.root), "train.batch_size": 16}).deviations
+    # λ: Eq. 6 weighs the prior term by 1; the free choice is its per-pixel mean, said in a note
+    unit = _card("co3d", **{"data.root": str(co3d.root), "priors.lambda_3d": 1.0})
+    assert "priors.lambda_3d" not in _fields(unit) and not any("ours" in n for n in unit.notes if "λ" in n)
+    assert any(n.startswith("3D prior: each view's term is the mean over its pixels") for n in unit.notes)
+    tenth = _card("co3d", **{"data.root": str(co3d.root), "priors.lambda_3d": 0.1})
+    assert "priors.lambda_3d: 0.1, not 1 (paper Eq. 6: the prior term has unit weight (Eq. 5's λ is the ELBO's))" \
+        in tenth.deviations
+    # Table 5's reference is PC² on Co3D, 16,384 points: its paper plan lists no point count, even on a stand-in
+    table_5 = _card("frames_point_size")
+    assert not {"data.num_points", "eval.num_points"} & set(_fields(table_5))
+    assert "data.num_points: 4096, not 16384 (paper §4; PC² experiments/config/structured.py: max_points)" in \
+        _card("frames_point_size", **{"data.num_points": 4096}).deviations
 
 
-def test_shapenet_without_bdms_split_file_and_small_profiles_say_so(shapenet, tmp_path):
+def test_swept_fields_are_the_tables_axes_and_free_choices_are_noted(shapenet):
+    table_1 = _card("shapenet", **{"data.root": str(shapenet.root)})  # its PC² cell has no 2D prior, its CDM cell one
+    assert not {"priors.prior_2d", "priors.prior_3d", "data.categories"} & set(_fields(table_1))
+    prediction = _card("prediction")
+    assert "diffusion.prediction" not in _fields(prediction)  # x0 and v are the ablation, not a deviation
+    local = _card("point_size", "local")
+    assert "note: free choices (no source states them): diffusion.timestep_spacing = trailing" in local.lines()
+    assert local.lines()[0].startswith("deviation: data set: the procedural data set stands in for Co3D v2")
+    fields = _fields(local)
+    assert fields == sorted(fields, key=config_field_paths().index)  # config order, merged over the cells
+    for field in ("data.num_points", "diffusion.prediction", "diffusion.sampler", "train.steps", "eval.protocol"):
+        assert field in fields, field
+
+
+def test_a_field_the_record_lacks_is_named_not_passed_over(monkeypatch):
+    monkeypatch.delitem(references._COMMON, "train.lr")
+    card = protocol_card(load_config(None, {"train.lr": 5e-4}))
+    assert "not compared (no entry in sweeps/references.py): train.lr" in card.notes
+
+
+def test_a_stand_in_and_a_missing_split_file_are_the_data_protocols_lines(shapenet, tmp_path):
     bare = make_shapenet(tmp_path / "bare", per_split={"train": 1, "test": 1}, views=2)
-    plan = expand(load_spec(SWEEPS / "prior_type.yaml"), "paper", {"data.root": str(bare.root), "data.kind": "shapenet_r2n2"})
-    assert any(d.startswith("split: PC15k's test folders, not BDM's R2N2 test split") for d in plan_card(plan).deviations)
-    assert {c.config.priors.render_kind for c in plan.cells} == {"planar"}  # Table 6's ShapeNet cells
-    local = plan_card(expand(load_spec(SWEEPS / "point_size.yaml"), "local"))
-    text = "\n".join(local.deviations)
-    for aspect in ("data set: the procedural data set stands in", "objects: the first 16 held-out objects per category",
-                   "normalisation: per-shape bounding box", "points: 512 per cloud, 512 scored (the reference: 4096)",
-                   "sampler: DDIM over 10 steps, trailing spacing, x̂₀ clipped to ±1", "diffusion: x0-prediction (paper: ε)",
-                   "training: 1,800 steps (PC²: 100,000), batch 4 (paper: 8), 64² images (paper: 224²), AdamW lr 0.001, "
-                   "betas (0.9, 0.99), 150 warm-up steps (PC²: 1e-3, (0.95, 0.999), 2,000)", ENCODER):
-        assert aspect in text, aspect
-    assert not local.faithful and NO_DEVIATIONS not in local.lines()
+    card = _card("prior_type", **{"data.root": str(bare.root), "data.kind": "shapenet_r2n2"})
+    assert card.deviations[0] == "split: PC15k's test folders, not BDM's R2N2 test split (put BDM's pc_dict_v2.json in data.root)"
+    assert not any(d.startswith("split:") for d in _card("shapenet", **{"data.root": str(shapenet.root)}).deviations)
+    # Table 6 as the paper: one model per class; training airplane and chair together is listed
+    assert any(d.startswith("data.categories: [airplane, chair], not one category per model") for d in card.deviations)
     assert ProtocolCard(()).lines() == [NO_DEVIATIONS]
 
 
@@ -83,13 +191,17 @@ def test_table_2_on_shapenet_uses_car_and_lamp_stands_in_only_on_procedural_data
     procedural = expand(spec, "paper")
     assert "CDM, car (lamp stands in)" in {c.paper_label for c in procedural.cells}
     assert any("lamp stands in for car" in d for d in plan_card(procedural).deviations)
+    # BDM blends with PVD's checkpoints; a prior trained here is listed
+    assert any(d.startswith("sampling.blend.prior_checkpoint: auto, not PVD's checkpoint") for d in plan_card(ours).deviations)
 
 
 def test_depth_renders_that_average_surfaces_are_a_deviation():
     cfg = expand(load_spec(SWEEPS / "point_size.yaml"), "paper").cells[0].config
-    assert not any(d.startswith("3D prior:") for d in protocol_card(cfg).deviations)  # the front layer, as PyTorch3D
-    averaged = protocol_card(cfg.replace(**{"priors.depth_layer": None})).deviations
-    assert "3D prior: depth renders average front and back surfaces (the paper's PyTorch3D z-buffer keeps the nearest)" in averaged
+    ctx = CardContext(("co3d",), table="Table 5", swept=frozenset({"priors.point_size"}))
+    assert "priors.depth_layer" not in _fields(protocol_card(cfg, ctx))  # the front layer, as PyTorch3D
+    averaged = protocol_card(cfg.replace(**{"priors.depth_layer": None}), ctx)
+    assert "priors.depth_layer: null, not a front layer (PyTorch3D's z-buffer keeps the nearest point) (paper §4: " \
+           "PyTorch3D renders the 3D prior images)" in averaged.deviations
 
 
 def test_table_5_cells_are_the_papers_co3d_cdm():
@@ -104,14 +216,6 @@ def test_a_table_of_two_data_sets_needs_data_kind_with_data_root(shapenet, capsy
         expand(load_spec(SWEEPS / "prior_type.yaml"), "paper", {"data.root": str(shapenet.root)})
     assert run.main([str(SWEEPS / "prior_type.yaml"), "--dry-run", "--profile", "paper", "--set", f"data.root={shapenet.root}"]) == 2
     assert capsys.readouterr().err.startswith("error: --set data.kind:")
-
-
-def test_dry_run_prints_the_card(shapenet, capsys):
-    assert run.main([str(SWEEPS / "shapenet.yaml"), "--dry-run", "--no-estimate", "--profile", "paper",
-                     "--set", f"data.root={shapenet.root}"]) == 0
-    out = capsys.readouterr().out
-    card = out.split("protocol card:\n", 1)[1].splitlines()[:2]
-    assert card == [f"  deviation: {ENCODER}", "  note: λ = 1 is ours: the paper gives no value for the 3D prior's weight"]
 
 
 def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_table(tmp_path):
@@ -135,10 +239,10 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     plan_file.write_text(json.dumps({"fixed": plan.fixed, "sets": {}, "cells": []}, default=str))
     sweep.log_artifacts([spec_file, plan_file])
     sweep.end()
-    record = report.open_sweep(uri, plan.spec.name)
-    assert report.protocol_card_lines(record) == lines
+    record_ = report.open_sweep(uri, plan.spec.name)
+    assert report.protocol_card_lines(record_) == lines
     assert lines[0] == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa stand in for hydrant, teddybear and toytruck"
-    theirs = report.results_table(record, []).notes
+    theirs = report.results_table(record_, []).notes
     ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=run._settings(plan)).notes
     assert [n for n in theirs if n.startswith("protocol: ")] == [n for n in ours if n.startswith("protocol: ")] == [
         f"protocol: {line}" for line in lines]
