@@ -172,13 +172,16 @@ def test_a_field_the_record_lacks_is_named_not_passed_over(monkeypatch):
     assert "not compared (no entry in sweeps/references.py): train.lr" in card.notes
 
 
-def test_a_stand_in_and_a_missing_split_file_are_the_data_protocols_lines(shapenet, tmp_path):
+def test_a_missing_split_file_is_the_data_protocols_line_and_one_model_per_class_is_compared(shapenet, co3d, tmp_path):
     bare = make_shapenet(tmp_path / "bare", per_split={"train": 1, "test": 1}, views=2)
     card = _card("prior_type", **{"data.root": str(bare.root), "data.kind": "shapenet_r2n2"})
     assert card.deviations[0] == "split: PC15k's test folders, not BDM's R2N2 test split (put BDM's pc_dict_v2.json in data.root)"
     assert not any(d.startswith("split:") for d in _card("shapenet", **{"data.root": str(shapenet.root)}).deviations)
-    # Table 6 as the paper: one model per class; training airplane and chair together is listed
-    assert any(d.startswith("data.categories: [airplane, chair], not one category per model") for d in card.deviations)
+    # the references train one model per class: Table 5's teddybear model trained with hydrant is listed
+    two = _card("frames", **{"data.root": str(co3d.root), "data.categories": ["teddybear", "hydrant"]})
+    assert "data.categories: [teddybear, hydrant], not one category per model (PC² experiments/config/structured.py: " \
+           "CO3DConfig.category)" in two.deviations
+    assert "data.categories" not in _fields(_card("frames", **{"data.root": str(co3d.root)}))
     assert ProtocolCard(()).lines() == [NO_DEVIATIONS]
 
 
