@@ -207,9 +207,11 @@ CO3D_SPLITS = {"train": 2, "val": 1, "test": 1}
 
 
 def make_co3d(root: Path, categories=("teddybear", "hydrant"), frames: int = 6, seed: int = 0,
-              upscale: int = 1, splits: dict[str, int] | None = None) -> Co3DTree:
+              upscale: int = 1, splits: dict[str, int] | None = None,
+              sequence_names: dict[str, list[str]] | None = None) -> Co3DTree:
     """``root/<category>/...`` with ``splits`` sequences per set-list split (default train 2, val 1,
-    test 1) plus a train sequence without a point cloud. Images are 96×72 or 64×88 (× ``upscale``)
+    test 1) plus a train sequence without a point cloud. ``sequence_names`` (split → names) renames
+    the first sequences with clouds of a split in every category (e.g. to names on PC²'s lists). Images are 96×72 or 64×88 (× ``upscale``)
     JPEGs; the world frame is the L shape scaled ×2.5, rotated and shifted; fx ≠ fy and an
     off-centre principal point exercise the crop camera."""
     rng = np.random.default_rng(seed)
@@ -220,6 +222,8 @@ def make_co3d(root: Path, categories=("teddybear", "hydrant"), frames: int = 6, 
         tree.sequences[category] = {}
         for split, count in (splits or CO3D_SPLITS).items():
             names = [f"{rng.integers(100, 999)}_{rng.integers(10000, 99999)}_{k}" for k in range(count + (split == "train"))]
+            given = (sequence_names or {}).get(split, [])
+            names[: len(given)] = given
             tree.sequences[category][split] = names[:count]
             for index, seq in enumerate(names):
                 has_cloud = index < count
@@ -339,3 +343,28 @@ def mask_check_report(dataset, perturb=None):
     from cdm.data.checks import check_masks
 
     return [check_masks(dataset, i, perturb) for i in range(len(dataset))]
+
+
+# --- estimated depth maps (priors.depth_source: maps) ---------------------------------------------
+
+
+def ramp_depth(position: int, size: int = 16) -> np.ndarray:
+    """``(size, size)`` float32 depths in (1, 3): a plane tilted in a direction set by the sequence
+    ``position``, so a map read for the wrong view gives another depth prior (a shift would not: the
+    prior is normalised per image)."""
+    y, x = np.mgrid[0:size, 0:size] / (size - 1) - 0.5
+    angle = 0.7 * position
+    return (2.0 + math.cos(angle) * x + math.sin(angle) * y).astype(np.float32)
+
+
+def write_depth_maps(folder: Path, cfg) -> None:
+    """:func:`ramp_depth` as the estimated map of every input view of every object of ``cfg``'s two
+    splits, in the ``priors.depth_maps`` layout ``<object_id>/<position>.npy``."""
+    from cdm.data import build_dataset
+
+    for split in ("train", "val"):
+        ds = build_dataset(cfg, split)
+        for index, ref in enumerate(ds.objects):
+            (folder / ref.object_id).mkdir(parents=True, exist_ok=True)
+            for position in ds.record(index).views.tolist():
+                np.save(folder / ref.object_id / f"{position}.npy", ramp_depth(position))

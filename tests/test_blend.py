@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from cdm.__main__ import main
-from cdm.blend import blend_windows, blended_sample, matched_timesteps
+from cdm.blend import _prior_x0_fn, blend_windows, blended_sample, matched_timesteps, prior_timesteps
 from cdm.checkpoint import CHECKPOINT_FILE, load_checkpoint, save_checkpoint
 from cdm.config import load_config
 from cdm.data import build_dataset
@@ -24,6 +24,7 @@ from cdm.evaluate import reconstruct
 from cdm.model import CDMNetwork
 from cdm.prior_model import (
     PRIOR_KIND,
+    CategoryPrior,
     ensure_priors,
     load_prior,
     prior_config,
@@ -139,6 +140,28 @@ def test_prior_noise_level_matches_the_reconstruction_schedule():
     ratio = pc2.alphas_cumprod / bdm.alphas_cumprod[matched]
     assert 0.99 < ratio.min() and ratio.max() < 1.01  # the same x_t scale within 1 %
     assert (matched.diff() >= 0).all()
+
+
+def test_the_prior_sees_bdms_timestep_index_by_default():
+    pc2, bdm = GaussianDiffusion(), GaussianDiffusion(1000, 1e-4, 2e-2)
+    assert load_config().sampling.blend.prior_timestep == "same_index"
+    assert torch.equal(prior_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod, "same_index"), torch.arange(1000))
+    assert torch.equal(prior_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod, "log_snr"),
+                       matched_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod))
+    with pytest.raises(ValueError, match="sampling.blend.prior_timestep: same_index needs a prior of 1000 timesteps, this one has 500"):
+        prior_timesteps(pc2.alphas_cumprod, GaussianDiffusion(500).alphas_cumprod, "same_index")
+    seen = []
+
+    def network(x, t):  # the prior's ε-network: records the timesteps it is called at
+        seen.append(t.tolist())
+        return torch.zeros_like(x)
+
+    t = torch.tensor([500, 64, 500])
+    for mode, want in (("same_index", [[500, 500], [64]]), ("log_snr", [[312, 312], [matched_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod)[64].item()]])):
+        seen.clear()
+        priors = {"chair": CategoryPrior(network, bdm, "chair"), "lamp": CategoryPrior(network, bdm, "lamp")}
+        _prior_x0_fn(priors, ["chair", "lamp", "chair"], pc2, mode)(torch.randn(3, 8, 3), t)
+        assert seen == want, mode
 
 
 @pytest.mark.parametrize(

@@ -14,7 +14,7 @@ from cdm.data.sample import collate
 from cdm.data.views import render_view
 from cdm.inputs import check_coverage, check_inputs
 from cdm.model import CDMNetwork, project_conditioning
-from cdm.model.conditioning import project_views
+from cdm.model.conditioning import conditioning_channels, conditioning_map, project_views
 from cdm.render import rasterize_points
 from tests.conftest import tiny_config
 from tests.input_fixtures import object_ids, write_condition_images
@@ -102,6 +102,21 @@ def test_network_projects_condition_views_in_training_only(tmp_path):
     assert not torch.allclose(with_views, without)  # back-facing points of the input view get features
     invalid = ctx._replace(view_valid=torch.zeros_like(ctx.view_valid))
     assert torch.allclose(net(batch.points, t, invalid, batch.camera), without, atol=1e-6)
+
+
+def test_without_mask_channels_no_mask_reaches_the_points(tmp_path):
+    """BDM's ShapeNet conditioning (``model.mask_channels: false``): features, 2D prior and RGB only."""
+    g = torch.Generator().manual_seed(0)
+    features, prior, image = (torch.rand(2, c, 8, 8, generator=g) for c in (4, 1, 3))
+    mask = (torch.rand(2, 1, 8, 8, generator=g) > 0.5).float()
+    full, bare = conditioning_map(features, prior, image, mask, True), conditioning_map(features, prior, image, mask, False)
+    assert (conditioning_channels(4, 1, True), conditioning_channels(4, 1, False)) == (full.shape[1], bare.shape[1]) == (10, 8)
+    assert torch.equal(bare, full[:, :8]) and torch.equal(bare, conditioning_map(features, prior, image, 1 - mask, False))
+    cfg = tiny_config(tmp_path, **PC2, **{"model.mask_channels": False})
+    net = CDMNetwork(cfg.model, 0)
+    batch = collate([build_dataset(cfg, "train").sample(i) for i in range(2)])
+    assert net.encode(batch).pixel.shape == (2, conditioning_channels(cfg.model.feature_dim, 0, False), 32, 32)
+    assert net(batch.points, torch.tensor([4, 9]), net.encode(batch), batch.camera).shape == batch.points.shape
 
 
 def test_bad_condition_inputs_name_the_field(tmp_path):

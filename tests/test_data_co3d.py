@@ -3,20 +3,37 @@
 from __future__ import annotations
 
 import gzip
+import hashlib
 import json
+import random
 import shutil
+from collections import defaultdict
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
 from cdm.__main__ import main
 from cdm.cameras import select_sequence_views
-from cdm.config import load_config
+from cdm.config import ConfigError, load_config
 from cdm.data import build_dataset, list_categories
 from cdm.data.co3d import PRIOR_FILL
+from cdm.data.co3d_lists import EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE, excluded_sequences
 from cdm.data.checks import inside_mask
-from tests.datasets_fixtures import make_co3d, mask_check_report, mirrored, mirrored_x, project, wrong_distance
+from sweeps import run
+from sweeps.plan import expand
+from sweeps.spec import load_spec
+from tests.datasets_fixtures import (
+    make_co3d,
+    mask_check_report,
+    mirrored,
+    mirrored_x,
+    project,
+    write_depth_maps,
+    wrong_distance,
+)
 
 
 @pytest.fixture(scope="module")
@@ -159,3 +176,145 @@ def test_corrupt_jpeg_exits_2_naming_it(tree, tmp_path, capsys):
     last = capsys.readouterr().err.splitlines()[-1]
     assert last.startswith("error: data.root: cannot read image") and str(jpeg) in last
     assert not list((tmp_path / "out").rglob(".*tmp*"))
+
+
+# --- PC²'s protocol: data.exclude_sequences, data.frames_per_sequence, data.mask_rgb, data.drop_outliers ---
+
+
+def test_pc2_lists_are_copied_whole():
+    # Sizes and the first and last entries of each list in PC²'s experiments/dataset/exclude_sequence.py.
+    assert (len(EXCLUDE_SEQUENCE["hydrant"]), len(LOW_QUALITY_SEQUENCE["hydrant"]), len(LOW_QUALITY_SEQUENCE["teddybear"])) == (31, 42, 295)
+    assert {"250_26810_55497", "613_98242_196036"} <= EXCLUDE_SEQUENCE["hydrant"]
+    assert {"469_66175_130221", "590_88831_175196"} <= LOW_QUALITY_SEQUENCE["hydrant"]
+    assert {"393_48310_95677", "341_35504_65289"} <= LOW_QUALITY_SEQUENCE["teddybear"]
+    assert (len(excluded_sequences("hydrant")), len(excluded_sequences("teddybear")), excluded_sequences("toytruck")) == (73, 295, frozenset())
+
+
+def test_listed_sequences_leave_every_split_of_their_category_only(tmp_path):
+    hydrant_bad, teddybear_bad = "250_26810_55497", "393_48310_95677"  # on hydrant's list / on teddybear's
+    tree = make_co3d(tmp_path, frames=3, splits={"train": 2, "val": 2, "test": 0},
+                     sequence_names={"train": [hydrant_bad], "val": [teddybear_bad]})  # both names in both categories
+    for split, listed in (("train", f"co3d/hydrant/{hydrant_bad}"), ("val", f"co3d/teddybear/{teddybear_bad}")):
+        every = {ref.object_id for ref in build_dataset(_cfg(tree.root), split).objects}
+        kept = {ref.object_id for ref in build_dataset(_cfg(tree.root, **{"data.exclude_sequences": True}), split).objects}
+        assert len(every) == 4 and listed in every and kept == every - {listed}
+
+
+def _pytorch3d_kept(root: Path, category: str, count: int) -> dict[str, set[int]]:
+    """Frame numbers per sequence that PyTorch3D 0.7.3's ``JsonIndexDataset._filter_db`` keeps with PC²'s
+    ``remove_empty_masks=True, n_frames_per_sequence=count``, written as there: one list of the category's
+    frames in file order, indices grouped by sequence, each group shuffled by its seeded ``random.Random``."""
+    frames = json.loads(gzip.decompress((root / category / "frame_annotations.jgz").read_bytes()))
+    frames = [f for f in frames if f["mask"]["mass"] > 1]
+    seq_to_idx = defaultdict(list)
+    for idx, f in enumerate(frames):
+        seq_to_idx[f["sequence_name"]].append(idx)
+    keep_idx = []
+    for seq, seq_indices in seq_to_idx.items():
+        seed = int(hashlib.sha1(seq.encode("utf-8")).hexdigest(), 16) + 0
+        keep_idx.extend(random.Random(seed).sample(sorted(seq_indices), len(seq_indices))[:count])
+    kept = defaultdict(set)
+    for i in keep_idx:
+        kept[frames[i]["sequence_name"]].add(frames[i]["frame_number"])
+    return kept
+
+
+def _rewrite(path: Path, edit, gzipped: bool) -> None:
+    raw = gzip.decompress(path.read_bytes()) if gzipped else path.read_bytes()
+    text = json.dumps(edit(json.loads(raw))).encode()
+    path.write_bytes(gzip.compress(text) if gzipped else text)
+
+
+def test_frames_per_sequence_keeps_pytorch3ds_frames_before_the_set_lists(tmp_path):
+    tree = make_co3d(tmp_path, categories=("teddybear",), frames=6, splits={"train": 3, "val": 2, "test": 0})
+    folder = tree.root / "teddybear"
+    # An empty mask on the frame PyTorch3D would otherwise keep: remove_empty_masks drops it first.
+    empty_seq = tree.sequences["teddybear"]["val"][0]
+    first_pick = _pytorch3d_kept(tree.root, "teddybear", 1)[empty_seq]
+
+    def empty_mask(frames):
+        for f in frames:
+            if f["sequence_name"] == empty_seq and f["frame_number"] in first_pick:
+                f["mask"]["mass"] = 0.0
+        return frames
+
+    _rewrite(folder / "frame_annotations.jgz", empty_mask, gzipped=True)
+    # The frame kept of one train sequence listed under test instead: that sequence leaves train.
+    moved_seq = tree.sequences["teddybear"]["train"][0]
+    moved = _pytorch3d_kept(tree.root, "teddybear", 1)[moved_seq]
+
+    def move(lists):
+        lists["test"] += [e for e in lists["train"] if e[0] == moved_seq and e[1] in moved]
+        lists["train"] = [e for e in lists["train"] if not (e[0] == moved_seq and e[1] in moved)]
+        return lists
+
+    _rewrite(folder / "set_lists" / "set_lists_fewview_dev.json", move, gzipped=False)
+    assert _pytorch3d_kept(tree.root, "teddybear", 1)[empty_seq] != first_pick
+    for count in (1, 2):
+        want = _pytorch3d_kept(tree.root, "teddybear", count)
+        for split in ("train", "val"):
+            every = [ref.object_id for ref in build_dataset(_cfg(tree.root), split).objects]
+            ds = build_dataset(_cfg(tree.root, **{"data.frames_per_sequence": count}), split)
+            gone = {f"co3d/teddybear/{moved_seq}"} if split == "train" and count == 1 else set()
+            assert [ref.object_id for ref in ds.objects] == [o for o in every if o not in gone]
+            for i, ref in enumerate(ds.objects):
+                seq = ref.object_id.rsplit("/", 1)[1]
+                listed = want[seq] - (moved if seq == moved_seq else set())
+                # The fixture numbers frames 1, 2, …: frame number = sequence position + 1.
+                assert {p + 1 for p in ds.record(i).views.tolist()} == listed, (split, seq)
+
+
+def test_masked_rgb_blacks_out_the_background_and_keeps_the_object(tree):
+    plain = build_dataset(_cfg(tree.root), "val")
+    masked = build_dataset(_cfg(tree.root, **{"data.mask_rgb": True}), "val")  # decoded in the same process
+    kernel = np.ones((5, 5), np.uint8)
+    for i in range(len(plain)):
+        a, b = plain[i], masked[i]
+        assert torch.equal(a.mask, b.mask) and torch.equal(a.points, b.points)
+        fg = a.mask[0].numpy().astype(np.uint8)
+        inside = torch.from_numpy(cv2.erode(fg, kernel) > 0)
+        outside = torch.from_numpy(cv2.dilate(fg, kernel) == 0)
+        assert inside.any() and outside.any()
+        assert torch.equal(b.image[:, inside], a.image[:, inside])
+        assert torch.all(b.image[:, outside] == 0) and a.image[:, outside].mean() > 0.3  # the fixture's background is noise
+
+
+def test_drop_outliers_off_keeps_every_published_point(tree):
+    kept = build_dataset(_cfg(tree.root, **{"data.drop_outliers": False}), "val")
+    dropped = build_dataset(_cfg(tree.root), "val")
+    for i in range(len(kept)):
+        assert len(kept.record(i).cloud) == 6010 and len(dropped.record(i).cloud) == 6000  # the PLY's 10 stray points
+
+
+@pytest.mark.parametrize(("kind", "field", "value"), [
+    ("shapenet_r2n2", "data.mask_rgb", True), ("procedural", "data.frames_per_sequence", 1),
+    ("meshes", "data.drop_outliers", False), ("shapenet_r2n2", "data.exclude_sequences", True),
+    ("co3d", "data.train_view", 0), ("procedural", "data.train_view", 0),
+])
+def test_a_protocol_field_of_another_data_set_is_refused(kind, field, value):
+    with pytest.raises(ConfigError, match=rf"{field}: only data.kind="):
+        load_config(None, {"data.kind": kind, field: value})
+
+
+def test_table_6_dry_runs_on_co3d_with_pc2s_protocol(tmp_path, monkeypatch, capsys):
+    tree = make_co3d(tmp_path / "co3d", categories=("teddybear",), frames=3, splits={"train": 1, "val": 1, "test": 0})
+    inputs = tmp_path / "inputs"
+    write_depth_maps(inputs / "depth_maps", _cfg(tree.root))
+    (inputs / "msn").mkdir()
+    (inputs / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # a dry run checks that the file is there
+    monkeypatch.setenv("CDM_INPUTS", str(inputs))
+    monkeypatch.chdir(tmp_path)
+    spec = Path(__file__).resolve().parent.parent / "sweeps" / "prior_type.yaml"
+    sets = {"data.kind": "co3d", "data.root": str(tree.root)}
+    assert run.main([str(spec), "--dry-run", "--no-estimate", "--profile", "paper",
+                     *[a for k, v in sets.items() for a in ("--set", f"{k}={v}")]]) == 0
+    out = capsys.readouterr().out
+    plan = expand(load_spec(spec), "paper", sets)
+    assert sorted(c.paper_label for c in plan.cells) == ["contour, teddybear", "depth, teddybear"]
+    for cell in plan.cells:
+        d = cell.config.data
+        assert cell.label in out
+        assert (d.exclude_sequences, d.frames_per_sequence, d.mask_rgb, d.drop_outliers, cell.config.model.mask_channels) == (
+            True, 1, True, False, True)
+        assert (d.num_points, cell.config.priors.render_kind, cell.config.priors.depth_source) == (16384, "depth", "maps")
+    assert f"priors.depth_maps={inputs / 'depth_maps'} (ok)" in out

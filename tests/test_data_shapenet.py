@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -14,7 +15,11 @@ from cdm.cameras import select_sequence_views
 from cdm.config import load_config
 from cdm.data import build_dataset, list_categories
 from cdm.data.checks import inside_mask
+from cdm.data.priors2d import depth_prior_from_map
 from cdm.data.shapenet import R2N2_FOCAL, SYNSETS
+from sweeps import run
+from sweeps.plan import expand
+from sweeps.spec import load_spec
 from tests.datasets_fixtures import (
     SHAPENET_SYNSETS,
     make_shapenet,
@@ -23,7 +28,9 @@ from tests.datasets_fixtures import (
     mirrored_x,
     project,
     r2n2_pixels,
+    ramp_depth,
     unmapped_frame,
+    write_depth_maps,
     wrong_distance,
 )
 
@@ -218,3 +225,59 @@ def test_corrupt_image_exits_2_naming_it_and_leaves_no_partial_shard(tree, tmp_p
     assert last.startswith("error: data.root: cannot read image") and str(png) in last and err.count("error:") == 1
     shards = sorted(out.rglob("*.shard"))
     assert len(shards) == 1 and not list(out.rglob(".*tmp*"))  # the object before it is complete; nothing half-written
+
+
+# --- BDM's protocol (data.train_view, model.mask_channels) and Table 6's depth prior from estimated maps ---
+
+
+def test_train_view_shows_that_rendering_in_every_round(tree, tmp_path):
+    for view in (0, 5):
+        ds = build_dataset(_cfg(tree.root, **{"data.train_view": view}), "train")
+        for i in range(len(ds)):
+            want = ds.view(i, view)  # rendering <view>.png
+            for r in range(4):
+                s = ds.sample(i, r)
+                assert torch.equal(s.camera.T, want.camera.T) and torch.equal(s.mask[0], torch.from_numpy(want.mask > 127).float())
+    assert torch.equal(build_dataset(_cfg(tree.root, **{"data.train_view": 5}), "val")[0].mask, build_dataset(_cfg(tree.root), "val")[0].mask)
+    two = make_shapenet(tmp_path / "two", per_split={"train": 1, "test": 1}, views=2)
+    with pytest.raises(ValueError, match=r"data.train_view: 2, but shapenet/\w+/\w+ has 2 input views"):
+        build_dataset(_cfg(two.root, **{"data.train_view": 2}), "train").sample(0)
+
+
+def test_depth_prior_reads_the_estimated_map_of_the_view_shown(tree, tmp_path):
+    with pytest.raises(ValueError, match="priors.prior_2d: 'depth' on ShapeNet needs estimated maps"):
+        build_dataset(_cfg(tree.root, **{"priors.prior_2d": "depth"}), "val")
+    write_depth_maps(tmp_path / "maps", _cfg(tree.root))
+    estimated = {"priors.prior_2d": "depth", "priors.depth_source": "maps", "priors.depth_maps": str(tmp_path / "maps")}
+    for split, view in (("train", 3), ("val", 0)):
+        ds = build_dataset(_cfg(tree.root, **estimated, **{"data.train_view": 3}), split)
+        for i in range(len(ds)):
+            s = ds.sample(i, 1)
+            position = int(ds.record(i).views[view])
+            depth = torch.from_numpy(cv2.resize(ramp_depth(position), (64, 64), interpolation=cv2.INTER_NEAREST))[None]
+            assert s.depth is None and torch.equal(s.prior_2d, depth_prior_from_map(depth, s.mask))
+            assert s.prior_2d.max() == 1.0 and torch.all(s.prior_2d[s.mask == 0] == 0)
+
+
+def test_table_6_dry_runs_on_shapenet_with_estimated_depth_and_bdms_protocol(tmp_path, monkeypatch, capsys):
+    tree = make_shapenet(tmp_path / "shapenet", per_split={"train": 2, "val": 0, "test": 1}, views=2, bdm_split=True)
+    inputs = tmp_path / "inputs"
+    write_depth_maps(inputs / "depth_maps", _cfg(tree.root, **{"data.eval_split": "test"}))
+    (inputs / "msn").mkdir()
+    (inputs / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # a dry run checks that the file is there
+    monkeypatch.setenv("CDM_INPUTS", str(inputs))
+    monkeypatch.chdir(tmp_path)
+    spec = Path(__file__).resolve().parent.parent / "sweeps" / "prior_type.yaml"
+    sets = {"data.kind": "shapenet_r2n2", "data.root": str(tree.root)}
+    assert run.main([str(spec), "--dry-run", "--no-estimate", "--profile", "paper",
+                     *[a for k, v in sets.items() for a in ("--set", f"{k}={v}")]]) == 0
+    out = capsys.readouterr().out
+    plan = expand(load_spec(spec), "paper", sets)
+    assert sorted(c.paper_label for c in plan.cells) == ["contour, airplane", "contour, chair", "depth, airplane", "depth, chair"]
+    for cell in plan.cells:  # one model per class, BDM's view 00 and conditioning channels
+        cfg = cell.config
+        assert cell.label in out and len(cfg.data.categories) == 1
+        assert (cfg.data.train_view, cfg.model.mask_channels, cfg.priors.render_kind, cfg.data.eval_split) == (0, False, "planar", "test")
+    depth = [c.config for c in plan.cells if c.config.priors.prior_2d == "depth"]
+    assert {(cfg.priors.depth_source, cfg.priors.depth_maps) for cfg in depth} == {("maps", "$CDM_INPUTS/depth_maps")}
+    assert f"priors.depth_maps={inputs / 'depth_maps'} (ok)" in out

@@ -18,7 +18,7 @@ SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
 NEEDS_INPUTS = [p for p in SHIPPED if "$CDM_INPUTS" in p.read_text()]  # Tables 7 and 8: embeddings, generated images
 
 EXPECTED_TRIALS = {  # cells × seeds per shipped spec (Optuna: num_samples of the profile)
-    "point_size": 5, "frames": 7, "frames_point_size": 3, "priors_2d_3d": 4, "prior_type": 2,
+    "point_size": 5, "frames": 7, "frames_point_size": 3, "priors_2d_3d": 4, "prior_type": 6,
     "global_features": 6, "conditions": 7, "prediction": 3, "bdm_blend": 20, "shapenet": 10, "co3d": 6, "lambda": {"smoke": 4, "local": 8, "paper": 32},
 }
 
