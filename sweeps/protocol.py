@@ -105,7 +105,11 @@ class _Diff(NamedTuple):
 
 
 def _diff(cfg: Config, ctx: CardContext) -> _Diff:
-    """Compare every field of ``cfg`` with the record (fields the record names but the config lacks are not read)."""
+    """Compare every field of ``cfg`` with the record, then list what the record states that the config cannot hold.
+
+    A stated field the config does not have (yet) is a deviation: this code cannot be set to the reference
+    (e.g. ``model.denoiser`` before PC²'s PVCNN2 is selectable). A condition on a missing field does not hold.
+    """
     flat = cfg.flat()
     kinds = (cfg.data.kind,) if cfg.data.kind in ctx.datasets else ctx.datasets
     reference = _reference(ctx.table, kinds)
@@ -123,6 +127,9 @@ def _diff(cfg: Config, ctx: CardContext) -> _Diff:
             deviations.append(f"{path}: {show(value)}, not {entry.shown} ({entry.source})")
         elif isinstance(entry, NotStated) and entry.noted and entry.applies(flat):
             free.append(f"{path} = {show(value)}")
+    for path, entry in reference.items():
+        if path not in flat and path not in ctx.swept and isinstance(entry, Stated) and entry.applies(flat):
+            deviations.append(f"{path}: not a field of this config, so not {entry.shown} ({entry.source})")
     return _Diff(deviations, free, cfg.priors.prior_3d, unreviewed)
 
 
@@ -140,9 +147,14 @@ def sweep_card(configs: Iterable[Config], datasets: Iterable[Kind] = (), stand_i
     ctx = CardContext(tuple(datasets) or DATA_SETS, stand_in, table, frozenset(swept))
     diffs = [_diff(cfg, ctx) for cfg in configs]
     order = {path: i for i, path in enumerate(config_field_paths())}
+    record_paths = {path for kind in ctx.datasets for path in record(table, kind)}
 
-    def merged(lines: Iterable[str]) -> list[str]:  # data-protocol lines (no field name) first
-        return sorted(dict.fromkeys(lines), key=lambda line: order.get(line.split(":")[0].split(" = ")[0], -1))
+    def rank(line: str) -> int:  # data-protocol lines first, then config fields, then fields the config lacks
+        head = line.split(":")[0].split(" = ")[0]
+        return order[head] if head in order else len(order) if head in record_paths else -1
+
+    def merged(lines: Iterable[str]) -> list[str]:
+        return sorted(dict.fromkeys(lines), key=rank)
 
     notes = [_PRIOR_SCALE] if any(d.prior_3d for d in diffs) else []
     if free := merged(line for d in diffs for line in d.free):

@@ -18,8 +18,9 @@ Every field of :func:`cdm.config.config_field_paths` has one :data:`Entry` in ea
 - :class:`NoEffect`: where or how a run goes, not what it computes (paths, threads, logging, drawings,
   which random draw).
 
-A record may name fields the config does not have (yet): the card compares the fields the config has,
-in one place (:func:`sweeps.protocol.protocol_card`).
+A record may name fields the config does not have (yet): the card lists a stated one as a deviation
+(this code cannot be set to the reference) and skips entries conditioned on one
+(:func:`sweeps.protocol.protocol_card`).
 """
 
 from __future__ import annotations
