@@ -292,23 +292,14 @@ class TrainConfig(_Group):
 
 
 class EvalConfig(_Group):
-    """Held-out evaluation: which objects, in which units, on how many points (BDM's metrics, ``cdm.metrics``)."""
+    """Held-out evaluation: which objects, on how many points (BDM's metrics, ``cdm.metrics``), in the data
+    set's frame as it is (``cdm.normalise``: BDM's units on ShapeNet, PC²'s on Co3D)."""
 
     protocol: Literal["quick", "paper"] = "quick"
     """Which held-out objects are scored, one sample each. ``quick``: the first ``eval.num_objects`` per
     category (a fixed subset, comparable across cells, not the paper's numbers). ``paper``: every object
     of the references' evaluation split — BDM scores every ShapeNet object of the R2N2 ``test`` split
     (``data.eval_split: test``), PC² every Co3D ``fewview_dev`` ``val`` sequence."""
-    normalise: Literal["box", "reference"] = "box"
-    """Units both clouds are scored in (each is then centred on its own mean, ``cdm.metrics``).
-    ``box``: as the data sets give them, per shape ``x' = (x − c)·s`` with ``c`` the bounding-box centre
-    and ``s`` = 1 / largest half-extent (every kind). ``reference``: as the reference code scores
-    (``cdm.normalise``): ShapeNet as BDM's data set code (``experiments/dataset/shapenet_r2n2.py``,
-    PointFlow's ``normalize_per_shape=False``) ``x' = (x − μ)/σ`` with μ the mean point and σ the standard
-    deviation of all coordinates of all clouds of the category's evaluation split (v1 frame); Co3D as PC²,
-    in the sequence cloud's own world units (``scale_factor = 1.0`` in PC²'s ``experiments/config/
-    structured.py``). Kinds without a reference code (procedural, meshes) stay in box units either way
-    (the protocol card says so)."""
     num_objects: int = Field(16, ge=1)
     """Held-out objects per category scored under ``eval.protocol: quick``."""
     num_points: int = Field(4096, ge=16)

@@ -14,7 +14,9 @@ scores, on the same objects and with the same metric:
   image, which would dominate an RGB distance; it does not see the category.
 
 Baselines are computed once per evaluation set (they do not depend on the model), per object, so a
-cell can be compared with each of them pairwise on the same objects.
+cell can be compared with each of them pairwise on the same objects. Every cloud is scored in the data
+set's frame as it is (:mod:`cdm.normalise`: BDM's units on ShapeNet, PC²'s on Co3D): no ground truth
+rescales a prediction before it is scored.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.digest import json_digest
 from cdm.metrics import ChamferF1, chamfer_f1
 from cdm.model import CDMNetwork
-from cdm.normalise import score_factor
+from cdm.normalise import FRAME_VERSION
 
 __all__ = [
     "BASELINES",
@@ -63,9 +65,7 @@ class EvalSet:
 
     batches: list[Batch]
     fingerprint: str
-    """Hash of the objects, their views and the scoring settings: equal fingerprints, comparable runs."""
-    factors: list[Tensor] = field(default_factory=list)
-    """Per batch, ``(B,)`` factors into the scoring units (``eval.normalise``, :mod:`cdm.normalise`)."""
+    """Hash of the objects, their views and frame, and the scoring settings: equal fingerprints, comparable runs."""
     baseline_metrics: dict[str, float] = field(default_factory=dict)
     baseline_rows: dict[str, dict[str, float]] = field(default_factory=dict)
     """Per object id: ``{"baseline/<name>/cd": …, "baseline/<name>/f1": …}``."""
@@ -96,28 +96,24 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
             per_cat[ref.category].append(i)
     order = [i for cat in sorted(per_cat) for i in per_cat[cat]]
     chosen = [val[i] for i in order]
-    factors = torch.tensor([score_factor(cfg, val, i) for i in order])
     bs = cfg.train.batch_size
     batches = [collate(chosen[i : i + bs]) for i in range(0, len(chosen), bs)]
-    scoring: list[object] = [cfg.eval.seed, cfg.eval.num_points, cfg.eval.f1_threshold]
-    if cfg.eval.normalise != "box":  # box-unit evaluation sets keep the fingerprints they always had
-        scoring.append(cfg.eval.normalise)
     identity = {"data": [cfg.data.kind, cfg.data.root, cfg.data.seed, cfg.data.num_points, cfg.data.image_size],
-                "objects": [s.object_id for s in chosen], "scoring": scoring}
-    fingerprint = json_digest(identity)
-    eval_set = EvalSet(batches, fingerprint, [factors[i : i + bs] for i in range(0, len(chosen), bs)])
+                "objects": [s.object_id for s in chosen], "frame": FRAME_VERSION,
+                "scoring": [cfg.eval.seed, cfg.eval.num_points, cfg.eval.f1_threshold]}
+    eval_set = EvalSet(batches, json_digest(identity))
     means = _category_medoids(train, set(per_cat), cfg.eval.num_points)
     bank = RetrievalBank.build(train, set(per_cat), cfg.eval.retrieval_bank)
     gen = torch.Generator().manual_seed(seed)
     first_of = {cat: val.objects[idx[0]].object_id for cat, idx in per_cat.items()}
     scores: dict[str, list[tuple[str, float, float]]] = {name: [] for name in BASELINES}
-    for batch, factor in zip(batches, eval_set.factors):
+    for batch in batches:
         clouds = {**baseline_clouds(batch.points, batch.category, means, gen), "retrieval": bank.nearest(batch.mask)}
         for j, (oid, cat) in enumerate(zip(batch.object_id, batch.category)):
             if oid == first_of[cat]:
                 eval_set.baseline_clouds[oid] = {name: clouds[name][j].clone() for name in BASELINES}
         for name in BASELINES:
-            m = _score(clouds[name], batch.points, cfg, gen, factor)
+            m = _score(clouds[name], batch.points, cfg, gen)
             scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
             for oid, cd, f1 in zip(batch.object_id, m.cd.tolist(), m.f1.tolist()):
                 eval_set.baseline_rows.setdefault(oid, {}).update({f"baseline/{name}/cd": cd, f"baseline/{name}/f1": f1})
@@ -203,12 +199,10 @@ def _subsample(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
     return cloud[:, idx.to(cloud.device)]
 
 
-def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator, factor: Tensor) -> ChamferF1:
-    """BDM's protocol: ``eval.num_points`` from each cloud, both in the scoring units (``factor`` ``(B,)``,
-    :mod:`cdm.normalise`), then CD and F1 at ``eval.f1_threshold``."""
-    f = factor.to(pred.dtype)[:, None, None]
-    return chamfer_f1(_subsample(pred, cfg.eval.num_points, gen) * f, _subsample(gt, cfg.eval.num_points, gen) * f,
-                      cfg.eval.f1_threshold)
+def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator) -> ChamferF1:
+    """BDM's protocol: ``eval.num_points`` from each cloud ``(B, N, 3)`` (the data set's frame, as given),
+    then CD and F1 at ``eval.f1_threshold``."""
+    return chamfer_f1(_subsample(pred, cfg.eval.num_points, gen), _subsample(gt, cfg.eval.num_points, gen), cfg.eval.f1_threshold)
 
 
 def _summarise(rows: list[tuple[str, float, float]], prefix: str) -> dict[str, float]:
@@ -266,10 +260,10 @@ def run_evaluation(
     rows: list[dict[str, object]] = []
     files: list[Path] = []
     drawn: set[str] = set()
-    for batch, factor in zip(eval_set.batches, eval_set.factors):
+    for batch in eval_set.batches:
         batch_d = batch.to(device)
         pred = reconstruct(network, diffusion, batch_d, cfg, sample_gen).cpu()
-        m = _score(pred, batch.points, cfg, metric_gen, factor)
+        m = _score(pred, batch.points, cfg, metric_gen)
         for j in range(len(batch)):
             oid = batch.object_id[j]
             rows.append({"object_id": oid, "category": batch.category[j], "eval_set": eval_set.fingerprint,

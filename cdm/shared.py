@@ -130,11 +130,11 @@ class SharedStore:
         path = self._eval_path(eval_key(cfg, val, train))
         if path.exists():
             d = torch.load(path, weights_only=True)
-            return EvalSet([_batch(b) for b in d["batches"]], d["fingerprint"], d["factors"], d["baseline_metrics"],
+            return EvalSet([_batch(b) for b in d["batches"]], d["fingerprint"], d["baseline_metrics"],
                            d["baseline_rows"], d.get("baseline_clouds", {}))
         built = build_eval_set(cfg, val, train, cfg.eval.seed)
         _save({"batches": [_batch_dict(b) for b in built.batches], "fingerprint": built.fingerprint,
-               "factors": built.factors, "baseline_metrics": built.baseline_metrics,
+               "baseline_metrics": built.baseline_metrics,
                "baseline_rows": built.baseline_rows, "baseline_clouds": built.baseline_clouds}, path)
         return built
 

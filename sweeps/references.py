@@ -223,8 +223,6 @@ _SHAPENET: dict[str, Entry] = {
     "priors.render_kind": Stated("planar", "paper §4.1 ShapeNet: planar point images in the 3D prior", _PRIOR_3D),
     "train.batch_size": Stated(16, f"{_BDM_TRAIN}: dataloader.batch_size; the paper states none"),
     "eval.num_points": Stated(4096, "BDM experiments/example_sample.sh: dataset.max_points"),
-    "eval.normalise": Stated("reference", "BDM experiments/dataset/shapenet_r2n2.py: one mean and σ per split "
-                             "(normalize_per_shape False)"),
 }
 
 _CO3D: dict[str, Entry] = {
@@ -243,7 +241,6 @@ _CO3D: dict[str, Entry] = {
     "priors.render_kind": Stated("depth", "paper §3.2, Fig. 2: depth images of the clouds", _PRIOR_3D),
     "train.batch_size": Stated(8, f"{_PC2}: DataloaderConfig.batch_size; the paper states none"),
     "eval.num_points": Stated(16384, f"{_PC2}: max_points"),
-    "eval.normalise": Stated("reference", f"{_PC2}: scale_factor 1.0, Co3D's own units"),
 }
 
 _PC2_ROWS: dict[str, Entry] = {

@@ -14,12 +14,13 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from cdm.__main__ import main
 from cdm.cameras import select_sequence_views
 from cdm.config import ConfigError, load_config
 from cdm.data import build_dataset, list_categories
-from cdm.data.co3d import PRIOR_FILL
+from cdm.data.co3d import centred_box, crop_camera, load_category
 from cdm.data.co3d_lists import EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE, excluded_sequences
 from cdm.data.checks import inside_mask
 from sweeps import run
@@ -55,15 +56,15 @@ def test_samples_have_the_right_shapes_and_scales(tree):
         assert 0.1 < s.mask.mean() < 0.7  # the crop keeps a margin around the object
         assert s.depth.shape == (1, 64, 64)
         assert torch.all((s.depth > 0) <= (s.mask > 0)) and (s.depth[s.mask > 0] > 0).float().mean() > 0.95
-        assert s.points.shape == (2048, 3) and s.points.abs().max() <= 1.0
+        assert s.points.shape == (2048, 3)
         cloud = ds.record(i).cloud
-        lo, hi = cloud.min(0).values, cloud.max(0).values
-        # The PLY's stray points (40 units away) are dropped: the object alone spans [-1, 1].
-        assert len(cloud) == 6000 and (hi - lo).max() == pytest.approx(2.0) and ((hi + lo) / 2).abs().max() < 1e-6
+        # PC²'s frame: the PLY's own world units, nothing fitted; its stray points (40 units away) dropped.
+        published = np.asarray(trimesh.load(tree.root / f"{ds.objects[i].object_id.split('/', 1)[1]}/pointcloud.ply").vertices)
+        assert len(cloud) == 6000 and torch.equal(cloud, torch.from_numpy(published[:6000]).float())
         assert s.view_cameras.batch_shape == (4,)
 
 
-def test_depth_is_float16_bits_times_scale_adjustment_in_normalised_units(tree):
+def test_depth_is_float16_bits_times_scale_adjustment_in_world_units(tree):
     ds = build_dataset(_cfg(tree.root), "train")
     for i in range(len(ds)):
         s = ds.sample(i, 0)
@@ -112,9 +113,12 @@ def test_prior_views_are_evenly_spaced_frames_of_the_sequence(tree):
         positions = select_sequence_views(6, start, 3)
         assert positions == [start, (start + 2) % 6, (start + 4) % 6]
         assert torch.allclose(s.view_cameras.R[1:], record.sequence.R[positions[1:]])
-        for k in range(1, 3):  # the fitted square crop: the cloud reaches PRIOR_FILL of the half-frame
-            reach = project(s.points, s.view_cameras[k])[:, :2].abs().max()
-            assert PRIOR_FILL * 0.9 < reach <= PRIOR_FILL + 1e-4
+        frames = load_category(tree.root / ds.objects[0].category).frames[ds.objects[0].object_id.rsplit("/", 1)[1]]
+        for k in range(1, 3):  # the frame's centred square crop, from the annotation alone; the object in view
+            focal, principal = crop_camera(frames[positions[k]], centred_box(frames[positions[k]]))
+            assert float(s.view_cameras.focal[k]) == pytest.approx(focal)
+            assert s.view_cameras.principal[k].tolist() == pytest.approx(list(principal))
+            assert project(s.points, s.view_cameras[k])[:, :2].abs().max() < 1.0
 
 
 def test_split_filtering_follows_the_fewview_dev_set_list(tree):

@@ -57,10 +57,8 @@ def test_samples_have_the_published_shapes_and_our_scales(tree):
         far = torch.from_numpy(cv2.dilate(s.mask[0].numpy(), np.ones((5, 5), np.uint8)) == 0)
         assert torch.all(s.image[:, far] == 1.0)
         assert s.depth is None and s.prior_2d.shape == (1, 64, 64)  # R2N2 has no depth; contour prior
-        assert s.points.shape == (4096, 3) and s.points.abs().max() <= 1.0
-        cloud = ds.record(i).cloud  # all 15,000 PC15k points, normalised like every data set
-        lo, hi = cloud.min(0).values, cloud.max(0).values
-        assert len(cloud) == 15000 and (hi - lo).max() == pytest.approx(2.0) and ((hi + lo) / 2).abs().max() < 1e-6
+        assert s.points.shape == (4096, 3)
+        assert len(ds.record(i).cloud) == 15000  # every PC15k point, in BDM's frame (values: the test below)
         assert s.camera.focal.item() == pytest.approx(R2N2_FOCAL) and torch.all(s.camera.principal == 0)
         assert s.view_cameras.batch_shape == (10,)
         assert torch.equal(s.view_cameras.R[0], s.camera.R) and torch.equal(s.view_cameras.T[0], s.camera.T)
@@ -95,16 +93,23 @@ def test_mask_check_passes_on_every_view_and_its_negative_controls_fail(tree, sp
 
 
 def test_pc15k_clouds_are_stored_in_the_v2_frame_and_loaded_in_v1(tree):
-    """The published frames: the .npy holds v2 points; the loader's cloud is their v1 image (−z, y, −x),
-    normalised, so the renderings' own camera (PyTorch3D's R2N2 reader) sees it on the mask."""
+    """The published frames: the .npy holds v2 points; the loader's cloud is their v1 image (−z, y, −x) in
+    BDM's global normalisation, (x − μ)/σ with μ the mean point and σ the std (n − 1) of every coordinate
+    of the category's rendered training clouds, so the renderings' own camera sees it on the mask."""
     ds = build_dataset(_cfg(tree.root), "val")
     rec = ds.record(0)
-    synset, model = SHAPENET_SYNSETS[ds.objects[0].category], ds.objects[0].object_id.split("/")[-1]
-    raw = np.load(tree.root / "ShapeNetCore.v2.PC15k" / synset / "val" / f"{model}.npy")
-    v1 = np.stack([-raw[:, 2], raw[:, 1], -raw[:, 0]], 1)
-    lo, hi = v1.min(0), v1.max(0)
-    expect = (v1 - (lo + hi) / 2) / ((hi - lo).max() / 2)
-    assert np.abs(rec.cloud.numpy() - expect).max() < 1e-5
+    category, model = ds.objects[0].category, ds.objects[0].object_id.split("/")[-1]
+    synset = SHAPENET_SYNSETS[category]
+
+    def v1_of(folder, name):
+        raw = np.load(tree.root / "ShapeNetCore.v2.PC15k" / synset / folder / f"{name}.npy").astype(np.float64)
+        return np.stack([-raw[:, 2], raw[:, 1], -raw[:, 0]], 1)
+
+    training = np.stack([v1_of("train", m) for m in tree.splits[category]["train"]])  # (K, 15000, 3), no unrendered
+    mean, std = training.reshape(-1, 3).mean(0), training.reshape(-1).std(ddof=1)
+    v1 = v1_of("val", model)
+    assert rec.scale == pytest.approx(1 / std, rel=1e-12)
+    assert np.abs(rec.cloud.numpy() - (v1 - mean) / std).max() < 1e-5
     meta = np.loadtxt(tree.root / "ShapeNetRendering" / synset / model / "rendering" / "rendering_metadata.txt")
     u, v, _ = r2n2_pixels(v1, *meta[0, [0, 1]], meta[0, 3] * 1.75)
     alpha = cv2.imread(str(tree.root / "ShapeNetRendering" / synset / model / "rendering" / "00.png"),

@@ -63,21 +63,7 @@ def test_eval_set_scores_every_baseline_per_object_and_fingerprints_the_objects(
     assert build_eval_set(other, val, train, other.eval.seed).fingerprint != es.fingerprint
 
 
-# --- eval.normalise and eval.protocol ------------------------------------------------------------------
-
-
-def test_flat_std_is_bdms_std_of_all_coordinates_by_hand():
-    import numpy as np
-
-    from cdm.data.shapenet import flat_std
-
-    # Values 0,0,0, 2,0,0 | 0,2,0: n = 9, mean 4/9, Σv² = 8 → var = (8 − 16/9)/8 = 7/9 (n − 1, as torch.std).
-    clouds = [np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), np.array([[0.0, 2.0, 0.0]])]
-    assert flat_std(clouds) == pytest.approx((7 / 9) ** 0.5, rel=1e-12)
-    rng = np.random.default_rng(0)
-    many = [rng.normal(0.3, 2.0, (50, 3)), rng.normal(-1.0, 0.5, (70, 3))]
-    flat = torch.from_numpy(np.concatenate(many)).reshape(-1)
-    assert flat_std(many) == pytest.approx(float(flat.std()), rel=1e-10)
+# --- eval.protocol ---------------------------------------------------------------------------------
 
 
 def _shapenet_cfg(root, **extra):
@@ -88,65 +74,13 @@ def _shapenet_cfg(root, **extra):
                               "train.batch_size": 2, **extra})
 
 
-def test_reference_units_on_shapenet_are_bdms_global_normalisation(tmp_path):
-    """BDM, by hand: every full v2 cloud of the category's split → (−z, y, −x) → (x − μ)/σ with μ the mean point
-    and σ = std of all coordinates; ours, box units times the factor, equals it once both are centred."""
-    import numpy as np
-
-    from cdm.normalise import score_factor
-    from tests.datasets_fixtures import SHAPENET_SYNSETS, make_shapenet
-
-    tree = make_shapenet(tmp_path / "sn", per_split={"train": 1, "val": 3, "test": 1})
-    cfg = _shapenet_cfg(tree.root, **{"eval.normalise": "reference"})
-    val = build_dataset(cfg, "val")
-    folder = tree.root / "ShapeNetCore.v2.PC15k" / SHAPENET_SYNSETS["chair"] / "val"
-    raw = {m: np.load(folder / f"{m}.npy").astype(np.float64) for m in tree.splits["chair"]["val"]}
-    v1 = {m: np.stack([-p[:, 2], p[:, 1], -p[:, 0]], 1) for m, p in raw.items()}
-    everything = torch.from_numpy(np.stack(list(v1.values())))  # (B, 15000, 3) as BDM stacks them
-    mu, sigma = everything.reshape(-1, 3).mean(0), everything.reshape(-1).std()
-    for i, ref in enumerate(val.objects):
-        if ref.category != "chair":
-            continue
-        bdm = (torch.from_numpy(v1[ref.object_id.split("/")[-1]]) - mu) / sigma
-        ours = val.record(i).cloud.double() * score_factor(cfg, val, i)
-        assert torch.allclose(ours - ours.mean(0), bdm - bdm.mean(0), atol=1e-5)
-    box = _shapenet_cfg(tree.root)
-    assert all(score_factor(box, val, i) == 1.0 for i in range(len(val)))
-
-
-def test_reference_units_on_co3d_are_the_sequence_clouds_world_units(tmp_path):
-    import numpy as np
-
-    from cdm.config import load_config
-    from cdm.data.co3d import _read_cloud
-    from cdm.normalise import score_factor
-    from tests.datasets_fixtures import make_co3d
-
-    tree = make_co3d(tmp_path / "co3d", categories=("teddybear",))
-    cfg = load_config(None, {"data.kind": "co3d", "data.root": str(tree.root), "data.image_size": 32,
-                             "priors.prior_2d": "depth", "eval.normalise": "reference"})
-    val = build_dataset(cfg, "val")
-    seq = val.objects[0].object_id.split("/")[-1]
-    world = _read_cloud(tree.root / "teddybear" / seq / "pointcloud.ply")
-    lo, hi = np.quantile(world, 0.005, axis=0), np.quantile(world, 0.995, axis=0)  # the loader's outlier cut
-    world = torch.from_numpy(world[np.all((world >= lo - 0.1 * (hi - lo)) & (world <= hi + 0.1 * (hi - lo)), axis=1)])
-    ours = val.record(0).cloud.double() * score_factor(cfg, val, 0)
-    assert ours.shape == world.shape
-    assert torch.allclose(ours - ours.mean(0), world - world.mean(0), atol=1e-4)
-
-
-def test_reference_scoring_scales_cd_by_the_factor_squared_and_paper_protocol_takes_every_object(tmp_path):
+def test_paper_protocol_takes_every_object(tmp_path):
     from tests.datasets_fixtures import make_shapenet
 
     tree = make_shapenet(tmp_path / "sn", per_split={"train": 1, "val": 3, "test": 1})
     quick = _shapenet_cfg(tree.root, **{"eval.num_objects": 1})
-    ref = _shapenet_cfg(tree.root, **{"eval.num_objects": 1, "eval.normalise": "reference"})
     train, val = build_dataset(quick, "train"), build_dataset(quick, "val")
-    a, b = build_eval_set(quick, val, train, 0), build_eval_set(ref, val, train, 0)
-    assert a.fingerprint != b.fingerprint and len(b.factors[0]) == 2
-    f = b.factors[0]
-    for j, oid in enumerate(a.batches[0].object_id):  # same objects, same seed: CD is quadratic in the units
-        assert b.baseline_rows[oid]["baseline/sphere/cd"] == pytest.approx(a.baseline_rows[oid]["baseline/sphere/cd"] * float(f[j]) ** 2, rel=1e-4)
+    assert sum(len(x) for x in build_eval_set(quick, val, train, 0).batches) == 2
     paper = _shapenet_cfg(tree.root, **{"eval.num_objects": 1, "eval.protocol": "paper"})
     every = build_eval_set(paper, val, train, 0)
     assert sum(len(x) for x in every.batches) == len(val) == 6

@@ -3,8 +3,9 @@
 ``python -m cdm prepare --data-kind KIND --root RAW --out OUT`` (:mod:`cdm.data.prepare`) reads every
 object of the training split and of ``data.eval_split`` once and writes
 
-- ``OUT/<published split>/<object_id>.shard``: the object's normalised cloud, its sequence cameras and
-  every input view of the split already cropped and resized (``--image-size``, 224 by default):
+- ``OUT/<published split>/<object_id>.shard``: the object's cloud and sequence cameras in the data set's
+  frame (:mod:`cdm.normalise`) and every input view of the split already cropped and resized
+  (``--image-size``, 224 by default):
   RGB and mask as uint8, depth as the published float16 values with their scale, and the crop camera;
 - ``OUT/cdm_prepared.json``: the manifest (kind, image size, categories, objects per split).
 
@@ -50,7 +51,9 @@ __all__ = [
 
 MANIFEST = "cdm_prepared.json"
 """Name of the manifest file that marks a prepared root."""
-FORMAT = 1
+FORMAT = 2
+"""Version of the manifest and shards; 2: clouds and cameras in the data set's frame, not the object's box
+(roots of format 1 are refused: prepare them again)."""
 ESTIMATED_DEPTHS = "estimated_depths"
 """Shard array (and manifest key) of the estimated depth maps stored by ``prepare --depth-maps``."""
 _MAGIC = b"CDMSHRD1"
@@ -61,11 +64,11 @@ class ObjectRecord(NamedTuple):
     """One object as stored, before ``data.num_points`` is drawn.
 
     Attributes:
-        cloud: ``(P, 3)`` float32 normalised ground truth (world frame, inside [-1, 1]³).
-        sequence: cameras of batch ``(F,)``, the object's views in order, in the normalised frame,
+        cloud: ``(P, 3)`` float32 ground truth in the data set's frame (:mod:`cdm.normalise`).
+        sequence: cameras of batch ``(F,)``, the object's views in order, in that frame,
             each framing the whole object (the prior views are taken from it).
         views: ``(V,)`` int64 sequence positions of the split's input views (view 0: the held-out one).
-        scale: normalisation scale, normalised units per published world unit.
+        scale: the frame's scale, frame units per published world unit (:attr:`cdm.normalise.Frame.scale`).
     """
 
     cloud: Tensor
@@ -86,8 +89,8 @@ class ViewImages(NamedTuple):
         image: ``(S, S, 3)`` uint8 RGB.
         mask: ``(S, S)`` uint8, 255 on the object and 0 elsewhere.
         depth: ``(S, S)`` float16 published depth values (0 = unknown), or None for data without depth.
-        depth_scale: multiply ``depth`` by this for view depth in normalised world units.
-        camera: the crop's camera, batch ``()``, normalised world frame (:mod:`cdm.cameras`).
+        depth_scale: multiply ``depth`` by this for view depth in the data set's frame units.
+        camera: the crop's camera, batch ``()``, in the data set's frame (:mod:`cdm.cameras`).
     """
 
     image: np.ndarray

@@ -2,8 +2,8 @@
 
 Unlike :mod:`cdm.data.views`, nothing is rendered here: each object brings
 
-- a **cloud** in its own world frame, normalised like every other data set (centre to the origin,
-  largest half-extent to 1: the sample format of :mod:`cdm.data.sample`);
+- a **cloud** and cameras in the data set's frame for its category (:mod:`cdm.normalise`: BDM's global
+  normalisation on ShapeNet, Co3D's own world units as PC²), never fitted to the object itself;
 - a **sequence** of cameras, the object's own views in capture order (a Co3D video, or R2N2's 24
   renderings sorted by azimuth); the H prior views of the 3D constraint are taken from it at even
   spacing starting at the input view (:func:`cdm.cameras.select_sequence_views`, the paper's procedure);
@@ -22,7 +22,7 @@ from __future__ import annotations
 import hashlib
 from abc import abstractmethod
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import cv2
 import numpy as np
@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from cdm.cameras import Cameras, select_sequence_views
-from cdm.config import Config
+from cdm.config import Config, DataConfig
 from cdm.data.cache import DECODED, ObjectRecord, PreparedRoot, ViewImages, is_prepared
 from cdm.data.condition_images import condition_views
 from cdm.data.depth_maps import DepthMaps
@@ -45,7 +45,6 @@ __all__ = [
     "ObjectRecord",
     "cap_cloud",
     "data_root",
-    "normalise_cameras",
     "resize_view",
 ]
 
@@ -71,14 +70,6 @@ def cap_cloud(points: np.ndarray, object_id: str) -> np.ndarray:
     seed = int.from_bytes(hashlib.sha256(object_id.encode()).digest()[:8], "little")
     keep = np.random.default_rng(seed).choice(len(points), MAX_CLOUD_POINTS, replace=False)
     return points[np.sort(keep)]
-
-
-def normalise_cameras(R: Tensor, T: Tensor, centre: Tensor, scale: float) -> Tensor:
-    """Translation ``(F, 3)`` of world→view cameras ``(R (F, 3, 3), T (F, 3))`` once the world is
-    normalised by ``x' = (x − centre) · scale``: ``x @ R + T = (x'/scale + centre) @ R + T``, and
-    scaling the view frame by ``scale`` leaves every projection unchanged, so R stays and
-    ``T' = scale · (centre @ R + T)``. View depths come out in normalised units."""
-    return scale * ((centre[None, None, :] @ R)[:, 0, :] + T)
 
 
 def resize_view(view: ViewImages, size: int) -> ViewImages:
@@ -111,12 +102,17 @@ class CapturedDataset(ObjectDataset):
     layout: ClassVar[str]
     """The published layout in words, for error messages."""
     captured: ClassVar[bool] = True
+    protocol_fields: ClassVar[tuple[str, ...]] = ()
+    """``data`` fields that change what ``python -m cdm prepare`` stores: a prepared root records them
+    (:meth:`protocol`) and is read only with the same values."""
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
         self.published = "train" if split == "train" else cfg.data.eval_split
         """The published split this one reads (``val`` reads ``data.eval_split``)."""
         self.root = data_root(cfg, self.layout)
         self.prepared = PreparedRoot.open(self.root, self.kind) if is_prepared(self.root) else None
+        if self.prepared is not None:
+            self._check_protocol(self.prepared.manifest.get("protocol", {}), cfg)
         chosen = self.categories(cfg)
         self._refs = self.prepared.objects(self.published, chosen) if self.prepared is not None else self._raw_index(chosen)
         if not self._refs:
@@ -131,6 +127,20 @@ class CapturedDataset(ObjectDataset):
                 f"priors.depth_maps: not set and data.root {self.root} holds no estimated depth maps; give the folder "
                 "of maps, or prepare data.root with `python -m cdm prepare ... --depth-maps DIR`"
             )
+
+    @classmethod
+    def protocol(cls, cfg: Config) -> dict[str, Any]:
+        """``{"data.<field>": value}`` of :attr:`protocol_fields` in ``cfg`` (what a prepared root records)."""
+        return {f"data.{name}": getattr(cfg.data, name) for name in cls.protocol_fields}
+
+    def _check_protocol(self, stored: dict[str, Any], cfg: Config) -> None:
+        """ValueError naming the first protocol field whose value differs from the prepared root's
+        (a root prepared before it was recorded holds the field's default)."""
+        for field, value in self.protocol(cfg).items():
+            prepared = stored.get(field, DataConfig.model_fields[field.removeprefix("data.")].default)
+            if prepared != value:
+                raise ValueError(f"{field}: {value!r}, but {self.root} was prepared with {prepared!r}; prepare the published "
+                                 f"data set again with --set {field}={value} into another --out, or set it to match")
 
     @classmethod
     def categories(cls, cfg: Config) -> tuple[str, ...]:

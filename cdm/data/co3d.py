@@ -21,10 +21,10 @@ is still in; ``data.mask_rgb`` blacks out the background; ``data.drop_outliers: 
 point of the published cloud.
 
 Units and frames. Depth PNGs are 16-bit images whose bits are float16 values; × ``scale_adjustment``
-they are view depths in the sequence's world units, like its cameras and point cloud. The cloud is
-normalised as every data set here (its robust bounding box — 0.5–99.5 % quantiles widened by 10 %,
-points outside dropped as outliers unless ``data.drop_outliers`` is off — centred, largest half-extent 1), and ``data.num_points`` are
-drawn from it (the paper: 16,384); cameras and depths follow the same similarity transform.
+they are view depths in the sequence's world units, like its cameras and point cloud. Cloud, cameras
+and depths stay in those units, PC²'s frame (:data:`cdm.normalise.IDENTITY`: nothing is fitted to the
+cloud). With ``data.drop_outliers`` the cloud loses the points outside its robust bounding box (0.5–99.5 %
+quantiles widened by 10 %). ``data.num_points`` are drawn from it (the paper: 16,384).
 
 Cameras. Co3D stores PyTorch3D cameras: ``X_view = X_world @ R + T`` (row vectors), +X left, +Y up,
 +Z forward — our convention (:mod:`cdm.cameras`) — with ``focal_length (fx, fy)`` and
@@ -36,8 +36,8 @@ the mask's bounding box (side × 1.3, a box of aspect ``fx·hx : fy·hy`` so squ
 square) and resized to ``S × S``; for a crop ``(left, top, Bw, Bh)`` the square camera is
 ``focal = fx·hx·2/Bw`` (= ``fy·hy·2/Bh`` up to rounding; the mean is used),
 ``principal = (1 − 2·(u₀ − left)/Bw, 1 − 2·(v₀ − top)/Bh)`` with ``u₀, v₀`` the principal point in
-pixels. Prior-view cameras keep each frame's pose and get the intrinsics of a square crop centred on
-the object that fits its cloud to 90 % of the half-frame (no image is read for them).
+pixels. Prior-view cameras keep each frame's pose and get the intrinsics of the largest square crop
+centred on the frame (:func:`centred_box`): from the annotation alone, no image or cloud is read for them.
 """
 
 from __future__ import annotations
@@ -59,18 +59,18 @@ import trimesh
 from cdm.cameras import Cameras
 from cdm.config import Config
 from cdm.data.cache import ObjectRecord, ViewImages
-from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
+from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.co3d_lists import excluded_sequences
 from cdm.data.views import Split, interleave
+from cdm.normalise import IDENTITY
+from cdm.normalise import Frame as NormalisedFrame
 
-__all__ = ["CROP_MARGIN", "PRIOR_FILL", "SET_LIST", "Co3DDataset", "crop_camera", "kept_frames", "load_depth"]
+__all__ = ["CROP_MARGIN", "SET_LIST", "Co3DDataset", "centred_box", "crop_camera", "kept_frames", "load_depth"]
 
 SET_LIST = "set_lists_fewview_dev.json"
 """The set list read for splits (PC²'s ``fewview_dev``)."""
 CROP_MARGIN = 0.3
 """The input crop is the mask's bounding box widened by this fraction of its longer side."""
-PRIOR_FILL = 0.9
-"""Share of the half-frame the cloud reaches in a prior view."""
 _ANNOTATIONS = ("frame_annotations.jgz", "sequence_annotations.jgz", f"set_lists/{SET_LIST}")
 
 
@@ -206,19 +206,31 @@ def crop_camera(frame: Frame, box: tuple[int, int, int, int]) -> tuple[float, tu
     return focal, (1.0 - 2.0 * (u0 - left) / bw, 1.0 - 2.0 * (v0 - top) / bh)
 
 
+def _box(frame: Frame, cx: float, cy: float, side: float) -> tuple[int, int, int, int]:
+    """The crop (left, top, width, height; pixels) centred on ``(cx, cy)``, ``side`` pixels high, of the
+    width that makes its pixels square (aspect ``fx·hx : fy·hy``)."""
+    hx, hy = _half_sizes(frame)
+    aspect = frame.focal[0] * hx / (frame.focal[1] * hy)
+    bh, bw = max(1, round(side)), max(1, round(side * aspect))
+    return round(cx - bw / 2.0), round(cy - bh / 2.0), bw, bh
+
+
+def centred_box(frame: Frame) -> tuple[int, int, int, int]:
+    """The largest square-pixel crop centred on the frame: the prior views' and an empty mask's crop."""
+    hx, hy = _half_sizes(frame)
+    h, w = frame.size
+    return _box(frame, w / 2.0, h / 2.0, float(min(h, w * frame.focal[1] * hy / (frame.focal[0] * hx))))
+
+
 def _crop_box(frame: Frame, mask: np.ndarray) -> tuple[int, int, int, int]:
-    """The input crop around the mask (or the whole frame's centre when the mask is empty)."""
+    """The input crop around the mask (:func:`centred_box` when the mask is empty)."""
     hx, hy = _half_sizes(frame)
     aspect = frame.focal[0] * hx / (frame.focal[1] * hy)  # box width / height giving square pixels
     rows, cols = np.nonzero(mask > 127)
-    h, w = mask.shape
-    if len(rows):
-        cy, cx = (rows.min() + rows.max() + 1) / 2.0, (cols.min() + cols.max() + 1) / 2.0
-        side = max(rows.max() + 1 - rows.min(), (cols.max() + 1 - cols.min()) / aspect) * (1.0 + CROP_MARGIN)
-    else:
-        cy, cx, side = h / 2.0, w / 2.0, float(min(h, w / aspect))
-    bh, bw = max(1, round(side)), max(1, round(side * aspect))
-    return round(cx - bw / 2.0), round(cy - bh / 2.0), bw, bh
+    if not len(rows):
+        return centred_box(frame)
+    cy, cx = (rows.min() + rows.max() + 1) / 2.0, (cols.min() + cols.max() + 1) / 2.0
+    return _box(frame, cx, cy, max(rows.max() + 1 - rows.min(), (cols.max() + 1 - cols.min()) / aspect) * (1.0 + CROP_MARGIN))
 
 
 def _crop(array: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
@@ -247,6 +259,7 @@ class Co3DDataset(CapturedDataset):
     """Co3D v2 sequences with point clouds; object ids ``co3d/<category>/<sequence>``."""
 
     kind = "co3d"
+    protocol_fields = ("exclude_sequences", "frames_per_sequence", "mask_rgb", "drop_outliers")
     layout = "<root>/<category>/{frame_annotations.jgz, sequence_annotations.jgz, set_lists/, <sequence>/...}"
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
@@ -303,14 +316,6 @@ class Co3DDataset(CapturedDataset):
                              "exclusion lists (cdm/data/co3d_lists.py)")
         return kept
 
-    def record(self, index: int) -> ObjectRecord:
-        rec = super().record(index)
-        count = self.cfg.data.frames_per_sequence
-        if self.prepared is not None and count is not None and len(rec.views) > count:
-            raise ValueError(f"data.frames_per_sequence: {self.root} was prepared with {len(rec.views)} input frames for "
-                             f"{self.objects[index].object_id}; prepare it again with --set data.frames_per_sequence={count}")
-        return rec
-
     def _raw_record(self, index: int) -> ObjectRecord:
         object_id = self.objects[index].object_id
         frames, views, cloud_path = self._sequences[object_id]
@@ -319,19 +324,18 @@ class Co3DDataset(CapturedDataset):
             lo, hi = np.quantile(cloud, 0.005, axis=0), np.quantile(cloud, 0.995, axis=0)
             pad = 0.1 * (hi - lo)
             cloud = cloud[np.all((cloud >= lo - pad) & (cloud <= hi + pad), axis=1)]
-        lo, hi = cloud.min(0), cloud.max(0)
-        centre, scale = (lo + hi) / 2, 1.0 / float((hi - lo).max() / 2)
-        points = torch.from_numpy((cloud - centre) * scale).float().clamp(-1.0, 1.0)
+        frame = self.frame(self.objects[index].category)
         R = torch.from_numpy(np.stack([f.R for f in frames])).float()
-        T = normalise_cameras(R, torch.from_numpy(np.stack([f.T for f in frames])).float(), torch.from_numpy(centre).float(), scale)
-        # Prior-view intrinsics: a square crop centred on the object's centre (the origin) that fits the cloud.
-        fit = points[torch.linspace(0, len(points) - 1, min(len(points), 2048)).long()]
-        view = fit[None] @ R + T[:, None, :]
-        ratio = view[..., :2] / view[..., 2:].clamp(min=1e-6)
-        centre_ratio = T[:, :2] / T[:, 2:].clamp(min=1e-6)
-        focal = PRIOR_FILL / (ratio - centre_ratio[:, None, :]).abs().amax(dim=(1, 2))
-        sequence = Cameras(R, T, focal, -focal[:, None] * centre_ratio)
-        return ObjectRecord(points, sequence, torch.tensor(views, dtype=torch.long), scale)
+        T = frame.translation(R, torch.from_numpy(np.stack([f.T for f in frames])).float())
+        intrinsics = [crop_camera(f, centred_box(f)) for f in frames]
+        focal = torch.tensor([f for f, _ in intrinsics], dtype=torch.float32)
+        principal = torch.tensor([p for _, p in intrinsics], dtype=torch.float32)
+        sequence = Cameras(R, T, focal, principal)
+        return ObjectRecord(frame.points(cloud), sequence, torch.tensor(views, dtype=torch.long), frame.scale)
+
+    def frame(self, category: str) -> NormalisedFrame:
+        """PC²'s frame: the sequence's world units (times its ``scale_factor = 1.0``)."""
+        return IDENTITY
 
     def _raw_view(self, index: int, record: ObjectRecord, view: int, size: int) -> ViewImages:
         frames = self._sequences[self.objects[index].object_id][0]

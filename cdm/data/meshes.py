@@ -2,8 +2,10 @@
 
 Layout: ``<data.root>/<category>/**/<name>.<ext>`` (files may sit in nested folders, e.g. ShapeNet's
 ``<model>/models/model_normalized.obj``). Multi-part files (a glTF scene) are merged into one mesh
-with their node transforms applied. Each mesh is normalised, sampled and rendered exactly as the
-procedural shapes are (:mod:`cdm.data.views`); it gets the main colour of its palette.
+with their node transforms applied. Each mesh is sampled and rendered exactly as the procedural shapes
+are (:mod:`cdm.data.views`), in its category's frame: the union bounding box of the category's
+*training* meshes onto ``[-1, 1]`` (:func:`cdm.normalise.box_frame`), so every file keeps its own size
+and place and no held-out file shapes the frame; it gets the main colour of its palette.
 
 Split: per category, files are ranked by a hash of their path inside the category folder and the
 first 10 % (at least one) are held out. The split depends on file names only — not on
@@ -16,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import math
 import struct
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +26,7 @@ import trimesh
 
 from cdm.config import Config
 from cdm.data.views import ObjectDataset, Shape, Split, interleave, select_categories
+from cdm.normalise import Frame, box_frame
 
 __all__ = ["MESH_SUFFIXES", "VAL_FRACTION", "MeshFolderDataset", "load_mesh"]
 
@@ -71,6 +75,12 @@ def _mesh_files(folder: Path) -> list[Path]:
         raise ValueError(f"data.root: cannot list {folder}: {exc.strerror}") from None
 
 
+@lru_cache(maxsize=4096)
+def _bounds(path: Path, stamp: tuple[int, int]) -> np.ndarray:
+    """``(2, 3)`` bounding box of the mesh at ``path`` (once per process and file version: ``stamp`` = size, mtime)."""
+    return np.asarray(load_mesh(path).bounds, dtype=np.float64)
+
+
 def _held_out(files: list[Path], folder: Path) -> set[Path]:
     ranked = sorted(files, key=lambda p: hashlib.sha256(p.relative_to(folder).as_posix().encode()).hexdigest())
     return set(ranked[: max(1, math.floor(VAL_FRACTION * len(files) + 0.5))])
@@ -84,6 +94,7 @@ class MeshFolderDataset(ObjectDataset):
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
         root = _root(cfg)
         self._files: dict[str, Path] = {}
+        self._frames: dict[str, Frame] = {}
         per_category = []
         for category in self.categories(cfg):
             folder = root / category
@@ -94,6 +105,7 @@ class MeshFolderDataset(ObjectDataset):
                     "least 2 (one per split)"
                 )
             held_out = _held_out(files, folder)
+            self._frames[category] = box_frame(_bounds(p, (p.stat().st_size, p.stat().st_mtime_ns)) for p in files if p not in held_out)
             chosen = [p for p in files if (p in held_out) == (split == "val")]
             refs = [(category, f"meshes/{category}/{p.relative_to(folder).as_posix()}") for p in chosen]
             self._files.update({object_id: path for (_, object_id), path in zip(refs, chosen, strict=True)})
@@ -126,6 +138,9 @@ class MeshFolderDataset(ObjectDataset):
         # Sizes and modification times: cheap, and they change when a mesh file is replaced.
         stats = [(oid, p.stat().st_size, p.stat().st_mtime_ns) for oid, p in sorted(self._files.items())]
         return hashlib.sha256(repr(stats).encode()).hexdigest()
+
+    def frame(self, category: str) -> Frame:
+        return self._frames[category]
 
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:
         mesh = load_mesh(self._files[self.objects[index].object_id])

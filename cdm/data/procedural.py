@@ -6,7 +6,8 @@ read side by side; each program is short.)
 Each category is a small program over trimesh primitives whose sizes, proportions and optional parts
 are drawn from *continuous* ranges, so no two objects are alike and nearest-image retrieval is a weak
 baseline (every evaluation scores it: :mod:`cdm.evaluate`). Objects are built Z-up in arbitrary units and turned to the world's +Y-up frame
-of :mod:`cdm.cameras`; :mod:`cdm.data.views` normalises them into [-1, 1]³ and renders them.
+of :mod:`cdm.cameras`; :mod:`cdm.data.views` maps them into their category's fixed frame
+(:data:`FRAMES`) and renders them. Objects keep their own size and place in it: a small chair is small.
 
 Every object is fixed by its id ``procedural/<category>/<split>/<index>`` and ``data.seed``: the
 train and held-out splits never share an object, and the same config always yields the same data.
@@ -24,8 +25,9 @@ from trimesh.geometry import align_vectors
 
 from cdm.config import Config
 from cdm.data.views import ObjectDataset, Shape, interleave, select_categories
+from cdm.normalise import Frame
 
-__all__ = ["CATEGORIES", "ProceduralDataset", "make_shape"]
+__all__ = ["CATEGORIES", "FRAMES", "ProceduralDataset", "make_shape"]
 
 Part = tuple[trimesh.Trimesh, int]
 """A mesh and its material index (0 = the object's main colour, 1 = its accent colour)."""
@@ -402,8 +404,26 @@ def make_shape(category: str, rng: np.random.Generator) -> Shape:
     return Shape(mesh, material)
 
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 """Raised whenever a change to this module changes the objects a seed produces (recorded with each run)."""
+
+FRAMES: dict[str, Frame] = {
+    name: Frame(centre, 1.0 / half)
+    for name, (centre, half) in {
+        "airplane": ((1.53, 0.15, 0.0), 1.83),
+        "bottle": ((0.0, 1.24, 0.0), 1.27),
+        "chair": ((0.0, 1.33, 0.19), 1.39),
+        "lamp": ((0.33, 1.12, 0.0), 1.15),
+        "mug": ((0.24, 0.65, 0.0), 0.88),
+        "ring": ((0.0, 0.12, -0.15), 1.50),
+        "sofa": ((0.0, 0.57, 0.09), 1.33),
+        "table": ((0.0, 0.54, 0.0), 1.25),
+    }.items()
+}
+"""Each category's frame (:mod:`cdm.normalise`), fixed for the data set: the union bounding box of 1,000
+objects of the category (seeds ``[7, i]``) in the world frame of :func:`make_shape`, its largest
+half-extent widened by 2 % and rounded up. Every object the category's program makes fits ``[-1, 1]³``
+in it; the median object reaches 0.6–0.8 of it (``tests/test_normalise.py`` holds both true)."""
 
 
 class ProceduralDataset(ObjectDataset):
@@ -428,6 +448,9 @@ class ProceduralDataset(ObjectDataset):
 
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:
         return make_shape(self.objects[index].category, rng)
+
+    def frame(self, category: str) -> Frame:
+        return FRAMES[category]
 
     def _content_version(self) -> str:
         return f"generator {GENERATOR_VERSION}"

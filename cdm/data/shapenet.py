@@ -14,8 +14,10 @@ scores (``data.eval_split: test``). Categories are the 13 R2N2 classes by name
 (:data:`SYNSETS`; ``data.categories`` also takes synset ids). The held-out input is view 00; training
 draws any of the 24 views per view round, or shows view ``data.train_view`` only (BDM: 00, its
 ``which_view_from24``; the paper profile's ShapeNet protocol, with ``model.mask_channels: false`` as
-BDM's ShapeNet config sets no mask and no distance-transform channel). The cloud is normalised like every data set here (bounding
-box centred, largest half-extent 1) and ``data.num_points`` are drawn from it (the paper: 4,096).
+BDM's ShapeNet config sets no mask and no distance-transform channel). Clouds and cameras are in BDM's
+global normalisation of the category, ``x' = (x_v1 − μ)/σ`` with μ and σ of the training split's clouds
+(:mod:`cdm.normalise` gives the formulas and BDM's source), and ``data.num_points`` are drawn from the
+cloud (the paper: 4,096).
 R2N2 renderings have no depth: use ``priors.prior_2d: contour`` (the default) and, as the paper does
 on ShapeNet, ``priors.render_kind: planar``; the depth prior (Table 6) reads estimated maps
 (``priors.depth_source: maps``, :mod:`cdm.data.depth_maps`), their ``position`` the view's place in
@@ -43,6 +45,7 @@ from __future__ import annotations
 
 import json
 import math
+from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -52,10 +55,11 @@ import torch
 from cdm.cameras import Cameras, look_at_cameras
 from cdm.config import Config
 from cdm.data.cache import ObjectRecord, ViewImages
-from cdm.data.captured import CapturedDataset, cap_cloud, normalise_cameras
+from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.views import Split, interleave
+from cdm.normalise import Frame, bdm_frame
 
-__all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "flat_std", "r2n2_cameras", "v2_to_v1"]
+__all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
 
 SYNSETS = {
     "02691156": "airplane", "02828884": "bench", "02933112": "cabinet", "02958343": "car", "03001627": "chair",
@@ -83,17 +87,6 @@ def v2_to_v1(points: np.ndarray) -> np.ndarray:
     return np.stack([-points[:, 2], points[:, 1], -points[:, 0]], axis=1)
 
 
-def flat_std(clouds: list[np.ndarray]) -> float:
-    """σ of BDM's global normalisation: ``std`` (n − 1) of all coordinates of ``clouds`` (each ``(P, 3)``)
-    flattened into one vector, as ``all_points.reshape(-1).std()`` there. Sums in float64."""
-    n = sum(c.size for c in clouds)
-    if n < 2:
-        raise ValueError("flat_std needs at least two coordinates")
-    total = sum(float(c.sum(dtype=np.float64)) for c in clouds)
-    squares = sum(float(np.square(c, dtype=np.float64).sum()) for c in clouds)
-    return float(np.sqrt(max(squares - total * total / n, 0.0) / (n - 1)))
-
-
 def r2n2_cameras(metadata: np.ndarray) -> torch.Tensor:
     """``(V, 3)`` (elevation °, azimuth ° in our convention, distance) of metadata rows ``(V, 5)``."""
     return torch.tensor(np.stack([metadata[:, 1], 90.0 - metadata[:, 0], metadata[:, 3] * DISTANCE_SCALE], 1), dtype=torch.float32)
@@ -117,6 +110,24 @@ def _read_metadata(path: Path) -> np.ndarray:
     return rows
 
 
+def _read_cloud(npy: Path) -> np.ndarray:
+    """``(P, 3)`` float64 PC15k cloud at ``npy`` in the v1 frame; ValueError naming the file if unusable."""
+    try:
+        cloud = np.load(npy, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"data.root: cannot read point cloud {npy}: {exc}") from None
+    if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or not np.isfinite(cloud).all():
+        raise ValueError(f"data.root: {npy} holds {cloud.shape} values; expected finite (P, 3) points")
+    return v2_to_v1(cloud.astype(np.float64))
+
+
+@lru_cache(maxsize=32)
+def _training_frame(npys: tuple[tuple[Path, int], ...]) -> Frame:
+    """BDM's frame over the clouds at ``npys`` (one category's training split; each path with its mtime),
+    once per process and file version."""
+    return bdm_frame(_read_cloud(npy) for npy, _ in npys)
+
+
 class ShapeNetR2N2Dataset(CapturedDataset):
     """R2N2 renderings + PC15k clouds; object ids ``shapenet/<category>/<model>``."""
 
@@ -129,7 +140,6 @@ class ShapeNetR2N2Dataset(CapturedDataset):
                              "set priors.depth_source=maps and priors.depth_maps, or use 'contour' or 'none'")
         self._models: dict[str, tuple[str, str, str]] = {}
         """object id → (synset, model, PC15k folder)."""
-        self._split_std: dict[str, float] = {}
         super().__init__(cfg, split, cache_bytes)
 
     @classmethod
@@ -147,8 +157,8 @@ class ShapeNetR2N2Dataset(CapturedDataset):
                              f"{_RENDERINGS} and {_CLOUDS} under {root}")
         return found
 
-    def _split_members(self) -> dict[str, dict[str, str]] | None:
-        """BDM's split file's ``synset → model → PC15k folder`` for ``self.published``, or None without one."""
+    def _split_members(self, published: str) -> dict[str, dict[str, str]] | None:
+        """BDM's split file's ``synset → model → PC15k folder`` for ``published``, or None without one."""
         path = self.root / BDM_SPLIT_FILE
         if not path.is_file():
             return None
@@ -156,34 +166,40 @@ class ShapeNetR2N2Dataset(CapturedDataset):
             table = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as exc:
             raise ValueError(f"data.root: cannot read BDM's split file {path}: {exc}") from None
-        if self.published not in table:
+        if published not in table:
             raise ValueError(f"data.eval_split: {path} (BDM's R2N2 split) has splits {sorted(table)}, not "
-                             f"{self.published!r}; BDM scores the R2N2 test split: data.eval_split=test")
-        return table[self.published]
+                             f"{published!r}; BDM scores the R2N2 test split: data.eval_split=test")
+        return table[published]
+
+    def _members(self, published: str, synset: str) -> list[tuple[str, str]]:
+        """``(model, PC15k folder)`` of each model of split ``published`` in ``synset`` with renderings and a
+        cloud; ValueError naming the source if none."""
+        members = self._split_members(published)
+        if members is None:
+            source = self.root / _CLOUDS / synset / published
+            if not source.is_dir():
+                raise ValueError(f"data.root: {source} is missing; PC15k has {{train,val,test}} folders per synset")
+            entries = [(npy.stem, published) for npy in sorted(source.glob("*.npy"))]
+        else:
+            source = self.root / BDM_SPLIT_FILE
+            entries = sorted(members.get(synset, {}).items())
+        # PC15k has models R2N2 never rendered (and BDM's file names clouds PC15k may lack): skipped.
+        found = [(model, pc_folder) for model, pc_folder in entries
+                 if (self.root / _RENDERINGS / synset / model / "rendering" / "rendering_metadata.txt").is_file()
+                 and (self.root / _CLOUDS / synset / pc_folder / f"{model}.npy").is_file()]
+        if not found:
+            raise ValueError(f"data.root: no model of {source} has renderings in {self.root / _RENDERINGS / synset}")
+        return found
 
     def _raw_index(self, categories: tuple[str, ...]) -> list[tuple[str, str]]:
-        members = self._split_members()
         per_category = []
         for name in categories:
             synset = _NAMES[name]
-            if members is None:
-                folder = self.root / _CLOUDS / synset / self.published
-                if not folder.is_dir():
-                    raise ValueError(f"data.root: {folder} is missing; PC15k has {{train,val,test}} folders per synset")
-                entries = [(npy.stem, self.published) for npy in sorted(folder.glob("*.npy"))]
-            else:
-                folder = self.root / BDM_SPLIT_FILE
-                entries = sorted(members.get(synset, {}).items())
             refs = []
-            for model, pc_folder in entries:
-                rendering = self.root / _RENDERINGS / synset / model / "rendering"
-                # PC15k has models R2N2 never rendered (and BDM's file names clouds PC15k may lack): skipped.
-                if (rendering / "rendering_metadata.txt").is_file() and (self.root / _CLOUDS / synset / pc_folder / f"{model}.npy").is_file():
-                    object_id = f"shapenet/{name}/{model}"
-                    self._models[object_id] = (synset, model, pc_folder)
-                    refs.append((name, object_id))
-            if not refs:
-                raise ValueError(f"data.root: no model of {folder} has renderings in {self.root / _RENDERINGS / synset}")
+            for model, pc_folder in self._members(self.published, synset):
+                object_id = f"shapenet/{name}/{model}"
+                self._models[object_id] = (synset, model, pc_folder)
+                refs.append((name, object_id))
             per_category.append(refs)
         return interleave(per_category)
 
@@ -191,43 +207,31 @@ class ShapeNetR2N2Dataset(CapturedDataset):
         synset, model, pc_folder = self._models[self.objects[index].object_id]
         return self.root / _RENDERINGS / synset / model / "rendering", self.root / _CLOUDS / synset / pc_folder / f"{model}.npy"
 
-    def _read_cloud(self, npy: Path) -> np.ndarray:
-        try:
-            cloud = np.load(npy, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as exc:
-            raise ValueError(f"data.root: cannot read point cloud {npy}: {exc}") from None
-        if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or not np.isfinite(cloud).all():
-            raise ValueError(f"data.root: {npy} holds {cloud.shape} values; expected finite (P, 3) points")
-        return v2_to_v1(cloud.astype(np.float64))
-
-    def split_std(self, category: str) -> float:
-        """σ of BDM's normalisation for ``category`` in this split (:func:`flat_std` of every
-        full cloud, v1 frame); reads the published clouds once per category."""
-        if category not in self._split_std:
-            if self.prepared is not None:
-                raise ValueError("eval.normalise: 'reference' on ShapeNet needs BDM's σ over every published PC15k "
-                                 f"cloud of the split; set data.root to the published tree, not the prepared {self.root}")
-            clouds = [self._read_cloud(self._paths(i)[1]) for i, ref in enumerate(self.objects) if ref.category == category]
-            self._split_std[category] = flat_std(clouds)
-        return self._split_std[category]
+    def frame(self, category: str) -> Frame:
+        """BDM's global normalisation of ``category`` (:func:`cdm.normalise.bdm_frame`) over every full
+        cloud of its **training** split, v1 frame, for both splits; read once per process."""
+        if self.prepared is not None:
+            raise ValueError(f"data.root: {self.root} is prepared, its clouds already in the frame; the frame is "
+                             "computed from the published tree")
+        synset = _NAMES[category]
+        npys = [self.root / _CLOUDS / synset / folder / f"{model}.npy" for model, folder in self._members("train", synset)]
+        return _training_frame(tuple((npy, npy.stat().st_mtime_ns) for npy in npys))
 
     def _raw_record(self, index: int) -> ObjectRecord:
         rendering, npy = self._paths(index)
         metadata = _read_metadata(rendering / "rendering_metadata.txt")
-        cloud = cap_cloud(self._read_cloud(npy), self.objects[index].object_id)
-        lo, hi = cloud.min(0), cloud.max(0)
-        centre, scale = (lo + hi) / 2, 1.0 / float((hi - lo).max() / 2)
-        points = torch.from_numpy((cloud - centre) * scale).float().clamp(-1.0, 1.0)
+        frame = self.frame(self.objects[index].category)
+        points = frame.points(cap_cloud(_read_cloud(npy), self.objects[index].object_id))
         elev, azim, dist = r2n2_cameras(metadata).unbind(-1)
         cams = look_at_cameras(elev, azim, dist, R2N2_FOCAL)
-        T = normalise_cameras(cams.R, cams.T, torch.from_numpy(centre).float(), scale)
+        T = frame.translation(cams.R, cams.T)
         # The sequence: renderings sorted by azimuth, starting at view 00 (a turntable from the input view).
         order = np.argsort((metadata[:, 0] - metadata[0, 0]) % 360.0, kind="stable")
         position = np.empty_like(order)
         position[order] = np.arange(len(order))
         idx = torch.from_numpy(order)
         sequence = Cameras(cams.R[idx], T[idx], cams.focal[idx], cams.principal[idx])
-        return ObjectRecord(points, sequence, torch.from_numpy(position).long(), scale)
+        return ObjectRecord(points, sequence, torch.from_numpy(position).long(), frame.scale)
 
     def _raw_view(self, index: int, record: ObjectRecord, view: int, size: int) -> ViewImages:
         path = self._paths(index)[0] / f"{view:02d}.png"

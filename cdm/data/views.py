@@ -2,15 +2,17 @@
 
 Shared by every data set made of meshes (procedural shapes, mesh folders). Per object, once:
 
-1. normalise: bounding-box centre to the origin, largest half-extent to 1 (clouds lie in [-1, 1]³,
-   which x̂₀ clipping in the sampler relies on);
+1. normalise into the data set's frame for the object's category (:mod:`cdm.normalise`: fixed per
+   data set and category, never fitted to the object, so the input cameras say nothing of where the
+   ground truth sits or how large it is; every object of the frame lies in about [-1, 1]³);
 2. sample ``data.num_points`` surface points (the ground-truth cloud) and a denser cloud with face
    normals and material ids (:func:`dense_point_count`: enough to look solid at ``data.image_size``);
 3. draw a colour per material.
 
-Per view: a random camera (elevation −10…40°, azimuth 0…360°, distance 3…4, focal fitted so the
-object reaches a random 70–90 % of the half-frame in the widest of its prior views), a random light
-and background; the dense cloud is rasterized by :func:`cdm.render.rasterize_points` with discs of
+Per view: a random camera looking at the frame's origin (elevation −10…40°, azimuth 0…360°, distance
+3…4 frame units), its focal fitted so the rendered surface reaches a random 70–90 % of the half-frame in
+the widest of its prior views (a photographer's zoom: the image shows the object at about one size, and
+the focal, an input, carries how large it is), a random light and background; the dense cloud is rasterized by :func:`cdm.render.rasterize_points` with discs of
 1.5 px and the front-most point of each pixel is Lambert-shaded (two-sided normals).
 
 (Over 400 lines on purpose: the mesh-to-sample pipeline — normalise, sample, camera, shade — is one
@@ -42,6 +44,7 @@ from cdm.data.lru import ByteLRU
 from cdm.data.priors2d import prior_2d_channels
 from cdm.data.sample import ConditionViews, Sample
 from cdm.digest import json_digest
+from cdm.normalise import FRAME_VERSION, Frame
 from cdm.render import rasterize_points
 
 __all__ = [
@@ -87,7 +90,7 @@ class Shape(NamedTuple):
 
 
 class ObjectSurface(NamedTuple):
-    """One normalised object, ready to be viewed. Frame: world, centred, inside [-1, 1]³.
+    """One normalised object, ready to be viewed. Frame: its category's (:mod:`cdm.normalise`).
 
     Attributes:
         cloud: ``(N, 3)`` float32 ground-truth surface samples (``data.num_points``).
@@ -158,34 +161,28 @@ def dense_point_count(image_size: int) -> int:
 
 
 def sample_surface(
-    shape: Shape, num_points: int, num_dense: int, rng: np.random.Generator, palette: Tensor
+    shape: Shape, frame: Frame, num_points: int, num_dense: int, rng: np.random.Generator, palette: Tensor
 ) -> ObjectSurface:
-    """Normalise ``shape`` and sample its surface (area-uniform, seeded by ``rng``).
+    """Sample the surface of ``shape`` (area-uniform, seeded by ``rng``) in ``frame``.
 
     Args:
         shape: the mesh and its per-face materials.
+        frame: the data set's frame for the object's category (not fitted to this mesh).
         num_points: ``N``, ground-truth cloud size.
         num_dense: ``M``, dense samples for rendering.
         rng: the object's surface stream.
         palette: ``(K, 3)`` colour per material.
     Raises:
-        ValueError: the mesh has no area or a degenerate / non-finite bounding box.
+        ValueError: the mesh has no area or non-finite vertices.
     """
     mesh = shape.mesh
-    lo, hi = mesh.bounds if mesh.bounds is not None else (np.zeros(3), np.zeros(3))
-    half = (hi - lo) / 2
-    if not (np.all(np.isfinite(half)) and half.max() > 0 and mesh.area > 0):
-        raise ValueError("mesh has no faces with area or a non-finite bounding box")
-    centre, scale = (lo + hi) / 2, 1.0 / half.max()
+    if not (np.all(np.isfinite(mesh.vertices)) and mesh.area > 0):
+        raise ValueError("mesh has no faces with area or non-finite vertices")
     cloud, _ = trimesh.sample.sample_surface(mesh, num_points, seed=rng)
     points, face = trimesh.sample.sample_surface(mesh, num_dense, seed=rng)
-
-    def normalised(p: np.ndarray) -> Tensor:
-        return torch.from_numpy((p - centre) * scale).float().clamp(-1.0, 1.0)
-
     return ObjectSurface(
-        cloud=normalised(cloud),
-        points=normalised(points),
+        cloud=frame.points(cloud),
+        points=frame.points(points),
         normals=torch.from_numpy(mesh.face_normals[face]).float(),
         material=torch.from_numpy(shape.material[face].astype(np.uint8)),
         palette=palette,
@@ -341,14 +338,19 @@ class ObjectDataset(Dataset, ABC):
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:
         """Build or load object ``index`` (``rng`` is its own shape stream)."""
 
+    @abstractmethod
+    def frame(self, category: str) -> Frame:
+        """The frame clouds and cameras of ``category`` are handed out in (:mod:`cdm.normalise`): fixed by
+        the data set and the category, never by one object's ground truth."""
+
     def fingerprint(self) -> str:
         """Short hash naming the exact objects this split yields, for reproducibility records.
 
-        Covers the kind, the ``data`` config, the object ids and :meth:`_content_version` (what else
-        decides the objects' content: the generator's version, the files' sizes).
+        Covers the kind, the ``data`` config, the object ids, :meth:`_content_version` (what else
+        decides the objects' content: the generator's version, the files' sizes) and the frames' version.
         """
         identity = [self.kind, self.split, self.cfg.data.model_dump(mode="json"), [list(o) for o in self.objects],
-                    self._content_version()]
+                    self._content_version(), f"frame {FRAME_VERSION}"]
         # Unsorted, as recorded on every run so far: --rerun compares against those records.
         return json_digest(identity, sort_keys=False)
 
@@ -379,7 +381,8 @@ class ObjectDataset(Dataset, ABC):
         shape = self._shape(index, self._rng(index, _STREAM_SHAPE))
         palette = draw_palette(self._rng(index, _STREAM_PALETTE), max(2, int(shape.material.max(initial=0)) + 1))
         rng = self._rng(index, _STREAM_SURFACE)
-        return sample_surface(shape, self.cfg.data.num_points, self.num_dense, rng, palette)
+        frame = self.frame(self.objects[index].category)
+        return sample_surface(shape, frame, self.cfg.data.num_points, self.num_dense, rng, palette)
 
     def _check_sample_args(self, index: int, view_round: int) -> None:
         if not 0 <= index < len(self.objects):
