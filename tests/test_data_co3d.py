@@ -290,6 +290,26 @@ def test_drop_outliers_off_keeps_every_published_point(tree):
         assert len(kept.record(i).cloud) == 6010 and len(dropped.record(i).cloud) == 6000  # the PLY's 10 stray points
 
 
+PC2_PROTOCOL = {"data.exclude_sequences": True, "data.frames_per_sequence": 1, "data.mask_rgb": True, "data.drop_outliers": False}
+
+
+def test_a_prepared_root_is_read_only_with_the_protocol_it_was_prepared_with(tree, tmp_path):
+    assert _prepare(tree.root, tmp_path / "pc2", *[a for k, v in PC2_PROTOCOL.items() for a in ("--set", f"{k}={v}")]) == 0
+    for split in ("train", "val"):
+        raw = build_dataset(_cfg(tree.root, **{"data.image_size": 32}, **PC2_PROTOCOL), split)
+        prepared = build_dataset(_cfg(tmp_path / "pc2", **{"data.image_size": 32}, **PC2_PROTOCOL), split)
+        assert raw.objects == prepared.objects and prepared.prepared is not None
+        for i in range(len(raw)):
+            a, b = raw.sample(i, 1), prepared.sample(i, 1)
+            assert torch.equal(a.image, b.image) and torch.equal(a.points, b.points) and len(prepared.record(i).views) == 1
+    with pytest.raises(ValueError, match=r"data.mask_rgb: False, but .+ was prepared with True; prepare the published data "
+                                         r"set again with --set data.mask_rgb=False"):
+        build_dataset(_cfg(tmp_path / "pc2", **{**PC2_PROTOCOL, "data.mask_rgb": False}), "val")
+    assert _prepare(tree.root, tmp_path / "plain") == 0  # a root prepared with the defaults refuses PC²'s frames
+    with pytest.raises(ValueError, match=r"data.exclude_sequences: True, but .+ was prepared with False"):
+        build_dataset(_cfg(tmp_path / "plain", **PC2_PROTOCOL), "val")
+
+
 @pytest.mark.parametrize(("kind", "field", "value"), [
     ("shapenet_r2n2", "data.mask_rgb", True), ("procedural", "data.frames_per_sequence", 1),
     ("meshes", "data.drop_outliers", False), ("shapenet_r2n2", "data.exclude_sequences", True),

@@ -77,6 +77,7 @@ def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bo
     manifest = {
         "format": FORMAT, "kind": dataset.kind, "image_size": cfg.data.image_size, "source": str(root),
         "categories": list(dataset.categories(cfg)),
+        "protocol": dataset.protocol(cfg),
         "splits": {ds.published: [list(ref) for ref in ds.objects] for ds in splits},
     }
     maps = None
