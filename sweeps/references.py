@@ -123,7 +123,7 @@ _COMMON: dict[str, Entry] = {
     "data.condition_folder": _PATH,
     "data.condition_grey": Stated(False, "paper Supp. Table 8 row 1"),
     # model
-    "model.denoiser": Stated("pvcnn2", "PC² experiments/model/point_cloud_model.py (PVCNN2)"),
+    "model.denoiser": Stated("pvcnn2", "PC² experiments/model/point_cloud_model.py: PVCNN2"),
     "model.width_multiplier": Stated(1.0, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}),
     "model.voxel_resolution_multiplier": Stated(1.0, "PC² experiments/model/point_cloud_model.py",
                                                 {"model.denoiser": ("pvcnn2",)}),
