@@ -159,7 +159,9 @@ class ModelConfig(_Group):
     mask_channels: bool = True
     """Project the input mask and its distance transform onto the points with the image channels
     (:func:`cdm.model.conditioning.conditioning_map`): PC²'s ``use_mask``/``use_distance_transform``
-    (true in its ``experiments/config/structured.py``, its Co3D runs); BDM sets both false for ShapeNet."""
+    (true in its ``experiments/config/structured.py``, its Co3D runs); BDM sets both false for ShapeNet.
+    Off, no mask reaches the network with ``encoder: vit_s16`` (RGB only, as PC²'s and BDM's ViT); the
+    small CNN (``encoder: cnn``) still reads it."""
 
     @model_validator(mode="after")
     def _check_blocks(self) -> ModelConfig:
