@@ -138,8 +138,18 @@ class ModelConfig(_Group):
     """Channels of the per-pixel image feature map projected onto points (PC² ViT-S: 384)."""
     raster_radius: float = Field(0.0075, gt=0.0, le=1.0)
     """Point radius in NDC units of the hard rasterizer used for projection conditioning (PC²: 0.0075)."""
+    denoiser: Literal["pvcnn2", "pointvoxel"] = "pointvoxel"
+    """The denoiser network. ``pvcnn2`` is the paper's (PC²'s PVCNN2 layer for layer, ``cdm.model.pvcnn2``:
+    set abstraction, attention, feature propagation; 28.0 M parameters at PC²'s inputs); the paper profile
+    selects it. ``pointvoxel`` (``cdm.model.pvcnn``) keeps every point at every block, is shaped by
+    ``widths``/``voxel_resolutions``/``voxel_backend`` and stays the default so that small configs stay cheap."""
+    width_multiplier: float = Field(1.0, gt=0.0)
+    """PC²'s ``width_multiplier``, ``pvcnn2`` only: scales every channel width (each must stay a multiple of 8;
+    e.g. 0.25, 0.5, 1). PC²: 1."""
+    voxel_resolution_multiplier: float = Field(1.0, gt=0.0)
+    """PC²'s ``voxel_resolution_multiplier``, ``pvcnn2`` only: scales its voxel resolutions 32/16/8. PC²: 1."""
     widths: tuple[int, ...] = (64, 128, 256)
-    """Channels of the denoiser's point-voxel blocks (PC²-like: 64/128/256)."""
+    """Channels of the denoiser's point-voxel blocks (PC²-like: 64/128/256), ``pointvoxel`` only."""
     voxel_resolutions: tuple[int, ...] = (32, 16, 16)
     """Voxel grid side of each block, same length as ``widths`` (PVCNN: 32/16/8)."""
     voxel_backend: Literal["auto", "dense", "sparse"] = "auto"
@@ -172,6 +182,11 @@ class ModelConfig(_Group):
             )
         if min(self.widths) < 8 or min(self.voxel_resolutions) < 2:
             raise ValueError("model.widths must be >= 8 and model.voxel_resolutions >= 2")
+        if self.denoiser == "pvcnn2" and self.global_feature == "cross_attention":
+            raise ValueError(
+                "model.denoiser=pvcnn2 has no cross-attention block: use model.global_feature none or concat, "
+                "or model.denoiser=pointvoxel"
+            )
         if self.encoder == "vit_s16" and self.encoder_weights is None:
             raise ValueError(
                 "model.encoder_weights is required with model.encoder=vit_s16: download MSN's ViT-S/16 weights "

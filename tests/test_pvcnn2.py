@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from cdm.model import CDMNetwork, conditioning_channels, mask_distance_transform
 from cdm.model.pvcnn2 import PVCNN2Denoiser
 from cdm.model.reference_weights import (
     denoiser_from_reference,
@@ -13,6 +14,7 @@ from cdm.model.reference_weights import (
     reference_in_channels,
     reference_state_dict,
 )
+from tests.test_model import tiny_batch
 
 # Every parameter (name, shape) of PC²'s PVCNN2 at its default 392 input channels (xyz + RGB 3 +
 # ViT-S/16 384 + mask 1 + distance transform 1), in ``named_parameters()`` order. Source: PC²'s own
@@ -503,3 +505,21 @@ def test_checkpoint_files_load_with_weights_only(tmp_path):
     torch.save({**_pc2_checkpoint(), "cfg": _Config()}, with_cfg)
     with pytest.raises(ValueError, match="weights_only=False"):
         load_reference_checkpoint(with_cfg, "pc2")
+
+
+def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny):
+    cfg = tiny.replace(**{"model.denoiser": "pvcnn2", "model.width_multiplier": 0.25, "model.voxel_resolution_multiplier": 0.25})
+    net = CDMNetwork(cfg.model, prior_2d_channels=1)
+    f = cfg.model.feature_dim
+    assert isinstance(net.denoiser, PVCNN2Denoiser)
+    assert net.denoiser.in_channels == conditioning_channels(f, 1, cfg.model.mask_channels)
+    batch = tiny_batch(n=300)
+    context = net.encode(batch)
+    features = net.encoder(batch.image, batch.mask, batch.prior_2d)
+    # PC²'s projection_model.py: RGB normalised to [-1, 1], image features, mask, distance; the prior after the features.
+    pc2 = [batch.image * 2 - 1, features, batch.prior_2d, batch.mask, mask_distance_transform(batch.mask)]
+    assert torch.equal(context.pixel, torch.cat(pc2[: 5 if cfg.model.mask_channels else 3], dim=1))
+    out = net(batch.points, torch.tensor([0, 999]), context, batch.camera)
+    assert out.shape == (2, 300, 3) and torch.isfinite(out).all()
+    with pytest.raises(ValueError, match="pvcnn2 has no cross-attention"):
+        tiny.replace(**{"model.denoiser": "pvcnn2", "model.global_feature": "cross_attention"})

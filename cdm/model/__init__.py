@@ -1,4 +1,5 @@
-"""CDM model: image encoder, projection conditioning, voxel branch, point-voxel denoiser, network."""
+"""CDM model: image encoder, projection conditioning, voxel branch, the two denoisers (PC²'s PVCNN2 and
+our point-voxel network), PC²'s point operations and reference weights, network."""
 
 from cdm.model.conditioning import (
     conditioning_channels,
@@ -10,6 +11,14 @@ from cdm.model.encoder import FrozenViT, ImageEncoder, ViTS16, build_encoder, ch
 from cdm.model.global_features import PointCrossAttention, global_embedding, image_tokens
 from cdm.model.network import CDMNetwork, ImageContext
 from cdm.model.pvcnn import PointVoxelBlock, PVCNNDenoiser, timestep_embedding
+from cdm.model.pvcnn2 import PVCNN2Denoiser, pc2_timestep_embedding
+from cdm.model.reference_weights import (
+    denoiser_from_reference,
+    load_reference_checkpoint,
+    load_reference_weights,
+    reference_in_channels,
+    reference_state_dict,
+)
 from cdm.model.voxels import (
     DenseGrid,
     SparseGrid,
@@ -26,6 +35,7 @@ __all__ = [
     "FrozenViT",
     "ImageContext",
     "ImageEncoder",
+    "PVCNN2Denoiser",
     "PVCNNDenoiser",
     "PointCrossAttention",
     "PointVoxelBlock",
@@ -38,11 +48,17 @@ __all__ = [
     "build_grid",
     "conditioning_channels",
     "conditioning_map",
+    "denoiser_from_reference",
     "global_embedding",
     "image_tokens",
+    "load_reference_checkpoint",
+    "load_reference_weights",
     "mask_distance_transform",
     "normalize_coords",
+    "pc2_timestep_embedding",
     "project_conditioning",
+    "reference_in_channels",
+    "reference_state_dict",
     "resolve_voxel_backend",
     "timestep_embedding",
 ]

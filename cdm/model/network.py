@@ -3,6 +3,13 @@
 Usage: ``context = net.encode(batch)`` once per image (encoder, conditioning map, global features),
 then ``net(x_t, t, context, batch.camera)`` at every diffusion step — it rasterizes ``x_t`` from the
 input camera, lifts the conditioning map onto the visible points and denoises.
+
+The denoiser is ``model.denoiser``: PC²'s PVCNN2 (:mod:`cdm.model.pvcnn2`) or our point-voxel network
+(:mod:`cdm.model.pvcnn`). With ``pvcnn2`` the conditioning channels come in PC²'s order, so that the
+first-layer weights of a PC² checkpoint read the channels they were trained on
+(``experiments/model/projection_model.py``: xyz, RGB normalised to [−1, 1], image features, mask,
+distance transform, then global features); the 2D prior maps follow the image features (the paper's
+Eq. 8, F_I ⊕ F_I*).
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from cdm.model.encoder import build_encoder
 from cdm.model.embeddings import load_embeddings
 from cdm.model.global_features import TOKEN_GRID, global_embedding, image_tokens
 from cdm.model.pvcnn import PVCNNDenoiser
+from cdm.model.pvcnn2 import PVCNN2Denoiser
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
 
 __all__ = ["CDMNetwork", "ImageContext"]
@@ -30,7 +38,8 @@ class ImageContext(NamedTuple):
     """Everything the denoiser needs from the input image; computed once, reused by every step.
 
     Attributes:
-        pixel: ``(B, C, S, S)`` conditioning map ``[features, 2D prior, RGB, mask, distance]``.
+        pixel: ``(B, C, S, S)`` conditioning map ``[features, 2D prior, RGB, mask, distance]``; with the
+            ``pvcnn2`` denoiser in PC²'s order ``[2·RGB − 1, features, 2D prior, mask, distance]``.
         embedding: ``(B, F)`` global embedding (``global_feature == "concat"``), else ``None``; ``(B, E)``
             from ``model.global_embeddings`` with ``global_source == "embeddings"``.
         tokens: ``(B, 64, F)`` image tokens (``global_feature == "cross_attention"``), else ``None``;
@@ -63,7 +72,7 @@ class CDMNetwork(nn.Module):
     Attributes:
         voxel_backend: the resolved back-end, ``dense`` or ``sparse``. Record it with a checkpoint and
             rebuild with ``config.replace(**{"model.voxel_backend": ...})``: the two compute different
-            functions with the same parameters.
+            functions with the same parameters. The ``pvcnn2`` denoiser ignores it (dense, as PC²).
     """
 
     def __init__(
@@ -88,8 +97,17 @@ class CDMNetwork(nn.Module):
         cond = conditioning_channels(cfg.feature_dim, prior_2d_channels, cfg.mask_channels)
         self.embeddings = load_embeddings(cfg.global_embeddings) if cfg.global_source == "embeddings" else None
         global_dim = cfg.feature_dim if self.embeddings is None else self.embeddings.dim
+        in_channels = cond + (global_dim if cfg.global_feature == "concat" else 0)
+        self.feature_dim = cfg.feature_dim
+        self.pc2_order = cfg.denoiser == "pvcnn2"
+        self.denoiser: nn.Module
+        if self.pc2_order:
+            self.denoiser = PVCNN2Denoiser(
+                in_channels, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim
+            )
+            return
         self.denoiser = PVCNNDenoiser(
-            in_channels=cond + (global_dim if cfg.global_feature == "concat" else 0),
+            in_channels=in_channels,
             widths=cfg.widths,
             resolutions=cfg.voxel_resolutions,
             time_embed_dim=cfg.time_embed_dim,
@@ -107,7 +125,7 @@ class CDMNetwork(nn.Module):
                 f"{self.prior_2d_channels}; build it with the data's priors.prior_2d"
             )
         features = self.encoder(batch.image, batch.mask, batch.prior_2d)
-        pixel = conditioning_map(features, batch.prior_2d, batch.image, batch.mask, self.mask_channels)
+        pixel = self._arrange(conditioning_map(features, batch.prior_2d, batch.image, batch.mask, self.mask_channels))
         concat, attend = self.global_feature == "concat", self.global_feature == "cross_attention"
         if self.embeddings is not None:
             given = self.embeddings.batch(batch.object_id).to(features)  # (B, T, E)
@@ -118,8 +136,20 @@ class CDMNetwork(nn.Module):
         if c is None:
             return context
         image, mask, prior = (t.flatten(0, 1) for t in (c.image, c.mask, c.prior_2d))
-        views = conditioning_map(self.encoder(image, mask, prior), prior, image, mask, self.mask_channels).unflatten(0, c.valid.shape)
+        views = self._arrange(conditioning_map(self.encoder(image, mask, prior), prior, image, mask, self.mask_channels))
+        views = views.unflatten(0, c.valid.shape)
         return context._replace(views=views, view_cameras=c.camera, view_valid=c.valid)
+
+    def _arrange(self, maps: Tensor) -> Tensor:
+        """``(B, C, S, S)`` conditioning maps ``[features, 2D prior, RGB, rest]`` → PC²'s order for ``pvcnn2``:
+        ``[2·RGB − 1, features, 2D prior, rest]`` (``rest``: mask and distance transform, when projected).
+
+        Done on the maps, before projection, so that hidden points get zeros in every channel as in PC².
+        """
+        if not self.pc2_order:
+            return maps
+        f, rgb = self.feature_dim + self.prior_2d_channels, self.feature_dim + self.prior_2d_channels + 3
+        return torch.cat([maps[:, f:rgb] * 2.0 - 1.0, maps[:, :f], maps[:, rgb:]], dim=1)
 
     def forward(self, x_t: Tensor, t: Tensor, context: ImageContext, camera: Cameras) -> Tensor:
         """One denoiser evaluation.

@@ -48,7 +48,6 @@ from cdm.model import pointops
 
 __all__ = ["PVCNN2Denoiser", "pc2_timestep_embedding"]
 
-EMBED_DIM = 64  # PC²'s point_cloud_model_embed_dim
 GROUPS = 8  # GroupNorm groups everywhere in PC²'s PVCNN2
 
 # PC²'s ``PVCNN2.sa_blocks``: (PVConv width, PVConvs configured, voxel resolution) or None, then
@@ -69,7 +68,7 @@ FP_BLOCKS: tuple[tuple[tuple[int, ...], tuple[int, int, int]], ...] = (
 HEAD_WIDTH = 128
 
 
-def pc2_timestep_embedding(t: Tensor, dim: int = EMBED_DIM) -> Tensor:
+def pc2_timestep_embedding(t: Tensor, dim: int) -> Tensor:
     """PC²'s sinusoidal embedding (``pvcnn_utils.get_timestep_embedding``): ``(B,)`` → ``(B, dim)``.
 
     ``[sin(t·ω_i), cos(t·ω_i)]``, ``ω_i = exp(−i · ln(10⁴)/(h − 1))``, ``h = dim // 2`` — note ``h − 1``
@@ -251,13 +250,19 @@ class PVCNN2Denoiser(nn.Module):
         width_multiplier: PC²'s, scales every width but the time embedding (paper: 1).
         voxel_resolution_multiplier: PC²'s, scales every voxel resolution (paper: 1).
         dropout: PC²'s, in every PVConv and the head (paper: 0.1).
+        embed_dim: time embedding width ``E`` (PC²'s ``point_cloud_model_embed_dim``: 64; ``model.time_embed_dim``).
     """
 
     def __init__(
-        self, in_channels: int, width_multiplier: float = 1.0, voxel_resolution_multiplier: float = 1.0, dropout: float = 0.1
+        self,
+        in_channels: int,
+        width_multiplier: float = 1.0,
+        voxel_resolution_multiplier: float = 1.0,
+        dropout: float = 0.1,
+        embed_dim: int = 64,
     ):
         super().__init__()
-        self.in_channels = in_channels
+        self.in_channels, self.embed_dim = in_channels, embed_dim
         wm, vm = width_multiplier, voxel_resolution_multiplier
 
         def res(r: int) -> int:
@@ -271,7 +276,7 @@ class PVCNN2Denoiser(nn.Module):
         for level, (conv, (centers, radius, neighbors, widths)) in enumerate(SA_BLOCKS):
             skip_channels.append(channels)
             blocks: list[nn.Module] = []
-            extra = 0 if level == 0 else EMBED_DIM  # the time embedding joins the level's first layer
+            extra = 0 if level == 0 else embed_dim  # the time embedding joins the level's first layer
             if conv is not None:
                 width, configured, resolution = conv
                 width = _scaled(width, wm, "width_multiplier")
@@ -291,7 +296,7 @@ class PVCNN2Denoiser(nn.Module):
         fp_layers = []
         for level, (widths, (width, count, resolution)) in enumerate(FP_BLOCKS):
             scaled = tuple(_scaled(w, wm, "width_multiplier") for w in widths)
-            blocks = [FeaturePropagation(channels + skip_channels[-1 - level] + EMBED_DIM, scaled)]
+            blocks = [FeaturePropagation(channels + skip_channels[-1 - level] + embed_dim, scaled)]
             channels = scaled[-1]
             width = _scaled(width, wm, "width_multiplier")
             for _ in range(count):
@@ -308,7 +313,7 @@ class PVCNN2Denoiser(nn.Module):
         # PC²'s PointCloudModel: the last layer starts near zero, so the first predictions are ≈ 0.
         nn.init.normal_(self.classifier[-1].weight, 0.0, 1e-6)
         nn.init.normal_(self.classifier[-1].bias, 0.0, 1e-6)
-        self.embedf = nn.Sequential(nn.Linear(EMBED_DIM, EMBED_DIM), nn.LeakyReLU(0.1), nn.Linear(EMBED_DIM, EMBED_DIM))
+        self.embedf = nn.Sequential(nn.Linear(embed_dim, embed_dim), nn.LeakyReLU(0.1), nn.Linear(embed_dim, embed_dim))
 
     def _pvconvs(self, layer: nn.Module) -> list[PVConv]:
         return [m for m in layer.children() if isinstance(m, PVConv)] if isinstance(layer, nn.Sequential) else []
@@ -330,7 +335,7 @@ class PVCNN2Denoiser(nn.Module):
             )
         if tokens is not None:
             raise ValueError("the pvcnn2 denoiser has no cross-attention: use model.global_feature none or concat")
-        temb = self.embedf(pc2_timestep_embedding(t).to(x_t.dtype))  # (B, E)
+        temb = self.embedf(pc2_timestep_embedding(t, self.embed_dim).to(x_t.dtype))  # (B, E)
         inputs = torch.cat([x_t, conditioning], dim=-1).transpose(1, 2)  # (B, 3 + S, N)
         coords, features = inputs[:, :3].contiguous(), inputs
         coords_list, skips = [], []
