@@ -319,8 +319,8 @@ def mirrored(camera):
 
 
 def unmapped_frame(points, camera):
-    """The cloud left in PC15k's v2 frame (a loader without BDM's ``transform_v2_to_v1``): on the
-    normalised cloud the same involution, since box normalisation commutes with it."""
+    """The cloud left in PC15k's v2 frame (a loader without BDM's ``transform_v2_to_v1``): on the cloud in
+    BDM's frame the same involution, up to a shift of the frame's centre."""
     import torch
 
     return torch.from_numpy(v1_to_v2(points.numpy())).float(), camera
