@@ -221,7 +221,9 @@ class DiffusionConfig(_Group):
     """Where the DDIM steps sit: ``linspace`` ends with a prediction at t = 0, ``trailing`` at
     t = T/sample_steps − 1 (Lin et al., 2024; better for x₀-prediction, ``cdm.diffusion``); DDPM ignores it."""
     clip_x0: float | None = Field(1.0, gt=0.0)
-    """Clamp x̂₀ to [-clip_x0, clip_x0] while sampling (data are normalised into [-1, 1]); null = off."""
+    """Clamp x̂₀ to [-clip_x0, clip_x0] while sampling; null = off. 1 fits the procedural and mesh-folder
+    frames (their objects lie in [-1, 1]³, ``cdm.normalise``), not ShapeNet's (BDM's σ units, |x| up to ~3)
+    nor Co3D's (world units): use null there, as the paper profile does."""
 
     @model_validator(mode="after")
     def _check_schedule(self) -> DiffusionConfig:
@@ -248,8 +250,9 @@ class PriorsConfig(_Group):
     render_kind: Literal["depth", "planar"] = "depth"
     """Constraint images: soft depth maps (Co3D) or planar point images (ShapeNet), Fig. 3."""
     depth_layer: float | None = Field(0.4, gt=0.0)
-    """Depth maps only: thickness (view depth, world units; objects have half-extent 1) of the front
-    layer drawn, as PyTorch3D's z-buffer keeps the nearest point; null averages front and back surfaces
+    """Depth maps only: thickness (view depth in the data set's frame units, ``cdm.normalise``; measured on
+    objects of half-extent 1) of the front layer drawn, as PyTorch3D's z-buffer keeps the nearest point;
+    null averages front and back surfaces
     (:func:`cdm.render.splat_points`). 0.4 came nearest a naive z-buffered reference of the ones measured
     (``benchmarks/RESULTS.md``, "Depth renders")."""
     render_size: int = Field(224, ge=8, le=1024)

@@ -303,25 +303,29 @@ def write_ply(path: Path, points: Tensor) -> Path:
 
 
 def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: float) -> Path:
-    """PNG: input image, its 2D prior, prediction and ground truth each seen from 3 views."""
+    """PNG: input image, its 2D prior, prediction and ground truth each seen from 3 views, both centred on
+    the ground truth's mean and seen from 3.5 times its radius (the frames' units differ by data set)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     cam: Cameras = batch.camera[j : j + 1]
+    gt = batch.points[j].cpu()
+    centre = gt.mean(0)
+    radius = float((gt - centre).norm(dim=-1).max())
     elev = torch.tensor([20.0])
-    views = orbit_cameras(elev, torch.tensor([30.0]), torch.tensor([3.5]), 3, focal=cam.focal)[0]
+    views = orbit_cameras(elev, torch.tensor([30.0]), torch.tensor([3.5 * radius]), 3, focal=cam.focal)[0]
     fig, axes = plt.subplots(1, 8, figsize=(16, 2.4))
     axes[0].imshow(batch.image[j].permute(1, 2, 0).cpu().numpy())
     axes[0].set_title("input")
     prior = batch.prior_2d[j]
     axes[1].imshow(prior[0].cpu().numpy() if prior.shape[0] else np.zeros(batch.image.shape[-2:]), cmap="gray")
     axes[1].set_title("2D prior")
-    for k, (cloud, label) in enumerate([(pred, "pred"), (batch.points[j].cpu(), "GT")]):
+    for k, (cloud, label) in enumerate([(pred, "pred"), (gt, "GT")]):
         for v in range(3):
             ax = axes[2 + 3 * k + v]
-            xy = project_points(cloud[None].float(), views[v : v + 1])[0, :, :2]
+            xy = project_points((cloud - centre)[None].float(), views[v : v + 1])[0, :, :2]
             ax.scatter(-xy[:, 0].numpy(), xy[:, 1].numpy(), s=0.3, c="tab:blue" if k == 0 else "tab:green")
             ax.set_xlim(-1, 1)
             ax.set_ylim(-1, 1)

@@ -1,8 +1,8 @@
 """The common sample format every data set produces, and its batched form.
 
 Images are channel-first float tensors in [0, 1] at ``S × S`` (``data.image_size``), in the pixel
-layout of :mod:`cdm.cameras` (row 0 at the top, column 0 at NDC +X). Points are world coordinates
-of the normalised object (centred, inside [-1, 1]³).
+layout of :mod:`cdm.cameras` (row 0 at the top, column 0 at NDC +X). Points and cameras are in the
+data set's frame for the object's category (:mod:`cdm.normalise`), fixed per data set, not per object.
 """
 
 from __future__ import annotations
