@@ -203,3 +203,20 @@ def test_frame_translation_keeps_every_projection():
     a = project_points(x.expand(2, -1, -1), cams)
     b = project_points(frame.points(x[0].double().numpy())[None].expand(2, -1, -1), moved)
     assert torch.allclose(a[..., :2], b[..., :2], atol=1e-5) and torch.allclose(a[..., 2] * 2.5, b[..., 2], atol=1e-4)
+
+
+@pytest.mark.parametrize("kind", ["procedural", "shapenet_r2n2"])
+def test_prior_views_still_frame_the_whole_ground_truth(kind, tmp_path):
+    """The 3D prior renders x̂₀ and x₀ from the prior-view cameras: in the fixed frames every ground-truth
+    point still projects inside each of them (Co3D: tests/test_data_co3d.py)."""
+    from tests.datasets_fixtures import project
+
+    extra = {} if kind == "procedural" else {"data.kind": kind, "data.root": str(make_shapenet(tmp_path / "sn").root)}
+    cfg = _cfg(**{"priors.num_views": 10, **extra})
+    for split in ("train", "val"):
+        ds = build_dataset(cfg, split)
+        for i in range(min(len(ds), 16)):
+            s = ds.sample(i, 1)
+            for k in range(len(s.view_cameras)):
+                ndc = project(s.points, s.view_cameras[k])
+                assert ndc[:, 2].min() > 0 and ndc[:, :2].abs().max() < 1.0, (s.object_id, k)
