@@ -310,3 +310,16 @@ def test_the_paper_profile_names_every_missing_input_and_the_command_that_makes_
     assert run.main([*args, "--set", "model.encoder=cnn"]) == 2
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"error: priors.depth_maps: {tmp_path}/inputs/depth_maps")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["co3d"]
+
+
+def test_table_4_trains_one_model_per_co3d_class_with_that_class_s_paper_row(tmp_path):
+    from tests.datasets_fixtures import make_co3d
+
+    root = make_co3d(tmp_path / "co3d", categories=("hydrant", "teddybear", "toytruck"), frames=3).root
+    plan = expand(load_spec(SWEEPS / "priors_2d_3d.yaml"), "paper", {"data.root": str(root), "data.kind": "co3d"})
+    assert len(plan.cells) == 12 and {c.config.data.categories for c in plan.cells} == {("hydrant",), ("teddybear",), ("toytruck",)}
+    both = next(c for c in plan.cells if c.config.priors.prior_3d and c.config.data.categories == ("toytruck",)
+                and c.config.priors.prior_2d == "depth")
+    assert both.paper_label == "+2D+3D, toytruck" and both.paper == {"eval/cd": 125.40, "eval/f1": 0.474}
+    stand_in = expand(load_spec(SWEEPS / "priors_2d_3d.yaml"), "local")
+    assert len(stand_in.cells) == 4 and stand_in.cells[0].paper_label == "baseline (PC²)"
