@@ -324,14 +324,14 @@ class Co3DDataset(CapturedDataset):
             lo, hi = np.quantile(cloud, 0.005, axis=0), np.quantile(cloud, 0.995, axis=0)
             pad = 0.1 * (hi - lo)
             cloud = cloud[np.all((cloud >= lo - pad) & (cloud <= hi + pad), axis=1)]
-        frame = self.frame(self.objects[index].category)
+        units = self.frame(self.objects[index].category)  # a coordinate frame, not a video frame
         R = torch.from_numpy(np.stack([f.R for f in frames])).float()
-        T = frame.translation(R, torch.from_numpy(np.stack([f.T for f in frames])).float())
+        T = units.translation(R, torch.from_numpy(np.stack([f.T for f in frames])).float())
         intrinsics = [crop_camera(f, centred_box(f)) for f in frames]
-        focal = torch.tensor([f for f, _ in intrinsics], dtype=torch.float32)
-        principal = torch.tensor([p for _, p in intrinsics], dtype=torch.float32)
+        focal = torch.tensor([focal for focal, _ in intrinsics], dtype=torch.float32)
+        principal = torch.tensor([principal for _, principal in intrinsics], dtype=torch.float32)
         sequence = Cameras(R, T, focal, principal)
-        return ObjectRecord(frame.points(cloud), sequence, torch.tensor(views, dtype=torch.long), frame.scale)
+        return ObjectRecord(units.points(cloud), sequence, torch.tensor(views, dtype=torch.long), units.scale)
 
     def frame(self, category: str) -> NormalisedFrame:
         """PC²'s frame: the sequence's world units (times its ``scale_factor = 1.0``)."""
