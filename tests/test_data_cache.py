@@ -150,3 +150,14 @@ def test_byte_lru_keeps_the_most_recent_values_within_its_budget():
     assert len(cache) == 1 and cache.get("big", make("big", 50)) and made.count("big") == 1
     cache.clear()
     assert (len(cache), cache.hits, cache.misses) == (0, 0, 0)
+
+
+def test_a_root_prepared_in_the_per_object_box_frame_is_refused(tmp_path):
+    import json
+
+    from cdm.data.cache import FORMAT, PreparedRoot
+
+    # Format 1 stored each object in its own bounding box; its clouds and cameras are not this frame's.
+    (tmp_path / MANIFEST).write_text(json.dumps({"format": 1, "kind": "shapenet_r2n2", "categories": [], "splits": {}}))
+    with pytest.raises(ValueError, match=rf"format 1, this version reads {FORMAT}; prepare again"):
+        PreparedRoot.open(tmp_path, "shapenet_r2n2")
