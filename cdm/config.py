@@ -222,8 +222,8 @@ class DiffusionConfig(_Group):
     t = T/sample_steps − 1 (Lin et al., 2024; better for x₀-prediction, ``cdm.diffusion``); DDPM ignores it."""
     clip_x0: float | None = Field(1.0, gt=0.0)
     """Clamp x̂₀ to [-clip_x0, clip_x0] while sampling; null = off. 1 fits the procedural and mesh-folder
-    frames (their objects lie in [-1, 1]³, ``cdm.normalise``), not ShapeNet's (BDM's σ units, |x| up to ~3)
-    nor Co3D's (world units): use null there, as the paper profile does."""
+    frames (their objects lie in [-1, 1]³, ``cdm.normalise``), not ShapeNet's (BDM's σ units: |x| past 2
+    on the test fixture) nor Co3D's (world units): use null there, as the paper profile does."""
 
     @model_validator(mode="after")
     def _check_schedule(self) -> DiffusionConfig:
