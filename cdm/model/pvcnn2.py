@@ -128,10 +128,11 @@ class SelfAttention(nn.Module):
         self.norm = nn.GroupNorm(GROUPS, channels)
 
     def forward(self, x: Tensor) -> Tensor:
-        b, c = x.shape[:2]
-        q, k, v = (_pointwise(p, x).view(b, c, -1).transpose(1, 2)[:, None] for p in (self.q, self.k, self.v))
-        h = F.scaled_dot_product_attention(q, k, v, scale=1.0)[:, 0].transpose(1, 2)  # (B, C, L)
-        h = _pointwise(self.out, h).view_as(x)
+        tokens = x.flatten(2).transpose(1, 2)  # (B, L, C)
+        # Contiguous (B, 1, L, C) projections: strided ones sent CPU attention to its 8× slower math path.
+        q, k, v = (F.linear(tokens, p.weight.flatten(1), p.bias)[:, None] for p in (self.q, self.k, self.v))
+        h = F.scaled_dot_product_attention(q, k, v, scale=1.0)[:, 0]  # (B, L, C)
+        h = F.linear(h, self.out.weight.flatten(1), self.out.bias).transpose(1, 2).reshape(x.shape)
         return F.silu(self.norm(h + x))
 
 
