@@ -33,7 +33,7 @@ import torch.nn as nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import median_s, paired  # noqa: E402
+from benchmarks.common import paired  # noqa: E402
 from cdm.config import load_config  # noqa: E402
 from cdm.model import CDMNetwork, pointops  # noqa: E402
 from tests.test_model import tiny_batch  # noqa: E402
@@ -180,8 +180,7 @@ def main() -> None:
         result = paired(pv_step, p2_step, repeats=5)
         print(f"| local B=4 N=512 64², pvcnn2 ×{wm} res ×{vm} vs 32/64/128 16/8/8 sparse | {result.a_s:.3f} "
               f"| {result.b_s:.3f} | {result.ratio:.2f} | {_params(pv):,} / {_params(p2):,} |")
-    print(f"\ntorch {torch.__version__}, {torch.get_num_threads()} thread; median of paired steps "
-          f"(pvcnn2 alone at local ×0.25: {median_s(p2_step, 3):.3f} s)")
+    print(f"\ntorch {torch.__version__}, {torch.get_num_threads()} thread; medians of paired steps")
 
 
 if __name__ == "__main__":

@@ -2,8 +2,8 @@
 
 BDM (Xu et al., CVPR 2024) blends the reconstruction model with PVD, an unconditional point-cloud
 diffusion model trained on one category's ground-truth clouds (paper Table 2, "+BDM"). Ours is the
-reconstruction network's denoiser (:class:`~cdm.model.pvcnn.PVCNNDenoiser`, sized by the ``model``
-group) with no per-point conditioning channels, trained on the ``train`` split's clouds only — no
+reconstruction network's denoiser (``model.denoiser``; with ``pvcnn2`` PVD's own PVCNN2, sized by the
+``model`` group) with no per-point conditioning channels, trained on the ``train`` split's clouds only — no
 image is rendered, so a step costs a fraction of a CDM step.
 
 Schedule: BDM's prior, PVD's linear β from 1e-4 to 0.02 over T = 1000 (BDM
@@ -36,6 +36,7 @@ from cdm.data.order import batch_indices
 from cdm.diffusion import GaussianDiffusion
 from cdm.digest import json_digest
 from cdm.model.pvcnn import PVCNNDenoiser
+from cdm.model.pvcnn2 import PVCNN2Denoiser
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
 from cdm.optim import Optimiser, TrainingDiverged
 from cdm.runtime import start_run
@@ -64,17 +65,24 @@ _FIELD = "sampling.blend.prior_checkpoint"
 
 
 class PriorNetwork(nn.Module):
-    """Unconditional denoiser ``(x_t, t) → (B, N, 3)``: the PVCNN denoiser with 0 conditioning channels.
+    """Unconditional denoiser ``(x_t, t) → (B, N, 3)``: the ``model.denoiser`` with 0 conditioning channels.
+
+    With ``pvcnn2`` it is PVD's unconditional PVCNN2 as BDM uses it (the same network as PC²'s on xyz
+    alone), so PVD/BDM weights load into ``denoiser`` (:func:`cdm.model.load_reference_weights`).
 
     Args:
-        cfg: the model group (widths, voxel resolutions, time embedding, back-end).
+        cfg: the model group (denoiser; widths, voxel resolutions, back-end or PC²'s multipliers; time embedding).
         device: only resolves ``voxel_backend="auto"``, as in :class:`~cdm.model.CDMNetwork`.
     """
 
     def __init__(self, cfg: ModelConfig, *, device: torch.device | str | None = None):
         super().__init__()
         self.voxel_backend: VoxelBackend = resolve_voxel_backend(cfg.voxel_backend, device)
-        self.denoiser = PVCNNDenoiser(0, cfg.widths, cfg.voxel_resolutions, cfg.time_embed_dim, self.voxel_backend, cfg.devoxelize)
+        self.denoiser: nn.Module
+        if cfg.denoiser == "pvcnn2":
+            self.denoiser = PVCNN2Denoiser(0, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim)
+        else:
+            self.denoiser = PVCNNDenoiser(0, cfg.widths, cfg.voxel_resolutions, cfg.time_embed_dim, self.voxel_backend, cfg.devoxelize)
 
     def forward(self, x_t: Tensor, t: Tensor) -> Tensor:
         """``x_t (B, N, 3)`` world frame of the normalised object, ``t (B,)`` long → raw output ``(B, N, 3)``."""

@@ -14,6 +14,7 @@ from cdm.model.reference_weights import (
     reference_in_channels,
     reference_state_dict,
 )
+from cdm.prior_model import PriorNetwork
 from tests.test_model import tiny_batch
 
 # Every parameter (name, shape) of PC²'s PVCNN2 at its default 392 input channels (xyz + RGB 3 +
@@ -523,3 +524,14 @@ def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny):
     assert out.shape == (2, 300, 3) and torch.isfinite(out).all()
     with pytest.raises(ValueError, match="pvcnn2 has no cross-attention"):
         tiny.replace(**{"model.denoiser": "pvcnn2", "model.global_feature": "cross_attention"})
+
+
+def test_the_category_prior_with_pvcnn2_is_pvds_network(tiny):
+    cfg = tiny.replace(**{"model.denoiser": "pvcnn2", "model.time_embed_dim": 64})  # PVD's embed_dim
+    prior = PriorNetwork(cfg.model, device="cpu")
+    assert [(n, tuple(p.shape)) for n, p in prior.denoiser.named_parameters()] == pc2_parameters(3)
+    g = torch.Generator().manual_seed(5)
+    ckpt = {"model_state": {"model.module." + n: torch.randn(s, generator=g) * 0.01 for n, s in pc2_parameters(3)}}
+    load_reference_weights(prior.denoiser, reference_state_dict(ckpt, "pvd"))
+    out = prior.eval()(torch.randn(1, 256, 3, generator=g), torch.tensor([500]))
+    assert out.shape == (1, 256, 3) and torch.isfinite(out).all()

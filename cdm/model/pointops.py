@@ -37,6 +37,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
@@ -87,15 +88,18 @@ def farthest_point_sample(coords: Tensor, num_centers: int) -> Tensor:
     scan = torch.argsort(k % _FPS_THREADS * n + k // _FPS_THREADS)  # kernel's tie order; scan[0] == 0
     pts = coords[:, :, scan]  # (B, 3, N) in scan order
     dist = torch.full((b, n), 1e38, device=coords.device)
-    chosen = torch.zeros(b, num_centers, dtype=torch.long, device=coords.device)
     last = torch.zeros(b, 1, dtype=torch.long, device=coords.device)
-    for j in range(1, num_centers):
+    chosen = [last]
+    # After N picks every distance is 0 and the kernel's argmax returns scan position 0 (point 0):
+    # centres beyond N are point 0 without searching.
+    for _ in range(1, min(num_centers, n)):
         p = pts.gather(2, last[:, None, :].expand(b, 3, 1))  # (B, 3, 1)
         d = _squared_distances(pts, p)[:, :, 0]  # (B, N)
         torch.minimum(dist, d, out=dist)
         last = dist.argmax(dim=1, keepdim=True)  # first maximum in scan order
-        chosen[:, j : j + 1] = last
-    return scan[chosen]
+        chosen.append(last)
+    picked = torch.cat(chosen, dim=1)
+    return F.pad(scan[picked], (0, num_centers - picked.shape[1]))
 
 
 def gather_points(features: Tensor, index: Tensor) -> Tensor:
