@@ -508,8 +508,10 @@ def test_checkpoint_files_load_with_weights_only(tmp_path):
         load_reference_checkpoint(with_cfg, "pc2")
 
 
-def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny):
-    cfg = tiny.replace(**{"model.denoiser": "pvcnn2", "model.width_multiplier": 0.25, "model.voxel_resolution_multiplier": 0.25})
+@pytest.mark.parametrize("mask_channels", [True, False])  # PC²'s Co3D inputs; BDM's ShapeNet ones
+def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny, mask_channels: bool):
+    cfg = tiny.replace(**{"model.denoiser": "pvcnn2", "model.width_multiplier": 0.25, "model.voxel_resolution_multiplier": 0.25,
+                          "model.mask_channels": mask_channels})
     net = CDMNetwork(cfg.model, prior_2d_channels=1)
     f = cfg.model.feature_dim
     assert isinstance(net.denoiser, PVCNN2Denoiser)

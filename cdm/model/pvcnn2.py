@@ -105,7 +105,6 @@ class SharedMLP(nn.Module):
             layers += [conv(in_channels, width, 1), nn.GroupNorm(GROUPS, width), nn.SiLU()]
             in_channels = width
         self.layers = nn.Sequential(*layers)
-        self.out_channels = in_channels
 
     def forward(self, x: Tensor) -> Tensor:
         for i in range(0, len(self.layers), 3):
@@ -198,7 +197,6 @@ class SetAbstraction(nn.Module):
         super().__init__()
         self.num_centers, self.radius, self.num_neighbors = num_centers, radius, num_neighbors
         self.mlps = nn.ModuleList([SharedMLP(in_channels + 3, widths, dim=2)])
-        self.out_channels = widths[-1]
 
     def forward(self, features: Tensor, coords: Tensor) -> tuple[Tensor, Tensor]:
         """``(B, C, N)`` features at ``(B, 3, N)`` coords → ``(B, C_out, M)`` features, ``(B, 3, M)`` centres."""
@@ -222,6 +220,11 @@ class FeaturePropagation(nn.Module):
         up = pointops.three_nn_interpolate(points, centers, center_features)
         t = temb[:, :, None].expand(-1, -1, points.shape[2])
         return self.mlp(torch.cat([up, t, skip], dim=1))
+
+
+def _pvconvs(layer: nn.Module) -> list[PVConv]:
+    """The PVConvs of one SA/FP level (an SA level without any is a bare :class:`SetAbstraction`)."""
+    return [m for m in layer.children() if isinstance(m, PVConv)] if isinstance(layer, nn.Sequential) else []
 
 
 def _voxelized(cache: dict[int, pointops.VoxelizedCloud], coords: Tensor, resolution: int) -> pointops.VoxelizedCloud:
@@ -306,18 +309,12 @@ class PVCNN2Denoiser(nn.Module):
             fp_layers.append(nn.Sequential(*blocks))
         self.fp_layers = nn.ModuleList(fp_layers)
 
-        self.classifier = nn.Sequential(
-            SharedMLP(channels, (_scaled(HEAD_WIDTH, wm, "width_multiplier"),)),
-            nn.Dropout(dropout),
-            nn.Conv1d(_scaled(HEAD_WIDTH, wm, "width_multiplier"), 3, 1),
-        )
+        head = _scaled(HEAD_WIDTH, wm, "width_multiplier")
+        self.classifier = nn.Sequential(SharedMLP(channels, (head,)), nn.Dropout(dropout), nn.Conv1d(head, 3, 1))
         # PC²'s PointCloudModel: the last layer starts near zero, so the first predictions are ≈ 0.
         nn.init.normal_(self.classifier[-1].weight, 0.0, 1e-6)
         nn.init.normal_(self.classifier[-1].bias, 0.0, 1e-6)
         self.embedf = nn.Sequential(nn.Linear(embed_dim, embed_dim), nn.LeakyReLU(0.1), nn.Linear(embed_dim, embed_dim))
-
-    def _pvconvs(self, layer: nn.Module) -> list[PVConv]:
-        return [m for m in layer.children() if isinstance(m, PVConv)] if isinstance(layer, nn.Sequential) else []
 
     def forward(self, x_t: Tensor, conditioning: Tensor, t: Tensor, tokens: Tensor | None = None) -> Tensor:
         """Denoise.
@@ -346,7 +343,7 @@ class PVCNN2Denoiser(nn.Module):
             if level > 0:
                 features = torch.cat([features, temb[:, :, None].expand(-1, -1, features.shape[2])], dim=1)
             clouds: dict[int, pointops.VoxelizedCloud] = {}
-            for conv in self._pvconvs(layer):
+            for conv in _pvconvs(layer):
                 features = conv(features, _voxelized(clouds, coords, conv.resolution))
             sa = layer[-1] if isinstance(layer, nn.Sequential) else layer
             features, coords = sa(features, coords)
@@ -356,7 +353,7 @@ class PVCNN2Denoiser(nn.Module):
             points = coords_list[-1 - level]
             features = layer[0](points, coords, features, temb, skips[-1 - level])
             clouds = {}
-            for conv in self._pvconvs(layer):
+            for conv in _pvconvs(layer):
                 features = conv(features, _voxelized(clouds, points, conv.resolution))
             coords = points
         return self._head(features).transpose(1, 2)
