@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 __all__ = [
+    "Neighbours",
     "VoxelizedCloud",
     "ball_query",
     "farthest_point_sample",
@@ -151,7 +152,7 @@ def group(features: Tensor, index: Tensor) -> Tensor:
     return features.gather(2, index.reshape(b, 1, m * k).expand(b, c, m * k)).view(b, c, m, k)
 
 
-class _Neighbours(NamedTuple):
+class Neighbours(NamedTuple):
     """The 3 nearest centres of each point: ``index`` ``(B, 3, N)`` int64, ``weight`` ``(B, 3, N)`` float32."""
 
     index: Tensor
@@ -159,7 +160,7 @@ class _Neighbours(NamedTuple):
 
 
 @torch.no_grad()
-def three_nn(points: Tensor, centers: Tensor) -> _Neighbours:
+def three_nn(points: Tensor, centers: Tensor) -> Neighbours:
     """PC²'s 3-NN search and inverse-squared-distance weights (``neighbor_interpolate.cu``).
 
     Args:
@@ -193,7 +194,7 @@ def three_nn(points: Tensor, centers: Tensor) -> _Neighbours:
     d0d1, d0d2, d1d2 = (d0 * d1).float(), (d0 * d2).float(), (d1 * d2).float()
     inv = 1.0 / (d0d1 + d0d2 + d1d2)
     weight = torch.stack([d1d2 * inv, d0d2 * inv, d0d1 * inv], dim=1)
-    return _Neighbours(index.transpose(1, 2), weight)
+    return Neighbours(index.transpose(1, 2), weight)
 
 
 def three_nn_interpolate(points: Tensor, centers: Tensor, center_features: Tensor) -> Tensor:
