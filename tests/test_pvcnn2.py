@@ -363,6 +363,8 @@ def test_parameters_equal_pc2s_at_its_default_inputs():
     ("extra", "expected"),
     [
         (0, 27_649_987),  # xyz alone: PVD's unconditional prior (BDM)
+        (387, 28_046_275),  # PC² on ShapeNet R2N2 as BDM runs it: use_mask, use_distance_transform off
+        (388, 28_047_299),  # the same + the contour prior (CDM on ShapeNet)
         (390, 28_049_347),  # PC²'s inputs + a contour or depth prior map (the paper's Eq. 8, F_I ⊕ F_I*)
         (392, 28_051_395),  # + a 3-channel prior
     ],
