@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from cdm.model import CDMNetwork, conditioning_channels, mask_distance_transform
-from cdm.model.pvcnn2 import PVCNN2Denoiser
+from cdm.model.pvcnn2 import PVCNN2Denoiser, SelfAttention, pc2_timestep_embedding
 from cdm.model.reference_weights import (
     denoiser_from_reference,
     load_reference_checkpoint,
@@ -539,3 +539,24 @@ def test_the_category_prior_with_pvcnn2_is_pvds_network(tiny):
     load_reference_weights(prior.denoiser, reference_state_dict(ckpt, "pvd"))
     out = prior.eval()(torch.randn(1, 256, 3, generator=g), torch.tensor([500]))
     assert out.shape == (1, 256, 3) and torch.isfinite(out).all()
+
+
+def test_pc2_timestep_embedding_divides_by_half_minus_one():
+    emb = pc2_timestep_embedding(torch.tensor([0, 7]), 8)
+    freqs = torch.exp(-torch.arange(4, dtype=torch.float64) * torch.log(torch.tensor(10_000.0, dtype=torch.float64)) / 3)
+    assert torch.equal(emb[0], torch.tensor([0.0] * 4 + [1.0] * 4))
+    torch.testing.assert_close(emb[1], torch.cat([torch.sin(7 * freqs), torch.cos(7 * freqs)]).float())
+
+
+def test_voxel_attention_is_unscaled_softmax_attention():
+    # PC²'s modules/pvconv.py Attention: qk = qᵀk with the 1/√C commented out, h = v wᵀ, out, residual, GN, Swish.
+    torch.manual_seed(6)
+    att = SelfAttention(8, 3).double()
+    x = torch.randn(2, 8, 2, 3, 2, dtype=torch.float64)
+    flat = x.flatten(2)
+    q, k, v = (torch.einsum("oc,bcl->bol", p.weight.flatten(1), flat) + p.bias[:, None] for p in (att.q, att.k, att.v))
+    w = torch.softmax(torch.einsum("bci,bcj->bij", q, k), dim=-1)
+    h = torch.einsum("bcj,bij->bci", v, w)
+    h = torch.einsum("oc,bcl->bol", att.out.weight.flatten(1), h) + att.out.bias[:, None]
+    ref = torch.nn.functional.silu(att.norm(h.view_as(x) + x))
+    torch.testing.assert_close(att(x), ref)
