@@ -94,9 +94,10 @@ def farthest_point_sample(coords: Tensor, num_centers: int) -> Tensor:
     # After N picks every distance is 0 and the kernel's argmax returns scan position 0 (point 0):
     # centres beyond N are point 0 without searching.
     for _ in range(1, min(num_centers, n)):
-        p = pts.gather(2, last[:, None, :].expand(b, 3, 1))  # (B, 3, 1)
-        d = _squared_distances(pts, p)[:, :, 0]  # (B, N)
-        torch.minimum(dist, d, out=dist)
+        diff = pts - pts.gather(2, last[:, None, :].expand(b, 3, 1))  # (B, 3, N)
+        diff.mul_(diff)
+        d = diff[:, 0] + diff[:, 1]  # x, then y, then z: the bits of _squared_distances in fewer kernels
+        torch.minimum(dist, d.add_(diff[:, 2]), out=dist)
         last = dist.argmax(dim=1, keepdim=True)  # first maximum in scan order
         chosen.append(last)
     picked = torch.cat(chosen, dim=1)
