@@ -12,6 +12,11 @@ before it was removed finds that it no longer is the file at that path, and trie
 
 The lock file records who holds it (process id, host, and once created the MLflow parent run), so
 the copy that is refused can say where the running sweep logs.
+
+Nothing here follows a link it did not make: the lock file is opened with ``O_NOFOLLOW`` and must be a
+plain file of this user with one name (a link or a hard link planted there would have the claim
+truncate its target), and the temporary folder of object-store claims is this user's, mode 0700
+(:func:`sweeps.storage.private_folder`). Either is refused with :class:`ClaimError` naming the path.
 """
 
 from __future__ import annotations
@@ -22,22 +27,52 @@ import hashlib
 import json
 import os
 import socket
+import stat
 import tempfile
 from pathlib import Path
 
-__all__ = ["ClaimError", "SweepClaim", "claim"]
+from sweeps.storage import StoreError, private_folder
+
+__all__ = ["ClaimError", "SweepClaim", "claim", "claims_folder"]
 
 
 class ClaimError(RuntimeError):
-    """Another process is running a sweep in this folder; the message says which and where it logs."""
+    """Another process is running a sweep in this folder, or a link or someone else's file stands where the
+    lock should be; the message says which and where."""
+
+
+def claims_folder() -> Path:
+    """Where object-store sweeps keep their lock files: one folder per user in the temporary folder."""
+    return Path(tempfile.gettempdir()) / f"cdm-sweep-claims-{os.getuid()}"
 
 
 def _lock_path(sweep_dir: str) -> Path:
     if "://" in sweep_dir:
         key = hashlib.sha256(sweep_dir.encode()).hexdigest()[:16]
-        return Path(tempfile.gettempdir()) / "cdm-sweep-claims" / f"{key}.lock"
+        try:
+            return private_folder(claims_folder()) / f"{key}.lock"
+        except StoreError as exc:
+            raise ClaimError(str(exc)) from None
     folder = Path(sweep_dir)
     return folder.parent / f".{folder.name}.lock"
+
+
+def _open_lock(path: Path) -> int:
+    """Open (creating) the lock file without following a link; refuse anything but this user's plain file
+    with a single name."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise ClaimError(f"{path}: a symbolic link where the sweep's lock file should be; remove it "
+                             "(a claim never follows one)") from None
+        raise
+    info = os.fstat(fd)
+    if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1 or info.st_uid != os.getuid():
+        os.close(fd)
+        raise ClaimError(f"{path}: not a plain file of this user with one name (uid {info.st_uid}, "
+                         f"{info.st_nlink} links) where the sweep's lock file should be; remove it")
+    return fd
 
 
 class SweepClaim:
@@ -86,14 +121,14 @@ def claim(sweep_dir: str) -> SweepClaim:
     """Take the sweep folder ``sweep_dir`` for this process (creates the folder holding the lock file).
 
     Raises:
-        ClaimError: another live process holds it.
+        ClaimError: another live process holds it, or a link or someone else's file is where its lock goes.
     """
     path = _lock_path(sweep_dir)
     while True:
         created = [p for p in [path.parent, *path.parent.parents] if not p.exists()]  # deepest first
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = _open_lock(path)
         except (FileNotFoundError, FileExistsError):  # an ending claim removed a folder meanwhile
             continue
         try:

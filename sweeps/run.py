@@ -34,8 +34,8 @@ from sweeps.precompute import shared_root
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.resources import plan_concurrency
 from sweeps.spec import Spec, SpecError, load_spec
-from sweeps.storage import (StoreError, check_storage, check_tracking_uri, exists, is_uri, parse_state, publish_files,
-                            read_text, sweep_location)
+from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_resume_trust, check_storage, check_tracking_uri,
+                            exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
 __all__ = ["describe", "main"]
 
@@ -48,6 +48,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--profile", default=None, help="profile in sweeps/profiles.yaml or the spec (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials")
+    p.add_argument(TRUST_FLAG, action="store_true",
+                   help="with --resume: unpickle Tune's state even where others could have written it (README, Security and limits)")
     p.add_argument("--dry-run", action="store_true", help="print the trials, the resource plan and the protocol card; start nothing")
     p.add_argument("--no-estimate", action="store_true", help="with --dry-run: skip the cost estimate's calibration steps")
     p.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
@@ -234,6 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         from sweeps.tracking import resolve_tracking_uri
 
         try:  # before Ray starts and before any MLflow run exists
+            check_no_links(sweep_dir)
             check_storage(sweep_dir)
             check_tracking_uri(resolve_tracking_uri(args.tracking_uri or (state or {}).get("tracking_uri")))
             held = claim(sweep_dir)
@@ -242,6 +245,12 @@ def main(argv: list[str] | None = None) -> int:
         if not args.resume and exists(sweep_dir):
             held.release()
             return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
+        if args.resume and not args.trust_storage:
+            try:  # under the claim: no other copy of this runner rewrites Tune's state meanwhile
+                check_resume_trust(sweep_dir)
+            except StoreError as exc:
+                held.release()
+                return _fail(str(exc))
     if args.dry_run:
         import torch
 
@@ -263,7 +272,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(plan, args, sweep_dir, state_file, sets, remote, held)
     finally:
+        if is_uri(sweep_dir) and exists(sweep_dir):
+            record_digest(sweep_dir)  # what this driver leaves is what the next --resume may unpickle
         held.release()
+
+
+def _write_new(path: Path, text: str) -> None:
+    """Create ``path`` with ``text``; a file or link already there (planted in the folder) is refused by the OS."""
+    with os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644), "w") as out:
+        out.write(text)
 
 
 def _local_concurrency(plan: SweepPlan) -> int:
@@ -325,9 +342,9 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             staging.mkdir(parents=True, exist_ok=True)
             state = {"spec": plan.spec.model_dump(mode="json"), "sets": sets, "profile": plan.profile.name,
                      "tracking_uri": uri, "parent_run_id": sweep_run.run_id}
-            (staging / STATE_FILE).write_text(json.dumps(state, indent=2))
+            _write_new(staging / STATE_FILE, json.dumps(state, indent=2))
             plan_file = staging / "plan.json"
-            plan_file.write_text(json.dumps(
+            _write_new(plan_file, json.dumps(
                 {"fixed": plan.fixed, "sets": sets, "cells": [
                     {"label": c.label, "values": c.values, "seed": c.seed, "paper": c.paper} for c in plan.cells]},
                 indent=2, default=str))

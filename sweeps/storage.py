@@ -10,14 +10,21 @@
 - :func:`parse_state`: a sweep's ``sweep.json`` as ``--resume`` needs it.
 - :func:`sweep_location`, :func:`exists`, :func:`read_text`, :func:`publish_files`: a sweep folder
   named by a local path or a URI, read and written through pyarrow's file systems.
+- :func:`check_name`: a spec, profile or data set name used as one path component.
+- :func:`check_resume_trust`, :func:`record_digest`: Tune's state (pickles) is unpickled by ``--resume``
+  only from a folder no one else could have written, or matching the digest this user recorded.
+- :func:`private_folder`: a folder of this user that no one else can write (lock files and session
+  records in the shared temporary folder), refused when someone else made it or made it a link.
 
 Each refusal is a :class:`StoreError` of one line naming the URI or file and what is allowed.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import stat
 import tempfile
 import urllib.error
 import urllib.parse
@@ -26,8 +33,11 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-__all__ = ["TRACKING_SCHEMES", "StoreError", "check_storage", "check_tracking_uri", "exists", "is_uri", "parse_state",
-           "publish_files", "read_text", "sweep_location"]
+__all__ = ["MAX_NAME", "TRACKING_SCHEMES", "StoreError", "check_name", "check_no_links", "check_storage", "check_tracking_uri", "exists",
+           "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "publish_files", "read_text", "sweep_location"]
+
+MAX_NAME = 100
+"""Longest spec, profile or data set name: one path component, well under the 255 bytes of a file name."""
 
 TRACKING_SCHEMES = ("sqlite", "file", "http", "https", "postgresql", "mysql", "mssql")
 """MLflow stores a sweep can log to."""
@@ -138,11 +148,62 @@ def is_uri(storage: str) -> bool:
     return "://" in storage
 
 
+def check_name(name: str, what: str) -> None:
+    """Refuse a name that would not stay one path component below ``--storage``: empty, ``.``/``..``,
+    a separator or NUL, a leading dot (hidden, and the lock files' prefix), or longer than :data:`MAX_NAME`."""
+    if not name or name in (".", "..") or name.startswith(".") or any(c in name for c in "/\\\0"):
+        raise StoreError(f"{what} {name[:MAX_NAME]!r}: not a plain name; use letters, digits, '_', '-' and '.' "
+                         "(not first), without '/'")
+    if len(name) > MAX_NAME:
+        raise StoreError(f"{what} {name[:40]!r}…: {len(name)} characters; a name may have at most {MAX_NAME}")
+
+
 def sweep_location(storage: str, spec: str, profile: str) -> str:
-    """``<storage>/<spec>/<profile>``: an absolute path, or a URI joined as a string (no Path: it eats ``//``)."""
+    """``<storage>/<spec>/<profile>``: an absolute path, or a URI joined as a string (no Path: it eats ``//``).
+
+    Only ``storage`` itself is resolved (the user named it, links included); ``spec`` and ``profile`` are
+    checked by :func:`check_name` and a link in their place is refused (:func:`check_no_links`).
+
+    Raises:
+        StoreError: ``spec`` or ``profile`` is not a plain name.
+    """
+    check_name(spec, "spec name")
+    check_name(profile, "profile")
     if is_uri(storage):
         return f"{storage.rstrip('/')}/{spec}/{profile}"
-    return str((Path(storage) / spec / profile).resolve())
+    return str(Path(storage).resolve() / spec / profile)
+
+
+def check_no_links(sweep_dir: str) -> None:
+    """Refuse a local sweep folder where ``<spec>`` or ``<profile>`` below the storage is a symbolic link:
+    whoever made it would choose where the sweep writes (a dangling one, too)."""
+    if is_uri(sweep_dir):
+        return
+    folder = Path(sweep_dir)
+    for path in (folder.parent, folder):
+        if path.is_symlink():
+            raise StoreError(f"--storage: {path} is a symbolic link (to {os.readlink(path)}); a sweep folder is never "
+                             "followed through a link: remove it, or give its target as --storage")
+
+
+def private_folder(path: Path) -> Path:
+    """``path`` as a folder of this user with mode 0700, made so if absent (for files kept in a shared
+    temporary folder, where anyone could make the folder first).
+
+    Raises:
+        StoreError: ``path`` is a link, not a folder, another user's, or others can use it.
+    """
+    try:
+        path.mkdir(mode=0o700, parents=True)
+    except FileExistsError:
+        pass
+    info = path.lstat()
+    if stat.S_ISLNK(info.st_mode) or not stat.S_ISDIR(info.st_mode):
+        raise StoreError(f"{path}: a link or a file where this user's private folder should be; remove it")
+    if info.st_uid != os.getuid() or info.st_mode & 0o077:
+        raise StoreError(f"{path}: owned by uid {info.st_uid} with mode {stat.S_IMODE(info.st_mode):o}; this user's "
+                         "private folder must be its own with mode 700: remove it (someone else may have made it)")
+    return path
 
 
 def exists(location: str) -> bool:
@@ -167,3 +228,85 @@ def publish_files(local: Path, location: str) -> None:
     filesystem, path = fs.FileSystem.from_uri(location)
     filesystem.create_dir(path, recursive=True)
     fs.copy_files(str(local), path, source_filesystem=fs.LocalFileSystem(), destination_filesystem=filesystem)
+
+
+TRUST_FLAG = "--trust-storage"
+"""The way out of :func:`check_resume_trust` for storage this user alone writes but cannot prove it."""
+
+
+def _untrusted_entry(top: Path) -> str | None:
+    """The first entry under ``top`` (itself included) that another user could have written: a link, an
+    entry of another user, or one others may write (as ssh treats ``~/.ssh``); None when there is none."""
+    uid = os.getuid()
+    for folder, dirs, files in os.walk(top, followlinks=False):
+        for entry in [Path(folder), *(Path(folder) / n for n in dirs + files)]:
+            info = entry.lstat()
+            if stat.S_ISLNK(info.st_mode):
+                return f"{entry} is a symbolic link"
+            if info.st_uid != uid:
+                return f"{entry} belongs to uid {info.st_uid}"
+            if info.st_mode & 0o022:
+                return f"{entry} can be written by others (mode {stat.S_IMODE(info.st_mode):o})"
+    return None
+
+
+def _digest_file(sweep_dir: str) -> Path:
+    state = Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state")
+    key = hashlib.sha256(sweep_dir.encode()).hexdigest()[:32]
+    return private_folder(state / "cdm" / "sweep-digests") / f"{key}.json"
+
+
+def _tune_state_digests(sweep_dir: str) -> dict[str, str]:
+    """SHA-256 of every file of the sweep folder Tune may unpickle: all but the checkpoints' contents (read
+    with ``torch.load(weights_only=True)``), keyed by their path below the folder."""
+    from pyarrow import fs
+
+    filesystem, root = fs.FileSystem.from_uri(sweep_dir)
+    digests = {}
+    for info in filesystem.get_file_info(fs.FileSelector(root, recursive=True, allow_not_found=True)):
+        rel = info.path[len(root):].lstrip("/")
+        if info.type != fs.FileType.File or any(part.startswith("checkpoint_") for part in rel.split("/")[:-1]):
+            continue
+        with filesystem.open_input_stream(info.path) as stream:
+            digests[rel] = hashlib.sha256(stream.readall()).hexdigest()
+    return digests
+
+
+def record_digest(sweep_dir: str) -> None:
+    """Note, where only this user writes, the digests of an object-store sweep's Tune state as this driver
+    leaves it, so the next ``--resume`` can tell it untouched (:func:`check_resume_trust`)."""
+    record = _digest_file(sweep_dir)
+    fd = os.open(record.with_suffix(".tmp"), os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
+    with os.fdopen(fd, "w") as out:
+        json.dump(_tune_state_digests(sweep_dir), out)
+    record.with_suffix(".tmp").replace(record)
+
+
+def check_resume_trust(sweep_dir: str) -> None:
+    """Refuse to let Tune unpickle (``tuner.pkl``, ``experiment_state-*.json``, searcher state) a sweep folder
+    that someone else could have written: unpickling runs whatever code the file names.
+
+    A local folder passes when every entry is this user's, no link, and not writable by others. An
+    object-store folder cannot show who wrote it: it passes when its files match the digests
+    :func:`record_digest` kept when the last driver exited (a killed driver kept none).
+
+    Raises:
+        StoreError: naming the file or the missing record, and the way out (:data:`TRUST_FLAG`).
+    """
+    way_out = (f"if you alone write this storage, pass {TRUST_FLAG}; else start the sweep over in a new folder "
+               "(finished trials are in MLflow)")
+    if not is_uri(sweep_dir):
+        if bad := _untrusted_entry(Path(sweep_dir)):
+            raise StoreError(f"--resume: {bad}; Tune's state there is unpickled (runs code) only from a folder "
+                             f"no one else could write: {way_out}")
+        return
+    try:
+        recorded = json.loads(_digest_file(sweep_dir).read_text())
+    except FileNotFoundError:
+        raise StoreError(f"--resume: no digest of {sweep_dir}'s Tune state was recorded (its driver was killed); "
+                         f"that state is pickles anyone who writes the bucket could have changed: {way_out}") from None
+    found = _tune_state_digests(sweep_dir)
+    changed = sorted(k for k in recorded.keys() | found.keys() if recorded.get(k) != found.get(k))
+    if changed:
+        raise StoreError(f"--resume: {sweep_dir}/{changed[0]} differs from what this user's last driver left "
+                         f"({len(changed)} file(s) changed); Tune would unpickle it: {way_out}")

@@ -1,0 +1,215 @@
+"""Trust boundaries of a sweep (issue 33): no file planted in the storage or in the shared temporary
+folder makes the runner overwrite, execute or kill. Each test plants the hostile file or state in
+tmp and runs ``sweeps/run.py`` (or the guarding function), then asserts exit 2 with one ``error:``
+line, the victim untouched, the planted code not run, the folder unescaped, Ray never started."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+from pathlib import Path
+
+import pytest
+import ray
+
+from sweeps import run
+from sweeps.claim import ClaimError, claim, claims_folder
+from sweeps.spec import load_spec
+from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
+
+SPEC = "name: s\ngrid: {priors.point_size: [0.04]}\n"
+OTHER_UID = 4242
+"""A uid that is not this process's (the tests run as root, which may chown to it)."""
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+@pytest.fixture
+def in_tmp(tmp_path, monkeypatch) -> Path:
+    """A working folder holding ``spec.yaml`` (spec ``s``), with this user's state folder inside it."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "state"))
+    (tmp_path / "spec.yaml").write_text(SPEC)
+    return tmp_path
+
+
+def _argv(tmp: Path, *extra: str) -> list[str]:
+    return ["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp}/m.db", *extra]
+
+
+# --- item 1: nothing follows a link it did not make -------------------------------------------------
+
+@pytest.mark.parametrize("plant", ["symlink", "hardlink"])
+def test_a_planted_lock_link_is_refused_and_its_target_untouched(in_tmp, capsys, plant):
+    victim = in_tmp / "victim.txt"
+    victim.write_text("precious\n")
+    (in_tmp / "results" / "s").mkdir(parents=True)
+    lock = in_tmp / "results" / "s" / ".smoke.lock"
+    os.symlink(victim, lock) if plant == "symlink" else os.link(victim, lock)
+    assert run.main(_argv(in_tmp)) == 2
+    err = _one_error_line(capsys)
+    assert str(lock) in err and ("symbolic link" if plant == "symlink" else "2 links") in err, err
+    assert victim.read_text() == "precious\n" and os.path.lexists(lock)
+    assert not (in_tmp / "m.db").exists() and not ray.is_initialized()
+
+
+def test_a_foreign_or_linked_claims_folder_is_refused(tmp_path, monkeypatch):
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))
+    victim_dir = tmp_path / "elsewhere"
+    victim_dir.mkdir()
+    claims_folder().symlink_to(victim_dir)
+    with pytest.raises(ClaimError, match="a link or a file where this user's private folder should be"):
+        claim("s3://bucket/results/s/smoke")
+    assert list(victim_dir.iterdir()) == []
+    claims_folder().unlink()
+    claims_folder().mkdir(mode=0o777)
+    os.chmod(claims_folder(), 0o777)  # as another user would leave it for everyone
+    with pytest.raises(ClaimError, match="mode 777"):
+        claim("s3://bucket/results/s/smoke")
+    os.chmod(claims_folder(), 0o700)
+    os.chown(claims_folder(), OTHER_UID, -1)
+    with pytest.raises(ClaimError, match=f"owned by uid {OTHER_UID}"):
+        claim("s3://bucket/results/s/smoke")
+
+
+def test_the_claims_folder_is_made_private(tmp_path, monkeypatch):
+    monkeypatch.setattr("tempfile.tempdir", str(tmp_path))
+    held = claim("s3://bucket/results/s/smoke")
+    info = claims_folder().stat()
+    assert (info.st_mode & 0o777, info.st_uid) == (0o700, os.getuid())
+    held.release()
+    assert private_folder(claims_folder()) == claims_folder()  # kept, and still accepted
+
+
+def test_a_planted_state_file_link_is_not_written_through(in_tmp):
+    victim = in_tmp / "victim.txt"
+    victim.write_text("precious\n")
+    folder = in_tmp / "results" / "s" / "smoke"
+    folder.mkdir(parents=True)
+    (folder / "sweep.json").symlink_to(victim)
+    with pytest.raises(OSError):
+        run._write_new(folder / "sweep.json", "{}")
+    assert victim.read_text() == "precious\n"
+
+
+# --- item 2: no unpickling of what someone else could have written ----------------------------------
+
+class _Planted:
+    """A pickle that runs code when loaded: it makes the folder ``marker``."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.mkdir, (str(self.marker),)
+
+
+def _stopped_sweep(tmp: Path) -> Path:
+    """A local sweep folder as an interrupted sweep leaves it (its ``sweep.json``), this user's, mode 755."""
+    folder = tmp / "results" / "s" / "smoke"
+    (folder / "trial_0").mkdir(parents=True)
+    state = {"spec": load_spec(tmp / "spec.yaml").model_dump(mode="json"), "sets": {}, "profile": "smoke",
+             "tracking_uri": f"sqlite:///{tmp}/m.db", "parent_run_id": "0" * 32}
+    (folder / "sweep.json").write_text(json.dumps(state))
+    return folder
+
+
+@pytest.mark.parametrize("how", ["writable", "foreign", "symlink"])
+def test_resume_refuses_tune_state_others_could_have_written(in_tmp, capsys, how):
+    folder = _stopped_sweep(in_tmp)
+    marker = in_tmp / "pwned"
+    planted = folder / "tuner.pkl"
+    if how == "symlink":
+        (in_tmp / "outside.pkl").write_bytes(pickle.dumps(_Planted(marker)))
+        planted.symlink_to(in_tmp / "outside.pkl")
+    else:
+        planted.write_bytes(pickle.dumps(_Planted(marker)))
+        if how == "writable":
+            os.chmod(planted, 0o666)
+        else:
+            os.chown(planted, OTHER_UID, -1)
+    assert run.main(_argv(in_tmp, "--resume")) == 2
+    err = _one_error_line(capsys)
+    assert str(planted) in err and "--trust-storage" in err, err
+    assert not marker.exists() and not (in_tmp / "m.db").exists() and not ray.is_initialized()
+    assert not (in_tmp / "results" / "s" / ".smoke.lock").exists()  # the claim was released
+
+
+def test_a_folder_of_this_user_alone_is_trusted(in_tmp):
+    folder = _stopped_sweep(in_tmp)
+    (folder / "tuner.pkl").write_bytes(pickle.dumps({"state": 1}))
+    check_resume_trust(str(folder))
+    os.chmod(folder / "trial_0", 0o775)  # a group-writable folder could have had tuner.pkl swapped
+    with pytest.raises(StoreError, match="trial_0 can be written by others"):
+        check_resume_trust(str(folder))
+
+
+def test_object_store_state_is_trusted_only_as_its_last_driver_left_it(in_tmp):
+    folder = _stopped_sweep(in_tmp)
+    (folder / "tuner.pkl").write_bytes(pickle.dumps({"state": 1}))
+    (folder / "trial_0" / "checkpoint_000001").mkdir()
+    (folder / "trial_0" / "checkpoint_000001" / "model.pt").write_bytes(b"weights")
+    uri = f"file://{folder}"
+    with pytest.raises(StoreError, match="no digest of .* was recorded .*--trust-storage"):
+        check_resume_trust(uri)
+    record_digest(uri)
+    check_resume_trust(uri)
+    (folder / "trial_0" / "checkpoint_000001" / "model.pt").write_bytes(b"newer weights")  # torch, weights only
+    check_resume_trust(uri)
+    (folder / "tuner.pkl").write_bytes(pickle.dumps(_Planted(in_tmp / "pwned")))
+    with pytest.raises(StoreError, match=r"tuner.pkl differs from what this user's last driver left \(1 file"):
+        check_resume_trust(uri)
+    assert not (in_tmp / "pwned").exists()
+    digests = in_tmp / "state" / "cdm" / "sweep-digests"
+    assert digests.stat().st_mode & 0o777 == 0o700
+
+
+# --- item 4: every path component a user names is checked --------------------------------------------
+
+@pytest.mark.parametrize("name,needle", [("../../../x", "not a plain name"), ("..", "not a plain name"),
+                                         ("a/b", "not a plain name"), (".hidden", "not a plain name"),
+                                         ("x" * 101, "101 characters"), ("", "not a plain name")])
+def test_bad_names_are_refused(name, needle):
+    with pytest.raises(StoreError, match=needle):
+        check_name(name, "profile")
+    check_name("x" * 100, "profile")
+    check_name("paper_v2.1-b", "profile")
+
+
+def test_a_profile_path_is_refused_and_nothing_is_written_outside_storage(in_tmp, capsys):
+    argv = _argv(in_tmp, "--profile", "../../../x")
+    argv.remove("--smoke")
+    assert run.main(argv) == 2
+    assert "profile '../../../x': not a plain name" in _one_error_line(capsys)
+    assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"]
+
+
+def test_a_300_character_spec_name_is_refused_leaving_no_folder(in_tmp, capsys):
+    (in_tmp / "spec.yaml").write_text(SPEC.replace("name: s", "name: " + "n" * 300))
+    assert run.main(_argv(in_tmp)) == 2
+    assert "300 characters; a name may have at most 100" in _one_error_line(capsys)
+    assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"]
+
+
+@pytest.mark.parametrize("target", ["dangling", "folder"])
+def test_a_link_at_the_sweep_folder_is_refused(in_tmp, capsys, target):
+    elsewhere = in_tmp / "elsewhere"
+    if target == "folder":
+        elsewhere.mkdir()
+    (in_tmp / "results" / "s").mkdir(parents=True)
+    (in_tmp / "results" / "s" / "smoke").symlink_to(elsewhere)
+    assert run.main(_argv(in_tmp)) == 2
+    assert "results/s/smoke is a symbolic link" in _one_error_line(capsys)
+    assert (not elsewhere.exists()) if target == "dangling" else list(elsewhere.iterdir()) == []
+
+
+def test_sweep_location_stays_under_storage(tmp_path):
+    assert sweep_location(str(tmp_path), "s", "smoke") == f"{tmp_path.resolve()}/s/smoke"
+    assert sweep_location("s3://b/r/", "s", "smoke") == "s3://b/r/s/smoke"
+    with pytest.raises(StoreError):
+        sweep_location(str(tmp_path), "s", "../smoke")
