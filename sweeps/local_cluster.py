@@ -12,8 +12,14 @@ node's address is loopback (``monitor.py``/``dashboard/head.py``: ``addr=get_loc
 
 A SIGKILLed driver cannot shut its cluster down: the GCS and raylet notice, but the dashboard and
 runtime-env agents and idle workers may keep listening for up to a minute. Each start records its
-session folder under ``<tmp>/cdm-ray-sessions/<pid>.json``; the next start ends (by process id)
+session folder under ``<tmp>/cdm-ray-sessions-<uid>/<pid>.json``; the next start ends (by process id)
 the processes still holding files in the session folder of a driver that is gone.
+
+Ending a process is trusted only as far as the record is: records are read only from this user's
+own folder of mode 0700 (:func:`sweeps.storage.private_folder`; anyone may write the shared
+temporary folder, and a planted record would name someone else's folder), and a process is ended
+only if it is this user's, holds a file in the recorded session folder, and its command line is a
+Ray process's of that session (:func:`is_session_process`).
 """
 
 from __future__ import annotations
@@ -25,13 +31,19 @@ import signal
 import tempfile
 from pathlib import Path
 
-__all__ = ["LOOPBACK_ENV", "SESSION_RECORDS", "reap_stale_sessions", "session_pids", "start"]
+from sweeps.storage import StoreError, private_folder
+
+__all__ = ["LOOPBACK_ENV", "SESSION_RECORDS", "is_session_process", "reap_stale_sessions", "session_pids", "start"]
 
 LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 """Ray's switch that, set to ``0``, keeps a node's address (and so its listeners) on loopback."""
 
-SESSION_RECORDS = Path(tempfile.gettempdir()) / "cdm-ray-sessions"
+SESSION_RECORDS = Path(tempfile.gettempdir()) / f"cdm-ray-sessions-{os.getuid()}"
 """One ``<driver pid>.json`` per running local sweep: its session folder, for the next start's clean-up."""
+
+RAY_TITLES = ("ray::", "ray-dashboard-")
+"""How Ray renames its workers and agents (``ray_constants.AGENT_PROCESS_TYPE_*``, ``WORKER_PROCESS_TYPE_*``,
+``dashboard/subprocesses/module.py``); the GCS, raylet and monitors keep a command line naming the session."""
 
 
 def _alive(pid: int) -> bool:
@@ -62,10 +74,28 @@ def session_pids(session_dir: str) -> set[int]:
     return found - {os.getpid()}
 
 
+def is_session_process(pid: int, session_dir: str) -> bool:
+    """``pid`` is this user's and its command line is one of Ray's for the session in ``session_dir``
+    (a renamed worker or agent, or one whose arguments name the session)."""
+    proc = Path("/proc") / str(pid)
+    try:
+        if proc.stat().st_uid != os.getuid():
+            return False
+        cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:  # gone meanwhile
+        return False
+    return cmdline.startswith(RAY_TITLES) or Path(session_dir).name in cmdline
+
+
 def reap_stale_sessions() -> list[int]:
-    """End the leftover processes of local sessions whose driver died; returns their ids."""
-    if not SESSION_RECORDS.is_dir():
+    """End the leftover processes of local sessions whose driver died; returns their ids.
+
+    Raises:
+        StoreError: the records' folder is not this user's private one (nothing is ended).
+    """
+    if not os.path.lexists(SESSION_RECORDS):
         return []
+    private_folder(SESSION_RECORDS)
     ended = []
     for record in SESSION_RECORDS.glob("*.json"):
         try:
@@ -79,7 +109,7 @@ def reap_stale_sessions() -> list[int]:
             continue
         if _alive(driver):
             continue
-        for pid in sorted(session_pids(session_dir)):
+        for pid in sorted(p for p in session_pids(session_dir) if is_session_process(p, session_dir)):
             try:
                 os.kill(pid, signal.SIGKILL)
                 ended.append(pid)
@@ -90,9 +120,9 @@ def reap_stale_sessions() -> list[int]:
 
 
 def _record(session_dir: str) -> None:
-    SESSION_RECORDS.mkdir(parents=True, exist_ok=True)
-    record = SESSION_RECORDS / f"{os.getpid()}.json"
-    record.write_text(json.dumps({"pid": os.getpid(), "session_dir": session_dir}))
+    record = private_folder(SESSION_RECORDS) / f"{os.getpid()}.json"
+    with os.fdopen(os.open(record, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600), "w") as out:
+        out.write(json.dumps({"pid": os.getpid(), "session_dir": session_dir}))
     atexit.register(record.unlink, missing_ok=True)
 
 
@@ -101,7 +131,12 @@ def start(**init_kwargs) -> None:
     import ray
     import ray._private.ray_constants as constants
 
-    ended = reap_stale_sessions()
+    private = True
+    try:
+        ended = reap_stale_sessions()
+    except StoreError as exc:  # someone else's records folder: neither read nor written
+        print(f"not ending leftover Ray processes, nor recording this session: {exc}", flush=True)
+        private, ended = False, []
     if ended:
         print(f"ended {len(ended)} leftover Ray processes of an earlier sweep whose driver was killed", flush=True)
     # The environment reaches the GCS, raylet, agents and workers started now; the constant is read
@@ -121,4 +156,5 @@ def start(**init_kwargs) -> None:
             os.environ.pop(LOOPBACK_ENV)
         else:
             os.environ[LOOPBACK_ENV] = saved_env
-    _record(ray._private.worker._global_node.get_session_dir_path())
+    if private:
+        _record(ray._private.worker._global_node.get_session_dir_path())

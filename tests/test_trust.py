@@ -8,12 +8,15 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import ray
 
-from sweeps import run
+from sweeps import local_cluster, run
 from sweeps.claim import ClaimError, claim, claims_folder
 from sweeps.spec import load_spec
 from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
@@ -213,3 +216,43 @@ def test_sweep_location_stays_under_storage(tmp_path):
     assert sweep_location("s3://b/r/", "s", "smoke") == "s3://b/r/s/smoke"
     with pytest.raises(StoreError):
         sweep_location(str(tmp_path), "s", "../smoke")
+
+
+# --- item 3: leftover processes are ended only when provably ours -----------------------------------
+
+def _holding(session: Path, title: str) -> subprocess.Popen:
+    """A process (command line ``title`` …) holding a file open in ``session``; prints once it does."""
+    code = "import os, time; f = open(os.environ['LOG'], 'a'); print('open', flush=True); time.sleep(60)"
+    proc = subprocess.Popen([sys.executable, "-c", code, title], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "LOG": str(session / "log")})  # not on its command line
+    assert proc.stdout.readline().strip() == "open"
+    return proc
+
+
+def _dead_pid() -> int:
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    return gone.pid
+
+
+def test_a_planted_session_record_ends_no_unrelated_process(tmp_path, monkeypatch):
+    records = tmp_path / "records"
+    monkeypatch.setattr(local_cluster, "SESSION_RECORDS", records)
+    session = tmp_path / "session_2026-01-01_00-00-00_1"
+    session.mkdir()
+    victim = _holding(session, "an unrelated server")
+    ray_worker = _holding(session, f"--session-dir={session}")
+    try:
+        private_folder(records)
+        (records / "1.json").write_text(json.dumps({"pid": _dead_pid(), "session_dir": str(session)}))
+        assert local_cluster.reap_stale_sessions() == [ray_worker.pid]
+        assert ray_worker.wait(10) == -signal.SIGKILL and victim.poll() is None  # the victim is alive
+        (records / "2.json").write_text(json.dumps({"pid": _dead_pid(), "session_dir": str(session)}))
+        os.chmod(records, 0o777)  # a records folder anyone could have written into
+        with pytest.raises(StoreError, match="mode 777"):
+            local_cluster.reap_stale_sessions()
+        assert victim.poll() is None and (records / "2.json").exists()
+    finally:
+        for proc in (victim, ray_worker):
+            proc.kill()
+            proc.wait()
