@@ -22,6 +22,7 @@ import os
 import statistics
 import sys
 import tempfile
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -329,16 +330,35 @@ def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_tri
     return out
 
 
+DESCRIPTION_WIDTH = 100
+"""Characters per line of prose in a run description: Markdown joins the lines into one paragraph,
+and a reader of the raw text (``mlflow.note.content``) never scrolls sideways."""
+
+
+def _prose(text: str, bullet: bool = False) -> str:
+    return textwrap.fill(text, DESCRIPTION_WIDTH, initial_indent="- " if bullet else "", subsequent_indent="  " if bullet else "",
+                         break_long_words=False, break_on_hyphens=False)
+
+
 def describe_sweep(spec: Spec, profile: str, profile_description: str, table: ResultsTable, card: Sequence[str] = ()) -> str:
-    """The parent run's description (Markdown, the run page's first block): what was swept, with which
-    profile, the verdict sentences, the protocol card's lines (``sweeps/protocol.py``), the table."""
-    out = [f"**{spec.name}**: {spec.description}".rstrip(": "), f"Profile **{profile}**: {profile_description}".rstrip(": ")]
-    out += ["\n".join(f"- {line}" for line in table.summary)] if table.summary else []
-    out += ["**Protocol card**\n\n" + "\n".join(f"- {line}" for line in card)] if card else []
-    # The table and its notes, without its "## title" and without the card's lines said just above.
-    body = table.markdown().split("\n", 2)[2]
-    out.append("\n".join(line for line in body.splitlines() if not (card and line.startswith("- protocol: "))))
-    return "\n\n".join(out)
+    """The parent run's description (Markdown, the run page's first block), the answer first: the
+    verdict sentences, then the narrow table (cell, metric, partner, Δ with its interval, verdict) that
+    fits MLflow's description pane at 1,280 px, then the notes, the protocol card's changes
+    (``sweeps/protocol.py``; their sources are in ``results.md``) and what was swept with which profile.
+    The wide table (paper's column, per category, baselines beaten) is the run's ``results.md``."""
+    better = "lower" if spec.metric.mode == "min" else "higher"
+    out = [_prose(f"**{spec.name}**, profile **{profile}**: cells ranked by {spec.metric.name} ({better} is better)."),
+           "\n".join(_prose(line, bullet=True) for line in table.summary),
+           table.grid(table.answer or None),
+           _prose("Every column (the paper's numbers, per category, the baselines each cell beats) is in this run's "
+                  "`results.md` artifact.")]
+    notes = [n for n in table.notes if not n.startswith("protocol: ")]
+    out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
+    # The card's changes without their sources (each line "<change> (<source>)"): results.md lists them whole.
+    out += [_prose("**Protocol card**: " + "; ".join(line.split(" (", 1)[0] for line in card) + ".")] if card else []
+    out += [_prose(f"**{spec.name}**: {spec.description}".rstrip(": ")),
+            _prose(f"Profile **{profile}**: {profile_description}".rstrip(": "))]
+    return "\n\n".join(part for part in out if part)
 
 
 def _best_baseline(record: SweepRecord, trials: list[TrialRecord]) -> str | None:

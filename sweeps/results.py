@@ -29,7 +29,8 @@ from cdm.evaluate import BASELINES
 from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
 
 __all__ = [
-    "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "settings_note",
+    "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "rounded",
+    "settings_note",
 ]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
@@ -82,6 +83,12 @@ def _num(value: float, scale: float | None = None) -> str:
     return f"{value:.3f}" if abs(value if scale is None else scale) < 10 else f"{value:.2f}"
 
 
+def rounded(value: float) -> float:
+    """``value`` at the precision the tables print it (3 decimals below 10, else 2): what MLflow
+    shows a reader, so the UI's columns and the tables agree digit for digit."""
+    return float(_num(value)) if math.isfinite(value) else value
+
+
 @dataclass(frozen=True)
 class ResultsTable:
     """Formatted rows (``header`` columns) plus per-column numbers for the CSV."""
@@ -99,12 +106,18 @@ class ResultsTable:
     """Columns only ``results.md``/``.csv`` carry (per category, baselines beaten: the summary says it)."""
     narrowing: tuple[str, ...] = ()
     """Columns the terminal drops first, in this order, until the table fits its width."""
+    answer: tuple[str, ...] = ()
+    """The narrow table's columns (cell, metric, partner, Δ metric, verdict): the run page's first table."""
+
+    def _filled(self, names: Sequence[str] | None = None) -> list[int]:
+        """Indices of the columns named (default: all) that some row fills; the first column always."""
+        return [i for i, h in enumerate(self.header)
+                if (names is None or h in names) and (i == 0 or any(r[i] for r in self.rows))]
 
     def text(self, width: int = 120) -> str:
         """The table for a terminal, at most ``width`` columns: the wide columns stay in ``results.md``,
         empty ones are left out, then ``narrowing`` columns until it fits; notes are wrapped."""
-        keep = [i for i, h in enumerate(self.header)
-                if h not in self.wide_only and (i == 0 or any(r[i] for r in self.rows))]
+        keep = [i for i in self._filled() if self.header[i] not in self.wide_only]
 
         def widths(columns: list[int]) -> list[int]:
             return [max(len(r[i]) for r in [self.header, *self.rows]) for i in columns]
@@ -129,10 +142,14 @@ class ResultsTable:
         out += [""] + [textwrap.fill(n, width, subsequent_indent="  ") for n in notes] if notes else []
         return "\n".join(out)
 
+    def grid(self, names: Sequence[str] | None = None) -> str:
+        """The rows as a Markdown table of the columns ``names`` (default: all), empty columns left out."""
+        keep = self._filled(names)
+        out = ["| " + " | ".join(self.header[i] for i in keep) + " |", "|" + "---|" * len(keep)]
+        return "\n".join(out + ["| " + " | ".join(r[i] for i in keep) + " |" for r in self.rows])
+
     def markdown(self) -> str:
-        out = [f"## {self.title}", "", "| " + " | ".join(self.header) + " |", "|" + "---|" * len(self.header)]
-        out += ["| " + " | ".join(r) + " |" for r in self.rows]
-        out += [""] + [f"- {n}" for n in self.summary + self.notes]
+        out = [f"## {self.title}", "", self.grid(), ""] + [f"- {n}" for n in self.summary + self.notes]
         return "\n".join(out) + "\n"
 
     def write(self, folder: str | Path) -> tuple[Path, Path]:
@@ -350,8 +367,9 @@ def build_table(
     notes += [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
     narrowing = [f"Δ{partner.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and partner else []
     narrowing += ["paper setting"] + ([f"paper {partner}", partner] if partner else [])
+    answer = ("cell", *shown, *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
     return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, best, metric, pairing),
-                        frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]), tuple(narrowing))
+                        frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]), tuple(narrowing), answer)
 
 
 def _baseline_name(name: str) -> str:

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import csv
 import json
+import math
+import re
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -22,7 +24,7 @@ from scipy.ndimage import binary_dilation
 from cdm.data import build_dataset
 from cdm.data.sample import collate
 from cdm.evaluate import save_panel
-from sweeps import report
+from sweeps import report, results
 from sweeps.plan import expand
 from sweeps.spec import load_spec
 from sweeps.tracking import SweepRun, TrialRun
@@ -193,18 +195,34 @@ def test_baselines_once_on_the_parent_and_no_per_trial_paths_in_params(grid_stor
         assert child.data.params or child.data.tags.get("error")  # the failed one never logged its config
 
 
-def test_parent_description_reads_spec_profile_verdicts_and_table(grid_store):
+def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_store):
     uri, _ = grid_store
     record = report.open_sweep(uri, "synth")
     table = report.results_table(record, report.trial_records(record))
     card = report.protocol_card_lines(record)
     text = report.describe_sweep(record.spec, "smoke", "tiny", table, card)
     blocks = text.split("\n\n")
-    assert blocks[1] == "Profile **smoke**: tiny"
-    assert blocks[2].startswith("- best cell point_size=0.04: beats sphere")
-    assert blocks[3:5] == ["**Protocol card**", "\n".join(f"- {line}" for line in card)]
-    assert blocks[5].startswith("| cell | paper setting | trials | eval/f1 |")
-    assert text.count(card[0]) == 1  # the card once, not again in the table's notes
+    assert blocks[0] == "**synth**, profile **smoke**: cells ranked by eval/f1 (higher is better)."
+    assert blocks[1].startswith("- best cell point_size=0.04: beats sphere")
+    # The narrow table: cell, metric, partner, Δ with its interval, verdict; no paper or per-category column.
+    assert blocks[2].splitlines()[0] == "| cell | eval/f1 | eval/cd | Δf1 vs point_size=0.02 [95% CI] | verdict |"
+    assert "| point_size=0.04 ★ | 0.480 | 60.00 | +0.020 [+0.020, +0.020] | better |" in blocks[2]
+    assert "`results.md`" in blocks[3]
+    assert text.index("**Protocol card**") > text.index("| verdict |") and text.count(card[0].split(" (")[0]) == 1
+    assert "Profile **smoke**: tiny" in blocks[-1]
+
+
+def test_description_lines_are_short_and_every_number_rounded(grid_store):
+    uri, _ = grid_store
+    record = report.open_sweep(uri, "synth")
+    table = report.results_table(record, report.trial_records(record))
+    long_card = ["deviation: train.steps: 20, not 100000 (" + "a source " * 40 + ")"]
+    text = report.describe_sweep(record.spec, "smoke", "a profile " * 40, table, long_card)
+    assert max(len(line) for line in text.splitlines()) <= 200
+    # The tables' precision: 3 decimals below 10, 2 above; no 16-digit float (0.42000000000000004).
+    assert not re.findall(r"\d\.\d{4,}", text)
+    assert results.rounded(0.42000000000000004) == 0.42 and results.rounded(60.942297) == 60.94
+    assert results.rounded(1.23456) == 1.235 and math.isnan(results.rounded(math.nan))
 
 
 def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
