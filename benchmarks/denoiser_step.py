@@ -162,7 +162,7 @@ def main() -> None:
     if not args.quick:
         pv_step, pv = make_step(PAPER, {**POINTVOXEL[PAPER], "model.denoiser": "pointvoxel"})
         p2_step, p2 = make_step(PAPER, {"model.denoiser": "pvcnn2"})
-        result = paired(pv_step, p2_step, repeats=3)
+        result = paired(pv_step, p2_step, repeats=2)
         print(f"| paper B=8 N=4096 224², pvcnn2 ×1 vs 64/128/256 32/16/16 sparse | {result.a_s:.2f} | {result.b_s:.2f} "
               f"| {result.ratio:.2f} | {_params(pv):,} / {_params(p2):,} |")
         geometry = geometry_seconds(p2_step)
@@ -176,7 +176,7 @@ def main() -> None:
     for wm, vm in ((1.0, 1.0), (0.5, 1.0), (0.25, 1.0), (0.25, 0.5)):
         p2_step, p2 = make_step(LOCAL, {"model.denoiser": "pvcnn2", "model.width_multiplier": wm,
                                         "model.voxel_resolution_multiplier": vm})
-        result = paired(pv_step, p2_step, repeats=5)
+        result = paired(pv_step, p2_step, repeats=3)
         print(f"| local B=4 N=512 64², pvcnn2 ×{wm} res ×{vm} vs 32/64/128 16/8/8 sparse | {result.a_s:.3f} "
               f"| {result.b_s:.3f} | {result.ratio:.2f} | {_params(pv):,} / {_params(p2):,} |")
     print(f"\ntorch {torch.__version__}, {torch.get_num_threads()} thread; medians of paired steps")
