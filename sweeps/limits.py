@@ -5,6 +5,9 @@
   laughs" anchor chain would otherwise grow to gigabytes inside ``yaml.safe_load``).
 - :func:`check_trials`: at most ``--max-cells`` trials (default :data:`MAX_TRIALS`), counted from
   the spec's grid, cells and seeds before a single config is built.
+- :func:`check_set_text`: a ``--set key=value`` is at most :data:`MAX_SET_CHARS` characters and
+  :data:`MAX_SET_DEPTH` brackets deep, checked before YAML parses it (50,000 nested brackets took
+  YAML 93 s to end in a ``RecursionError``).
 - the memory of the trials that run at once is checked by :func:`cdm.memory.check_memory`.
 
 Every refusal is a :class:`LimitError` naming the field or file and how to raise the cap.
@@ -19,10 +22,13 @@ from typing import Any
 import yaml
 
 __all__ = [
+    "MAX_SET_CHARS",
+    "MAX_SET_DEPTH",
     "MAX_TRIALS",
     "MAX_YAML_BYTES",
     "MAX_YAML_NODES",
     "LimitError",
+    "check_set_text",
     "check_trials",
     "load_yaml",
 ]
@@ -31,6 +37,10 @@ MAX_YAML_BYTES = 1 << 20
 """Largest spec or profiles file read (1 MiB; the repository's specs are a few kB)."""
 MAX_YAML_NODES = 100_000
 """Most YAML nodes a document may hold once its aliases are expanded."""
+MAX_SET_CHARS = 4096
+"""Longest ``--set key=value`` (a list of a few hundred categories fits)."""
+MAX_SET_DEPTH = 16
+"""Deepest bracket (``[``, ``{``) nesting of a ``--set`` value; a config field needs two at most."""
 MAX_TRIALS = 1000
 """Default cap on trials per sweep (cells × seeds, or Optuna samples); ``--max-cells N`` raises it."""
 
@@ -117,3 +127,21 @@ def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:
     if count > max_trials:
         raise LimitError(f"{what}: {count} trials; a sweep may have at most {max_trials} "
                          f"(pass --max-cells {count} to run it anyway)")
+
+
+def check_set_text(text: str) -> None:
+    """Refuse a ``--set`` text longer than :data:`MAX_SET_CHARS` or nested deeper than :data:`MAX_SET_DEPTH`
+    (brackets counted as written, inside quotes too: an upper bound), before any parser reads it."""
+    key = text.split("=", 1)[0][:60]
+    if len(text) > MAX_SET_CHARS:
+        raise LimitError(f"--set {key}=…: {len(text)} characters; a --set may have at most {MAX_SET_CHARS} "
+                         "(put long values in a spec's fixed: section)")
+    depth = deepest = 0
+    for char in text:
+        if char in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in "]}":
+            depth -= 1
+    if deepest > MAX_SET_DEPTH:
+        raise LimitError(f"--set {key}=…: brackets nested {deepest} deep; a value may nest at most {MAX_SET_DEPTH}")

@@ -28,13 +28,13 @@ from pydantic import ValidationError
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
 from sweeps.claim import ClaimError, SweepClaim, claim
-from sweeps.limits import MAX_TRIALS, LimitError, check_trials
+from sweeps.limits import MAX_TRIALS, LimitError, check_set_text, check_trials
 from sweeps.plan import SweepPlan, expand, lambda_source
 from sweeps.precompute import shared_root
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.resources import plan_concurrency
 from sweeps.spec import Spec, SpecError, load_spec
-from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_resume_trust, check_storage, check_tracking_uri,
+from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
 __all__ = ["describe", "main"]
@@ -208,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         spec = load_spec(args.spec)
         sweep_dir = sweep_location(args.storage, spec.name, profile)
         state_file = f"{sweep_dir}/{STATE_FILE}"
+        for text in args.set:
+            check_set_text(text)
         sets = dict(parse_override(text) for text in args.set)
         if args.resume:
             if not exists(state_file):
@@ -238,7 +240,10 @@ def main(argv: list[str] | None = None) -> int:
         try:  # before Ray starts and before any MLflow run exists
             check_no_links(sweep_dir)
             check_storage(sweep_dir)
-            check_tracking_uri(resolve_tracking_uri(args.tracking_uri or (state or {}).get("tracking_uri")))
+            uri = resolve_tracking_uri(args.tracking_uri or (state or {}).get("tracking_uri"))
+            check_tracking_uri(uri)
+            if state is not None:
+                check_parent_run(uri, state["parent_run_id"])
             held = claim(sweep_dir)
         except (StoreError, ClaimError) as exc:
             return _fail(str(exc))

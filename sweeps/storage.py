@@ -1,7 +1,9 @@
 """Where a sweep keeps its files and runs, checked before Ray starts and before any MLflow run exists.
 
 - :func:`check_tracking_uri`: an MLflow store MLflow can open (``sqlite:``, ``file:``, ``http(s):``,
-  a database URL), whose folder can be written (SQLite, files) or whose server answers (HTTP).
+  a database URL whose driver is installed), whose folder can be written (SQLite, files) or whose
+  server answers as an MLflow server (HTTP); :func:`check_parent_run`: on ``--resume``, the store
+  holds the sweep's parent run (looked up without creating a store).
 - :func:`check_storage`: a sweep folder that can be created — a local path under a writable folder,
   or an object-store URI (``s3://``, ``gs://``, ``file://``) whose bucket exists and takes a write
   with the credentials of this environment (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, and
@@ -33,7 +35,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-__all__ = ["MAX_NAME", "TRACKING_SCHEMES", "StoreError", "check_name", "check_no_links", "check_storage", "check_tracking_uri", "exists",
+__all__ = ["MAX_NAME", "TRACKING_SCHEMES", "StoreError", "check_name", "check_no_links", "check_parent_run", "check_storage", "check_tracking_uri", "exists",
            "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "publish_files", "read_text", "sweep_location"]
 
 MAX_NAME = 100
@@ -41,6 +43,9 @@ MAX_NAME = 100
 
 TRACKING_SCHEMES = ("sqlite", "file", "http", "https", "postgresql", "mysql", "mssql")
 """MLflow stores a sweep can log to."""
+
+DB_DRIVERS = {"postgresql": "psycopg2", "mysql": "MySQLdb", "mssql": "pyodbc"}
+"""SQLAlchemy's default driver module of each database scheme MLflow takes (``scheme+driver`` names another)."""
 
 _STATE_KEYS = {"spec": dict, "sets": dict, "profile": str, "tracking_uri": str, "parent_run_id": str}
 
@@ -77,13 +82,53 @@ def check_tracking_uri(uri: str) -> None:
     elif scheme == "file":
         _writable_folder(Path(urllib.parse.urlsplit(uri).path), "--tracking-uri")
     elif scheme in ("http", "https"):
-        try:
-            with urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=10):
-                pass
-        except (urllib.error.URLError, OSError) as exc:
-            reason = getattr(exc, "reason", exc)
-            raise StoreError(f"--tracking-uri {uri}: no MLflow server answers there ({reason}); start one "
-                             "(`mlflow server --host 127.0.0.1 --port 5000`) or give another URI") from None
+        _check_mlflow_server(uri)
+    elif scheme in DB_DRIVERS:
+        import importlib.util
+
+        dialect = urllib.parse.urlsplit(uri).scheme
+        driver = dialect.split("+", 1)[1] if "+" in dialect else DB_DRIVERS[scheme]
+        if importlib.util.find_spec(driver) is None:
+            raise StoreError(f"--tracking-uri {uri}: its database driver {driver!r} is not installed; "
+                             f"`pip install` it (or name an installed one: {scheme}+<driver>://…)")
+
+
+def _check_mlflow_server(uri: str) -> None:
+    """An HTTP(S) server that answers ``/health`` and MLflow's REST API (any server may answer ``/health``)."""
+    base = uri.rstrip("/")
+    try:
+        with urllib.request.urlopen(f"{base}/health", timeout=10):
+            pass
+    except (urllib.error.URLError, OSError) as exc:
+        reason = getattr(exc, "reason", exc)
+        raise StoreError(f"--tracking-uri {uri}: no MLflow server answers there ({reason}); start one "
+                         "(`mlflow server --host 127.0.0.1 --port 5000`) or give another URI") from None
+    try:
+        with urllib.request.urlopen(f"{base}/api/2.0/mlflow/experiments/search?max_results=1", timeout=10) as reply:
+            answer = json.loads(reply.read(1 << 20))
+    except (urllib.error.URLError, OSError, ValueError) as exc:
+        answer = _one_line(exc)
+    if not isinstance(answer, dict):
+        raise StoreError(f"--tracking-uri {uri}: the server there answers /health but not MLflow's API "
+                         f"(experiments/search: {str(answer)[:100]}); give the URI of an MLflow server")
+
+
+def check_parent_run(uri: str, run_id: str) -> None:
+    """Refuse ``--resume`` when the store ``uri`` lacks the sweep's parent run ``run_id``; a SQLite file or
+    store folder that does not exist is not created to find out."""
+    split = urllib.parse.urlsplit(uri)
+    local = uri.removeprefix("sqlite:///") if split.scheme == "sqlite" else split.path if split.scheme == "file" else None
+    if local is not None and not Path(local).exists():
+        raise StoreError(f"--resume: the MLflow store {uri} does not exist, so it lacks the sweep's parent run "
+                         f"{run_id}; pass the --tracking-uri the sweep started with")
+    from mlflow import MlflowClient
+    from mlflow.exceptions import MlflowException
+
+    try:
+        MlflowClient(uri).get_run(run_id)
+    except MlflowException as exc:
+        raise StoreError(f"--resume: the MLflow store {uri} has no parent run {run_id} "
+                         f"({_one_line(exc)[:160]}); pass the --tracking-uri the sweep started with") from None
 
 
 def _one_line(exc: BaseException) -> str:

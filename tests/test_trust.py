@@ -5,20 +5,26 @@ line, the victim untouched, the planted code not run, the folder unescaped, Ray 
 
 from __future__ import annotations
 
+import http.server
+import importlib.util
 import json
 import os
 import pickle
 import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
 import ray
+from mlflow import MlflowClient
 
 from sweeps import local_cluster, run
 from sweeps.claim import ClaimError, claim, claims_folder
 from sweeps.spec import load_spec
+from sweeps.tracking import SweepRun
 from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
 
 SPEC = "name: s\ngrid: {priors.point_size: [0.04]}\n"
@@ -112,12 +118,18 @@ class _Planted:
         return os.mkdir, (str(self.marker),)
 
 
-def _stopped_sweep(tmp: Path) -> Path:
-    """A local sweep folder as an interrupted sweep leaves it (its ``sweep.json``), this user's, mode 755."""
+def _stopped_sweep(tmp: Path, parent: bool = True) -> Path:
+    """A local sweep folder as a stopped sweep leaves it (its ``sweep.json``), this user's, mode 755; with
+    ``parent``, its FINISHED parent run in ``<tmp>/m.db``, else a run id no store holds."""
     folder = tmp / "results" / "s" / "smoke"
     (folder / "trial_0").mkdir(parents=True)
+    run_id = "0" * 32
+    if parent:
+        sweep = SweepRun.start(f"sqlite:///{tmp}/m.db", "s", "s · smoke", tags={}, params={})
+        sweep.end("FINISHED")
+        run_id = sweep.run_id
     state = {"spec": load_spec(tmp / "spec.yaml").model_dump(mode="json"), "sets": {}, "profile": "smoke",
-             "tracking_uri": f"sqlite:///{tmp}/m.db", "parent_run_id": "0" * 32}
+             "tracking_uri": f"sqlite:///{tmp}/m.db", "parent_run_id": run_id}
     (folder / "sweep.json").write_text(json.dumps(state))
     return folder
 
@@ -136,10 +148,13 @@ def test_resume_refuses_tune_state_others_could_have_written(in_tmp, capsys, how
             os.chmod(planted, 0o666)
         else:
             os.chown(planted, OTHER_UID, -1)
+    capsys.readouterr()  # MLflow's lines from making the parent run
     assert run.main(_argv(in_tmp, "--resume")) == 2
     err = _one_error_line(capsys)
     assert str(planted) in err and "--trust-storage" in err, err
-    assert not marker.exists() and not (in_tmp / "m.db").exists() and not ray.is_initialized()
+    assert not marker.exists() and not ray.is_initialized()
+    parent = json.loads((folder / "sweep.json").read_text())["parent_run_id"]
+    assert MlflowClient(f"sqlite:///{in_tmp}/m.db").get_run(parent).info.status == "FINISHED"  # left as it was
     assert not (in_tmp / "results" / "s" / ".smoke.lock").exists()  # the claim was released
 
 
@@ -256,3 +271,63 @@ def test_a_planted_session_record_ends_no_unrelated_process(tmp_path, monkeypatc
         for proc in (victim, ray_worker):
             proc.kill()
             proc.wait()
+
+
+# --- item 6: checked before Ray starts, in one line, exit 2 -------------------------------------------
+
+class _HealthOnly(http.server.BaseHTTPRequestHandler):
+    """Any web server: ``/health`` says OK, everything else is 404."""
+
+    def do_GET(self):  # noqa: N802 (http.server's name)
+        self.send_response(200 if self.path == "/health" else 404)
+        self.end_headers()
+        self.wfile.write(b"OK")
+
+    def log_message(self, *args):
+        pass
+
+
+def test_a_server_answering_health_but_not_mlflow_is_refused(in_tmp, capsys):
+    server = http.server.HTTPServer(("127.0.0.1", 0), _HealthOnly)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        argv = _argv(in_tmp)[:-2] + ["--tracking-uri", f"http://127.0.0.1:{server.server_port}"]
+        assert run.main(argv) == 2
+    finally:
+        server.shutdown()
+    assert "answers /health but not MLflow's API (experiments/search: HTTP Error 404" in _one_error_line(capsys)
+    assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"] and not ray.is_initialized()
+
+
+@pytest.mark.parametrize("uri,driver", [("postgresql://u@127.0.0.1/mlflow", "psycopg2"),
+                                        ("mysql+nosuchdriver://u@127.0.0.1/mlflow", "nosuchdriver")])
+def test_a_database_uri_without_its_driver_is_refused(in_tmp, capsys, uri, driver):
+    assert importlib.util.find_spec(driver) is None
+    assert run.main(_argv(in_tmp)[:-2] + ["--tracking-uri", uri]) == 2
+    assert f"its database driver {driver!r} is not installed" in _one_error_line(capsys)
+    assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"]
+
+
+def test_resume_against_a_store_without_the_parent_run_creates_nothing(in_tmp, capsys):
+    folder = _stopped_sweep(in_tmp, parent=False)
+    assert run.main(_argv(in_tmp, "--resume")[:-3] + ["--resume"]) == 2  # the store named in sweep.json
+    assert f"the MLflow store sqlite:///{in_tmp}/m.db does not exist" in _one_error_line(capsys)
+    assert not (in_tmp / "m.db").exists() and sorted(p.name for p in folder.iterdir()) == ["sweep.json", "trial_0"]
+    other = SweepRun.start(f"sqlite:///{in_tmp}/other.db", "exp", "exp", tags={}, params={})
+    other.end("FINISHED")
+    capsys.readouterr()
+    assert run.main(_argv(in_tmp, "--resume")[:-3] + ["--resume", "--tracking-uri", other.uri]) == 2
+    assert f"has no parent run {'0' * 32}" in _one_error_line(capsys)
+    assert not ray.is_initialized()
+
+
+@pytest.mark.parametrize("value,needle", [("[" * 50_000 + "]" * 50_000, "100016 characters; a --set may have at most 4096"),
+                                          ("[" + ",".join(["a"] * 20_000) + "]", "40017 characters"),
+                                          ("[" * 17 + "a" + "]" * 17, "brackets nested 17 deep")])
+def test_a_huge_or_deep_set_value_is_refused_at_once(in_tmp, capsys, value, needle):
+    started = time.perf_counter()
+    assert run.main(_argv(in_tmp, "--set", f"data.categories={value}")) == 2
+    err = _one_error_line(capsys)
+    assert needle in err and len(err) < 300 and time.perf_counter() - started < 5, err
+    assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"]
