@@ -143,31 +143,44 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
 def training_curves(
     curves: Mapping[str, Mapping[str, Sequence[tuple[int, float]]]], cells: Mapping[str, str], metric: str, title: str, path: Path
 ) -> Path:
-    """``train/loss`` and ``metric`` against the training step: one line per trial, one colour per cell
-    (its seeds share it).
+    """The loss against the training step, its terms apart: the diffusion term, the λ × 3D-prior term
+    (``train/loss − train/loss_diffusion``, Eq. 6) and their sum, one line per trial, one colour per cell
+    (its seeds share it). The prior term grows with λ and the point size, so only the diffusion term
+    compares learning across such cells. ``metric`` gets a panel only when some trial evaluated twice:
+    a single evaluation per trial is a number (the results table, ``metric_vs_value.png``), not a curve.
 
     Args:
-        curves: trial label → metric name → ``(step, value)`` pairs (any order).
+        curves: trial label → metric name (``train/loss``, ``train/loss_diffusion``, ``metric``) →
+            ``(step, value)`` pairs (any order).
         cells: trial label → cell name.
     """
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+
+    def series(history: Mapping[str, Sequence[tuple[int, float]]]) -> dict[str, list[tuple[int, float]]]:
+        total, diffusion = sorted(history.get("train/loss", ())), dict(history.get("train/loss_diffusion", ()))
+        out = {"diffusion term": [(s, diffusion[s]) for s, _ in total if s in diffusion],
+               "λ × 3D prior term": [(s, v - diffusion[s]) for s, v in total if s in diffusion],
+               "total (Eq. 6)": total}
+        return out | ({metric: sorted(history[metric])} if len(history.get(metric, ())) >= 2 else {})
+
+    panels = {label: series(history) for label, history in curves.items()}
+    keys = [k for k in ("diffusion term", "λ × 3D prior term", "total (Eq. 6)", metric) if any(p.get(k) for p in panels.values())]
+    fig, axes = plt.subplots(1, len(keys), figsize=(3.8 * len(keys), 3.6), squeeze=False)
     colours = {c: f"C{i % 10}" for i, c in enumerate(dict.fromkeys(cells[label] for label in curves))}
-    labelled: set[tuple[str, str]] = set()
-    for label, history in curves.items():
+    labelled: set[str] = set()
+    for label, lines in panels.items():
         cell = cells[label]
-        for ax, key in zip(axes, ("train/loss", metric)):
-            pts = sorted(history.get(key, ()))
-            if pts:
-                ax.plot(*zip(*pts), "-" if key == "train/loss" else "o-", color=colours[cell],
-                        label=None if (cell, key) in labelled else cell)
-                labelled.add((cell, key))
-    for ax, key in zip(axes, ("train/loss", metric)):
+        for ax, key in zip(axes[0], keys):
+            if lines.get(key):
+                ax.plot(*zip(*lines[key]), "o-" if key == metric else "-", color=colours[cell],
+                        label=None if cell in labelled else cell)
+        labelled.add(cell)
+    for ax, key in zip(axes[0], keys):
         ax.set_xlabel("training step")
-        ax.set_ylabel(key)
+        ax.set_title(key, fontsize=9)
         ax.grid(alpha=0.3)
     if len(colours) <= 12 and labelled:  # beyond that a legend hides the curves
-        axes[1 if any(k == metric for _, k in labelled) else 0].legend(fontsize=7)
+        axes[0][0].legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path)

@@ -22,6 +22,7 @@ import os
 import statistics
 import sys
 import tempfile
+import time
 import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -33,7 +34,7 @@ if __package__ in (None, ""):  # `python sweeps/report.py` puts sweeps/ first on
 
 import numpy as np
 from mlflow import MlflowClient
-from mlflow.entities import Run
+from mlflow.entities import Metric, Run
 
 from cdm.config import PriorsConfig
 from cdm.evaluate import BASELINES
@@ -48,7 +49,7 @@ from sweeps.plots import (
     training_curves,
 )
 from sweeps.protocol import CARD_TAG
-from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, settings_note
+from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, rounded, settings_note
 from sweeps.spec import SpaceParam, Spec, load_spec
 from sweeps.tracking import last_eval_files, last_objects, parent_baselines, resolve_tracking_uri
 
@@ -58,6 +59,7 @@ __all__ = [
     "TrialRecord",
     "UnknownExperimentError",
     "describe_sweep",
+    "describe_trial",
     "main",
     "open_sweep",
     "panels",
@@ -66,6 +68,7 @@ __all__ = [
     "reconstructions",
     "results_table",
     "share_view",
+    "sort_key",
     "trial_records",
     "write_plots",
 ]
@@ -299,7 +302,7 @@ def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) ->
     if points:
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
                                      spec.paper.table if spec.paper else "paper"))
-    curves = _histories(record, trials, ("train/loss", metric))
+    curves = _histories(record, trials, ("train/loss", "train/loss_diffusion", metric))
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
         paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
@@ -323,8 +326,9 @@ def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_tri
             continue
         files = last_eval_files(record.client, t.run_id)
         pngs = sorted(f for f in files if f.endswith(".png"))[:per_trial]
+        clouds = {Path(f).name: f for f in files if f.endswith(".ply")}  # panels/<stem>.png beside clouds/<stem>.ply
         dest = Path(folder) / t.run_id
-        for f in pngs + [p.removesuffix(".png") + ".ply" for p in pngs if p.removesuffix(".png") + ".ply" in files]:
+        for f in pngs + [clouds[Path(p).stem + ".ply"] for p in pngs if Path(p).stem + ".ply" in clouds]:
             record.client.download_artifacts(t.run_id, f, str(dest))
         out[t.outcome.label] = [dest / Path(f).name for f in pngs]  # download_artifacts keeps only the file name
     return out
@@ -409,34 +413,85 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
             viewer_html(gallery, columns, title, folder / "reconstructions.html")]
 
 
+def sort_key(text: str) -> float | None:
+    """A swept param's value as a number the runs view can sort by, or None when it is not one.
+
+    MLflow orders params as text (``10`` before ``2``, ``1e-3`` after ``0.5``) but metrics as numbers,
+    so :func:`share_view` logs this as the metric ``swept/<param>`` and orders the view by it."""
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
 def share_view(record: SweepRecord) -> str:
     """Save an MLflow UI view of this sweep and return its path on the UI server (``#/experiments/…``).
 
     The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
     reads) lists the sweep's child runs grouped by cell — the group row averages the seeds — with
-    ``final/<metric>`` (the sweep's metric selected first; MLflow's table still lays out columns by
-    kind and metrics by name), the swept params and seed as columns, sorted by the swept value (one
-    swept field; MLflow orders params as text, which orders plain decimals right)."""
+    ``final/<metric>`` and its partner, the swept values and the seed as columns. A swept field whose
+    values are all numbers is shown as the metric ``swept/<field>`` (:func:`sort_key`, logged here
+    on each child) and, when it is the only one, the rows are sorted by it as numbers."""
     metric = record.spec.metric.name
     swept = list(dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])]))
+    numeric = [k for k in swept if all(sort_key(r.data.params[k]) is not None for r in record.children if k in r.data.params)]
+    now = int(time.time() * 1000)
+    for run in record.children:
+        keys = [k for k in numeric if k in run.data.params and f"swept/{k}" not in run.data.metrics]
+        if keys:
+            record.client.log_batch(run.info.run_id, metrics=[Metric(f"swept/{k}", sort_key(run.data.params[k]), now, 0) for k in keys])
     finals = ["final/" + m.removeprefix("eval/") for m in (metric, partner(metric)) if m and m.startswith("eval/")]
     state = {
         "searchFilter": f"tags.mlflow.parentRunId = '{record.parent.info.run_id}'",
         "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": "cell"}]},
-        "selectedColumns": [f"metrics.`{m}`" for m in finals or [metric]] + [f"params.`{k}`" for k in swept] + ["tags.`seed`"],
+        "selectedColumns": [f"metrics.`{m}`" for m in finals or [metric]] + [f"metrics.`swept/{k}`" for k in numeric]
+        + [f"params.`{k}`" for k in swept if k not in numeric] + ["tags.`seed`"],
     }
     if len(swept) == 1:
-        state |= {"orderByKey": f"params.`{swept[0]}`", "orderByAsc": True}
+        state |= {"orderByKey": f"metrics.`swept/{swept[0]}`" if numeric else f"params.`{swept[0]}`", "orderByAsc": True}
     key = f"sweep-{record.parent.info.run_id}"
     record.client.set_experiment_tag(record.experiment_id, f"mlflow.sharedViewState.{key}", json.dumps(state))
     return f"#/experiments/{record.experiment_id}/runs?viewStateShareKey={key}"
 
 
+def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable) -> str:
+    """A child run's description (Markdown, one paragraph): its cell and seed, its result, its cell
+    against the reference cell and the baselines (from ``table``'s records), and a link to the sweep's
+    parent run."""
+    o, spec = trial.outcome, record.spec
+    parent = f"[{record.title}](#/experiments/{record.experiment_id}/runs/{record.parent.info.run_id})"
+    seed = o.label.rsplit(" · seed ", 1)[1] if " · seed " in o.label else "?"
+    out = [f"**{o.cell}**, seed {seed}, a trial of the sweep {parent}."]
+    if o.status == "failed":
+        out.append(f"It failed: {o.error or 'no reason recorded'}.")
+    elif not o.finished:
+        out.append("It did not finish.")
+    else:
+        shown = [m for m in (spec.metric.name, partner(spec.metric.name)) if m and m in o.metrics]
+        out.append("At its last evaluation " + ", ".join(f"{m} {rounded(o.metrics[m])}" for m in shown) + ".")
+        cell = next((r for r in table.records if r["cell"] == o.cell), {})
+        delta = cell.get(f"{spec.metric.name} delta")
+        if delta is not None:
+            short = spec.metric.name.removeprefix("eval/")
+            out.append(f"Its cell against the reference cell: Δ{short} {rounded(delta):+} "
+                       f"[{rounded(cell[f'{spec.metric.name} delta low']):+}, {rounded(cell[f'{spec.metric.name} delta high']):+}]"
+                       f" (95% paired interval), {cell['verdict']}.")
+        if "beats baselines" in cell:
+            beaten = str(cell["beats baselines"]).replace(";", ", ")
+            out.append(f"Baselines it beats on {spec.metric.name}: {beaten or 'none'}.")
+    return _prose(" ".join(out))
+
+
 def publish(uri: str, parent_run_id: str, folder: Path) -> str:
     """End of a sweep: plots and reconstructions into ``folder`` and onto the parent run (``plots/``,
-    ``reconstructions/``), and the UI view; returns its path."""
+    ``reconstructions/``), a description on each child run, and the UI view; returns its path."""
     record = open_sweep(uri, parent_run_id=parent_run_id)
-    trials = trial_records(record, objects=False)
+    trials = trial_records(record)
+    table = results_table(record, trials)
+    for t in trials:
+        if t.run_id is not None:
+            record.client.set_tag(t.run_id, "mlflow.note.content", describe_trial(record, t, table))
     for path in write_plots(record, trials, folder):
         record.client.log_artifact(parent_run_id, str(path), "plots")
     for path in reconstructions(record, trials, folder):

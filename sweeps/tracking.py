@@ -13,6 +13,7 @@ reused for the next trial carries nothing over.
 from __future__ import annotations
 
 import csv
+import math
 import os
 import re
 import tempfile
@@ -27,8 +28,9 @@ from mlflow.entities import Metric, Param, RunTag
 
 from cdm.config import Config
 from cdm.train import Callback
+from sweeps.results import rounded
 
-__all__ = ["SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
+__all__ = ["EVAL_FOLDERS", "SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
            "resolve_tracking_uri", "ui_command"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
@@ -171,8 +173,9 @@ class SweepRun:
         """Copy the last evaluation's ``eval/cd``, ``eval/f1`` (and ``…/<category>``) to ``final/…``.
 
         Stable names to sort, search and compare by in the UI (``metrics.`final/f1` > 0.4``), whatever
-        step a trial ended at (ASHA stops some early). Logged here, on the driver, once Tune's verdict
-        is in: the trial itself cannot tell its last evaluation from an intermediate one.
+        step a trial ended at (ASHA stops some early), at the results table's precision (the runs view
+        shows them as logged). Logged here, on the driver, once Tune's verdict is in: the trial itself
+        cannot tell its last evaluation from an intermediate one.
         """
         history = self.client.get_metric_history(run_id, "eval/cd")
         latest = self.client.get_run(run_id).data.metrics
@@ -180,7 +183,7 @@ class SweepRun:
             return
         step = max(m.step for m in history)
         now = int(time.time() * 1000)
-        final = [Metric("final/" + k.removeprefix("eval/"), v, now, step) for k, v in latest.items()
+        final = [Metric("final/" + k.removeprefix("eval/"), rounded(v), now, step) for k, v in latest.items()
                  if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])]
         self.client.log_batch(run_id, metrics=final)
 
@@ -192,17 +195,18 @@ class SweepRun:
     def log_results(self, cells: dict[str, dict[str, float]], baselines: dict[str, dict[str, float]], description: str) -> None:
         """The sweep's results on the parent run: per cell ``<cell>/<metric>`` (``point_size 0.04/f1``),
         the baselines once per evaluation set (``baseline/sphere/f1``; ``eval_set <id>/baseline/…``
-        when the cells were scored on several), and ``description`` as the run's description.
+        when the cells were scored on several), and ``description`` as the run's description. Values
+        at the results table's precision: the run page lists them as logged.
 
         Args:
             cells: cell name → metric (``eval/`` dropped: ``f1``, ``cd/chair``) → mean over its seeds.
             baselines: evaluation-set fingerprint → ``baseline/<name>/<metric>`` → value.
         """
         now = int(time.time() * 1000)
-        metrics = [Metric(f"{metric_key(cell)}/{k}", v, now, 0) for cell, values in cells.items() for k, v in values.items()]
+        metrics = [Metric(f"{metric_key(cell)}/{k}", rounded(v), now, 0) for cell, values in cells.items() for k, v in values.items()]
         for eval_set, values in baselines.items():
             prefix = "" if len(baselines) == 1 else f"eval_set {eval_set}/"
-            metrics += [Metric(prefix + k, v, now, 0) for k, v in values.items()]
+            metrics += [Metric(prefix + k, rounded(v), now, 0) for k, v in values.items()]
         for i in range(0, len(metrics), 1000):  # MLflow's limit of metrics per log_batch call
             self.client.log_batch(self.run_id, metrics=metrics[i:i + 1000])
         self.client.set_tag(self.run_id, "mlflow.note.content", description)
@@ -211,10 +215,20 @@ class SweepRun:
         self.client.set_terminated(self.run_id, status=status)
 
 
+EVAL_FOLDERS = {".png": "panels", ".ply": "clouds"}
+"""Sub-folder of ``eval/step_<N>/`` per file suffix (``objects.csv`` stays at the top): a reader finds the
+panels apart from the dozens of clouds."""
+
+
 def last_eval_files(client: MlflowClient, run_id: str) -> list[str]:
-    """Artifact paths under the child run's last ``eval/step_<N>/`` folder; empty before any evaluation."""
+    """Artifact paths under the child run's last ``eval/step_<N>/`` folder and its sub-folders (panels,
+    clouds); empty before any evaluation."""
     steps = sorted(a.path for a in client.list_artifacts(run_id, "eval") if a.is_dir)
-    return [a.path for step in steps[-1:] for a in client.list_artifacts(run_id, step)]
+    out = []
+    for step in steps[-1:]:
+        for a in client.list_artifacts(run_id, step):
+            out += [b.path for b in client.list_artifacts(run_id, a.path)] if a.is_dir else [a.path]
+    return out
 
 
 def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
@@ -231,28 +245,33 @@ def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
 
 
 def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path:
-    """Plot the run's training loss and ``metric`` (the sweep's) against wall-clock minutes, from its
-    MLflow history, titled ``title`` (the cell).
+    """Plot the run's loss against wall-clock minutes from its MLflow history: the diffusion term, the
+    λ × 3D-prior term (``train/loss − train/loss_diffusion``, Eq. 6) and their sum apart, so a larger λ
+    or point size does not read as worse learning; ``metric`` (the sweep's) on a second axis once the
+    run holds two evaluations (one is a number, in the run's metrics, not a curve). Titled ``title``.
 
     Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
     """
-    from sweeps.plots import DPI
+    from sweeps.plots import DPI, _pyplot
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    loss = client.get_metric_history(run_id, "train/loss")
-    evals = client.get_metric_history(run_id, metric)
+    plt = _pyplot()
+    loss = sorted(client.get_metric_history(run_id, "train/loss"), key=lambda m: m.step)
+    diffusion = {m.step: m.value for m in client.get_metric_history(run_id, "train/loss_diffusion")}
+    evals = sorted(client.get_metric_history(run_id, metric), key=lambda m: m.step)
     t0 = min(m.timestamp for m in loss + evals)
+    minutes = [(m.timestamp - t0) / 60000 for m in loss]
     fig, ax = plt.subplots(figsize=(6, 3.2))
-    ax.plot([(m.timestamp - t0) / 60000 for m in loss], [m.value for m in loss], color="tab:blue")
+    ax.plot(minutes, [m.value for m in loss], color="black", label="total (Eq. 6)")
+    if diffusion:
+        ax.plot(minutes, [diffusion.get(m.step, math.nan) for m in loss], color="tab:blue", label="diffusion term")
+        ax.plot(minutes, [m.value - diffusion.get(m.step, math.nan) for m in loss], color="tab:orange", label="λ × 3D prior term")
     ax.set_xlabel("wall-clock minutes")
-    ax.set_ylabel("train/loss", color="tab:blue")
-    ax2 = ax.twinx()
-    ax2.plot([(m.timestamp - t0) / 60000 for m in evals], [m.value for m in evals], "o-", color="tab:red")
-    ax2.set_ylabel(metric + (" (×1000)" if metric.split("/")[1:2] == ["cd"] else ""), color="tab:red")
+    ax.set_ylabel("training loss")
+    ax.legend(fontsize=7, loc="upper left")
+    if len(evals) >= 2:
+        ax2 = ax.twinx()
+        ax2.plot([(m.timestamp - t0) / 60000 for m in evals], [m.value for m in evals], "o-", color="tab:red")
+        ax2.set_ylabel(metric + (" (×1000)" if metric.split("/")[1:2] == ["cd"] else ""), color="tab:red")
     if title:
         ax.set_title(title, fontsize=9)
     fig.tight_layout()
@@ -326,10 +345,11 @@ class TrialRun(Callback):
                     self.client.set_tag(self.run_id, "eval_set", first["eval_set"])
                     self.eval_set_tagged = True
         for path in files:
-            self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}")
+            sub = EVAL_FOLDERS.get(path.suffix)
+            self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}" + (f"/{sub}" if sub else ""))
         if files:
             curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name)
-            self.client.log_artifact(self.run_id, str(curve))
+            self.client.log_artifact(self.run_id, str(curve), "curves")
 
     def on_checkpoint(self, step: int, path: Path) -> None:
         self.client.set_tag(self.run_id, "checkpoint", str(path))

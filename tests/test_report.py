@@ -178,9 +178,47 @@ def test_shared_view_groups_the_sweeps_children_by_cell(grid_store):
     state = json.loads(MlflowClient(uri).get_experiment(sweep.experiment_id).tags[f"mlflow.sharedViewState.sweep-{sweep.run_id}"])
     assert state["searchFilter"] == f"tags.mlflow.parentRunId = '{sweep.run_id}'"
     assert state["groupBy"]["groupByKeys"] == [{"mode": "tag", "groupByData": "cell"}]
-    # The sweep's metric first; rows in the swept value's order, whatever order the trials ran in.
-    assert state["selectedColumns"] == ["metrics.`final/f1`", "metrics.`final/cd`", "params.`priors.point_size`", "tags.`seed`"]
-    assert (state["orderByKey"], state["orderByAsc"]) == ("params.`priors.point_size`", True)
+    # The sweep's metric and its partner, the swept value as a number; rows in its numeric order.
+    assert state["selectedColumns"] == ["metrics.`final/f1`", "metrics.`final/cd`", "metrics.`swept/priors.point_size`", "tags.`seed`"]
+    assert (state["orderByKey"], state["orderByAsc"]) == ("metrics.`swept/priors.point_size`", True)
+    children = MlflowClient(uri).search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")
+    assert sorted(c.data.metrics.get("swept/priors.point_size", -1) for c in children) == [-1, 0.02, 0.04]  # the failed one: no params
+
+
+def test_sort_key_orders_swept_values_as_numbers():
+    values = ["10", "2", "1e-3", "1", "0.5"]
+    assert sorted(values) == ["0.5", "1", "10", "1e-3", "2"]  # MLflow's order for params: text
+    assert sorted(values, key=report.sort_key) == ["1e-3", "0.5", "1", "2", "10"]
+    assert [report.sort_key(v) for v in ("depth", "True", "nan", "3")] == [None, None, None, 3.0]
+
+
+def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_store):
+    uri, sweep = grid_store
+    record = report.open_sweep(uri, "synth")
+    trials = report.trial_records(record)
+    table = report.results_table(record, trials)
+    raw = {t.outcome.cell: report.describe_trial(record, t, table) for t in trials}
+    assert max(len(line) for d in raw.values() for line in d.splitlines()) <= report.DESCRIPTION_WIDTH
+    text = {cell: " ".join(d.split()) for cell, d in raw.items()}  # Markdown joins the wrapped lines
+    link = f"(#/experiments/{sweep.experiment_id}/runs/{sweep.run_id})"
+    assert text["point_size=0.04"] == (
+        f"**point_size=0.04**, seed 0, a trial of the sweep [synth — profile smoke]{link}. At its last "
+        "evaluation eval/f1 0.48, eval/cd 60.0. Its cell against the reference cell: Δf1 +0.02 [+0.02, +0.02] "
+        "(95% paired interval), better. Baselines it beats on eval/f1: sphere.")
+    assert "It failed: cdm.train.TrainingDiverged: loss became NaN at step 3." in text["point_size=0.08"]
+
+
+def test_training_curves_split_the_loss_and_draw_no_single_evaluation_panel(tmp_path):
+    from PIL import Image
+
+    from sweeps.plots import training_curves
+
+    loss = {"train/loss": [(5, 3.0), (10, 2.0)], "train/loss_diffusion": [(5, 1.0), (10, 0.5)]}
+    once = training_curves({"a": loss | {"eval/f1": [(10, 0.4)]}}, {"a": "a"}, "eval/f1", "t", tmp_path / "once.png")
+    twice = training_curves({"a": loss | {"eval/f1": [(5, 0.3), (10, 0.4)]}}, {"a": "a"}, "eval/f1", "t", tmp_path / "twice.png")
+    # Diffusion, λ × prior and total side by side; the evaluation panel only for two evaluations.
+    (w1, h1), (w2, h2) = Image.open(once).size, Image.open(twice).size
+    assert 2.5 < w1 / h1 < 3.5 and 3.4 < w2 / h2 < 4.6
 
 
 def test_baselines_once_on_the_parent_and_no_per_trial_paths_in_params(grid_store):

@@ -11,6 +11,7 @@ from sweeps.tracking import (
     SweepRun,
     TrialRun,
     find_trial_run,
+    last_eval_files,
     learning_curve_png,
     resolve_tracking_uri,
     ui_command,
@@ -54,8 +55,8 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     # Every config field but the trial's own folder (different in every trial by construction).
     assert run.data.params["priors.point_size"] == "0.02" and set(run.data.params) == set(cfg.flat()) - {"train.out_dir"}
     assert run.data.tags["mlflow.parentRunId"] == sweep.run_id and run.data.tags["checkpoint"] == str(tmp_path / "ckpt")
-    assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval", "learning_curve.png"}
-    assert [a.path for a in client.list_artifacts(first.run_id, "eval/step_0000010")] == ["eval/step_0000010/obj.png"]
+    assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval", "curves"}
+    assert last_eval_files(client, first.run_id) == ["eval/step_0000010/panels/obj.png"]  # panels apart from clouds
 
     curve = learning_curve_png(client, first.run_id, tmp_path)
     assert curve.read_bytes()[:4] == b"\x89PNG" and curve.stat().st_size > 2000
@@ -67,3 +68,26 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     assert client.get_run(first.run_id).data.tags["error"] == "TrainingDiverged: loss became nan"
     children = client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")
     assert sorted(r.info.run_name for r in children) == ["point_size=0.02 · seed 0", "point_size=0.04 · seed 0"]
+
+
+def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
+    cfg = load_config(None, {})
+    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, cfg)
+    table, cloud = tmp_path / "objects.csv", tmp_path / "o1.ply"
+    table.write_text("object_id,category,eval_set,cd,f1\no1,chair,e1,60.942297,0.42000000000000004\n")
+    cloud.write_text("ply\nend_header\n")
+    for step in (5, 10):
+        trial.on_step(step, {"train/loss": 3.0 / step, "train/loss_diffusion": 1.0 / step})
+    trial.on_eval(10, {"eval/cd": 60.942297, "eval/f1": 0.42000000000000004}, [table, cloud])
+    sweep.close_trial("t0", "a · seed 0", "FINISHED")
+    sweep.log_results({"a": {"f1": 0.123456}}, {"e1": {"baseline/sphere/cd": 150.0049}}, "a")
+    client = MlflowClient(uri)
+    final = client.get_run(trial.run_id).data.metrics
+    assert (final["final/cd"], final["final/f1"]) == (60.94, 0.42) and final["eval/cd"] == 60.942297
+    parent = client.get_run(sweep.run_id).data.metrics
+    assert (parent["a/f1"], parent["baseline/sphere/cd"]) == (0.123, 150.0)
+    assert sorted(last_eval_files(client, trial.run_id)) == ["eval/step_0000010/clouds/o1.ply", "eval/step_0000010/objects.csv"]
+    curve = learning_curve_png(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
+    assert curve.stat().st_size > 2000

@@ -26,7 +26,8 @@ from nbclient import NotebookClient
 from docs import screenshots
 from sweeps import report, run
 from tests.integration.local_ray import local_ray
-from sweeps.tracking import last_objects
+from sweeps.results import rounded
+from sweeps.tracking import last_eval_files, last_objects
 from tests.test_report import _overlap, panel_views
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
@@ -81,15 +82,16 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
         assert tags["category"] == tags["categories"] == "chair,airplane"
         assert child.data.params["priors.point_size"] == tags["cell"].removeprefix("point_size=")
         for name in ("cd", "f1", "cd/chair", "f1/chair", "cd/airplane", "f1/airplane"):
-            assert metrics[f"final/{name}"] == metrics[f"eval/{name}"]
+            assert metrics[f"final/{name}"] == rounded(metrics[f"eval/{name}"])  # at the tables' precision
         assert {m.step for m in client.get_metric_history(child.info.run_id, "final/f1")} == {20}
-        files = [a.path for a in client.list_artifacts(child.info.run_id, "eval/step_0000020")]
+        files = last_eval_files(client, child.info.run_id)
         objects = last_objects(client, child.info.run_id)
         assert len(objects) == 2
         for row in objects:
-            stem = f"eval/step_0000020/{str(row['object_id']).replace('/', '_')}"
-            assert f"{stem}.png" in files and f"{stem}.ply" in files
-            png = client.download_artifacts(child.info.run_id, f"{stem}.png", tempfile.mkdtemp(dir=smoke.folder))
+            name = str(row["object_id"]).replace("/", "_")
+            png = f"eval/step_0000020/panels/{name}.png"
+            assert png in files and f"eval/step_0000020/clouds/{name}.ply" in files
+            png = client.download_artifacts(child.info.run_id, png, tempfile.mkdtemp(dir=smoke.folder))
             views = panel_views(Path(png))
             assert all(v.sum() > 30 for v in views)  # every view draws a cloud
             # 20 smoke steps reconstruct poorly (CD ×1000 ≫ 0): the prediction views must not redraw the GT's.
@@ -110,7 +112,12 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
     assert {f"baseline/{b}/f1" for b in ("sphere", "gaussian", "category_mean", "retrieval")} <= set(parent.data.metrics)
     description = parent.data.tags["mlflow.note.content"]
     assert description.startswith("**compare**") and "Profile **smoke**" in description and "- best cell point_size=0.0" in description
-    assert "| cell | paper setting | trials |" in description
+    assert "| cell | eval/f1 | eval/cd | Δf1 vs point_size=0.02 [95% CI] | verdict |" in description
+    assert max(len(line) for line in description.splitlines()) <= 200 and not re.findall(r"\d\.\d{5,}", description)
+    for child in smoke.children:  # each child explains itself and links its sweep
+        note = " ".join(client.get_run(child.info.run_id).data.tags["mlflow.note.content"].split())
+        assert note.startswith(f"**{child.data.tags['cell']}**, seed 0") and smoke.parent.info.run_id in note
+        assert {a.path for a in client.list_artifacts(child.info.run_id)} == {"config.yaml", "curves", "eval"}
 
 
 def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, monkeypatch):

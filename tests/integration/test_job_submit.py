@@ -214,6 +214,8 @@ def test_head_binds_loopback_and_requires_the_token(ray_head, mlflow_server):
 def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, mlflow_server, tmp_path):
     from mlflow import MlflowClient
 
+    from sweeps.tracking import last_eval_files
+
     storage = tmp_path / "results"
     sub_id = f"cdm-smoke-{secrets.token_hex(4)}"
     t0 = time.monotonic()
@@ -253,7 +255,7 @@ def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, 
         assert child.info.status == "FINISHED"
         assert child.data.tags["mlflow.parentRunId"] == parent.info.run_id
         assert [m.step for m in client.get_metric_history(child.info.run_id, "eval/cd")] in ([10, 20], [20, 10])
-        files = [a.path for a in client.list_artifacts(child.info.run_id, "eval/step_0000020")]
+        files = last_eval_files(client, child.info.run_id)  # eval/step_0000020/{panels,clouds}/
         assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
         assert "config.yaml" in {a.path for a in client.list_artifacts(child.info.run_id)}
     # Artifacts went through the server into its own store, not into the job's working directory.

@@ -20,6 +20,7 @@ import ray
 from mlflow import MlflowClient
 
 from sweeps import run
+from sweeps.tracking import last_eval_files
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -74,7 +75,7 @@ def test_grid_of_two_cells_end_to_end(cluster, tmp_path, capsys):
         loss = client.get_metric_history(child.info.run_id, "train/loss")
         assert [m.step for m in sorted(loss, key=lambda m: m.step)] == [5, 10, 15, 20]
         assert [m.step for m in client.get_metric_history(child.info.run_id, "eval/f1/chair")] in ([10, 20], [20, 10])
-        files = [a.path for a in client.list_artifacts(child.info.run_id, "eval/step_0000020")]
+        files = last_eval_files(client, child.info.run_id)  # eval/step_0000020/{panels,clouds}/
         assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
         assert "config.yaml" in {a.path for a in client.list_artifacts(child.info.run_id)}
     print(f"\n2-cell smoke grid: {wall:.1f} s wall")
