@@ -182,11 +182,6 @@ class ModelConfig(_Group):
             )
         if min(self.widths) < 8 or min(self.voxel_resolutions) < 2:
             raise ValueError("model.widths must be >= 8 and model.voxel_resolutions >= 2")
-        if self.denoiser == "pvcnn2" and self.global_feature == "cross_attention":
-            raise ValueError(
-                "model.denoiser=pvcnn2 has no cross-attention block: use model.global_feature none or concat, "
-                "or model.denoiser=pointvoxel"
-            )
         if self.encoder == "vit_s16" and self.encoder_weights is None:
             raise ValueError(
                 "model.encoder_weights is required with model.encoder=vit_s16: download MSN's ViT-S/16 weights "

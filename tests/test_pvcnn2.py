@@ -416,7 +416,7 @@ def test_time_and_conditioning_change_the_output_and_shapes_are_checked():
     assert (a - b).abs().max() > 1e-3 and (a - c).abs().max() > 1e-3
     with pytest.raises(ValueError, match=r"conditioning must be \(B, N, 2\)"):
         model(x_t, cond[..., :1], torch.tensor([10]))
-    with pytest.raises(ValueError, match="no cross-attention"):
+    with pytest.raises(ValueError, match="pass tokens exactly when"):
         model(x_t, cond, torch.tensor([10]), tokens=torch.zeros(1, 4, 8))
 
 
@@ -526,8 +526,25 @@ def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny, mask_channels: bool):
     assert torch.equal(context.pixel, torch.cat(pc2[: 5 if cfg.model.mask_channels else 3], dim=1))
     out = net(batch.points, torch.tensor([0, 999]), context, batch.camera)
     assert out.shape == (2, 300, 3) and torch.isfinite(out).all()
-    with pytest.raises(ValueError, match="pvcnn2 has no cross-attention"):
-        tiny.replace(**{"model.denoiser": "pvcnn2", "model.global_feature": "cross_attention"})
+
+
+def test_cross_attention_at_the_bottleneck_starts_as_pc2s_function_and_then_reads_the_tokens():
+    torch.manual_seed(3)
+    plain = PVCNN2Denoiser(2, width_multiplier=0.25, voxel_resolution_multiplier=0.25).eval()
+    attending = PVCNN2Denoiser(2, width_multiplier=0.25, voxel_resolution_multiplier=0.25, token_channels=8, num_tokens=4).eval()
+    attending.load_state_dict(plain.state_dict(), strict=False)  # the same PC² weights, plus the new block
+    extra = {k for k in attending.state_dict()} - {k for k in plain.state_dict()}
+    assert extra and all(k.startswith("cross_att.") for k in extra)
+    with torch.no_grad():
+        for model in (plain, attending):
+            model.classifier[-1].weight.normal_(0, 0.1, generator=torch.Generator().manual_seed(4))
+    x_t, cond, t = torch.randn(1, 300, 3), torch.randn(1, 300, 2), torch.tensor([10])
+    tokens = torch.randn(1, 4, 8)
+    with torch.no_grad():
+        assert torch.equal(plain(x_t, cond, t), attending(x_t, cond, t, tokens))  # zero-initialised output projection
+        attending.cross_att.attn.out_proj.weight.normal_(0, 0.1)
+        moved = attending(x_t, cond, t, tokens) - attending(x_t, cond, t, tokens.flip(1).roll(1, dims=2))
+    assert moved.abs().max() > 1e-4
 
 
 def test_the_category_prior_with_pvcnn2_is_pvds_network(tiny):

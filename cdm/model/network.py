@@ -100,10 +100,12 @@ class CDMNetwork(nn.Module):
         in_channels = cond + (global_dim if cfg.global_feature == "concat" else 0)
         self.feature_dim = cfg.feature_dim
         self.pc2_order = cfg.denoiser == "pvcnn2"
+        tokens = {"token_channels": global_dim if cfg.global_feature == "cross_attention" else None,
+                  "num_tokens": TOKEN_GRID**2 if self.embeddings is None else self.embeddings.num_tokens}
         self.denoiser: nn.Module
         if self.pc2_order:
             self.denoiser = PVCNN2Denoiser(
-                in_channels, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim
+                in_channels, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim, **tokens
             )
             return
         self.denoiser = PVCNNDenoiser(
@@ -113,8 +115,7 @@ class CDMNetwork(nn.Module):
             time_embed_dim=cfg.time_embed_dim,
             voxel_backend=self.voxel_backend,
             devoxelize=cfg.devoxelize,
-            token_channels=global_dim if cfg.global_feature == "cross_attention" else None,
-            num_tokens=TOKEN_GRID**2 if self.embeddings is None else self.embeddings.num_tokens,
+            **tokens,
         )
 
     def encode(self, batch: Batch) -> ImageContext:

@@ -45,6 +45,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from cdm.model import pointops
+from cdm.model.global_features import TOKEN_GRID, PointCrossAttention
 
 __all__ = ["PVCNN2Denoiser", "pc2_timestep_embedding"]
 
@@ -255,6 +256,9 @@ class PVCNN2Denoiser(nn.Module):
         voxel_resolution_multiplier: PC²'s, scales every voxel resolution (paper: 1).
         dropout: PC²'s, in every PVConv and the head (paper: 0.1).
         embed_dim: time embedding width ``E`` (PC²'s ``point_cloud_model_embed_dim``: 64; ``model.time_embed_dim``).
+        token_channels: channels of image tokens for one cross-attention block at the bottleneck (not in
+            PC²; supplementary Table 7's ⊗); ``None`` = no block, PC²'s network exactly.
+        num_tokens: tokens per image the block attends to.
     """
 
     def __init__(
@@ -264,6 +268,8 @@ class PVCNN2Denoiser(nn.Module):
         voxel_resolution_multiplier: float = 1.0,
         dropout: float = 0.1,
         embed_dim: int = 64,
+        token_channels: int | None = None,
+        num_tokens: int = TOKEN_GRID**2,
     ):
         super().__init__()
         self.in_channels, self.embed_dim = in_channels, embed_dim
@@ -295,6 +301,10 @@ class PVCNN2Denoiser(nn.Module):
             sa_layers.append(blocks[0] if len(blocks) == 1 else nn.Sequential(*blocks))
         self.sa_layers = nn.ModuleList(sa_layers)
         self.global_att = SelfAttention(channels, 1)
+        # Supplementary Table 7's ⊗ rows: PC²'s network has no cross-attention and the paper does not say
+        # where it adds one; ours lets the bottleneck centres attend to the tokens, after the global
+        # attention. Its output projection starts at zero, so PC²'s function is unchanged at the start.
+        self.cross_att = PointCrossAttention(channels, token_channels, num_tokens) if token_channels is not None else None
 
         skip_channels[0] = in_channels  # FP4 takes the inputs without xyz
         fp_layers = []
@@ -323,7 +333,7 @@ class PVCNN2Denoiser(nn.Module):
             x_t: ``(B, N, 3)`` noisy points, world frame (PC²'s ball radii are in its units).
             conditioning: ``(B, N, S)`` per-point channels in PC²'s order (``CDMNetwork`` arranges them).
             t: ``(B,)`` timesteps.
-            tokens: must be ``None``: PC²'s network has no cross-attention.
+            tokens: ``(B, T, F)`` image tokens when built with ``token_channels``, else ``None``.
         Returns:
             ``(B, N, 3)`` raw output.
         """
@@ -331,8 +341,8 @@ class PVCNN2Denoiser(nn.Module):
             raise ValueError(
                 f"conditioning must be (B, N, {self.in_channels}) for x_t {tuple(x_t.shape)}, got {tuple(conditioning.shape)}"
             )
-        if tokens is not None:
-            raise ValueError("the pvcnn2 denoiser has no cross-attention: use model.global_feature none or concat")
+        if (tokens is None) != (self.cross_att is None):
+            raise ValueError("pass tokens exactly when the denoiser was built with token_channels")
         temb = self.embedf(pc2_timestep_embedding(t, self.embed_dim).to(x_t.dtype))  # (B, E)
         inputs = torch.cat([x_t, conditioning], dim=-1).transpose(1, 2)  # (B, 3 + S, N)
         coords, features = inputs[:, :3].contiguous(), inputs
@@ -349,6 +359,8 @@ class PVCNN2Denoiser(nn.Module):
             features, coords = sa(features, coords)
         skips[0] = inputs[:, 3:]
         features = self.global_att(features)
+        if self.cross_att is not None:
+            features = self.cross_att(features.transpose(1, 2), tokens).transpose(1, 2)
         for level, layer in enumerate(self.fp_layers):
             points = coords_list[-1 - level]
             features = layer[0](points, coords, features, temb, skips[-1 - level])
