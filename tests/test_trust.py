@@ -11,16 +11,21 @@ import json
 import os
 import pickle
 import signal
+import struct
 import subprocess
 import sys
 import threading
 import time
+import zlib
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import ray
 from mlflow import MlflowClient
 
+from cdm.data.images import read_image
 from sweeps import local_cluster, run
 from sweeps.claim import ClaimError, claim, claims_folder
 from sweeps.spec import load_spec
@@ -331,3 +336,42 @@ def test_a_huge_or_deep_set_value_is_refused_at_once(in_tmp, capsys, value, need
     err = _one_error_line(capsys)
     assert needle in err and len(err) < 300 and time.perf_counter() - started < 5, err
     assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"]
+
+
+# --- item 7: decoded-image caps ----------------------------------------------------------------------
+
+def _png_header(width: int, height: int, bit_depth: int, colour: int) -> bytes:
+    """A PNG whose header claims ``width``×``height`` pixels, with one tiny (truncated) data chunk: what
+    a bomb looks like before it is decoded."""
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+    ihdr = struct.pack(">IIBBBBB", width, height, bit_depth, colour, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+
+
+@pytest.mark.parametrize("side,depth,colour,flags,needle", [
+    (32768, 1, 0, cv2.IMREAD_UNCHANGED, "is over 178956970 pixels"),  # PIL's own cap
+    (12000, 16, 2, cv2.IMREAD_UNCHANGED, r"is 12000×12000 pixels \(decoding takes 1.1 GiB\)"),
+    (9000, 8, 0, cv2.IMREAD_COLOR, r"is 9000×9000 pixels \(decoding takes 0.2 GiB\)")])
+def test_an_image_bomb_is_refused_from_its_header(tmp_path, side, depth, colour, flags, needle):
+    bomb = tmp_path / "bomb.png"
+    bomb.write_bytes(_png_header(side, side, depth, colour))
+    assert bomb.stat().st_size < 200
+    with pytest.raises(ValueError, match=rf"data.root: .*bomb.png {needle}; an image may have at most 67108864 pixels"):
+        read_image(bomb, flags, "data.root")
+
+
+def test_reconstruct_refuses_an_image_bomb_and_reads_a_real_image_as_opencv_does(tmp_path):
+    from cdm.__main__ import _load_image
+
+    bomb = tmp_path / "bomb.png"
+    bomb.write_bytes(_png_header(10000, 10000, 16, 6))
+    with pytest.raises(ValueError, match=r"--image: .*10000×10000 pixels \(decoding takes 0.7 GiB\)"):
+        _load_image(bomb, 64)
+    picture = tmp_path / "ok.png"
+    pixels = np.random.default_rng(0).integers(0, 65535, (40, 50, 4), dtype=np.uint16)
+    cv2.imwrite(str(picture), pixels)
+    np.testing.assert_array_equal(read_image(picture, cv2.IMREAD_UNCHANGED, "--image"), pixels)
+    assert read_image(tmp_path / "missing.png", cv2.IMREAD_COLOR, "--image") is None
+    (tmp_path / "text.png").write_text("not an image")
+    assert read_image(tmp_path / "text.png", cv2.IMREAD_COLOR, "--image") is None
