@@ -98,7 +98,9 @@ def _load_image(path: Path, size: int) -> tuple[torch.Tensor, torch.Tensor]:
     """RGB ``(3, S, S)`` in [0, 1] and mask ``(1, S, S)``: alpha if present, else pixels unlike the corners."""
     import cv2
 
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    from cdm.data.images import read_image
+
+    raw = read_image(path, cv2.IMREAD_UNCHANGED, "--image")
     if raw is None:
         raise ValueError(f"--image: cannot read {path} as an image")
     if raw.dtype not in (np.uint8, np.uint16):

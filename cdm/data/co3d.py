@@ -61,6 +61,7 @@ from cdm.config import Config
 from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.co3d_lists import excluded_sequences
+from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
 from cdm.normalise import IDENTITY
 from cdm.normalise import Frame as NormalisedFrame
@@ -181,7 +182,7 @@ def kept_frames(sequence: str, frames: list[Frame], count: int) -> set[int]:
 
 def load_depth(path: Path) -> np.ndarray:
     """``(H, W)`` float16 published depth values of a Co3D depth PNG (×``scale_adjustment`` = world units)."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    raw = read_image(path, cv2.IMREAD_UNCHANGED, "data.root")
     if raw is None or raw.dtype != np.uint16 or raw.ndim != 2:
         raise ValueError(f"data.root: cannot read depth {path} (missing, corrupt or not a 16-bit single-channel PNG)")
     return raw.view(np.float16)
@@ -342,12 +343,12 @@ class Co3DDataset(CapturedDataset):
         position = int(record.views[view])
         frame = frames[position]
         path = self.root / frame.image
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        bgr = read_image(path, cv2.IMREAD_COLOR, "data.root")
         if bgr is None:
             raise ValueError(f"data.root: cannot read image {path} (missing or corrupt); expected a JPEG of {frame.size[1]}×{frame.size[0]}")
         if bgr.shape[:2] != frame.size:
             raise ValueError(f"data.root: {path} is {bgr.shape[1]}×{bgr.shape[0]}, its annotation says {frame.size[1]}×{frame.size[0]}")
-        mask = cv2.imread(str(self.root / frame.mask), cv2.IMREAD_GRAYSCALE)
+        mask = read_image(self.root / frame.mask, cv2.IMREAD_GRAYSCALE, "data.root")
         if mask is None:
             raise ValueError(f"data.root: cannot read mask {self.root / frame.mask} (missing or corrupt); expected a grey PNG")
         if mask.shape != frame.size:

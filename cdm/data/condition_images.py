@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from cdm.cameras import Cameras
+from cdm.data.images import read_image
 from cdm.data.priors2d import prior_2d_channels
 from cdm.data.sample import ConditionViews
 from cdm.paths import input_path
@@ -92,7 +93,7 @@ class ConditionImages:
         return self._image(self.folder / object_id / f"{position}.png", size)
 
     def _image(self, path: Path, size: int) -> Tensor:
-        raw = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        raw = read_image(path, cv2.IMREAD_COLOR, _FIELD)
         if raw is None:
             raise ValueError(f"{_FIELD}: cannot read {path} as an image")
         rgb = cv2.cvtColor(cv2.resize(raw, (size, size), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2RGB)

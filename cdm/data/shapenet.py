@@ -56,6 +56,7 @@ from cdm.cameras import Cameras, look_at_cameras
 from cdm.config import Config
 from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud
+from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
 from cdm.normalise import Frame, bdm_frame
 
@@ -235,7 +236,7 @@ class ShapeNetR2N2Dataset(CapturedDataset):
 
     def _raw_view(self, index: int, record: ObjectRecord, view: int, size: int) -> ViewImages:
         path = self._paths(index)[0] / f"{view:02d}.png"
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        raw = read_image(path, cv2.IMREAD_UNCHANGED, "data.root")
         if raw is None:
             raise ValueError(f"data.root: cannot read image {path} (missing or corrupt); expected a 137×137 RGBA PNG")
         if raw.ndim != 3 or raw.shape[2] != 4 or raw.dtype != np.uint8:
