@@ -35,6 +35,8 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from sweeps.store_retry import StoreBusy, check_not_locked
+
 __all__ = ["MAX_NAME", "TRACKING_SCHEMES", "StoreError", "check_name", "check_no_links", "check_parent_run", "check_storage", "check_tracking_uri", "exists",
            "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "publish_files", "read_text", "sweep_location"]
 
@@ -72,13 +74,18 @@ def _writable_folder(path: Path, what: str) -> None:
 
 
 def check_tracking_uri(uri: str) -> None:
-    """Refuse an MLflow URI this sweep could not log to, before any run is created."""
+    """Refuse an MLflow URI this sweep could not log to, before any run is created; a SQLite store that
+    another writer holds is waited on (:data:`sweeps.store_retry.BUSY_TIMEOUT_S`)."""
     scheme = urllib.parse.urlsplit(uri).scheme.split("+")[0]
     if scheme not in TRACKING_SCHEMES:
         raise StoreError(f"--tracking-uri {uri}: unsupported scheme {scheme or '(none)'!r}; use one of "
                          + ", ".join(f"{s}://" for s in TRACKING_SCHEMES))
     if scheme == "sqlite":
         _writable_folder(Path(uri.removeprefix("sqlite:///")).parent, "--tracking-uri")
+        try:
+            check_not_locked(Path(uri.removeprefix("sqlite:///")))
+        except StoreBusy as exc:
+            raise StoreError(f"--tracking-uri {uri}: {exc}") from None
     elif scheme == "file":
         _writable_folder(Path(urllib.parse.urlsplit(uri).path), "--tracking-uri")
     elif scheme in ("http", "https"):

@@ -26,10 +26,11 @@ import ray
 from mlflow import MlflowClient
 
 from cdm.data.images import read_image
-from sweeps import local_cluster, run
+from cdm.config import load_config
+from sweeps import local_cluster, run, store_retry
 from sweeps.claim import ClaimError, claim, claims_folder
 from sweeps.spec import load_spec
-from sweeps.tracking import SweepRun
+from sweeps.tracking import SweepRun, TrialRun
 from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
 
 SPEC = "name: s\ngrid: {priors.point_size: [0.04]}\n"
@@ -375,3 +376,45 @@ def test_reconstruct_refuses_an_image_bomb_and_reads_a_real_image_as_opencv_does
     assert read_image(tmp_path / "missing.png", cv2.IMREAD_COLOR, "--image") is None
     (tmp_path / "text.png").write_text("not an image")
     assert read_image(tmp_path / "text.png", cv2.IMREAD_COLOR, "--image") is None
+
+
+# --- item 5 (and 6: a store locked at start): a busy SQLite store is waited on -----------------------
+
+def _lock_store(db: Path, hold_s: float) -> subprocess.Popen:
+    """Another writer holding ``db``'s write lock for ``hold_s`` seconds; prints once it holds it."""
+    code = ("import sqlite3, sys, time; c = sqlite3.connect(sys.argv[1], isolation_level=None); "
+            "c.execute('BEGIN EXCLUSIVE'); print('locked', flush=True); time.sleep(float(sys.argv[2])); c.execute('ROLLBACK')")
+    holder = subprocess.Popen([sys.executable, "-c", code, str(db), str(hold_s)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    return holder
+
+
+def test_a_trial_logs_through_a_store_another_writer_holds_for_longer_than_sqlites_5_s(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
+    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "cell · seed 0", {}, load_config(None))
+    holder = _lock_store(tmp_path / "mlflow.db", 7.0)
+    started = time.perf_counter()
+    try:
+        trial.on_step(10, {"train/loss": 0.5})  # "database is locked" after 5 s without the busy timeout
+    finally:
+        holder.wait()
+    assert time.perf_counter() - started > 5.0
+    assert [m.value for m in MlflowClient(uri).get_metric_history(trial.run_id, "train/loss")] == [0.5]
+
+
+def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, capsys, monkeypatch):
+    SweepRun.start(f"sqlite:///{in_tmp}/m.db", "other", "other", tags={}, params={}).end("FINISHED")
+    monkeypatch.setattr(store_retry, "BUSY_TIMEOUT_S", 2.0)
+    capsys.readouterr()
+    holder = _lock_store(in_tmp / "m.db", 30.0)
+    try:
+        started = time.perf_counter()
+        assert run.main(_argv(in_tmp)) == 2
+        assert 2.0 <= time.perf_counter() - started < 20.0
+    finally:
+        holder.kill()
+        holder.wait()
+    assert "database is locked by another writer for 2 s" in _one_error_line(capsys)
+    assert sorted(p.name for p in in_tmp.iterdir()) == ["m.db", "spec.yaml"]
+    assert not ray.is_initialized()

@@ -1,0 +1,58 @@
+"""A busy SQLite MLflow store is waited on, not fatal.
+
+Python's ``sqlite3`` gives up on a locked database after 5 s ("database is locked"), and MLflow's
+SQLAlchemy store passes that on: another process holding the store for 45 s failed both running
+trials of a sweep and left their child runs RUNNING. :func:`wait_when_busy` sets SQLite's own busy
+timeout (``PRAGMA busy_timeout``: the library retries with back-off until it passes) to
+:data:`BUSY_TIMEOUT_S` on every SQLite connection SQLAlchemy opens in this process, MLflow's
+included; :func:`check_not_locked` waits the same at a sweep's start and then says so in one line.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+__all__ = ["BUSY_TIMEOUT_S", "StoreBusy", "check_not_locked", "wait_when_busy"]
+
+BUSY_TIMEOUT_S = 120.0
+"""How long a write waits for another writer of the SQLite store (MLflow UI, a second sweep, a backup)."""
+
+
+class StoreBusy(RuntimeError):
+    """The SQLite store stayed locked by another writer for the whole wait."""
+
+
+def _busy_timeout(dbapi_connection, connection_record) -> None:
+    if isinstance(dbapi_connection, sqlite3.Connection):
+        dbapi_connection.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
+
+
+def wait_when_busy() -> None:
+    """Make every SQLite connection SQLAlchemy opens in this process wait for a busy store (idempotent)."""
+    from sqlalchemy import event
+    from sqlalchemy.engine import Engine
+
+    if not event.contains(Engine, "connect", _busy_timeout):
+        event.listen(Engine, "connect", _busy_timeout)
+
+
+def check_not_locked(path: Path) -> None:
+    """Wait up to :data:`BUSY_TIMEOUT_S` to take (and at once give back) the write lock of the SQLite file
+    ``path``; a missing file passes (MLflow creates it).
+
+    Raises:
+        StoreBusy: another process held the write lock throughout.
+    """
+    if not path.is_file():
+        return
+    wait_s = BUSY_TIMEOUT_S
+    connection = sqlite3.connect(path, timeout=wait_s, isolation_level=None)
+    try:
+        connection.execute("BEGIN IMMEDIATE")
+        connection.execute("ROLLBACK")
+    except sqlite3.OperationalError as exc:
+        raise StoreBusy(f"MLflow store {path}: {exc} by another writer for {wait_s:g} s; stop it (another sweep, "
+                        "a script) or wait, then start again") from None
+    finally:
+        connection.close()
