@@ -29,11 +29,13 @@ from mlflow.entities import Metric, Param, RunTag
 from cdm.config import Config
 from cdm.train import Callback
 from sweeps.results import rounded
+from sweeps.store_retry import wait_when_busy
 
 __all__ = ["EVAL_FOLDERS", "SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
            "resolve_tracking_uri", "ui_command"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
+wait_when_busy()  # every process that logs waits for a busy SQLite store instead of failing
 PER_TRIAL_PARAMS = ("train.out_dir",)
 """Config fields that differ in every trial by construction (its own folder): not params, so the
 compare view shows only what the cells set."""
