@@ -28,12 +28,13 @@ import atexit
 import json
 import os
 import signal
+import stat
 import tempfile
 from pathlib import Path
 
 from sweeps.storage import StoreError, private_folder
 
-__all__ = ["LOOPBACK_ENV", "SESSION_RECORDS", "is_session_process", "reap_stale_sessions", "session_pids", "start"]
+__all__ = ["LOOPBACK_ENV", "SESSION_RECORDS", "is_session_process", "private_token", "reap_stale_sessions", "session_pids", "start"]
 
 LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 """Ray's switch that, set to ``0``, keeps a node's address (and so its listeners) on loopback."""
@@ -126,6 +127,18 @@ def _record(session_dir: str) -> None:
     atexit.register(record.unlink, missing_ok=True)
 
 
+def private_token() -> None:
+    """Make Ray's token file (``~/.ray/auth_token``, written with the default umask: mode 644) readable by
+    this user alone: with it any local user's client is admitted to this user's clusters."""
+    token = Path.home() / ".ray" / "auth_token"
+    try:
+        info = token.lstat()
+    except FileNotFoundError:
+        return
+    if stat.S_ISREG(info.st_mode) and info.st_uid == os.getuid() and info.st_mode & 0o077:
+        token.chmod(0o600)
+
+
 def start(**init_kwargs) -> None:
     """Start a new local Ray cluster of this process, bound to 127.0.0.1, after reaping stale sessions."""
     import ray
@@ -156,5 +169,6 @@ def start(**init_kwargs) -> None:
             os.environ.pop(LOOPBACK_ENV)
         else:
             os.environ[LOOPBACK_ENV] = saved_env
+    private_token()
     if private:
         _record(ray._private.worker._global_node.get_session_dir_path())

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import shutil
 import sys
 import tempfile
@@ -37,7 +38,7 @@ from sweeps.spec import Spec, SpecError, load_spec
 from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
-__all__ = ["describe", "main"]
+__all__ = ["describe", "main", "resume_command"]
 
 STATE_FILE = "sweep.json"
 
@@ -288,6 +289,22 @@ def _write_new(path: Path, text: str) -> None:
         out.write(text)
 
 
+def resume_command(spec: Path, profile: str, storage: str) -> str:
+    """The command that continues this sweep: the storage too, or the resume would look in ./results."""
+    return shlex.join(["python", "sweeps/run.py", str(spec), "--profile", profile, "--storage", storage, "--resume"])
+
+
+def _kill_running_children(sweep_run) -> int:
+    """Close as KILLED the child runs of ``sweep_run`` (a :class:`sweeps.tracking.SweepRun`) still RUNNING
+    once Tune has stopped (interrupted trials); ``--resume`` reopens each. Returns how many."""
+    running = sweep_run.client.search_runs(
+        [sweep_run.experiment_id], max_results=10_000,
+        filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}' and attributes.status = 'RUNNING'")
+    for child in running:
+        sweep_run.client.set_terminated(child.info.run_id, status="KILLED")
+    return len(running)
+
+
 def _local_concurrency(plan: SweepPlan) -> int:
     """Trials this machine runs at once (GPUs not counted: the memory check is about host RAM)."""
     try:
@@ -397,10 +414,12 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         if is_uri(sweep_dir):
             publish_files(staging, sweep_dir)
         unfinished = any(o.status == "pending" for o in outcomes)
+        _kill_running_children(sweep_run)
         sweep_run.end("KILLED" if unfinished else "FINISHED")
     except BaseException as exc:
         # Whatever stopped the sweep, its parent run must not stay RUNNING in the UI; re-raised as is.
         if sweep_run is not None:
+            _kill_running_children(sweep_run)
             sweep_run.end("KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
         raise
     finally:
@@ -415,7 +434,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     print(f"results: {sweep_dir}/{md.name} and {sweep_dir}/{csv.name}")
     print(f"MLflow: {_ui_hint(uri, view)}")
     if unfinished:
-        print(f"some trials did not finish; continue with: python sweeps/run.py {args.spec} --profile {plan.profile.name} --resume")
+        print(f"some trials did not finish; continue with: {resume_command(args.spec, plan.profile.name, args.storage)}")
     return 0 if any(o.finished for o in outcomes) else 1
 
 

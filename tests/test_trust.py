@@ -418,3 +418,34 @@ def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, c
     assert "database is locked by another writer for 2 s" in _one_error_line(capsys)
     assert sorted(p.name for p in in_tmp.iterdir()) == ["m.db", "spec.yaml"]
     assert not ray.is_initialized()
+
+
+# --- item 8: the smaller items -----------------------------------------------------------------------
+
+def test_the_resume_hint_keeps_the_storage():
+    assert run.resume_command(Path("sweeps/s.yaml"), "smoke", "/mnt/my results") == (
+        "python sweeps/run.py sweeps/s.yaml --profile smoke --storage '/mnt/my results' --resume")
+
+
+def test_interrupted_children_are_closed_as_killed_and_reopened_by_resume(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
+    running = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, load_config(None))
+    done = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t1", "b · seed 0", {}, load_config(None))
+    sweep.close_trial("t1", "b · seed 0", "FINISHED")
+    assert run._kill_running_children(sweep) == 1
+    client = MlflowClient(uri)
+    assert [client.get_run(r.run_id).info.status for r in (running, done)] == ["KILLED", "FINISHED"]
+    again = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, load_config(None))
+    assert again.run_id == running.run_id and client.get_run(running.run_id).info.status == "RUNNING"
+
+
+def test_rays_token_file_is_made_private(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    local_cluster.private_token()  # none yet: nothing to do
+    (tmp_path / ".ray").mkdir()
+    token = tmp_path / ".ray" / "auth_token"
+    token.write_text("secret")
+    token.chmod(0o644)
+    local_cluster.private_token()
+    assert token.stat().st_mode & 0o777 == 0o600
