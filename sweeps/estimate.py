@@ -76,10 +76,11 @@ class Estimate:
     gpu_hours: float | None
     """Paper profile on the GPU of ``benchmarks/gpu_costs.json``; None without figures."""
     gpu: str
+    """The GPU of the figures, or why there are none."""
 
     def text(self) -> str:
         gpu = (f"{self.gpu_hours:.1f} GPU-hours with the paper profile ({self.gpu})" if self.gpu_hours is not None
-               else "paper-profile GPU-hours: no GPU figures (run benchmarks/run.py --device cuda --only throughput)")
+               else f"paper-profile GPU-hours: {self.gpu} (on a GPU: benchmarks/run.py --device cuda --only throughput)")
         return (f"estimate: {self.trials} trials × ~{self.trial_s / 60:.1f} min, {self.concurrent} at a time → "
                 f"~{self.wall_s / 60:.1f} min wall on this machine; {gpu}")
 
@@ -145,11 +146,14 @@ def _eval_objects(cfg: Config) -> int:
 
 
 def paper_trial_gpu_hours(paper: SweepPlan) -> tuple[float | None, str]:
-    """GPU-hours of one trial of a spec expanded with the paper profile, and the GPU they were measured on."""
+    """GPU-hours of one trial of a spec expanded with the paper profile and the GPU they were measured
+    on, or None and why not: no figures, or figures of another denoiser (never another network's time)."""
     if not GPU_COSTS.is_file():
-        return None, ""
+        return None, "no GPU figures"
     figures = json.loads(GPU_COSTS.read_text())
     cfg = paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
+    if cfg.model.denoiser != figures["denoiser"]:
+        return None, f"not measured for model.denoiser={cfg.model.denoiser} ({GPU_COSTS.name} holds {figures['denoiser']}'s)"
     sizes = sorted(int(n) for n in figures["by_points"])
     # The smallest measured cloud size that holds the config's (else the largest measured).
     step = figures["by_points"][str(next((n for n in sizes if n >= cfg.data.num_points), sizes[-1]))]

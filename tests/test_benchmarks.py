@@ -44,9 +44,10 @@ def test_rendering_and_paper_scaling_rows(tmp_path):
     scaling = {r["spec"]: r for r in rows if r["benchmark"] == "paper scaling"}
     point_size = scaling["point_size"]
     assert point_size["trials"] == 5
-    assert point_size["wall_h_1_gpus"] == pytest.approx(5 * point_size["trial_gpu_hours"])
-    assert point_size["wall_h_8_gpus"] == pytest.approx(point_size["trial_gpu_hours"])  # one wave
-    assert "| point_size | 5 |" in out.stdout
+    # The paper profile trains PC²'s PVCNN2, whose GPU step no session has measured: no stale figure.
+    assert point_size["trial_gpu_hours"] is None and point_size["wall_h_8_gpus"] is None
+    assert point_size["device"].startswith("not measured for model.denoiser=pvcnn2")
+    assert "| point_size | 5 | not measured | not measured |" in out.stdout
 
 
 def test_median_s_warms_up_untimed_and_brackets_each_timed_call_with_sync():
