@@ -212,7 +212,7 @@ def blended_reconstruction(
     for category in sorted(set(batch.category)):
         path = prior_path(blend.prior_checkpoint or "", category)
         if str(path) not in loaded:
-            loaded[str(path)] = load_prior(path, device)
+            loaded[str(path)] = load_prior(path, device, category)
         priors[category] = loaded[str(path)]
         if templated and priors[category].category != category:
             raise ValueError(

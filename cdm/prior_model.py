@@ -12,7 +12,7 @@ Schedule: BDM's prior, PVD's linear β from 1e-4 to 0.02 over T = 1000 (BDM
 (PVD: ε).
 
 A prior is a folder holding ``checkpoint.pt``: resolved config, step, voxel back-end, weights,
-``kind`` and ``category``. ``python -m cdm train-prior`` writes one; :func:`ensure_priors` trains and
+``kind`` and ``category``; or PVD's own ``.pth`` checkpoint, as BDM blends with (:func:`load_prior`). ``python -m cdm train-prior`` writes one; :func:`ensure_priors` trains and
 caches them for ``sampling.blend.prior_checkpoint: auto`` (sweep trials).
 """
 
@@ -37,6 +37,7 @@ from cdm.diffusion import GaussianDiffusion
 from cdm.digest import json_digest
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.pvcnn2 import PVCNN2Denoiser
+from cdm.model.reference_weights import load_reference_checkpoint, load_reference_weights
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
 from cdm.optim import Optimiser, TrainingDiverged
 from cdm.runtime import start_run
@@ -172,13 +173,28 @@ def prior_path(template: str, category: str) -> Path:
     return Path(template.replace("{category}", category))
 
 
-def load_prior(path: str | Path, device: torch.device | str = "cpu") -> CategoryPrior:
-    """Read a prior written by :func:`train_prior` (``weights_only``) onto ``device``, in eval mode.
+def load_prior(path: str | Path, device: torch.device | str = "cpu", category: str = "") -> CategoryPrior:
+    """Read a prior onto ``device``, in eval mode: a folder or ``checkpoint.pt`` written by :func:`train_prior`,
+    or a ``.pth`` file of PVD's (BDM's priors, the paper's Table 2), for ``category``.
+
+    A PVD checkpoint (``model_state`` or ``prior_model``, alexzhou907/PVD ``train_generation.py``) is PVD's
+    PVCNN2 at its defaults (multipliers 1, time embedding 64) with PVD's schedule (:data:`PRIOR_SCHEDULE`,
+    ε-prediction). PVD trains on PointFlow's per-category global normalisation, the frame our ShapeNet
+    loader hands out (:mod:`cdm.normalise`).
 
     Raises:
         ValueError: missing or unreadable file, or a checkpoint that is not a category prior; the
             message names ``sampling.blend.prior_checkpoint``.
     """
+    if Path(path).suffix == ".pth":
+        try:
+            weights = load_reference_checkpoint(path, "pvd")
+            network = PriorNetwork(ModelConfig(denoiser="pvcnn2", time_embed_dim=64))
+            load_reference_weights(network.denoiser, weights)
+        except (ValueError, OSError, RuntimeError) as exc:
+            raise ValueError(f"{_FIELD}: {path}: not a PVD checkpoint we can read ({exc})") from None
+        schedule = DiffusionConfig(**PRIOR_SCHEDULE, prediction="eps")
+        return CategoryPrior(network.to(device).eval(), GaussianDiffusion.from_config(schedule), category)
     try:
         state = load_checkpoint(path)
     except ValueError as exc:

@@ -190,7 +190,7 @@ _COMMON: dict[str, Entry] = {
     "sampling.blend.enabled": Stated(False, "paper Tables 1, 3–6: sampled without BDM (only Table 2's +BDM rows blend)"),
     "sampling.blend.prior_checkpoint": Stated("PVD's checkpoint from BDM's repository",
                                               "paper §4: PVD as the pre-trained prior, checkpoints from BDM's code",
-                                              _BLEND, accepts=lambda v: v != "auto"),
+                                              _BLEND, accepts=lambda v: str(v).endswith(".pth")),  # cdm.prior_model.load_prior
     "sampling.blend.milestones": Stated([936, 872, 128, 64, 32], "BDM experiments/example_sample_blending.sh", _BLEND),
     "sampling.blend.window_steps": Stated(16, "BDM experiments/example_sample_blending.sh: roll_step", _BLEND),
     "sampling.blend.select_prob": Stated(0.5, "BDM experiments/main_blending.py: torch.randint(0, 2) per point", _BLEND),

@@ -558,6 +558,24 @@ def test_the_category_prior_with_pvcnn2_is_pvds_network(tiny):
     assert out.shape == (1, 256, 3) and torch.isfinite(out).all()
 
 
+def test_a_pvd_checkpoint_file_is_a_blending_prior_with_pvds_schedule(tmp_path):
+    from cdm.prior_model import load_prior
+
+    g = torch.Generator().manual_seed(7)
+    weights = {"model.module." + n: torch.randn(s, generator=g) * 0.01 for n, s in pc2_parameters(3)}
+    torch.save({"epoch": 1999, "model_state": weights, "optimizer_state": {}}, tmp_path / "chair.pth")
+    prior = load_prior(tmp_path / "chair.pth", category="chair")
+    assert prior.category == "chair" and not prior.network.training
+    assert torch.equal(prior.network.denoiser.sa_layers[0][0].voxel_layers[0].weight,
+                       weights["model.module.sa_layers.0.0.voxel_layers.0.weight"])
+    # PVD's schedule (BDM experiments/pvd/__init__.py): linear β 1e-4 → 0.02 over 1,000 steps, ε-prediction.
+    assert prior.diffusion.betas[0].item() == pytest.approx(1e-4) and prior.diffusion.betas[-1].item() == pytest.approx(0.02)
+    assert len(prior.diffusion.betas) == 1000 and prior.diffusion.prediction == "eps"
+    torch.save({"model_state": {k: v for k, v in list(weights.items())[1:]}}, tmp_path / "broken.pth")
+    with pytest.raises(ValueError, match=r"sampling\.blend\.prior_checkpoint: .*broken\.pth: not a PVD checkpoint"):
+        load_prior(tmp_path / "broken.pth", category="chair")
+
+
 def test_pc2_timestep_embedding_divides_by_half_minus_one():
     emb = pc2_timestep_embedding(torch.tensor([0, 7]), 8)
     freqs = torch.exp(-torch.arange(4, dtype=torch.float64) * torch.log(torch.tensor(10_000.0, dtype=torch.float64)) / 3)
