@@ -324,3 +324,14 @@ def test_table_4_trains_one_model_per_co3d_class_with_that_class_s_paper_row(tmp
     assert both.paper_label == "+2D+3D, toytruck" and both.paper == {"eval/cd": 125.40, "eval/f1": 0.474}
     stand_in = expand(load_spec(SWEEPS / "priors_2d_3d.yaml"), "local")
     assert len(stand_in.cells) == 4 and stand_in.cells[0].paper_label == "baseline (PC²)"
+
+
+def test_the_small_profiles_leave_x0_unclamped_on_data_sets_whose_frames_pass_unit_extent(tmp_path):
+    from tests.datasets_fixtures import make_co3d
+
+    root = make_co3d(tmp_path / "co3d", categories=("teddybear",), frames=3).root
+    spec = load_spec(SWEEPS / "point_size.yaml")
+    assert expand(spec, "local").cells[0].config.diffusion.clip_x0 == 1.0  # the procedural frame fits [-1, 1]³
+    for profile in ("smoke", "local"):
+        on_co3d = expand(spec, profile, {"data.kind": "co3d", "data.root": str(root), "data.categories": ["teddybear"]})
+        assert on_co3d.cells[0].config.diffusion.clip_x0 is None  # Co3D's world units
