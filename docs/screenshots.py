@@ -12,8 +12,10 @@ same functions against its smoke sweep.
 from __future__ import annotations
 
 import argparse
+import base64
 import json
 import os
+import select
 import shutil
 import signal
 import socket
@@ -27,7 +29,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["chromium_page", "main", "mlflow_server", "pages", "shrink"]
+__all__ = ["chromium_page", "first_screen", "main", "mlflow_server", "pages", "shrink"]
 
 
 def _free_port() -> int:
@@ -77,6 +79,116 @@ def chromium_page(chromium: str, url: str, screenshot: Path, profile: Path, widt
     if done.returncode != 0:
         raise RuntimeError(f"chromium failed on {url}: {done.stderr[-2000:]}")
     return done.stdout
+
+
+class _Pipe:
+    """Chromium's DevTools protocol over ``--remote-debugging-pipe`` (JSON messages ended by NUL on the
+    child's file descriptors 3 and 4): no WebSocket client, no extra package."""
+
+    def __init__(self, chromium: str, profile: Path, width: int, height: int):
+        to_child, self._to_child = os.pipe()
+        self._from_child, from_child = os.pipe()
+        # The shell puts the pipes on the child's 3 (our commands) and 4 (its replies), then runs chromium.
+        cmd = ["sh", "-c", f'exec "$0" "$@" 3<&{to_child} 4>&{from_child}', chromium, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+               "--disable-component-update", "--disable-sync", "--hide-scrollbars", "--remote-debugging-pipe",
+               f"--user-data-dir={profile}", f"--window-size={width},{height}", "about:blank"]
+        self.process = subprocess.Popen(cmd, pass_fds=(to_child, from_child), cwd=profile,
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        os.close(to_child)
+        os.close(from_child)
+        self._buffer, self._id = b"", 0
+
+    def call(self, method: str, params: dict | None = None, session: str | None = None, timeout: float = 60) -> dict:
+        """Send one command and return its ``result`` (events in between are skipped)."""
+        self._id += 1
+        message = {"id": self._id, "method": method, "params": params or {}} | ({"sessionId": session} if session else {})
+        os.write(self._to_child, json.dumps(message).encode() + b"\0")
+        deadline = time.monotonic() + timeout
+        while True:
+            while b"\0" not in self._buffer:
+                ready, _, _ = select.select([self._from_child], [], [], max(0.0, deadline - time.monotonic()))
+                chunk = os.read(self._from_child, 1 << 20) if ready else b""
+                if not chunk:
+                    raise RuntimeError(f"chromium gave no answer to {method} within {timeout} s")
+                self._buffer += chunk
+            raw, self._buffer = self._buffer.split(b"\0", 1)
+            reply = json.loads(raw)
+            if reply.get("id") == self._id:
+                if "error" in reply:
+                    raise RuntimeError(f"{method}: {reply['error']}")
+                return reply["result"]
+
+    def close(self) -> None:
+        try:
+            self.call("Browser.close", timeout=10)
+        except RuntimeError:
+            self.process.kill()
+        self.process.wait(timeout=30)
+        os.close(self._to_child)
+        os.close(self._from_child)
+
+
+# Whether each text is drawn in the first screen: the centre of the element holding it lies in the window
+# and inside every ancestor that clips its content (a description folded behind "Show more", a table
+# scrolled sideways), and no ancestor hides it.
+_PLACE = """(texts => texts.map(text => {
+  const walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT);
+  for (let node = walker.nextNode(); node; node = walker.nextNode()) {
+    if (!node.textContent.includes(text)) continue;
+    const box = node.parentElement.getBoundingClientRect(), x = box.left + box.width / 2, y = box.top + box.height / 2;
+    if (!(box.width > 0 && x >= 0 && x < innerWidth && y >= 0 && y < innerHeight)) return false;
+    for (let a = node.parentElement; a; a = a.parentElement) {
+      const style = getComputedStyle(a);
+      if (style.visibility === "hidden" || style.display === "none" || style.opacity === "0") return false;
+      if (style.overflowX !== "visible" || style.overflowY !== "visible") {
+        const clip = a.getBoundingClientRect();
+        if (x < clip.left || x > clip.right || y < clip.top || y > clip.bottom) return false;
+      }
+    }
+    return true;
+  }
+  return false;
+}))"""
+
+
+ASSISTANT_CLOSED = {"mlflow.assistant.fab.autoOpenedOnFirstLoad_v1": "true", "mlflow.assistant.panelOpen_v1": "false"}
+"""MLflow 3's UI state (its ``localStorage``) once a reader has closed the assistant panel, which opens
+by itself on a browser's first visit and takes a third of a 1,280-px window (the run page then stacks
+"About this run" above the description)."""
+
+
+def first_screen(chromium: str, url: str, texts: list[str], screenshot: Path, profile: Path, width: int = 1280,
+                 height: int = 800, timeout: float = 90, storage: dict[str, str] | None = None) -> dict[str, bool]:
+    """Whether each of ``texts`` is visible in the first screen (``width`` × ``height``, no scrolling) of
+    ``url``, once every one of them is in the page (or ``timeout`` seconds have passed); also a
+    screenshot of that screen. ``storage``: ``localStorage`` entries of ``url``'s origin set before
+    (e.g. :data:`ASSISTANT_CLOSED`)."""
+    browser = _Pipe(chromium, profile, width, height)
+    try:
+        target = browser.call("Target.createTarget", {"url": "about:blank"})["targetId"]
+        session = browser.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+        browser.call("Emulation.setDeviceMetricsOverride", {"width": width, "height": height, "deviceScaleFactor": 1,
+                                                            "mobile": False}, session)
+        if storage:
+            origin = "/".join(url.split("/")[:3])
+            browser.call("Page.navigate", {"url": f"{origin}/health"}, session)
+            time.sleep(1)
+            browser.call("Runtime.evaluate", {"expression": f"Object.entries({json.dumps(storage)}).forEach(([k, v]) => "
+                                                            "localStorage.setItem(k, v))"}, session)
+        browser.call("Page.navigate", {"url": url}, session)
+        probe = f"{json.dumps(texts)}.every(t => document.body && document.body.innerText.includes(t))"
+        deadline = time.monotonic() + timeout
+        while not browser.call("Runtime.evaluate", {"expression": probe, "returnByValue": True}, session)["result"].get("value"):
+            if time.monotonic() > deadline:
+                break
+            time.sleep(1)
+        time.sleep(2)  # let the last layout pass settle (fonts, the table's column widths)
+        found = browser.call("Runtime.evaluate", {"expression": f"{_PLACE}({json.dumps(texts)})", "returnByValue": True}, session)
+        shot = browser.call("Page.captureScreenshot", {"format": "png"}, session)
+        screenshot.write_bytes(base64.b64decode(shot["data"]))
+        return dict(zip(texts, found["result"]["value"]))
+    finally:
+        browser.close()
 
 
 def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: list[str]) -> dict[str, str]:

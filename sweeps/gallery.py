@@ -21,6 +21,9 @@ __all__ = ["Gallery", "grid_png", "viewer_html"]
 Gallery = Mapping[str, Mapping[str, np.ndarray]]
 """Object id → column label (a cell, ``ground truth``, ``baseline: …``) → its ``(N, 3)`` cloud."""
 
+Scores = Mapping[str, Mapping[str, tuple[float, float]]]
+"""Object id → column label → that object's ``(CD ×1000, F1)`` in that column (the ground truth has none)."""
+
 ELEVATION, AZIMUTH = 20.0, 30.0
 """Degrees of the grid's fixed view (the panels' first view)."""
 
@@ -74,11 +77,13 @@ _PAGE = """<!DOCTYPE html>
 body {{ font: 13px sans-serif; margin: 12px; background: #fafafa; color: #222; }}
 #views {{ display: flex; flex-wrap: wrap; gap: 8px; }}
 figure {{ margin: 0; text-align: center; }}
+figcaption {{ font-weight: bold; }}
+figcaption span {{ display: block; font-weight: normal; color: #555; }}
 canvas {{ background: #fff; border: 1px solid #ccc; cursor: grab; }}
 </style></head><body>
 <h3>{title}</h3>
 <p>Drag a view to turn every cloud together; the clouds turn on their own until you do.
-Object: <select id="object"></select></p>
+Nearer points are larger and darker. Object: <select id="object"></select></p>
 <div id="views"></div>
 <script id="clouds" type="application/json">{data}</script>
 <script>
@@ -90,16 +95,24 @@ data.objects.forEach((o, i) => select.add(new Option(o.id, i)));
 function colour(label) {{
   return label === "ground truth" ? [44, 160, 44] : label.startsWith("baseline") ? [110, 110, 110] : [31, 119, 180];
 }}
+function side(count) {{
+  // Every canvas of one object in one row, as large as the window allows (room for the captions).
+  const across = Math.floor((window.innerWidth - 24 - 10 * count) / count);
+  return Math.max(160, Math.min(across, window.innerHeight - 150));
+}}
 function build() {{
   views.innerHTML = ""; canvases = [];
   const object = data.objects[select.value];
-  data.columns.forEach(label => {{
-    const points = object.clouds[label];
-    if (!points) return;
+  const shown = data.columns.filter(label => object.clouds[label]);
+  shown.forEach(label => {{
+    const points = object.clouds[label], score = object.scores[label];
     const figure = document.createElement("figure"), canvas = document.createElement("canvas");
-    canvas.width = canvas.height = 260;
+    canvas.width = canvas.height = side(shown.length);
     figure.appendChild(canvas);
-    figure.appendChild(Object.assign(document.createElement("figcaption"), {{ textContent: label }}));
+    const caption = Object.assign(document.createElement("figcaption"), {{ textContent: label }});
+    if (score) caption.appendChild(Object.assign(document.createElement("span"),
+      {{ textContent: `CD ${{score[0].toFixed(2)}} · F1 ${{score[1].toFixed(3)}}` }}));
+    figure.appendChild(caption);
     views.appendChild(figure);
     canvas.addEventListener("pointerdown", e => {{ spinning = false; drag = [e.clientX, e.clientY]; }});
     canvases.push({{ canvas, points, rgb: colour(label) }});
@@ -114,10 +127,12 @@ function draw() {{
       const x1 = cy * x + sy * z, z1 = -sy * x + cy * z;
       return [x1, cp * y - sp * z1, sp * y + cp * z1];
     }}).sort((a, b) => a[2] - b[2]);
+    const dot = canvas.width / 130;
     screen.forEach(([x, y, depth]) => {{
-      const shade = 0.55 + 0.45 * Math.max(0, Math.min(1, (depth + 1) / 2));
+      // Depth cue: near points (depth → 1) drawn darker and larger than far ones.
+      const near = Math.max(0, Math.min(1, (depth + 1) / 2)), shade = 0.45 + 0.55 * near, r = dot * (0.6 + 0.9 * near);
       g.fillStyle = `rgb(${{rgb.map(v => Math.round(255 - (255 - v) * shade)).join(",")}})`;
-      g.fillRect(half + x * half * 0.9 - 1, half - y * half * 0.9 - 1, 2, 2);
+      g.fillRect(half + x * half * 0.9 - r / 2, half - y * half * 0.9 - r / 2, r, r);
     }});
   }});
 }}
@@ -130,15 +145,19 @@ window.addEventListener("pointermove", e => {{
 }});
 window.addEventListener("pointerup", () => {{ drag = null; }});
 select.addEventListener("change", () => {{ build(); draw(); }});
+window.addEventListener("resize", () => {{ build(); draw(); }});
 function tick() {{ if (spinning) {{ yaw += 0.01; draw(); }} requestAnimationFrame(tick); }}
 build(); draw(); requestAnimationFrame(tick);
 </script></body></html>
 """
 
 
-def viewer_html(gallery: Gallery, columns: Sequence[str], title: str, path: Path, max_points: int = 2048) -> Path:
+def viewer_html(gallery: Gallery, columns: Sequence[str], title: str, path: Path, max_points: int = 2048,
+                scores: Scores | None = None) -> Path:
     """A self-contained page that turns the clouds of each object, one canvas per column, in step.
 
+    Each canvas is titled with its column and, from ``scores``, that object's CD (×1000) and F1 in
+    it; canvases fill the window's width; nearer points are drawn larger and darker (a depth cue).
     Clouds are thinned to ``max_points`` (evenly, keeping their order) and rounded to 1/1000 of
     the unit cube, so a sweep of 8 objects × 7 columns stays a few MB at most.
     """
@@ -149,7 +168,8 @@ def viewer_html(gallery: Gallery, columns: Sequence[str], title: str, path: Path
             if label in clouds:
                 cloud = clouds[label][:: max(1, math.ceil(len(clouds[label]) / max_points))]
                 shown[label] = np.round(cloud.astype(float), 3).tolist()
-        objects.append({"id": oid, "clouds": shown})
+        found = (scores or {}).get(oid, {})
+        objects.append({"id": oid, "clouds": shown, "scores": {k: list(v) for k, v in found.items() if k in shown}})
     # "</" cannot end the inline script early: JSON allows the escaped form.
     data = json.dumps({"columns": list(columns), "objects": objects}, separators=(",", ":")).replace("</", "<\\/")
     path.parent.mkdir(parents=True, exist_ok=True)

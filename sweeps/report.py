@@ -19,6 +19,7 @@ import argparse
 import json
 import math
 import os
+import re
 import statistics
 import sys
 import tempfile
@@ -334,32 +335,41 @@ def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_tri
     return out
 
 
-DESCRIPTION_WIDTH = 100
-"""Characters per line of prose in a run description: Markdown joins the lines into one paragraph,
-and a reader of the raw text (``mlflow.note.content``) never scrolls sideways."""
+DESCRIPTION_WIDTH = 200
+"""Most characters on one line of a run description. MLflow renders each line break (a collapsed
+paragraph would hide the rest), so prose goes one sentence a line, wrapped only past this width."""
 
 
 def _prose(text: str, bullet: bool = False) -> str:
-    return textwrap.fill(text, DESCRIPTION_WIDTH, initial_indent="- " if bullet else "", subsequent_indent="  " if bullet else "",
-                         break_long_words=False, break_on_hyphens=False)
+    """``text`` one sentence a line (a list item when ``bullet``), no line over :data:`DESCRIPTION_WIDTH`."""
+    lead, indent = ("- ", "  ") if bullet else ("", "")
+    lines = []
+    for sentence in re.split(r"(?<=[.;])\s+(?=[A-Z*(])", text.strip()):
+        lines += textwrap.wrap(sentence, DESCRIPTION_WIDTH, initial_indent=lead if not lines else indent,
+                               subsequent_indent=indent, break_long_words=False, break_on_hyphens=False)
+    return "\n".join(lines)
 
 
 def describe_sweep(spec: Spec, profile: str, profile_description: str, table: ResultsTable, card: Sequence[str] = ()) -> str:
     """The parent run's description (Markdown, the run page's first block), the answer first: the
-    verdict sentences, then the narrow table (cell, metric, partner, Δ with its interval, verdict) that
-    fits MLflow's description pane at 1,280 px, then the notes, the protocol card's changes
-    (``sweeps/protocol.py``; their sources are in ``results.md``) and what was swept with which profile.
-    The wide table (paper's column, per category, baselines beaten) is the run's ``results.md``."""
+    best cell's verdict sentence, the narrow table (cell, metric, partner, Δ with its interval,
+    verdict) that fits MLflow's description pane at 1,280 px — MLflow shows a description's first
+    lines and folds the rest behind "Show more" — then the other verdict sentences, the notes, the
+    protocol card's changes (``sweeps/protocol.py``; their sources in ``results.md``) and what was
+    swept with which profile. The wide table (paper's column, per category, baselines beaten) is the
+    run's ``results.md``."""
     better = "lower" if spec.metric.mode == "min" else "higher"
-    out = [_prose(f"**{spec.name}**, profile **{profile}**: cells ranked by {spec.metric.name} ({better} is better)."),
-           "\n".join(_prose(line, bullet=True) for line in table.summary),
+    head, *rest = table.summary or ["no cell finished a trial"]
+    out = [_prose(f"**{spec.name}**, profile **{profile}**, by {spec.metric.name} ({better} is better): {head}."),
            table.grid(table.answer or None),
+           "\n".join(_prose(line, bullet=True) for line in rest),
            _prose("Every column (the paper's numbers, per category, the baselines each cell beats) is in this run's "
                   "`results.md` artifact.")]
     notes = [n for n in table.notes if not n.startswith("protocol: ")]
     out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
-    # The card's changes without their sources (each line "<change> (<source>)"): results.md lists them whole.
-    out += [_prose("**Protocol card**: " + "; ".join(line.split(" (", 1)[0] for line in card) + ".")] if card else []
+    # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists them whole.
+    out += ["**Protocol card** (sources in `results.md`):\n"
+            + "\n".join(_prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)] if card else []
     out += [_prose(f"**{spec.name}**: {spec.description}".rstrip(": ")),
             _prose(f"Profile **{profile}**: {profile_description}".rstrip(": "))]
     return "\n\n".join(part for part in out if part)
@@ -410,7 +420,20 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
     columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
     title = f"{record.title}: reconstructions at the last evaluation"
     return [grid_png(gallery, columns, title, folder / "reconstructions.png"),
-            viewer_html(gallery, columns, title, folder / "reconstructions.html")]
+            viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=_object_scores(record, firsts, best))]
+
+
+def _object_scores(record: SweepRecord, firsts: dict[str, TrialRecord], best: str | None) -> dict[str, dict[str, tuple[float, float]]]:
+    """Object file stem → column (each cell; the best baseline) → its ``(CD, F1)`` in ``objects.csv``."""
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    for i, (cell, t) in enumerate(firsts.items()):
+        for row in last_objects(record.client, t.run_id):
+            stem = str(row["object_id"]).replace("/", "_")  # the clouds' file names (cdm/evaluate.py)
+            scores = out.setdefault(stem, {})
+            scores[cell] = (float(row["cd"]), float(row["f1"]))
+            if i == 0 and best is not None and f"baseline/{best}/cd" in row:
+                scores[f"baseline: {best}"] = (float(row[f"baseline/{best}/cd"]), float(row[f"baseline/{best}/f1"]))
+    return out
 
 
 def sort_key(text: str) -> float | None:

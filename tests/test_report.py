@@ -240,14 +240,13 @@ def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_stor
     card = report.protocol_card_lines(record)
     text = report.describe_sweep(record.spec, "smoke", "tiny", table, card)
     blocks = text.split("\n\n")
-    assert blocks[0] == "**synth**, profile **smoke**: cells ranked by eval/f1 (higher is better)."
-    assert blocks[1].startswith("- best cell point_size=0.04: beats sphere")
+    assert blocks[0] == "**synth**, profile **smoke**, by eval/f1 (higher is better): best cell point_size=0.04: beats sphere."
     # The narrow table: cell, metric, partner, Δ with its interval, verdict; no paper or per-category column.
-    assert blocks[2].splitlines()[0] == "| cell | eval/f1 | eval/cd | Δf1 vs point_size=0.02 [95% CI] | verdict |"
-    assert "| point_size=0.04 ★ | 0.480 | 60.00 | +0.020 [+0.020, +0.020] | better |" in blocks[2]
-    assert "`results.md`" in blocks[3]
+    assert blocks[1].splitlines()[0] == "| cell | eval/f1 | eval/cd | Δf1 vs point_size=0.02 [95% CI] | verdict |"
+    assert "| point_size=0.04 ★ | 0.480 | 60.00 | +0.020 [+0.020, +0.020] | better |" in blocks[1]
+    assert "`results.md`" in text.split("| verdict |")[1].split("\n\n")[2]
     assert text.index("**Protocol card**") > text.index("| verdict |") and text.count(card[0].split(" (")[0]) == 1
-    assert "Profile **smoke**: tiny" in blocks[-1]
+    assert blocks[-1] == "Profile **smoke**: tiny"
 
 
 def test_description_lines_are_short_and_every_number_rounded(grid_store):
@@ -369,6 +368,11 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
             for suffix in ("", ".gt", ".sphere", ".retrieval", ".gaussian", ".category_mean"):
                 cloud = clouds.setdefault((oid, suffix if suffix else label), torch.from_numpy(rng.uniform(-0.5, 0.5, (300, 3))).float())
                 files.append(write_ply(folder / f"{oid}{suffix}.ply", cloud))
+        table = folder / "objects.csv"
+        table.write_text("object_id,category,eval_set,cd,f1,baseline/retrieval/cd,baseline/retrieval/f1\n"
+                         + "".join(f"{oid},c,e1,{40 + 10 * i + j},{0.5 - 0.1 * i},30.0,0.6\n"
+                                   for j, oid in enumerate(("chair_0001", "mug_0002"))))
+        files.append(table)
         run = TrialRun(uri, sweep.experiment_id, sweep.run_id, f"t{i}", label, {"cell": label.split(" · ")[0], "seed": "0"},
                        tiny_config(tmp_path))
         run.on_eval(20, {"eval/f1": 0.4, "eval/cd": 50.0}, files)
@@ -389,3 +393,6 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
     assert [o["id"] for o in data["objects"]] == ["chair_0001", "mug_0002"] and set(first["clouds"]) == set(data["columns"])
     assert np.allclose(first["clouds"][cells[1]], clouds[("chair_0001", labels[1])].numpy(), atol=5e-4)
     assert np.allclose(first["clouds"]["ground truth"], clouds[("chair_0001", ".gt")].numpy(), atol=5e-4)
+    # Each canvas's title: that object's CD and F1 in that column (objects.csv); none for the ground truth.
+    assert first["scores"] == {cells[0]: [40.0, 0.5], cells[1]: [50.0, 0.4], "baseline: retrieval": [30.0, 0.6]}
+    assert data["objects"][1]["scores"][cells[1]] == [51.0, 0.4]
