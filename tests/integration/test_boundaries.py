@@ -133,7 +133,7 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = f"s3://{BUCKET}/results"
     argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", storage, "--tracking-uri", uri]
-    env = {**os.environ, **s3, "PYTHONPATH": str(ROOT)}
+    env = {**os.environ, **s3, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
     env.pop("RAY_ADDRESS", None)
     logs = [tmp_path / "a.log", tmp_path / "b.log"]
     copies = [subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT) for log in logs]
@@ -172,7 +172,13 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
                 c.wait()
     leftovers = _alive(session_pids(record["session_dir"]))
 
-    resumed = subprocess.run([*argv, "--resume"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    # A killed driver recorded no digest of Tune's state (pickles) in the bucket: the resume says so and
+    # how to vouch for the bucket, and unpickles nothing.
+    refused = subprocess.run([*argv, "--resume"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stdout[-3000:] + refused.stderr[-3000:]
+    assert "no digest of" in refused.stderr and "--trust-storage" in refused.stderr, refused.stderr
+    resumed = subprocess.run([*argv, "--resume", "--trust-storage"], cwd=tmp_path, env=env, capture_output=True,
+                             text=True, timeout=600)
     (tmp_path / "resumed.log").write_text(resumed.stdout + resumed.stderr)
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     if leftovers:
