@@ -12,6 +12,7 @@ table is printed and written to ``<storage>/<spec name>/<profile>/results.{md,cs
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import shlex
@@ -38,7 +39,7 @@ from sweeps.spec import Spec, SpecError, load_spec
 from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
-__all__ = ["describe", "main", "resume_command"]
+__all__ = ["describe", "main", "no_space_left", "resume_command"]
 
 STATE_FILE = "sweep.json"
 
@@ -289,6 +290,34 @@ def _write_new(path: Path, text: str) -> None:
         out.write(text)
 
 
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def no_space_left(exc: BaseException) -> bool:
+    """``exc`` or one it was raised from is a full disk: ``ENOSPC``, or torch's ``PytorchStreamWriter``
+    "unexpected pos" (its only report of a write that found no space) and Ray's wrapped copies of either."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if "No space left on device" in str(exc) or "unexpected pos" in str(exc):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _discard_start(sweep_dir: str) -> None:
+    """Remove the sweep folder a start that ran no trial wrote (``sweep.json``, ``plan.json``, the shared
+    cache), so the same command, once its input is fixed, is not refused as "already holds a sweep"."""
+    if is_uri(sweep_dir):
+        from pyarrow import fs
+
+        filesystem, path = fs.FileSystem.from_uri(sweep_dir)
+        filesystem.delete_dir(path)
+    else:
+        shutil.rmtree(sweep_dir, ignore_errors=True)
+
+
 def resume_command(spec: Path, profile: str, storage: str) -> str:
     """The command that continues this sweep: the storage too, or the resume would look in ./results."""
     return shlex.join(["python", "sweeps/run.py", str(spec), "--profile", profile, "--storage", storage, "--resume"])
@@ -389,8 +418,14 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             if now is None:
                 print("estimate: none — no node up yet fits one trial; trials wait for the autoscaler to add one", flush=True)
             else:
-                predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent,
-                                      shared_root(sweep_dir, remote) is not None and bool(plan.cells))
+                try:
+                    predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent,
+                                          shared_root(sweep_dir, remote) is not None and bool(plan.cells))
+                except (ValueError, OSError) as exc:  # an input every trial would fail on (an unreadable mesh)
+                    _kill_running_children(sweep_run)
+                    sweep_run.end("FAILED")
+                    _discard_start(sweep_dir)
+                    return _fail(f"the cost estimate could not read an input: {_one_line(exc)}")
         started_at = time.perf_counter()
         # A resumed sweep keeps the callbacks it started with (Tune restores them): no line of its own.
         progress = None if args.resume else SweepProgress(
@@ -417,10 +452,18 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         _kill_running_children(sweep_run)
         sweep_run.end("KILLED" if unfinished else "FINISHED")
     except BaseException as exc:
-        # Whatever stopped the sweep, its parent run must not stay RUNNING in the UI; re-raised as is.
+        # Whatever stopped the sweep, its parent run must not stay RUNNING in the UI; re-raised as is,
+        # but for a full disk: said as such, and the shared cache that filled it removed.
         if sweep_run is not None:
             _kill_running_children(sweep_run)
             sweep_run.end("KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
+        if no_space_left(exc):
+            shared = shared_root(sweep_dir, remote)
+            if shared is not None:
+                shutil.rmtree(shared, ignore_errors=True)
+            return _fail(f"no space left on the device of {sweep_dir}" + (f" (removed the shared cache {shared})" if shared else "")
+                         + f": {_one_line(exc)[:200]}; free space, then resume with: "
+                         + resume_command(args.spec, plan.profile.name, args.storage))
         raise
     finally:
         if started:

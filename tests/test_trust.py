@@ -449,3 +449,30 @@ def test_rays_token_file_is_made_private(tmp_path, monkeypatch):
     token.chmod(0o644)
     local_cluster.private_token()
     assert token.stat().st_mode & 0o777 == 0o600
+
+
+# --- item 6: a full disk is said as such ---------------------------------------------------------------
+
+def test_a_full_disk_is_recognised_from_python_and_from_torch():
+    import torch
+
+    with pytest.raises(OSError) as full:
+        with open("/dev/full", "wb") as out:  # the kernel's always-full device
+            out.write(b"x" * 65536)
+    with pytest.raises(RuntimeError) as torch_full:
+        torch.save(torch.zeros(100_000), "/dev/full")  # torch says only "unexpected pos"
+    assert run.no_space_left(full.value) and run.no_space_left(torch_full.value)
+    try:
+        raise RuntimeError("trial failed") from full.value  # as Ray wraps a worker's error
+    except RuntimeError as wrapped:
+        assert run.no_space_left(wrapped)
+    assert not run.no_space_left(ValueError("data.root: cannot read"))
+
+
+def test_a_start_that_ran_no_trial_is_discarded_whole(tmp_path):
+    for sweep in (tmp_path / "local" / "s" / "smoke", tmp_path / "uri" / "s" / "smoke"):
+        (sweep / "shared").mkdir(parents=True)
+        (sweep / "sweep.json").write_text("{}")
+    run._discard_start(str(tmp_path / "local" / "s" / "smoke"))
+    run._discard_start(f"file://{tmp_path}/uri/s/smoke")
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["local", "local/s", "uri", "uri/s"]
