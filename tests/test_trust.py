@@ -476,3 +476,18 @@ def test_a_start_that_ran_no_trial_is_discarded_whole(tmp_path):
     run._discard_start(str(tmp_path / "local" / "s" / "smoke"))
     run._discard_start(f"file://{tmp_path}/uri/s/smoke")
     assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["local", "local/s", "uri", "uri/s"]
+
+
+def test_the_encoder_weights_refusal_never_advises_weights_only_false(tmp_path):
+    import argparse
+
+    import torch
+
+    from cdm.model.encoder import load_msn_state_dict
+
+    torch.save({"target_encoder": argparse.Namespace(code=1)}, tmp_path / "objects.pth")
+    (tmp_path / "garbage.pth").write_bytes(b"not a torch file")
+    for name in ("objects.pth", "garbage.pth"):
+        with pytest.raises(ValueError, match="could run code from the file") as refused:
+            load_msn_state_dict(tmp_path / name)
+        assert "weights_only" not in str(refused.value)

@@ -210,7 +210,11 @@ def load_msn_state_dict(path: str | Path) -> dict[str, Tensor]:
         raise ValueError(f"{field}: no such file; download MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
     try:
         raw = torch.load(path, map_location="cpu", weights_only=True)
-    except (RuntimeError, pickle.UnpicklingError, EOFError) as exc:
+    except pickle.UnpicklingError:
+        # Our own words: torch's message advises weights_only=False, i.e. running the file's code.
+        raise ValueError(f"{field}: not a readable torch file of tensors and plain data; anything else is refused, "
+                         f"since loading it could run code from the file. Use MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}") from None
+    except (RuntimeError, EOFError) as exc:
         raise ValueError(f"{field}: not a readable torch file ({exc})") from None
     state = raw.get("target_encoder", raw) if isinstance(raw, dict) else None
     if not isinstance(state, dict):
