@@ -3,9 +3,10 @@
 ``python docs/screenshots.py --tracking-uri sqlite:///…/mlflow.db [--experiment point_size] [--out docs]``
 
 Starts ``mlflow server`` on the store (127.0.0.1, a free port), opens the sweep's saved view, the
-comparison of its child runs, the parent run's page and the 3D viewer artifact in Debian's
-``chromium``, and writes downscaled PNGs into ``--out``, together with the parent run's
-``metric_vs_value.png`` and ``reconstructions.png``. ``tests/integration/test_compare.py`` drives the
+comparison of its child runs, the parent run's page and its first child run's page (the first screen
+at 1,280 × 800, MLflow's assistant panel closed) and the 3D viewer artifact in Debian's ``chromium``,
+and writes downscaled PNGs into ``--out``, together with the parent run's ``metric_vs_value.png`` and
+``reconstructions.png``: every picture in ``docs/``. ``tests/integration/test_compare.py`` drives the
 same functions against its smoke sweep.
 """
 
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import fcntl
 import json
 import os
 import select
@@ -81,6 +83,13 @@ def chromium_page(chromium: str, url: str, screenshot: Path, profile: Path, widt
     return done.stdout
 
 
+def _above(fd: int, low: int) -> int:
+    """``fd`` moved to the lowest free descriptor ≥ ``low``."""
+    moved = fcntl.fcntl(fd, fcntl.F_DUPFD, low)
+    os.close(fd)
+    return moved
+
+
 class _Pipe:
     """Chromium's DevTools protocol over ``--remote-debugging-pipe`` (JSON messages ended by NUL on the
     child's file descriptors 3 and 4): no WebSocket client, no extra package."""
@@ -88,9 +97,13 @@ class _Pipe:
     def __init__(self, chromium: str, profile: Path, width: int, height: int):
         to_child, self._to_child = os.pipe()
         self._from_child, from_child = os.pipe()
-        # The shell puts the pipes on the child's 3 (our commands) and 4 (its replies), then runs chromium.
-        cmd = ["sh", "-c", f'exec "$0" "$@" 3<&{to_child} 4>&{from_child}', chromium, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-               "--disable-component-update", "--disable-sync", "--hide-scrollbars", "--remote-debugging-pipe",
+        # bash puts the pipes on the child's 3 (our commands) and 4 (its replies), then runs chromium. Both
+        # are moved above 4 first, so neither redirection overwrites the other pipe's end (and bash, unlike
+        # dash, reads descriptors past 9).
+        to_child, from_child = (_above(fd, 10) for fd in (to_child, from_child))
+        cmd = ["bash", "-c", f'exec "$0" "$@" 3<&{to_child} 4>&{from_child}', chromium, "--headless", "--no-sandbox",
+               "--disable-gpu", "--no-first-run", "--disable-background-networking", "--disable-component-update",
+               "--disable-sync", "--hide-scrollbars", "--remote-debugging-pipe",
                f"--user-data-dir={profile}", f"--window-size={width},{height}", "about:blank"]
         self.process = subprocess.Popen(cmd, pass_fds=(to_child, from_child), cwd=profile,
                                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -192,14 +205,20 @@ def first_screen(chromium: str, url: str, texts: list[str], screenshot: Path, pr
 
 
 def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: list[str]) -> dict[str, str]:
-    """Screenshot name → URL on ``server``: the sweep's view, its children compared, the parent run."""
+    """Screenshot name → URL on ``server``: the sweep's view, its children compared, the parent run,
+    the first child run."""
     ids = json.dumps(child_run_ids, separators=(",", ":"))
     return {
         "mlflow_sweep_view.png": f"{server}/#/experiments/{experiment_id}/runs?viewStateShareKey=sweep-{parent_run_id}",
         "mlflow_compare.png": (f"{server}/#/compare-runs?runs={urllib.parse.quote(ids)}"
                                f"&experiments={urllib.parse.quote(json.dumps([experiment_id]))}"),
         "mlflow_parent_run.png": f"{server}/#/experiments/{experiment_id}/runs/{parent_run_id}",
+        "mlflow_child_run.png": f"{server}/#/experiments/{experiment_id}/runs/{child_run_ids[0]}",
     }
+
+
+RUN_PAGES = ("mlflow_parent_run.png", "mlflow_child_run.png")
+"""Pages shot as their first screen at 1,280 × 800 (:func:`first_screen`): what a reader sees unscrolled."""
 
 
 def shrink(source: Path, target: Path, width: int = 1000) -> Path:
@@ -234,13 +253,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --experiment {args.experiment}: no sweep in {args.tracking_uri}", file=sys.stderr)
         return 2
     parent = parents[0].info.run_id
-    children = [r.info.run_id for r in client.search_runs([exp.experiment_id], f"tags.mlflow.parentRunId = '{parent}'")
+    children = [r.info.run_id for r in client.search_runs([exp.experiment_id], f"tags.mlflow.parentRunId = '{parent}'",
+                                                          order_by=["attributes.start_time ASC"])
                 if "rerun_of" not in r.data.tags]
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         with mlflow_server(args.tracking_uri, tmp / "server.log") as server:
             for name, url in pages(server, exp.experiment_id, parent, children).items():
-                chromium_page(chromium, url, tmp / name, tmp)
+                if name in RUN_PAGES:
+                    first_screen(chromium, url, ["Description"], tmp / name, tmp, storage=ASSISTANT_CLOSED)
+                else:
+                    chromium_page(chromium, url, tmp / name, tmp)
                 print(shrink(tmp / name, args.out / name))
         for artifact, name in (("reconstructions/reconstructions.html", None), ("plots/metric_vs_value.png", "metric_vs_value.png"),
                                ("reconstructions/reconstructions.png", "reconstructions.png")):

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["Gallery", "grid_png", "viewer_html"]
+__all__ = ["Gallery", "Scores", "grid_png", "viewer_html"]
 
 Gallery = Mapping[str, Mapping[str, np.ndarray]]
 """Object id → column label (a cell, ``ground truth``, ``baseline: …``) → its ``(N, 3)`` cloud."""

@@ -148,8 +148,8 @@ def test_notebook_runs_top_to_bottom_and_shows_the_paper_layout(smoke, tmp_path,
     by_name = {c.data.tags["cell"]: c.data.metrics for c in smoke.children}
     for cell, row in zip(table["index"], table["data"]):
         value = dict(zip(columns, row))
-        assert value[("all", "F1 ours")] == pytest.approx(by_name[cell]["final/f1"])
-        assert value[("all", "CD ours")] == pytest.approx(by_name[cell]["final/cd"])
+        assert value[("all", "F1 ours")] == pytest.approx(by_name[cell]["eval/f1"])
+        assert value[("all", "CD ours")] == pytest.approx(by_name[cell]["eval/cd"])
         assert (value[("all", "F1 paper")], value[("all", "CD paper")]) == PAPER[cell]
     images = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if "image/png" in o.get("data", {})]
     assert len(images) == 2 + 4  # two plots, then 2 panels for each of the 2 trials
@@ -186,10 +186,10 @@ def test_mlflow_ui_shows_the_child_runs_and_swept_params(chromium, smoke, mlflow
     for name in names:
         assert name in dom
     assert "Group: point_size=0.02" in dom and "Group: point_size=0.04" in dom
-    assert "priors.point_size" in dom and "final/f1" in dom and "final/cd" in dom
-    # Sorted by the swept value: its column header is the one ordered by, the groups follow it. (The
-    # runs table lays out params before metrics and metrics by name, whatever the view selects first.)
-    assert re.search(r'class="is-ordered-by[^"]*"><span data-testid="sort-header-priors\.point_size"', dom)
+    assert "swept/priors.point_size" in dom and "final/f1" in dom and "final/cd" in dom
+    # Sorted by the swept value as a number (sweeps.report.sort_key): its column is the one ordered by,
+    # the groups follow it. (The runs table lays out metrics by name, whatever the view selects first.)
+    assert re.search(r'class="is-ordered-by[^"]*"><span data-testid="sort-header-swept/priors\.point_size"', dom)
     assert dom.index("Group: point_size=0.02") < dom.index("Group: point_size=0.04")
     assert "train.out_dir" not in dom
     compare_png = tmp_path / "compare.png"
@@ -198,14 +198,21 @@ def test_mlflow_ui_shows_the_child_runs_and_swept_params(chromium, smoke, mlflow
     for child in smoke.children:
         assert child.info.run_name in dom and child.info.run_id in dom
     assert "priors.point_size 0.02 0.04" in _text(dom)  # the params table: one column per run
+    # The parent run's first screen at 1,280 × 800: the verdict sentence and the table's Δ column, unfolded.
     parent_png = tmp_path / "parent.png"
-    dom = screenshots.chromium_page(chromium, urls["mlflow_parent_run.png"], parent_png, tmp_path)
-    assert "best cell point_size=0.0" in _text(dom)  # the description's verdict sentence, rendered
-    for png in (runs_png, compare_png, parent_png):
+    seen = screenshots.first_screen(chromium, urls["mlflow_parent_run.png"], ["best cell point_size=0.0", "Δf1 vs", "verdict"],
+                                    parent_png, tmp_path, storage=screenshots.ASSISTANT_CLOSED)
+    assert seen == {"best cell point_size=0.0": True, "Δf1 vs": True, "verdict": True}
+    child_png = tmp_path / "child.png"
+    seen = screenshots.first_screen(chromium, urls["mlflow_child_run.png"], ["a trial of the sweep", "At its last"],
+                                    child_png, tmp_path, storage=screenshots.ASSISTANT_CLOSED)
+    assert seen == {"a trial of the sweep": True, "At its last": True}
+    for png in (runs_png, compare_png, parent_png, child_png):
         assert png.stat().st_size > 20_000  # a rendered page, not a blank one
     _keep(runs_png, "mlflow_sweep_view.png")
     _keep(compare_png, "mlflow_compare.png")
     _keep(parent_png, "mlflow_parent_run.png")
+    _keep(child_png, "mlflow_child_run.png")
 
 
 def test_reconstruction_viewer_draws_its_canvases_offline(chromium, smoke, tmp_path):
@@ -213,8 +220,12 @@ def test_reconstruction_viewer_draws_its_canvases_offline(chromium, smoke, tmp_p
     page = Path(client.download_artifacts(smoke.parent.info.run_id, "reconstructions/reconstructions.html", str(tmp_path)))
     shot = tmp_path / "viewer.png"
     dom = screenshots.chromium_page(chromium, page.as_uri(), shot, tmp_path, 1600, 700)
-    # One canvas per column (2 cells, ground truth, best baseline), created and drawn by the inline script.
+    # One canvas per column (2 cells, ground truth, best baseline), created and drawn by the inline script,
+    # each titled with that object's CD and F1 in it (none under the ground truth).
     assert dom.count("<canvas") == 4 and "ground truth" in dom and "baseline: " in dom
+    rows = last_objects(MlflowClient(smoke.uri), smoke.children[0].info.run_id)
+    assert any(f"CD {r['cd']:.2f} · F1 {r['f1']:.3f}" in _text(dom) for r in rows)  # the shown object's own scores
+    assert len(re.findall(r"CD \d+\.\d\d · F1 \d\.\d{3}", _text(dom))) == 3
     from PIL import Image
 
     pixels = np.asarray(Image.open(shot).convert("RGB")).astype(int)
