@@ -39,3 +39,16 @@ def write_condition_images(folder: Path, ids: list[str], views: int, size: int =
                 colour = np.array([40 * v, *rng.integers(0, 256, 2)], dtype=np.uint8)  # RGB
                 image = np.broadcast_to(colour, (size, size, 3))
                 cv2.imwrite(str(folder / o / str(r) / f"{v}.png"), cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
+
+
+def paper_inputs(folder: Path, depth_cfg: Config | None = None) -> Path:
+    """``$CDM_INPUTS`` for the paper profile's dry runs: a placeholder for MSN's ViT-S/16 weights (a dry run
+    checks that the file is there and reads none of it) and, given ``depth_cfg``, estimated depth maps of
+    every object of its data set (:func:`tests.datasets_fixtures.write_depth_maps`)."""
+    from tests.datasets_fixtures import write_depth_maps
+
+    (folder / "msn").mkdir(parents=True)
+    (folder / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")
+    if depth_cfg is not None:
+        write_depth_maps(folder / "depth_maps", depth_cfg)
+    return folder

@@ -32,9 +32,9 @@ from tests.datasets_fixtures import (
     mirrored,
     mirrored_x,
     project,
-    write_depth_maps,
     wrong_distance,
 )
+from tests.input_fixtures import paper_inputs
 
 
 @pytest.fixture(scope="module")
@@ -322,11 +322,7 @@ def test_a_protocol_field_of_another_data_set_is_refused(kind, field, value):
 
 def test_table_6_dry_runs_on_co3d_with_pc2s_protocol(tmp_path, monkeypatch, capsys):
     tree = make_co3d(tmp_path / "co3d", categories=("teddybear",), frames=3, splits={"train": 1, "val": 1, "test": 0})
-    inputs = tmp_path / "inputs"
-    write_depth_maps(inputs / "depth_maps", _cfg(tree.root))
-    (inputs / "msn").mkdir()
-    (inputs / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # a dry run checks that the file is there
-    monkeypatch.setenv("CDM_INPUTS", str(inputs))
+    monkeypatch.setenv("CDM_INPUTS", str(paper_inputs(tmp_path / "inputs", _cfg(tree.root))))
     monkeypatch.chdir(tmp_path)
     spec = Path(__file__).resolve().parent.parent / "sweeps" / "prior_type.yaml"
     sets = {"data.kind": "co3d", "data.root": str(tree.root)}
@@ -341,4 +337,4 @@ def test_table_6_dry_runs_on_co3d_with_pc2s_protocol(tmp_path, monkeypatch, caps
         assert (d.exclude_sequences, d.frames_per_sequence, d.mask_rgb, d.drop_outliers, cell.config.model.mask_channels) == (
             True, 1, True, False, True)
         assert (d.num_points, cell.config.priors.render_kind, cell.config.priors.depth_source) == (16384, "depth", "maps")
-    assert f"priors.depth_maps={inputs / 'depth_maps'} (ok)" in out
+    assert f"priors.depth_maps={tmp_path / 'inputs' / 'depth_maps'} (ok)" in out

@@ -33,6 +33,7 @@ from tests.datasets_fixtures import (
     write_depth_maps,
     wrong_distance,
 )
+from tests.input_fixtures import paper_inputs
 
 
 @pytest.fixture(scope="module")
@@ -266,11 +267,7 @@ def test_depth_prior_reads_the_estimated_map_of_the_view_shown(tree, tmp_path):
 
 def test_table_6_dry_runs_on_shapenet_with_estimated_depth_and_bdms_protocol(tmp_path, monkeypatch, capsys):
     tree = make_shapenet(tmp_path / "shapenet", per_split={"train": 2, "val": 0, "test": 1}, views=2, bdm_split=True)
-    inputs = tmp_path / "inputs"
-    write_depth_maps(inputs / "depth_maps", _cfg(tree.root, **{"data.eval_split": "test"}))
-    (inputs / "msn").mkdir()
-    (inputs / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # a dry run checks that the file is there
-    monkeypatch.setenv("CDM_INPUTS", str(inputs))
+    monkeypatch.setenv("CDM_INPUTS", str(paper_inputs(tmp_path / "inputs", _cfg(tree.root, **{"data.eval_split": "test"}))))
     monkeypatch.chdir(tmp_path)
     spec = Path(__file__).resolve().parent.parent / "sweeps" / "prior_type.yaml"
     sets = {"data.kind": "shapenet_r2n2", "data.root": str(tree.root)}
@@ -285,4 +282,4 @@ def test_table_6_dry_runs_on_shapenet_with_estimated_depth_and_bdms_protocol(tmp
         assert (cfg.data.train_view, cfg.model.mask_channels, cfg.priors.render_kind, cfg.data.eval_split) == (0, False, "planar", "test")
     depth = [c.config for c in plan.cells if c.config.priors.prior_2d == "depth"]
     assert {(cfg.priors.depth_source, cfg.priors.depth_maps) for cfg in depth} == {("maps", "$CDM_INPUTS/depth_maps")}
-    assert f"priors.depth_maps={inputs / 'depth_maps'} (ok)" in out
+    assert f"priors.depth_maps={tmp_path / 'inputs' / 'depth_maps'} (ok)" in out

@@ -11,7 +11,7 @@ from sweeps import run
 from sweeps.plan import expand, lambda_source
 from sweeps.resources import plan_concurrency
 from sweeps.spec import Resources, Spec, SpecError, load_profiles, load_spec
-from tests.input_fixtures import object_ids, write_condition_images, write_embeddings
+from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
 SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
@@ -42,9 +42,7 @@ def inputs(tmp_path_factory) -> Path:
         write_embeddings(folder / "openclip" / f"{kind}.npz", ids, (16,), seed)
     write_condition_images(folder / "controlnet", smoke, views=3, size=baseline["smoke"].data.image_size)
     write_condition_images(folder / "controlnet", sorted(set(ids) - set(smoke)), views=0, size=8)
-    (folder / "msn").mkdir()
-    (folder / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # the paper profile's encoder: a dry run checks it is there
-    return folder
+    return paper_inputs(folder)
 
 
 @pytest.fixture
