@@ -245,7 +245,11 @@ def expand(
     kind = sets.get("data.kind", prof.overrides.get("data.kind"))
     fixed = {**prof.overrides, **prof.datasets.get(kind, {}), **(run.overrides if run else {}), "train.steps": prof.steps, "train.eval_every": prof.eval_every}
     fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
-    _build({**fixed, **sets}, f"profile {profile}")
+    try:
+        load_config(None, {**fixed, **sets})
+    except ConfigError as exc:  # a --set value's own field is the --set's error, not the profile's
+        where = "--set" if any(f"{key}:" in str(exc) for key in sets) else f"profile {profile}"
+        raise SpecError(f"{where}: {exc}") from None
     rows = spec.paper.rows if spec.paper else []
     cells: list[Cell] = []
     configs: list[Config] = []

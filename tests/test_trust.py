@@ -491,3 +491,9 @@ def test_the_encoder_weights_refusal_never_advises_weights_only_false(tmp_path):
         with pytest.raises(ValueError, match="could run code from the file") as refused:
             load_msn_state_dict(tmp_path / name)
         assert "weights_only" not in str(refused.value)
+
+
+def test_a_bad_set_value_is_labelled_as_set_not_as_the_profile(in_tmp, capsys):
+    assert run.main(_argv(in_tmp, "--set", "data.num_points=3")) == 2
+    err = _one_error_line(capsys)
+    assert err.startswith("error: --set: data.num_points") and "profile" not in err.split(":")[1], err
