@@ -495,7 +495,9 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
         out.append("At its last evaluation " + ", ".join(f"{m} {rounded(o.metrics[m])}" for m in shown) + ".")
         cell = next((r for r in table.records if r["cell"] == o.cell), {})
         delta = cell.get(f"{spec.metric.name} delta")
-        if delta is not None:
+        if delta is None and f"{spec.metric.name} delta" in cell and not cell.get("verdict"):
+            out.append("Its cell is the reference cell the others are paired with.")
+        elif delta is not None:
             short = spec.metric.name.removeprefix("eval/")
             out.append(f"Its cell against the reference cell: Δ{short} {rounded(delta):+} "
                        f"[{rounded(cell[f'{spec.metric.name} delta low']):+}, {rounded(cell[f'{spec.metric.name} delta high']):+}]"

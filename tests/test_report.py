@@ -206,6 +206,7 @@ def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_st
         "evaluation eval/f1 0.48, eval/cd 60.0. Its cell against the reference cell: Δf1 +0.02 [+0.02, +0.02] "
         "(95% paired interval), better. Baselines it beats on eval/f1: sphere.")
     assert "It failed: cdm.train.TrainingDiverged: loss became NaN at step 3." in text["point_size=0.08"]
+    assert "Its cell is the reference cell the others are paired with." in text["point_size=0.02"]
 
 
 def test_training_curves_split_the_loss_and_draw_no_single_evaluation_panel(tmp_path):
