@@ -497,3 +497,10 @@ def test_a_bad_set_value_is_labelled_as_set_not_as_the_profile(in_tmp, capsys):
     assert run.main(_argv(in_tmp, "--set", "data.num_points=3")) == 2
     err = _one_error_line(capsys)
     assert err.startswith("error: --set: data.num_points") and "profile" not in err.split(":")[1], err
+
+
+def test_a_data_set_name_that_leaves_its_root_is_refused(in_tmp, capsys):
+    # Data set names are matched against the categories the data set has (its folders), never joined blindly.
+    assert run.main(_argv(in_tmp, "--set", "data.categories=[chair, ../../etc]", "--dry-run")) == 2
+    assert "data.categories: ['../../etc'] not in the procedural data set" in _one_error_line(capsys)
+    assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"]
