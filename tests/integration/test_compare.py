@@ -94,8 +94,9 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
             png = client.download_artifacts(child.info.run_id, png, tempfile.mkdtemp(dir=smoke.folder))
             views = panel_views(Path(png))
             assert all(v.sum() > 30 for v in views)  # every view draws a cloud
-            # 20 smoke steps reconstruct poorly (CD ×1000 ≫ 0): the prediction views must not redraw the GT's.
-            assert row["cd"] > 50 and max(_overlap(views[k], views[3 + k]) for k in range(3)) < 0.8
+            # 20 smoke steps reconstruct poorly (CD ×1000 ≫ 0: 45 measured in the data sets' fixed frames): the
+            # prediction views must not redraw the GT's.
+            assert row["cd"] > 20 and max(_overlap(views[k], views[3 + k]) for k in range(3)) < 0.8
     parent_files = {a.path for a in client.list_artifacts(smoke.parent.info.run_id)}
     parent_files |= {a.path for a in client.list_artifacts(smoke.parent.info.run_id, "plots")}
     parent_files |= {a.path for a in client.list_artifacts(smoke.parent.info.run_id, "reconstructions")}
