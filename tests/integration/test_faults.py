@@ -344,7 +344,12 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
     before = {c.info.run_name: c.data.metrics["eval/f1"] for c in _children(mlflow_http, "driver_kill") if c.info.run_name in settled}
     capfd.readouterr()
 
-    assert run.main([*argv, "--resume"]) == 0  # in this process, already connected: joins the same cluster
+    # Tune's state behind a URI is pickles anyone writing the store could have changed, and the killed
+    # driver recorded no digest of it: refused in one line, until the user vouches for the store.
+    assert run.main([*argv, "--resume"]) == 2
+    refusal = capfd.readouterr().err
+    assert "no digest of" in refusal and "--trust-storage" in refusal and refusal.count("error:") == 1, refusal
+    assert run.main([*argv, "--resume", "--trust-storage"]) == 0  # in this process, already connected: joins the same cluster
     out = capfd.readouterr().out
     for label in before:
         assert f"▶ started [{label}]" not in out  # finished trials are not re-run
@@ -365,3 +370,23 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
     assert {"results.md", "results.csv"} <= {a.path for a in client.list_artifacts(parent)}
     assert f"results: {storage}/driver_kill/smoke/results.md" in out
     assert f"MLflow: open {mlflow_http}/#/experiments/" in out
+
+
+def test_an_input_the_estimate_cannot_read_fails_in_one_line_and_leaves_no_sweep(machines, mlflow_http, tmp_path, capfd):
+    meshes = tmp_path / "meshes" / "chair"
+    meshes.mkdir(parents=True)
+    for i in range(4):
+        (meshes / f"m{i}.obj").write_text("not a mesh")
+    argv = [*_argv(tmp_path, f"name: unreadable\ngrid: {{priors.point_size: [0.04]}}\n"
+                             f"base: {{data.kind: meshes, data.root: {tmp_path / 'meshes'}, data.categories: [chair]}}\n",
+                   mlflow_http), "--address", machines.cluster.address]
+    for attempt in range(2):  # the same command again is refused for the input, not as "already holds a sweep"
+        capfd.readouterr()
+        assert run.main(argv) == 2
+        err = capfd.readouterr().err
+        errors = [line for line in err.splitlines() if line.startswith("error:")]
+        assert len(errors) == 1 and "holds no triangles" in errors[0] and "Traceback" not in err, err
+        assert not (tmp_path / "results" / "unreadable" / "smoke").exists()
+    parents = [r for r in MlflowClient(mlflow_http).search_runs(
+        [MlflowClient(mlflow_http).get_experiment_by_name("unreadable").experiment_id])]
+    assert [r.info.status for r in parents] == ["FAILED", "FAILED"]
