@@ -249,8 +249,9 @@ def test_kuberay_pods_use_token_auth_shared_storage_and_reach_mlflow():
         assert gpu["nvidia.com/gpu"] == "1", where
 
 
-def test_rayjob_entrypoint_is_a_valid_paper_sweep(capsys):
+def test_rayjob_entrypoint_is_a_valid_paper_sweep(capsys, tmp_path, monkeypatch):
     from sweeps import run
+    from tests.input_fixtures import paper_inputs
 
     job = _docs(CLUSTER / "kuberay" / "rayjob.yaml")[0]["spec"]
     argv = shlex.split(job["entrypoint"])
@@ -258,10 +259,11 @@ def test_rayjob_entrypoint_is_a_valid_paper_sweep(capsys):
     args = run._parser().parse_args(argv[2:])
     assert (args.profile, args.address) == ("paper", "auto")
     assert str(args.storage).startswith("/mnt/shared/") and args.tracking_uri == "http://cdm-mlflow:5000"
-    assert yaml.safe_load(job["runtimeEnvYAML"]) == {"env_vars": {"PYTHONUNBUFFERED": "1"}}
+    assert yaml.safe_load(job["runtimeEnvYAML"]) == {"env_vars": {"PYTHONUNBUFFERED": "1", "CDM_INPUTS": "/mnt/shared/cdm_inputs"}}
     # The image holds the repository at /home/ray/cdm-lab (cluster/Dockerfile): map the spec path
     # back here and let the runner expand it with the paper profile, as it will in the job.
     spec = ROOT / Path(args.spec).relative_to("/home/ray/cdm-lab")
+    monkeypatch.setenv("CDM_INPUTS", str(paper_inputs(tmp_path / "inputs")))  # the paper profile's ViT weights
     assert run.main([str(spec), "--profile", "paper", "--address", "auto", "--dry-run"]) == 0
     out = capsys.readouterr().out
     assert "profile paper" in out and "1 Train workers, 4 CPUs + 1 GPUs per worker" in out
@@ -277,7 +279,7 @@ def test_runtime_env_excludes_local_state_and_ray_accepts_it():
     assert env["working_dir"] == "."
     assert {"/.venv", "/mlflow.db", "/mlruns", "/results", "/data", "/.git"} <= set(env["excludes"])
     parsed = RuntimeEnv(**env)  # Ray's own validation of the fields and their types
-    assert parsed.working_dir() == "." and parsed.env_vars() == {"PYTHONUNBUFFERED": "1"}
+    assert parsed.working_dir() == "." and parsed.env_vars() == {"PYTHONUNBUFFERED": "1", "CDM_INPUTS": "/mnt/shared/cdm_inputs"}
 
 
 def test_runtime_env_excludes_match_what_ray_would_upload(tmp_path):
