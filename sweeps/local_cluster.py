@@ -32,7 +32,7 @@ import stat
 import tempfile
 from pathlib import Path
 
-from sweeps.storage import StoreError, private_folder
+from sweeps.storage import StoreError, private_folder, write_private
 
 __all__ = ["LOOPBACK_ENV", "SESSION_RECORDS", "is_session_process", "private_token", "reap_stale_sessions", "session_pids", "start"]
 
@@ -122,8 +122,7 @@ def reap_stale_sessions() -> list[int]:
 
 def _record(session_dir: str) -> None:
     record = private_folder(SESSION_RECORDS) / f"{os.getpid()}.json"
-    with os.fdopen(os.open(record, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600), "w") as out:
-        out.write(json.dumps({"pid": os.getpid(), "session_dir": session_dir}))
+    write_private(record, json.dumps({"pid": os.getpid(), "session_dir": session_dir}))
     atexit.register(record.unlink, missing_ok=True)
 
 

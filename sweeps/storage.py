@@ -38,7 +38,7 @@ from typing import Any
 from sweeps.store_retry import StoreBusy, check_not_locked
 
 __all__ = ["MAX_NAME", "TRACKING_SCHEMES", "StoreError", "check_name", "check_no_links", "check_parent_run", "check_storage", "check_tracking_uri", "exists",
-           "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "publish_files", "read_text", "sweep_location"]
+           "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "write_private", "publish_files", "read_text", "sweep_location"]
 
 MAX_NAME = 100
 """Longest spec, profile or data set name: one path component, well under the 255 bytes of a file name."""
@@ -258,6 +258,12 @@ def private_folder(path: Path) -> Path:
     return path
 
 
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` with mode 600, never through a link standing at ``path``."""
+    with os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600), "w") as out:
+        out.write(text)
+
+
 def exists(location: str) -> bool:
     from pyarrow import fs
 
@@ -328,9 +334,7 @@ def record_digest(sweep_dir: str) -> None:
     """Note, where only this user writes, the digests of an object-store sweep's Tune state as this driver
     leaves it, so the next ``--resume`` can tell it untouched (:func:`check_resume_trust`)."""
     record = _digest_file(sweep_dir)
-    fd = os.open(record.with_suffix(".tmp"), os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
-    with os.fdopen(fd, "w") as out:
-        json.dump(_tune_state_digests(sweep_dir), out)
+    write_private(record.with_suffix(".tmp"), json.dumps(_tune_state_digests(sweep_dir)))
     record.with_suffix(".tmp").replace(record)
 
 
