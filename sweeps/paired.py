@@ -19,7 +19,7 @@ from typing import Literal
 
 import numpy as np
 
-__all__ = ["PairedDifference", "UnpairedError", "compare", "paired_bootstrap", "per_object_means"]
+__all__ = ["PairedDifference", "UnpairedError", "compare", "interval_text", "paired_bootstrap", "per_object_means"]
 
 Verdict = Literal["better", "worse", "no clear difference"]
 
@@ -46,8 +46,13 @@ class PairedDifference:
         return "no clear difference"
 
     def text(self) -> str:
-        digits = 3 if max(abs(self.low), abs(self.high)) < 1 else 2
-        return f"{self.mean:+.{digits}f} [{self.low:+.{digits}f}, {self.high:+.{digits}f}]"
+        return interval_text(self.mean, self.low, self.high)
+
+
+def interval_text(mean: float, low: float, high: float) -> str:
+    """``+1.10 [+0.39, +1.87]``: 3 decimals when both ends are within ±1 (F1-like), else 2 (CD-like)."""
+    digits = 3 if max(abs(low), abs(high)) < 1 else 2
+    return f"{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]"
 
 
 def paired_bootstrap(
