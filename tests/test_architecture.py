@@ -1,5 +1,6 @@
-"""One-way architecture: no import cycle in cdm/ or sweeps/, and the model library knows nothing of
-the sweep stack (Ray, MLflow, Optuna) or of sweeps/.
+"""One-way architecture: no import cycle in cdm/ or sweeps/, the model library knows nothing of the
+sweep stack (Ray, MLflow, Optuna) or of sweeps/, and ``docs/ARCHITECTURE.md`` draws what the code does:
+every module is named in it and every arrow it draws is an import.
 
 Imports are read with ``ast`` from the source, every one of them: module level, inside functions
 (deferred imports) and under ``TYPE_CHECKING``, so a cycle hidden behind a lazy import counts too.
@@ -8,6 +9,7 @@ Imports are read with ``ast`` from the source, every one of them: module level, 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -15,6 +17,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("cdm", "sweeps")
 FORBIDDEN_IN_CDM = ("ray", "mlflow", "optuna", "sweeps")
+DOC = ROOT / "docs" / "ARCHITECTURE.md"
+ARROW = "─►"
+# A module as the doc writes it: a file (`cdm/data/views.py`) or a package folder (`cdm/data/`, `cdm/`).
+DOC_PATH = re.compile(r"(?<![\w/.])((?:cdm|sweeps)/(?:[A-Za-z_]\w*/)*(?:[A-Za-z_]\w*\.py)?)(?![\w*.])")
 
 
 def _module_name(path: Path) -> str:
@@ -113,3 +119,73 @@ def test_the_model_library_does_not_import_the_sweep_stack(name):
         elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
             roots.add(node.module.split(".")[0])
     assert not roots & set(FORBIDDEN_IN_CDM), f"{name} imports {sorted(roots & set(FORBIDDEN_IN_CDM))}"
+
+
+def _doc_arrows(text: str) -> list[tuple[int, str, str]]:
+    """``(line number, importer, imported)`` for every arrow in the doc's code blocks.
+
+    The doc's one convention: ``A ─► B, C ─► D`` says A imports B and C, and C imports D; the
+    importer of an arrow is the last module written before it, the imported ones all modules
+    written between it and the next arrow. An arrow with no module on either side is returned with
+    an empty name, so that the test reports it.
+    """
+    arrows, in_code = [], False
+    for number, line in enumerate(text.splitlines(), 1):
+        if line.startswith("```"):
+            in_code = not in_code
+            continue
+        if not in_code or ARROW not in line:
+            continue
+        segments = [DOC_PATH.findall(segment) for segment in line.split(ARROW)]
+        for left, right in zip(segments, segments[1:]):
+            importer = left[-1] if left else ""
+            arrows += [(number, importer, imported) for imported in right or [""]]
+    return arrows
+
+
+def _doc_modules(path: str, modules: dict[str, Path]) -> set[str]:
+    """The modules a doc path stands for: a file is one module, a folder is every module under it."""
+    if path.endswith("/"):
+        package = path.rstrip("/").replace("/", ".")
+        return {name for name in modules if name == package or name.startswith(package + ".")}
+    name = path.removesuffix(".py").removesuffix("/__init__").replace("/", ".")
+    return {name} if name in modules else set()
+
+
+def test_the_doc_reader_reads_chains_lists_and_skips_prose():
+    text = "prose: `A ─► B` means A imports B\n```\nsweeps/run.py ─► sweeps/plan.py, cdm/ ─► cdm/config.py\n" \
+           "sweeps/*.yaml ─► sweeps/spec.py\n```\n"
+    assert _doc_arrows(text) == [
+        (3, "sweeps/run.py", "sweeps/plan.py"), (3, "sweeps/run.py", "cdm/"), (3, "cdm/", "cdm/config.py"),
+        (4, "", "sweeps/spec.py"),
+    ]
+    modules = {"cdm": ROOT, "cdm.data": ROOT, "cdm.data.views": ROOT, "cdm.config": ROOT}
+    assert _doc_modules("cdm/data/", modules) == {"cdm.data", "cdm.data.views"}
+    assert _doc_modules("cdm/data/views.py", modules) == {"cdm.data.views"}
+    assert _doc_modules("cdm/data/__init__.py", modules) == {"cdm.data"}
+    assert _doc_modules("cdm/gone.py", modules) == set()
+
+
+def test_the_architecture_doc_names_every_module_and_no_module_that_is_gone():
+    text = DOC.read_text()
+    modules = _modules()
+    named = set(DOC_PATH.findall(text))
+    files = {str(path.relative_to(ROOT)) for path in modules.values()}
+    wanted = {f for f in files if not f.endswith("__init__.py")}
+    wanted |= {f.removesuffix("__init__.py") for f in files if f.count("/") > 1 and f.endswith("__init__.py")}
+    missing = sorted(wanted - named)
+    assert not missing, f"docs/ARCHITECTURE.md does not name {missing}: add each with its one job to the module map"
+    gone = sorted(p for p in named if not _doc_modules(p, modules))
+    assert not gone, f"docs/ARCHITECTURE.md names {gone}, which are not modules of cdm/ or sweeps/"
+
+
+def test_every_arrow_of_the_architecture_doc_is_an_import():
+    modules, graph = _modules(), _graph()
+    arrows = _doc_arrows(DOC.read_text())
+    assert len(arrows) > 20  # the reader found the picture
+    false = []
+    for number, importer, imported in arrows:
+        sources, targets = _doc_modules(importer, modules), _doc_modules(imported, modules)
+        if not sources or not targets or not any(graph[s] & (targets - sources) for s in sources):
+            false.append(f"line {number}: {importer or '?'} {ARROW} {imported or '?'}")
+    assert not false, "arrows of docs/ARCHITECTURE.md with no import behind them (A ─► B: A imports B):\n" + "\n".join(false)
