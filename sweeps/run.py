@@ -32,7 +32,7 @@ from cdm.memory import check_memory
 from sweeps.claim import ClaimError, SweepClaim, claim
 from sweeps.limits import MAX_TRIALS, LimitError, check_set_text, check_trials
 from sweeps.plan import SweepPlan, expand, lambda_source
-from sweeps.precompute import shared_root
+from sweeps.precompute import check_space, shared_root
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.resources import plan_concurrency
 from sweeps.spec import Spec, SpecError, load_spec
@@ -246,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
             check_tracking_uri(uri)
             if state is not None:
                 check_parent_run(uri, state["parent_run_id"])
+            check_space(plan, sweep_dir, remote)
             held = claim(sweep_dir)
         except (StoreError, ClaimError) as exc:
             return _fail(str(exc))

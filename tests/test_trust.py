@@ -5,6 +5,7 @@ line, the victim untouched, the planted code not run, the folder unescaped, Ray 
 
 from __future__ import annotations
 
+import contextlib
 import http.server
 import importlib.util
 import json
@@ -17,6 +18,7 @@ import sys
 import threading
 import time
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -29,6 +31,7 @@ from cdm.data.images import read_image
 from cdm.config import load_config
 from sweeps import local_cluster, run, store_retry
 from sweeps.claim import ClaimError, claim, claims_folder
+from sweeps.plan import expand
 from sweeps.spec import load_spec
 from sweeps.tracking import SweepRun, TrialRun
 from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
@@ -467,6 +470,35 @@ def test_a_full_disk_is_recognised_from_python_and_from_torch():
     except RuntimeError as wrapped:
         assert run.no_space_left(wrapped)
     assert not run.no_space_left(ValueError("data.root: cannot read"))
+
+
+@contextlib.contextmanager
+def small_disk(folder: Path, size: str) -> Iterator[Path]:
+    """``folder`` as a fresh tmpfs of ``size`` (``mount -o size=…``); the test is skipped where mounting is not allowed."""
+    folder.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a small disk here: {mounted.stderr.decode().strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_a_disk_too_small_for_the_shared_views_is_refused_before_anything_is_made(in_tmp, capsys):
+    from sweeps.precompute import shared_bytes
+
+    plan = expand(load_spec(in_tmp / "spec.yaml"), "smoke")
+    need = shared_bytes(plan)
+    assert 2 * 2**20 < need < 3 * 2**20  # the smoke profile's views and evaluation set: 2.1 MiB
+    with small_disk(in_tmp / "disk", "2m") as disk:
+        argv = _argv(in_tmp)
+        argv[argv.index("results")] = str(disk)
+        assert run.main(argv) == 2
+        err = _one_error_line(capsys)
+        assert f"need {need / 2**20:.1f} MiB but its disk has 2.0 MiB free; free space" in err, err
+        assert list(disk.iterdir()) == []  # no lock, no sweep.json, no shared folder
+    assert not (in_tmp / "m.db").exists() and not ray.is_initialized()
 
 
 def test_a_start_that_ran_no_trial_is_discarded_whole(tmp_path):
