@@ -127,7 +127,7 @@ def _eval_signature(cfg: Config) -> str:
 
 def _calibration_configs(plan: SweepPlan) -> list[Config]:
     if not plan.cells:  # Optuna: the spec's fixed settings stand for every sampled trial
-        return [load_config(None, {**plan.fixed, **plan.sets, "train.seed": plan.spec.seeds[0]})]
+        return [load_config(None, {**plan.fixed, **plan.sets, "train.seed": plan.spec.seed_values[0]})]
     distinct = list({c.name: c.config for c in plan.cells}.values())
     picks = sorted({round(i * (len(distinct) - 1) / max(1, CALIBRATED_CELLS - 1)) for i in range(CALIBRATED_CELLS)})
     return [distinct[i] for i in picks]

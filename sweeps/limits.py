@@ -122,7 +122,7 @@ def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:
         samples = [spec.search.num_samples, *(p.num_samples for p in spec.profiles.values() if p.num_samples)]
         count, what = max(samples), "search.num_samples"
     else:
-        count = max(1, len(spec.cells)) * math.prod(len(v) for v in spec.grid.values()) * len(spec.seeds)
+        count = max(1, len(spec.cells)) * math.prod(len(v) for v in spec.grid.values()) * len(spec.seed_values)
         what = "grid × cells × seeds"
     if count > max_trials:
         raise LimitError(f"{what}: {count} trials; a sweep may have at most {max_trials} "

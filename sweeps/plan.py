@@ -8,7 +8,8 @@ One trial's config is resolved in this order, later wins::
       < cell values < seed (train.seed) < --set
 
 :func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
-the grid, minus ``exclude``, at every seed), validates the Optuna space at its bounds, and checks
+the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
+searcher may start has its label and config before Ray starts), validates the Optuna space at its bounds, and checks
 the metric against :func:`cdm.train.metric_names`, so a typo fails with one
 :class:`sweeps.spec.SpecError` naming the field. :func:`optuna_distributions` is the one mapping of a
 spec's ``search.space`` onto Optuna.
@@ -31,6 +32,7 @@ from sweeps.spec import (
     PaperRow,
     Profile,
     Resources,
+    SequentialSeeds,
     SpaceParam,
     Spec,
     SpecError,
@@ -88,9 +90,32 @@ class SweepPlan:
 
     @property
     def num_trials(self) -> int:
+        """Trials of the sweep; a sequential sweep's worst case (every cell at ``max`` seeds)."""
         if self.spec.search.kind == "optuna":
             return self.profile.num_samples or self.spec.search.num_samples
         return len(self.cells)
+
+    @property
+    def sequential(self) -> SequentialSeeds | None:
+        """The spec's rule when its seeds run until settled (:class:`sweeps.spec.SequentialSeeds`), else None."""
+        return self.spec.sequential
+
+    @property
+    def rounds(self) -> int:
+        """Rounds of the sweep at most: a sequential sweep's planned looks, else 1."""
+        return self.sequential.looks if self.sequential else 1
+
+    def round_of(self, cell: Cell) -> int:
+        """The round ``cell`` runs in: 1 for every seed of a fixed list and the first ``min`` of a sequential
+        sweep, then one round per further seed."""
+        rule = self.sequential
+        index = self.spec.seed_values.index(cell.seed)
+        return 1 if rule is None or index < rule.min else index - rule.min + 2
+
+    @property
+    def first_round(self) -> tuple[Cell, ...]:
+        """The trials that run whatever the results: every trial of a fixed list, round 1 of a sequential sweep."""
+        return tuple(c for c in self.cells if self.round_of(c) == 1)
 
     def grid_cell(self, label: str) -> Cell | None:
         """The grid cell of this trial label (its config built by :func:`expand`); None in an Optuna sweep."""
@@ -102,7 +127,7 @@ class SweepPlan:
             cell = self.grid_cell(tune_config["cell"])
             return cell.name, cell.label
         name = cell_name({k: tune_config[k] for k in self.spec.search.space})
-        return name, f"{name} · seed {self.spec.seeds[0]}"
+        return name, f"{name} · seed {self.spec.seed_values[0]}"
 
     def trial(self, tune_config: dict[str, Any]) -> Cell:
         """The trial a Tune config stands for: ``{"cell": label}`` (grid) or sampled values (Optuna).
@@ -113,7 +138,7 @@ class SweepPlan:
         if self.spec.search.kind == "grid":
             return self.grid_cell(tune_config["cell"])
         values = {k: tune_config[k] for k in self.spec.search.space}
-        seed = self.spec.seeds[0]
+        seed = self.spec.seed_values[0]
         overrides = {**self.fixed, **values, "train.seed": seed, **self.sets}
         name, label = self.names(tune_config)
         return Cell(name, label, values, seed, load_config(None, overrides))
@@ -255,7 +280,7 @@ def expand(
     configs: list[Config] = []
     if spec.search.kind == "grid":
         for name, values in _cell_values(spec):
-            for seed in spec.seeds:
+            for seed in spec.seed_values:
                 overrides = {**fixed, **values, "train.seed": seed, **sets}
                 config = _build(overrides, f"cell {name}")
                 paper = next((r for r in rows if _matches(r, config)), None)
@@ -265,7 +290,7 @@ def expand(
     else:
         for key, param in spec.search.space.items():
             for probe in param.probes():
-                configs.append(_build({**fixed, key: probe, "train.seed": spec.seeds[0], **sets}, f"search.space.{key}={probe!r}"))
+                configs.append(_build({**fixed, key: probe, "train.seed": spec.seed_values[0], **sets}, f"search.space.{key}={probe!r}"))
     labels = [c.label for c in cells]
     if len(set(labels)) != len(labels):
         twice = sorted({label for label in labels if labels.count(label) > 1})

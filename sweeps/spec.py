@@ -13,10 +13,12 @@ This module only reads and validates files; :mod:`sweeps.plan` expands a spec in
 
 from __future__ import annotations
 
+import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from cdm.config import config_field_paths, format_validation_error
 from sweeps.limits import LimitError, load_yaml
@@ -35,12 +37,16 @@ __all__ = [
     "Resources",
     "Scheduler",
     "Search",
+    "SeedBudget",
+    "SequentialSeeds",
+    "Settle",
     "SpaceParam",
     "Spec",
     "SpecError",
     "field_error",
     "load_profiles",
     "load_spec",
+    "parse_budget",
 ]
 
 PROFILES_FILE = Path(__file__).with_name("profiles.yaml")
@@ -205,6 +211,82 @@ class DatasetRun(_Strict):
     one model per Co3D class)."""
 
 
+class SequentialSeeds(_Strict):
+    """``seeds: {min: 2, max: 5, until: settled}``: seeds ``0, 1, …, max − 1`` run in rounds until each
+    cell's comparison with its reference settles (:mod:`sweeps.seed_search`, :mod:`sweeps.sequential`).
+
+    Round 1 trains every cell at ``min`` seeds; after each round a cell whose interval against the
+    reference still holds 0 (and is not inside ``settle.margin``) gets one more seed, the reference
+    with it, until ``max`` seeds or the command line's ``--budget`` ends. One seed settles nothing
+    (its interval covers the held-out objects only), so ``min: 1`` only saves a round when a cell
+    fails outright.
+    """
+
+    min: int = Field(ge=1)
+    """Seeds every cell trains in round 1."""
+    max: int = Field(ge=1)
+    """Most seeds a cell trains; the planned looks are ``max − min + 1``."""
+    until: Literal["settled"]
+
+    @model_validator(mode="after")
+    def _check(self) -> SequentialSeeds:
+        if self.min > self.max:
+            raise ValueError(f"min ({self.min}) must be ≤ max ({self.max})")
+        return self
+
+    @property
+    def values(self) -> list[int]:
+        """The training seeds in the order they run: ``0 … max − 1``."""
+        return list(range(self.max))
+
+    @property
+    def looks(self) -> int:
+        """Planned looks (rounds that can settle a comparison): ``max − min + 1``."""
+        return self.max - self.min + 1
+
+
+UNTIL_SETTLED = SequentialSeeds(min=2, max=5, until="settled")
+"""What ``--until-settled`` makes of a spec's list of seeds (a longer list raises ``max`` to its length):
+two seeds, the fewest whose interval covers seed variance, up to five, where a comparison still open
+is unlikely to settle within a sweep's budget."""
+
+
+class Settle(_Strict):
+    margin: float | None = Field(None, gt=0)
+    """Equivalence margin in the metric's units: a cell whose interval against the reference lies inside
+    ±margin is settled as ``level`` (a TOST-style verdict); null = only better/worse settle."""
+
+
+@dataclass(frozen=True)
+class SeedBudget:
+    """``--budget``: the wall time after which no new seed starts, or the most trials a sequential sweep runs."""
+
+    seconds: float | None = None
+    trials: int | None = None
+
+    def text(self) -> str:
+        if self.trials is not None:
+            return f"{self.trials} trials"
+        return f"{self.seconds / 60:g} min wall time"
+
+
+_DURATION = re.compile(r"(\d+(?:\.\d+)?)([hms])")
+
+
+def parse_budget(text: str) -> SeedBudget:
+    """``2h``, ``45m``, ``30s`` (wall time) or ``12`` (trials) as a :class:`SeedBudget`.
+
+    Raises:
+        SpecError: anything else, naming ``--budget`` and the accepted forms.
+    """
+    text = text.strip()
+    if text.isdigit() and int(text) >= 1:
+        return SeedBudget(trials=int(text))
+    if (match := _DURATION.fullmatch(text)) and float(match[1]) > 0:
+        return SeedBudget(seconds=float(match[1]) * {"h": 3600, "m": 60, "s": 1}[match[2]])
+    raise SpecError(f"--budget {text!r}: give a wall time (2h, 45m, 30s) or a number of trials (12)")
+
+
 class Spec(_Strict):
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
     description: str = ""
@@ -213,7 +295,9 @@ class Spec(_Strict):
     grid: dict[str, list[Any]] = {}
     cells: list[ExplicitCell] = []
     exclude: list[dict[str, Any]] = []
-    seeds: list[int] = Field([0], min_length=1)
+    seeds: list[int] | SequentialSeeds = [0]
+    """Training seeds: a list (every cell at each), or ``{min, max, until: settled}`` (:class:`SequentialSeeds`)."""
+    settle: Settle = Settle()
     search: Search = Search()
     metric: Metric = Metric()
     scheduler: Scheduler = Scheduler()
@@ -226,6 +310,21 @@ class Spec(_Strict):
     """The data sets the paper ran this table on; empty = the paper's ShapeNet and Co3D alike."""
     stand_in: str = ""
     """What the procedural data set stands in with for the paper's data (shown on the protocol card)."""
+
+    @field_validator("seeds", mode="before")
+    @classmethod
+    def _one_form(cls, value: Any) -> list[int] | SequentialSeeds:
+        # Validated here so an error speaks of the form given, not of both forms of the union.
+        try:
+            if isinstance(value, dict):
+                return SequentialSeeds.model_validate(value)
+            if isinstance(value, list):
+                return TypeAdapter(list[int]).validate_python(value)
+        except ValidationError as exc:
+            raise ValueError(format_validation_error(exc, SequentialSeeds)) from None
+        if isinstance(value, SequentialSeeds):
+            return value
+        raise ValueError("Input should be a valid list of seeds, or {min: 2, max: 5, until: settled}")
 
     @model_validator(mode="after")
     def _check(self) -> Spec:
@@ -241,22 +340,53 @@ class Spec(_Strict):
             # The paper's rows only match cells, so they may name the fields the spec sets itself.
             if error and not (where.startswith("paper") and key in OWNED_FIELDS):
                 raise ValueError(error)
-        if len(set(self.seeds)) != len(self.seeds):
+        if isinstance(self.seeds, list) and not self.seeds:
+            raise ValueError("seeds: empty list; give at least one seed")
+        if isinstance(self.seeds, list) and len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"seeds: repeated values in {self.seeds}")
         for key, values in self.grid.items():
             if not values:
                 raise ValueError(f"grid.{key}: empty list; give at least one value")
         if self.search.kind == "grid" and not self.grid and not self.cells:
             raise ValueError("grid: empty; give at least one dotted config field with a list of values (or cells)")
-        if self.search.kind == "optuna" and (self.grid or self.cells or len(self.seeds) > 1):
+        if self.search.kind == "optuna" and (self.grid or self.cells or len(self.seed_values) > 1):
             raise ValueError("search: optuna explores search.space; leave grid and cells empty and give one seed")
+        if self.sequential is not None and self.scheduler.kind != "none":
+            raise ValueError("scheduler: seeds until settled compares finished trials; a scheduler stopping some early "
+                             "would compare unequal training: use kind none")
         for i, rule in enumerate(self.exclude):
             for key, value in rule.items():
                 if key not in self.grid or value not in self.grid[key]:
                     raise ValueError(f"exclude[{i}].{key}: {value!r} is not a value of grid.{key}")
         return self
 
+    @property
+    def sequential(self) -> SequentialSeeds | None:
+        """The rule of a sweep whose seeds run until settled; None for a fixed list of seeds."""
+        return self.seeds if isinstance(self.seeds, SequentialSeeds) else None
 
+    @property
+    def seed_values(self) -> list[int]:
+        """Every training seed a cell may run, in order (a sequential sweep's up to ``max``)."""
+        return self.seeds.values if isinstance(self.seeds, SequentialSeeds) else list(self.seeds)
+
+    def until_settled(self) -> Spec:
+        """This spec with ``--until-settled``: a list of seeds becomes :data:`UNTIL_SETTLED` (``max`` at least
+        the list's length); a sequential spec stays as it is.
+
+        Raises:
+            SpecError: an Optuna spec (it samples one trial per point, with no cell to settle).
+        """
+        if self.search.kind == "optuna":
+            raise SpecError("--until-settled: an Optuna search samples one trial per point; seeds until settled "
+                            "need a grid of cells")
+        if self.sequential is not None:
+            return self
+        rule = UNTIL_SETTLED.model_copy(update={"max": max(UNTIL_SETTLED.max, len(self.seed_values))})
+        try:
+            return Spec.model_validate({**self.model_dump(exclude_unset=True), "seeds": rule.model_dump()})
+        except ValidationError as exc:
+            raise SpecError(f"--until-settled: {format_validation_error(exc, Spec)}") from None
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
