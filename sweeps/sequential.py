@@ -6,40 +6,43 @@ held-out objects. Their per-object differences form an ``S × O`` grid (seeds ×
     d[s, o] = cell[s][o] − reference[s][o] = δ + a_s + b_o + e_so
 
 where δ is the recipe's effect, ``a_s`` what training seed ``s`` adds (variance σ_a²), ``b_o`` how the
-effect differs between objects (σ_b²) and ``e_so`` the rest (σ_e²). The objects are a sample of the
-held-out population and the seeds a sample of the training runs, so both are random (a crossed
-two-way random-effects design) and the grand mean d̄ has
+effect differs between objects (σ_b²) and ``e_so`` the rest (σ_e²). Seeds and objects are both samples
+(a crossed two-way random-effects design), so the grand mean splits into two independent errors
 
-    Var(d̄) = σ_a²/S + σ_b²/O + σ_e²/(S·O) = (MS_seed + MS_object − MS_residual) / (S·O)
+    d̄ − δ = X + Y,   X = ā + ē  (Var = E[MS_seed] / (S·O)),   Y = b̄  (Var = σ_b²/O ≤ E[MS_object] / (S·O))
 
-with the two-way ANOVA mean squares MS_seed = O·var(seed means) (S − 1 degrees of freedom),
-MS_object = S·var(object means) (O − 1) and MS_residual (the interaction, (S − 1)(O − 1)). The
-interval is d̄ ± t_{1−α'/2, ν} · √Var, with ν by Satterthwaite:
+with the two-way mean squares MS_seed = O·var(seed means) (S − 1 degrees of freedom) and
+MS_object = S·var(object means) (O − 1), each independent of both errors. The interval is Banerjee's
+(Sankhyā A 23, 1961; his conservative answer to the Behrens–Fisher problem, here for two crossed
+factors):
 
-    ν = (MS_seed + MS_object − MS_residual)² /
-        (MS_seed²/(S − 1) + MS_object²/(O − 1) + MS_residual²/((S − 1)(O − 1)))
+    d̄ ± √( t²_{S−1}(1 − α'/2) · MS_seed  +  t²_{O−1}(1 − α'/2) · MS_object ) / √(S·O)
 
-(when MS_residual would make the numerator smaller than the larger of the other two, that one is
-used alone: each of them alone under-estimates Var, never over-estimates it).
+which covers δ with probability ≥ 1 − α' for every ratio of the variances. Satterthwaite's single
+t-quantile is the usual alternative; it fails here: when two seeds happen to agree, its degrees of
+freedom jump from ≈1 to ≈O exactly when the seed variance is under-estimated.
 
 **Sequential correction: Bonferroni over the planned looks.** The runner looks after every round
 (``looks = max − min + 1``), and each look may settle the comparison, so a 1 − α interval at every
-look would make a false "better/worse" about as likely as the number of looks times α. Each look
-spends α' = α / looks (α = 1 − ``level``): by the union bound the chance that any look's interval
-misses δ stays ≤ α whatever the dependence between looks and whatever ν is, which Pocock's or
-O'Brien–Fleming's boundaries (derived for normal statistics with known variance) do not promise at
-ν ≈ 1.
+look makes a false "better/worse" up to ``looks`` times as likely. Each look spends α' = α / looks
+(α = 1 − ``level``): by the union bound the chance that any look's interval misses δ stays ≤ α
+whatever the dependence between looks, which Pocock's or O'Brien–Fleming's boundaries (derived for
+normal statistics with a known variance) do not promise at one degree of freedom.
 
 **One seed settles nothing.** With one seed the only interval is today's bootstrap over objects
-(:func:`sweeps.paired.paired_bootstrap`), labelled ``covers="objects"``; it leaves out σ_a, so it is
-shown but its verdict stays ``open``.
+(:func:`sweeps.paired.paired_bootstrap`, at ``level``), labelled ``covers="objects"``; it leaves out
+σ_a, so it is shown but its verdict stays ``open``.
 
-Why these, by simulation (``tests/test_sequential.py``, 2,000 sweeps per case, 40 objects, 2 to 5
-seeds): the false better/worse rate on null cells stays ≤ 5 % with this interval whether seeds or
-objects dominate the variance; a t-interval over per-seed means misses σ_b and a hierarchical
-(seeds, then objects) bootstrap misses σ_a with two or three seeds, and both exceed 5 % in one of
-the two cases; the same interval without the correction exceeds it too, and letting one seed settle
-breaks it by an order of magnitude where seeds dominate.
+**Two seeds settle only large effects.** At S = 2 the seed term's quantile is t₁(1 − α'/2), 51 for four
+looks: an effect settles at the first look only when it is tens of first-look standard errors away
+from 0 where seeds dominate the variance. That is the price of not knowing the seed variance from
+two seeds; a spec that expects moderate effects should start at three.
+
+Why these, by simulation (``tests/test_sequential.py``: 2,000 sweeps per case, 40 objects, 2 to 5
+seeds; rates measured there): the false better/worse rate on null cells stays ≤ 5 % with this
+interval whether seeds or objects dominate the variance; a t-interval over per-seed means (misses
+σ_b), Satterthwaite's interval, the same intervals without the correction, and one seed settling
+each exceed 5 % in at least one of the two cases.
 
 Knows nothing of Ray or MLflow: the Tune searcher hands in per-object scores per seed.
 """
@@ -62,9 +65,8 @@ Scores = Mapping[int, Mapping[str, float]]
 
 Verdict = Literal["better", "worse", "level", "open"]
 
-FOOTNOTE = ("seeds: Δ over training seeds and held-out objects, a two-way (seeds × objects) t-interval with "
-            "Satterthwaite's degrees of freedom, its 5% split evenly over the planned looks (Bonferroni); "
-            "one seed settles nothing")
+FOOTNOTE = ("seeds: Δ over training seeds and held-out objects, Banerjee's two-way (seeds × objects) "
+            "t-interval, its 5% split evenly over the planned looks (Bonferroni); one seed settles nothing")
 """The results table's footnote for cells that ran until settled: which interval, which correction."""
 
 
@@ -117,28 +119,17 @@ class SettleRecord:
 
 
 def two_way_interval(d: np.ndarray, alpha: float) -> tuple[float, float, float]:
-    """Grand mean of ``d`` (S, O: seeds × objects, S ≥ 2, O ≥ 2) and its two-sided 1 − ``alpha`` t-interval.
+    """Grand mean of ``d`` (S, O: seeds × objects, S ≥ 2, O ≥ 2) and its two-sided 1 − ``alpha`` interval.
 
-    Crossed random seeds and objects: Var(d̄) from the two-way mean squares, degrees of freedom by
-    Satterthwaite (module docstring). Returns ``(mean, low, high)`` in the units of ``d``.
+    Crossed random seeds and objects, Banerjee's conservative combination of their two t-quantiles
+    (module docstring). Returns ``(mean, low, high)`` in the units of ``d``.
     """
     s, o = d.shape
     mean = float(d.mean())
-    seed_means, object_means = d.mean(axis=1), d.mean(axis=0)
-    ms_seed = o * float(seed_means.var(ddof=1))
-    ms_object = s * float(object_means.var(ddof=1))
-    residual = d - seed_means[:, None] - object_means[None, :] + mean
-    ms_residual = float((residual**2).sum()) / ((s - 1) * (o - 1))
-    numerator = ms_seed + ms_object - ms_residual
-    if numerator >= max(ms_seed, ms_object):
-        dof = numerator**2 / (ms_seed**2 / (s - 1) + ms_object**2 / (o - 1) + ms_residual**2 / ((s - 1) * (o - 1)))
-    elif ms_seed >= ms_object:
-        numerator, dof = ms_seed, s - 1.0
-    else:
-        numerator, dof = ms_object, o - 1.0
-    if numerator <= 0.0:  # every difference equal: no spread to widen the mean by
-        return mean, mean, mean
-    half = float(stats.t.ppf(1.0 - alpha / 2.0, dof)) * (numerator / (s * o)) ** 0.5
+    ms_seed = o * float(d.mean(axis=1).var(ddof=1))
+    ms_object = s * float(d.mean(axis=0).var(ddof=1))
+    t_seed, t_object = stats.t.ppf(1.0 - alpha / 2.0, [s - 1, o - 1])
+    half = float(np.sqrt((t_seed**2 * ms_seed + t_object**2 * ms_object) / (s * o)))
     return mean, mean - half, mean + half
 
 
