@@ -28,7 +28,11 @@ from mlflow import MlflowClient
 
 from sweeps import run
 from sweeps.local_cluster import SESSION_RECORDS, session_pids
+from sweeps.plan import expand
+from sweeps.precompute import shared_bytes
+from sweeps.spec import load_spec
 from tests.integration.servers import free_port, wait_http
+from tests.test_trust import small_disk
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -216,3 +220,59 @@ def test_s3_bad_credentials_or_missing_bucket_fail_before_ray(s3, tmp_path, monk
     assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
     assert not ray.is_initialized()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["spec.yaml"]  # no MLflow store, nothing else
+
+
+def test_a_disk_that_fills_mid_run_is_said_as_such_and_the_shared_cache_removed(tmp_path, monkeypatch, capfd):
+    monkeypatch.chdir(tmp_path)  # MLflow's artifacts of a sqlite:/// store go to ./mlartifacts
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("name: full\ngrid: {priors.point_size: [0.04]}\n")
+    need = shared_bytes(expand(load_spec(spec), "smoke"))
+    # Passes the check before Ray (free >= the estimate); the lock, sweep.json, plan.json and the files'
+    # own overhead then fill it while the views are written.
+    size_kib = (need // 4096 + 4) * 4
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    with small_disk(tmp_path / "disk", f"{size_kib}k") as disk:
+        code = run.main([str(spec), "--smoke", "--storage", str(disk), "--tracking-uri", uri])
+        err = capfd.readouterr().err
+        errors = [line for line in err.splitlines() if line.startswith("error:")]
+        assert code == 2 and len(errors) == 1, err[-3000:]
+        assert errors[0].startswith(f"error: no space left on the device of {disk}/full/smoke (removed the shared cache "
+                                    f"{disk}/full/smoke/shared)"), errors[0]
+        assert errors[0].endswith(f"--profile smoke --storage {disk} --resume"), errors[0]
+        assert not (disk / "full" / "smoke" / "shared").exists() and (disk / "full" / "smoke" / "sweep.json").exists()
+    assert not ray.is_initialized()
+    client = MlflowClient(uri)
+    parents = [r for r in client.search_runs([client.get_experiment_by_name("full").experiment_id])
+               if "mlflow.parentRunId" not in r.data.tags]
+    assert [r.info.status for r in parents] == ["FAILED"]
+
+
+def test_sigint_closes_the_interrupted_child_as_killed_and_the_hint_keeps_the_storage(tmp_path):
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("name: sigint\ngrid: {priors.point_size: [0.02, 0.04]}\nresources: {max_concurrent_trials: 1}\n"
+                    "profiles: {smoke: {budget: {steps: 400, eval_every: 10}}}\n")
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    storage = tmp_path / "my results"
+    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", str(storage), "--tracking-uri", uri]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
+    env.pop("RAY_ADDRESS", None)
+    log = tmp_path / "driver.log"
+    driver = subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 300
+        while "step 20/" not in log.read_text():  # a trial is running and has logged to its child run
+            assert driver.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+            time.sleep(0.2)
+        driver.send_signal(signal.SIGINT)
+        driver.wait(timeout=300)
+    finally:
+        if driver.poll() is None:
+            driver.kill()
+            driver.wait()
+    out = log.read_text()
+    client = MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("sigint").experiment_id])
+    children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    assert children and all(c.info.status == "KILLED" for c in children), [(c.info.run_name, c.info.status) for c in children]
+    assert [r.info.status for r in runs if "mlflow.parentRunId" not in r.data.tags] == ["KILLED"]
+    assert f"--profile smoke --storage '{storage}' --resume" in out, out[-3000:]
