@@ -303,8 +303,14 @@ def write_ply(path: Path, points: Tensor) -> Path:
 
 
 def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: float) -> Path:
-    """PNG: input image, its 2D prior, prediction and ground truth each seen from 3 views, both centred on
-    the ground truth's mean and seen from 3.5 times its radius (the frames' units differ by data set)."""
+    """PNG of one object, two rows: the input image then the prediction from 3 views; the 2D prior then
+    the ground truth from the same 3 views.
+
+    Both clouds are centred on the ground truth's mean and seen from 3.5 times its radius (the frames'
+    units differ by data set). Points are coloured by view depth (one scale per view for both clouds)
+    and drawn far first, so the shape reads in 3D; sparser clouds get larger markers. Two rows of four
+    keep each view about 300 px wide when MLflow's artifact pane scales the picture to its width.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -316,26 +322,30 @@ def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: fl
     radius = float((gt - centre).norm(dim=-1).max())
     elev = torch.tensor([20.0])
     views = orbit_cameras(elev, torch.tensor([30.0]), torch.tensor([3.5 * radius]), 3, focal=cam.focal)[0]
-    fig, axes = plt.subplots(1, 8, figsize=(16, 2.4))
-    axes[0].imshow(batch.image[j].permute(1, 2, 0).cpu().numpy())
-    axes[0].set_title("input")
+    fig, axes = plt.subplots(2, 4, figsize=(12, 6.4))
+    axes[0, 0].imshow(batch.image[j].permute(1, 2, 0).cpu().numpy())
+    axes[0, 0].set_title("input")
     prior = batch.prior_2d[j]
-    axes[1].imshow(prior[0].cpu().numpy() if prior.shape[0] else np.zeros(batch.image.shape[-2:]), cmap="gray")
-    axes[1].set_title("2D prior")
-    for k, (cloud, label) in enumerate([(pred, "pred"), (gt, "GT")]):
-        for v in range(3):
-            ax = axes[2 + 3 * k + v]
-            xy = project_points((cloud - centre)[None].float(), views[v : v + 1])[0, :, :2]
-            ax.scatter(-xy[:, 0].numpy(), xy[:, 1].numpy(), s=0.3, c="tab:blue" if k == 0 else "tab:green")
+    axes[1, 0].imshow(prior[0].cpu().numpy() if prior.shape[0] else np.zeros(batch.image.shape[-2:]), cmap="gray")
+    axes[1, 0].set_title("2D prior")
+    for v in range(3):
+        gt_depth = project_points((gt - centre)[None].float(), views[v : v + 1])[0, :, 2]
+        near, far = float(gt_depth.min()), float(gt_depth.max())
+        for row, (cloud, label) in enumerate([(pred, "prediction"), (gt, "ground truth")]):
+            ax = axes[row, 1 + v]
+            xyz = project_points((cloud.cpu() - centre)[None].float(), views[v : v + 1])[0]
+            order = torch.argsort(xyz[:, 2], descending=True)
+            xyz = xyz[order].numpy()
+            ax.scatter(-xyz[:, 0], xyz[:, 1], s=min(12.0, max(1.5, 3000 / len(xyz))), c=xyz[:, 2], cmap="viridis", vmin=near, vmax=far, linewidths=0)
             ax.set_xlim(-1, 1)
             ax.set_ylim(-1, 1)
-            ax.set_title(f"{label} view {v}")
-    for ax in axes:
+            ax.set_title(f"{label}, view {v}")
+    for ax in axes.flat:
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_aspect("equal")
-    fig.suptitle(f"{batch.object_id[j]}  CD×1000 {cd:.2f}  F1 {f1:.3f}", fontsize=9)
+    fig.suptitle(f"{batch.object_id[j]}   CD×1000 {cd:.2f}   F1 {f1:.3f}", fontsize=12)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80, bbox_inches="tight")
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return path

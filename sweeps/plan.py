@@ -76,6 +76,12 @@ class Cell:
     paper_label: str | None = None
     paper: dict[str, float] = field(default_factory=dict)
 
+    @property
+    def group(self) -> str:
+        """The swept values alone (``0.04``, ``10 · 0.02``): the short name MLflow's runs view groups the
+        seeds of this cell under, narrow enough for its name column."""
+        return " · ".join(_fmt_value(v) for v in self.values.values()) or self.name
+
 
 @dataclass(frozen=True)
 class SweepPlan:

@@ -1,8 +1,5 @@
 """Rebuild a finished sweep's comparison straight from MLflow: results table, the paper's layout, plots, panels.
 
-(Over 400 lines on purpose: every read of a finished sweep from MLflow lives in this one module, shared by
-the runner, ``--report`` and the notebook, so no other module depends on how runs are laid out.)
-
 ``python sweeps/report.py EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]``
 (also ``python sweeps/run.py --report EXPERIMENT``) reads the sweep's parent run (its spec file and
 ``plan.json``) and its child runs, and writes ``results.{md,csv}`` and the plots into ``--out``
@@ -40,6 +37,7 @@ from mlflow.entities import Metric, Run
 from cdm.config import PriorsConfig
 from cdm.evaluate import BASELINES
 from sweeps.gallery import grid_png, viewer_html
+from sweeps.paired import PairedDifference
 from sweeps.plan import lambda_source, optuna_distributions
 from sweeps.plots import (
     PlotPoint,
@@ -52,7 +50,7 @@ from sweeps.plots import (
 from sweeps.protocol import CARD_TAG
 from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, rounded, settings_note
 from sweeps.spec import SpaceParam, Spec, load_spec
-from sweeps.tracking import last_eval_files, last_objects, parent_baselines, resolve_tracking_uri
+from sweeps.tracking import last_eval_files, last_objects, parent_baselines, resolve_tracking_uri, trial_metrics
 
 __all__ = [
     "ReportError",
@@ -190,7 +188,7 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         values = planned.get("values") or _sampled(run, record.spec.search.space)
         # Baselines live on the parent run, once per evaluation set (older sweeps: on every child).
         metrics = parent_baselines(record.parent.data.metrics, tags.get("eval_set")) | {
-            k: v for k, v in run.data.metrics.items() if "/" in k}
+            k: v for k, v in trial_metrics(run.data.metrics).items() if "/" in k}
         rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in FINISHED else ()
         outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
                                tags.get("error") if status == "failed" else None, rows)
@@ -452,7 +450,8 @@ def share_view(record: SweepRecord) -> str:
     """Save an MLflow UI view of this sweep and return its path on the UI server (``#/experiments/…``).
 
     The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
-    reads) lists the sweep's child runs grouped by cell — the group row averages the seeds — with
+    reads) lists the sweep's child runs grouped by cell (the tag ``group``: its swept values, short
+    enough for the name column) — the group row averages the seeds — with
     ``final/<metric>`` and its partner, the swept values and the seed as columns. A swept field whose
     values are all numbers is shown as the metric ``swept/<field>`` (:func:`sort_key`, logged here
     on each child) and, when it is the only one, the rows are sorted by it as numbers."""
@@ -465,9 +464,11 @@ def share_view(record: SweepRecord) -> str:
         if keys:
             record.client.log_batch(run.info.run_id, metrics=[Metric(f"swept/{k}", sort_key(run.data.params[k]), now, 0) for k in keys])
     finals = ["final/" + m.removeprefix("eval/") for m in (metric, partner(metric)) if m and m.startswith("eval/")]
+    # Grouped by the swept values alone (sweeps older than the `group` tag: by the full cell name).
+    group = "group" if any("group" in r.data.tags for r in record.children) else "cell"
     state = {
         "searchFilter": f"tags.mlflow.parentRunId = '{record.parent.info.run_id}'",
-        "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": "cell"}]},
+        "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": group}]},
         "selectedColumns": [f"metrics.`{m}`" for m in finals or [metric]] + [f"metrics.`swept/{k}`" for k in numeric]
         + [f"params.`{k}`" for k in swept if k not in numeric] + ["tags.`seed`"],
     }
@@ -499,9 +500,8 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
             out.append("Its cell is the reference cell the others are paired with.")
         elif delta is not None:
             short = spec.metric.name.removeprefix("eval/")
-            out.append(f"Its cell against the reference cell: Δ{short} {rounded(delta):+} "
-                       f"[{rounded(cell[f'{spec.metric.name} delta low']):+}, {rounded(cell[f'{spec.metric.name} delta high']):+}]"
-                       f" (95% paired interval), {cell['verdict']}.")
+            diff = PairedDifference(delta, cell[f"{spec.metric.name} delta low"], cell[f"{spec.metric.name} delta high"], 0)
+            out.append(f"Its cell against the reference cell: Δ{short} {diff.text()} (95% paired interval), {cell['verdict']}.")
         if "beats baselines" in cell:
             beaten = str(cell["beats baselines"]).replace(";", ", ")
             out.append(f"Baselines it beats on {spec.metric.name}: {beaten or 'none'}.")

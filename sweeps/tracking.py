@@ -18,7 +18,7 @@ import os
 import re
 import tempfile
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +31,8 @@ from cdm.train import Callback
 from sweeps.results import rounded
 from sweeps.store_retry import wait_when_busy
 
-__all__ = ["EVAL_FOLDERS", "SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
-           "resolve_tracking_uri", "ui_command"]
+__all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
+           "resolve_tracking_uri", "trial_metrics", "ui_command"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
 wait_when_busy()  # every process that logs waits for a busy SQLite store instead of failing
@@ -76,6 +76,24 @@ def _params(values: dict[str, Any]) -> list[Param]:
     return [Param(k, str(v)) for k, v in values.items()]
 
 
+SYSTEM_METRICS = ("train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
+"""Training-loop timings a child logs as ``system/<name>``: MLflow's UI shows that prefix apart, under
+"System metrics", so the model charts hold what a reader compares (metric, partner, loss terms)."""
+
+
+def _per_category(key: str) -> bool:
+    """``eval/f1/chair``: a per-category score, logged once on a child as ``final/f1/chair``, not as a series."""
+    return key.startswith("eval/") and key.count("/") >= 2
+
+
+def _shown(key: str, value: float) -> float:
+    """``value`` as a reader sees it in the UI's tables: scores at the results table's precision, losses
+    and timings at 4 significant digits (a learning rate of 1e-4 keeps its digits)."""
+    if key.startswith("eval/"):
+        return rounded(value)
+    return float(f"{value:.4g}") if math.isfinite(value) else value
+
+
 def metric_key(name: str) -> str:
     """A cell name as an MLflow metric name (letters, digits, ``_ - . / : space``): ``point_size=0.04``
     → ``point_size 0.04``."""
@@ -114,7 +132,15 @@ def finished_trial_metrics(uri: str, experiment_id: str, parent_run_id: str, tri
     if run.info.status != "FINISHED" or not any(k.startswith("final/") for k in run.data.metrics):
         return None
     step = max((m.step for m in client.get_metric_history(run_id, "eval/cd")), default=0)
-    return {**{k: v for k, v in run.data.metrics.items() if not k.startswith("final/")}, "step": step}
+    return {**trial_metrics(run.data.metrics), "step": step}
+
+
+def trial_metrics(logged: Mapping[str, float]) -> dict[str, float]:
+    """A child run's metrics as its trial reported them: its series' last values, and the per-category
+    scores (``eval/f1/chair``) back from the ``final/…`` names the driver logged them under."""
+    per_category = {"eval/" + k.removeprefix("final/"): v for k, v in logged.items()
+                    if k.startswith("final/") and _per_category("eval/" + k.removeprefix("final/"))}
+    return {**per_category, **{k: v for k, v in logged.items() if not k.startswith("final/")}}
 
 
 class SweepRun:
@@ -152,11 +178,14 @@ class SweepRun:
         for path in paths:
             self.client.log_artifact(self.run_id, str(path))
 
-    def close_trial(self, trial_id: str, run_name: str, status: str, error: str | None = None, stopped_early: bool = False) -> None:
+    def close_trial(self, trial_id: str, run_name: str, status: str, error: str | None = None, stopped_early: bool = False,
+                    last: Mapping[str, object] | None = None) -> None:
         """Set a child run's final status from Tune's verdict; creates the run if the trial died before opening it.
 
         Args:
             status: ``FINISHED`` or ``FAILED``.
+            last: the trial's last reported result (Tune's ``trial.last_result``): the source of the
+                per-category scores, which the child logs only here, as ``final/…``.
         """
         run_id = find_trial_run(self.client, self.experiment_id, self.run_id, trial_id)
         if run_id is None:
@@ -168,16 +197,17 @@ class SweepRun:
         if stopped_early:
             self.client.set_tag(run_id, "stopped_early", "true")
         if status == "FINISHED":
-            self._log_final(run_id)
+            self._log_final(run_id, last or {})
         self.client.set_terminated(run_id, status=status)
 
-    def _log_final(self, run_id: str) -> None:
-        """Copy the last evaluation's ``eval/cd``, ``eval/f1`` (and ``…/<category>``) to ``final/…``.
+    def _log_final(self, run_id: str, last: Mapping[str, object]) -> None:
+        """Log the last evaluation's ``eval/cd``, ``eval/f1`` and their per-category scores as ``final/…``.
 
         Stable names to sort, search and compare by in the UI (``metrics.`final/f1` > 0.4``), whatever
         step a trial ended at (ASHA stops some early), at the results table's precision (the runs view
         shows them as logged). Logged here, on the driver, once Tune's verdict is in: the trial itself
-        cannot tell its last evaluation from an intermediate one.
+        cannot tell its last evaluation from an intermediate one. The overall scores come from the
+        child's own history; the per-category ones from ``last`` (the child logs no series of them).
         """
         history = self.client.get_metric_history(run_id, "eval/cd")
         latest = self.client.get_run(run_id).data.metrics
@@ -185,7 +215,8 @@ class SweepRun:
             return
         step = max(m.step for m in history)
         now = int(time.time() * 1000)
-        final = [Metric("final/" + k.removeprefix("eval/"), rounded(v), now, step) for k, v in latest.items()
+        scores = {**{k: v for k, v in last.items() if _per_category(k) and isinstance(v, (int, float))}, **latest}
+        final = [Metric("final/" + k.removeprefix("eval/"), rounded(float(v)), now, step) for k, v in scores.items()
                  if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])]
         self.client.log_batch(run_id, metrics=final)
 
@@ -325,7 +356,8 @@ class TrialRun(Callback):
 
     def _log(self, step: int, metrics: dict[str, float]) -> None:
         now = int(time.time() * 1000)
-        self.client.log_batch(self.run_id, metrics=[Metric(k, float(v), now, step) for k, v in metrics.items()])
+        named = {("system/" + k.removeprefix("train/") if k in SYSTEM_METRICS else k): v for k, v in metrics.items()}
+        self.client.log_batch(self.run_id, metrics=[Metric(k, _shown(k, float(v)), now, step) for k, v in named.items()])
 
     def on_start(self, record: dict[str, str]) -> None:
         self.client.log_batch(self.run_id, tags=[RunTag(f"repro.{k}", v) for k, v in record.items()])
@@ -337,8 +369,9 @@ class TrialRun(Callback):
     def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
         if step <= self.logged_until["eval"]:
             return
-        # Baselines depend on the evaluation set only: the driver logs them once on the parent run.
-        self._log(step, {k: v for k, v in metrics.items() if not k.startswith("baseline/")})
+        # Baselines depend on the evaluation set only: the driver logs them once on the parent run; the
+        # per-category scores become final/… when the driver closes the run (SweepRun._log_final).
+        self._log(step, {k: v for k, v in metrics.items() if not k.startswith("baseline/") and not _per_category(k)})
         if not self.eval_set_tagged:  # every evaluation of a run scores the same evaluation set
             for path in (p for p in files if p.name == "objects.csv"):
                 with path.open(newline="") as fh:

@@ -184,7 +184,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     r = plan.profile.resources
     categories = ",".join(cell.config.data.categories) or "all"
     tags = {
-        "cell": cell.name, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
+        "cell": cell.name, "group": cell.group, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
         # `category` is the short name the UI's search box is documented with (README, Compare in MLflow).
         "categories": categories, "category": categories, "tune_trial_dir": ctx.get_trial_dir(),
         "ray_node_id": ray.get_runtime_context().get_node_id(),
@@ -275,7 +275,7 @@ class _TrialCloser(ray.tune.Callback):
         label = self._label(trial)
         step = trial.last_result.get("step", 0)
         early = step < self.plan.profile.steps
-        self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early)
+        self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result)
         value = trial.last_result.get(self.plan.spec.metric.name)
         shown = "no evaluation" if value is None else f"{self.plan.spec.metric.name} {value:.4g}"
         print(f"{'■ stopped early' if early else '✓ finished'} [{label}] at step {step}: {shown} "

@@ -68,7 +68,7 @@ def _trial(tmp_path: Path, sweep: SweepRun, trial_id: str, label: str, overrides
     """A trial's child run fed as ``cdm.train.fit`` feeds it: losses, then evaluations (the last with objects.csv)."""
     cell = label.rsplit(" · seed ", 1)[0]
     run = TrialRun(sweep.uri, sweep.experiment_id, sweep.run_id, trial_id, label,
-                   {"cell": cell, "seed": "0"}, tiny_config(tmp_path, **overrides))
+                   {"cell": cell, "group": cell.split("=")[-1], "seed": "0"}, tiny_config(tmp_path, **overrides))
     for step in (5, 10, 15, 20):
         run.on_step(step, {"train/loss": 10.0 / step})
     for step, metrics in evals.items():
@@ -105,8 +105,9 @@ def grid_store(tmp_path_factory):
     _trial(tmp_path, sweep, "t1", labels[1], {"priors.point_size": 0.04},
            {20: {"eval/cd": 60.0, "eval/f1": 0.48, **base, "eval/cd/chair": 61.0, "eval/f1/chair": 0.49}},
            _objects([50.0, 60.0, 70.0]))
-    sweep.close_trial("t0", labels[0], "FINISHED")
-    sweep.close_trial("t1", labels[1], "FINISHED")
+    # The driver closes each with Tune's last result, the source of the per-category finals.
+    sweep.close_trial("t0", labels[0], "FINISHED", last={"eval/cd": 80.0, "eval/f1": 0.42, "eval/cd/chair": 81.0, "eval/f1/chair": 0.43})
+    sweep.close_trial("t1", labels[1], "FINISHED", last={"eval/cd": 60.0, "eval/f1": 0.48, "eval/cd/chair": 61.0, "eval/f1/chair": 0.49})
     # The driver's verdict for a trial that raised before it opened its run (_TrialCloser.on_trial_error).
     sweep.close_trial("t2", labels[2], "FAILED", error="cdm.train.TrainingDiverged: loss became NaN at step 3")
     # The driver's end of the sweep: the baselines once for the evaluation set, on the parent.
@@ -123,6 +124,8 @@ def test_final_metrics_are_the_last_evaluation_under_stable_names(grid_store):
     assert first.data.metrics["final/cd"] == 80.0 and first.data.metrics["final/f1"] == 0.42
     assert first.data.metrics["final/cd/chair"] == 81.0 and first.data.metrics["final/f1/chair"] == 0.43
     assert [m.step for m in client.get_metric_history(first.info.run_id, "final/cd")] == [20]
+    # Per category, one value each (final/…): no one-point series of eval/<metric>/<category> beside them.
+    assert sorted(k for k in first.data.metrics if k.count("/") >= 2) == ["final/cd/chair", "final/f1/chair"]
     assert not any(k.startswith("final/") for k in runs["point_size=0.08 · seed 0"].data.metrics)  # failed: no final
 
 
@@ -177,7 +180,8 @@ def test_shared_view_groups_the_sweeps_children_by_cell(grid_store):
     assert path == f"#/experiments/{sweep.experiment_id}/runs?viewStateShareKey=sweep-{sweep.run_id}"
     state = json.loads(MlflowClient(uri).get_experiment(sweep.experiment_id).tags[f"mlflow.sharedViewState.sweep-{sweep.run_id}"])
     assert state["searchFilter"] == f"tags.mlflow.parentRunId = '{sweep.run_id}'"
-    assert state["groupBy"]["groupByKeys"] == [{"mode": "tag", "groupByData": "cell"}]
+    # By the swept value alone ("0.04"), which fits the name column where "point_size=0.04" was cut.
+    assert state["groupBy"]["groupByKeys"] == [{"mode": "tag", "groupByData": "group"}]
     # The sweep's metric and its partner, the swept value as a number; rows in its numeric order.
     assert state["selectedColumns"] == ["metrics.`final/f1`", "metrics.`final/cd`", "metrics.`swept/priors.point_size`", "tags.`seed`"]
     assert (state["orderByKey"], state["orderByAsc"]) == ("metrics.`swept/priors.point_size`", True)
@@ -203,7 +207,7 @@ def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_st
     link = f"(#/experiments/{sweep.experiment_id}/runs/{sweep.run_id})"
     assert text["point_size=0.04"] == (
         f"**point_size=0.04**, seed 0, a trial of the sweep [synth — profile smoke]{link}. At its last "
-        "evaluation eval/f1 0.48, eval/cd 60.0. Its cell against the reference cell: Δf1 +0.02 [+0.02, +0.02] "
+        "evaluation eval/f1 0.48, eval/cd 60.0. Its cell against the reference cell: Δf1 +0.020 [+0.020, +0.020] "
         "(95% paired interval), better. Baselines it beats on eval/f1: sphere.")
     assert "It failed: cdm.train.TrainingDiverged: loss became NaN at step 3." in text["point_size=0.08"]
     assert "Its cell is the reference cell the others are paired with." in text["point_size=0.02"]
@@ -283,21 +287,26 @@ def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
 
 
 def panel_views(png: Path) -> list[np.ndarray]:
-    """The 6 cloud views of a panel (pred 0–2, then GT 0–2) as boolean "ink" masks of equal shape.
+    """The 6 cloud views of a panel (prediction 0–2 from the top row, then ground truth 0–2 from the
+    bottom row) as boolean "ink" masks of equal shape.
 
-    The views are the last 6 axes of the row; each is found by its black frame: columns (then rows)
-    that are dark over most of the image's height are frame lines, and the 12 rightmost come in pairs.
+    Each row is read on its own: columns dark over most of the row's height are the axes' frame lines,
+    and the 6 rightmost of a row come in pairs (the last 3 axes of the row).
     """
     img = mpimg.imread(png)[..., :3]
-    dark = (img < 0.25).all(-1)
-    cols = np.flatnonzero(dark.mean(0) > 0.5)
-    lines = [(r[0], r[-1]) for r in np.split(cols, np.flatnonzero(np.diff(cols) > 1) + 1)][-12:]
+    dark_all = (img < 0.25).all(-1)
+    frame_rows = np.flatnonzero(dark_all.mean(1) > 0.5)  # the top and bottom lines of both rows of axes
+    bands = [(r[0], r[-1]) for r in np.split(frame_rows, np.flatnonzero(np.diff(frame_rows) > 1) + 1)]
+    assert len(bands) == 4, f"expected 2 rows of axes, found frame lines at {bands}"
     views = []
-    for (_, left), (right, _) in zip(lines[0::2], lines[1::2]):
-        box = dark[:, left + 1:right]
-        rows = np.flatnonzero(box.mean(1) > 0.5)
-        inner = img[rows[0] + 2:rows[-1] - 1, left + 2:right - 1]
-        views.append((inner < 0.9).any(-1))
+    for (top, _), (_, bottom) in zip(bands[0::2], bands[1::2]):
+        band = img[top:bottom + 1]
+        dark = dark_all[top:bottom + 1]
+        cols = np.flatnonzero(dark.mean(0) > 0.5)
+        lines = [(c[0], c[-1]) for c in np.split(cols, np.flatnonzero(np.diff(cols) > 1) + 1)][-6:]
+        for (_, left), (right, _) in zip(lines[0::2], lines[1::2]):
+            inner = band[3:-3, left + 2:right - 1]
+            views.append((inner < 0.9).any(-1))
     h = min(v.shape[0] for v in views)
     w = min(v.shape[1] for v in views)
     return [v[:h, :w] for v in views]

@@ -49,7 +49,7 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
 
     client = MlflowClient(uri)
     history = [(m.step, m.value) for m in client.get_metric_history(first.run_id, "train/loss")]
-    assert sorted(history) == [(5, 0.2), (10, 0.1), (15, 2.0 / 15)]
+    assert sorted(history) == [(5, 0.2), (10, 0.1), (15, 0.1333)]  # 2/15 at 4 significant digits
     assert [m.value for m in client.get_metric_history(first.run_id, "eval/cd")] == [50.0]
     run = client.get_run(first.run_id)
     # Every config field but the trial's own folder (different in every trial by construction).
@@ -79,13 +79,17 @@ def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
     table.write_text("object_id,category,eval_set,cd,f1\no1,chair,e1,60.942297,0.42000000000000004\n")
     cloud.write_text("ply\nend_header\n")
     for step in (5, 10):
-        trial.on_step(step, {"train/loss": 3.0 / step, "train/loss_diffusion": 1.0 / step})
+        trial.on_step(step, {"train/loss": 3.0 / step, "train/loss_diffusion": 1.0 / step, "train/steps_per_s": 2.0,
+                             "train/lr": 1.234567e-4})
     trial.on_eval(10, {"eval/cd": 60.942297, "eval/f1": 0.42000000000000004}, [table, cloud])
     sweep.close_trial("t0", "a · seed 0", "FINISHED")
     sweep.log_results({"a": {"f1": 0.123456}}, {"e1": {"baseline/sphere/cd": 150.0049}}, "a")
     client = MlflowClient(uri)
     final = client.get_run(trial.run_id).data.metrics
-    assert (final["final/cd"], final["final/f1"]) == (60.94, 0.42) and final["eval/cd"] == 60.942297
+    assert (final["final/cd"], final["final/f1"]) == (60.94, 0.42) and final["eval/cd"] == 60.94
+    # Loop timings sit under MLflow's "System metrics", apart from the model charts.
+    assert final["system/steps_per_s"] == 2.0 and "train/steps_per_s" not in final
+    assert final["train/lr"] == 1.235e-4  # 4 significant digits: a small learning rate keeps its value
     parent = client.get_run(sweep.run_id).data.metrics
     assert (parent["a/f1"], parent["baseline/sphere/cd"]) == (0.123, 150.0)
     assert sorted(last_eval_files(client, trial.run_id)) == ["eval/step_0000010/clouds/o1.ply", "eval/step_0000010/objects.csv"]
