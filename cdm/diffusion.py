@@ -30,6 +30,8 @@ Prediction = Literal["eps", "x0", "v"]
 Spacing = Literal["linspace", "trailing"]
 ModelFn = Callable[[Tensor, Tensor], Tensor]
 """``model_fn(x_t (B, N, 3), t (B,) long) -> raw network output (B, N, 3)``."""
+_DEFAULT = DiffusionConfig()
+"""The defaults' one home: the config's (PC²'s schedule, DDIM over 50 steps)."""
 
 
 @dataclass(frozen=True)
@@ -45,10 +47,10 @@ class SamplerSettings:
         spacing: where DDIM's steps sit (:meth:`GaussianDiffusion.timesteps`); ignored by DDPM.
     """
 
-    sampler: Literal["ddim", "ddpm"] = "ddim"
-    steps: int = 50
-    clip_x0: float | None = 1.0
-    spacing: Spacing = "linspace"
+    sampler: Literal["ddim", "ddpm"] = _DEFAULT.sampler
+    steps: int = _DEFAULT.sample_steps
+    clip_x0: float | None = _DEFAULT.clip_x0
+    spacing: Spacing = _DEFAULT.timestep_spacing
 
     @classmethod
     def from_config(cls, cfg: DiffusionConfig) -> SamplerSettings:
@@ -64,7 +66,8 @@ class GaussianDiffusion:
         prediction: what the network output means (see module docstring).
     """
 
-    def __init__(self, num_steps: int = 1000, beta_start: float = 1e-5, beta_end: float = 8e-3, prediction: Prediction = "eps"):
+    def __init__(self, num_steps: int = _DEFAULT.num_steps, beta_start: float = _DEFAULT.beta_start,
+                 beta_end: float = _DEFAULT.beta_end, prediction: Prediction = _DEFAULT.prediction):
         self.num_steps = num_steps
         self.prediction = prediction
         betas = torch.linspace(beta_start, beta_end, num_steps, dtype=torch.float64)

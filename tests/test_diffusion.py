@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from cdm.config import DiffusionConfig
 from cdm.diffusion import GaussianDiffusion, SamplerSettings
 
 
@@ -111,3 +112,11 @@ def test_paper_profile_samples_with_pc2s_schedule_and_sampler():
     for profile in ("smoke", "local"):  # the small profiles keep the clipped DDIM they had
         small = expand(load_spec(spec), profile).cells[0].config.diffusion
         assert small.sampler == "ddim" and small.clip_x0 == 1.0
+
+
+def test_defaults_are_the_configs():
+    """The schedule and sampler defaults live in cdm.config alone: the classes' defaults are read from it."""
+    cfg = DiffusionConfig()
+    assert SamplerSettings() == SamplerSettings.from_config(cfg)
+    plain, configured = GaussianDiffusion(), GaussianDiffusion.from_config(cfg)
+    assert plain.prediction == configured.prediction and torch.equal(plain.betas, configured.betas)
