@@ -1,4 +1,4 @@
-"""Command line: ``python -m cdm {train,train-prior,evaluate,reconstruct,prepare,fields}``.
+"""Train, evaluate and use a CDM model without a sweep, one subcommand per job.
 
 Bad input (unknown config key, bad value, missing data or checkpoint) prints one ``error:`` line
 naming the field and exits with status 2 before anything is written.

@@ -1,7 +1,5 @@
 """Typed, validated configuration for CDM: one home and one documented default per hyperparameter.
 
-(Over 400 lines on purpose: every field of every group, with its unit and paper default, in one file.)
-
 Each group is a frozen pydantic model with ``extra="forbid"``, so an unknown key or a value of the
 wrong type or range fails at load time with a message naming the dotted field (``priors.lambda_3d``).
 Defaults are the paper's (CDM, CVPR 2025) or PC²'s where the paper is silent; units are stated per

@@ -36,12 +36,11 @@ Z_NEAR = 1e-6
 """View depth (world units) at or below which a point counts as behind the camera."""
 
 SPLAT_DEPTH_EPS = 0.1
-"""Added to the splat weight in the soft depth's denominator, ``Σwz / (Σw + eps)``.
+"""Added to the splat weight in the soft depth's denominator, ``Σwz / (Σw + eps)``, to keep the
+gradient at a splat's thin edge smooth (``benchmarks/RESULTS.md``, "Code choices").
 
-With 1e-3 the thin weight at a splat's edge gave spiky gradients (~10× a dense Gaussian splat's);
-0.1 fixed it (measured against a naive per-point Gaussian splat). It biases an isolated point's depth by
-``Σw/(Σw + eps)`` (``Σw`` its footprint's integral over the pixel, < 1), and by much less inside a
-dense cloud where ``Σw`` is tens.
+It biases an isolated point's depth by ``Σw/(Σw + eps)`` (``Σw`` its footprint's integral over the
+pixel, < 1), and by much less inside a dense cloud where ``Σw`` is tens.
 """
 
 class Fragments(NamedTuple):
@@ -100,8 +99,7 @@ def rasterize_points(points: Tensor, cameras: Cameras, image_size: int, radius: 
         :class:`Fragments`. No gradient flows.
 
     Work and memory grow with ``B·N·(2k+1)²``, ``k = ceil(radius·S/2)``: meant for radii of a few
-    pixels (B=8, N=4,096, 224², k=1: ~7 ms on one CPU thread); for wide soft discs use
-    :func:`splat_points`.
+    pixels (cost: ``benchmarks/RESULTS.md``, "Code choices"); for wide soft discs use :func:`splat_points`.
     """
     _validate(points, cameras, image_size, radius, "radius")
     b, n, _ = points.shape
@@ -204,12 +202,9 @@ def _filter_and_crop(canvas: Tensor, footprint: _Footprint) -> Tensor:
 
     Valid (unpadded) filtering of a canvas that already holds an ``h``-pixel margin, so points just
     off the image still reach it. For ``h ≤ 1`` as nine shifted adds of the canvas; wider, as ``R``
-    banded (Toeplitz) matrix products ``λ_k A_k · canvas · A_kᵀ`` with ``A_k[i, i + j] = u_k[j]``.
-    On CPU (torch 2.13, 1 thread, M=80, C=2, 64², fwd+bwd): the shifted adds took 11 ms against the
-    products' 28 ms at h = 1 (r = 1.28 px), the products 55 against 66 ms at h = 3 (at M=40, C=1 with
-    fused multiply-adds: 3.0 ms at h = 1; at h = 3 the products 13.3 ms against 20.2 for 49 shifts); one banded
-    product beat a depthwise ``conv2d`` at every size measured, 7–15× from 32² to 224², and is a plain
-    GEMM on GPUs.
+    banded (Toeplitz) matrix products ``λ_k A_k · canvas · A_kᵀ`` with ``A_k[i, i + j] = u_k[j]``: the
+    faster of the two at each width, and faster than a depthwise ``conv2d`` at every size measured
+    (``benchmarks/RESULTS.md``, "Code choices").
     """
     width = footprint.table.shape[0]
     side = canvas.shape[-1]

@@ -1,8 +1,5 @@
 """The embedded default data set: eight procedural shape categories, generated on the fly.
 
-(Over 400 lines on purpose: the eight category programs and their shared parts are one catalogue,
-read side by side; each program is short.)
-
 Each category is a small program over trimesh primitives whose sizes, proportions and optional parts
 are drawn from *continuous* ranges, so no two objects are alike and nearest-image retrieval is a weak
 baseline (every evaluation scores it: :mod:`cdm.evaluate`). Objects are built Z-up in arbitrary units and turned to the world's +Y-up frame

@@ -15,9 +15,6 @@ the widest of its prior views (a photographer's zoom: the image shows the object
 the focal, an input, carries how large it is), a random light and background; the dense cloud is rasterized by :func:`cdm.render.rasterize_points` with discs of
 1.5 px and the front-most point of each pixel is Lambert-shaded (two-sided normals).
 
-(Over 400 lines on purpose: the mesh-to-sample pipeline — normalise, sample, camera, shade — is one
-pass read top to bottom, and its seeding must stay in one place to stay reproducible.)
-
 :class:`ObjectDataset` holds what every such data set shares: ids, seeding, an LRU cache of
 surfaces, views per split. Seeding is a pure function of ``data.seed`` and the object id, so the
 same config always gives the same tensors. Held-out (``val``) samples show each object from one

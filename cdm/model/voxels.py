@@ -1,8 +1,5 @@
 """Voxel branch of the point-voxel denoiser, with a dense and a sparse back-end behind one interface.
 
-(Over 400 lines on purpose: the two back-ends and their shared interface stay in one file so that
-each sparse operation reads beside the dense one it must equal at occupied voxels.)
-
 A :class:`VoxelGrid` is the structure of one batch of clouds at one voxel resolution ``r``: which
 voxel each point falls in and how voxels are laid out. It is built once per forward pass and
 resolution (the points do not move inside the network) and offers four operations on voxel
@@ -13,9 +10,8 @@ features, used by :class:`VoxelBranch` without knowing the back-end:
 - :class:`SparseGrid`: features live on the occupied voxels only, ``(M, C)`` rows sorted by the key
   ``b·r³ + (i·r + j)·r + k``; a submanifold 3×3×3 convolution (outputs only at occupied voxels, inputs
   only from occupied neighbours) and ``GroupNorm`` statistics per sample over its occupied voxels.
-  A cloud of N points fills at most N of the ``r³`` voxels (≤ 3 % at N = 1,024, r = 32), which made a
-  training step 3.8–9.9× faster on CPU (``benchmarks/RESULTS.md``, "dense / sparse step"); on a GPU
-  dense is faster (:func:`resolve_voxel_backend`).
+  A cloud of N points fills at most N of the ``r³`` voxels (≤ 3 % at N = 1,024, r = 32): sparse is
+  the faster back-end on CPU, dense on a GPU (:func:`resolve_voxel_backend`).
 
 Both back-ends share the parameters of :class:`VoxelBranch` (same names and shapes) but compute
 different functions — a dense convolution and norm also see the empty voxels — so a model must be
@@ -64,12 +60,9 @@ def norm_groups(channels: int) -> int:
 
 
 def resolve_voxel_backend(backend: str, device: torch.device | str | None = None) -> VoxelBackend:
-    """Resolve ``model.voxel_backend``: ``auto`` is ``sparse`` on CPU and ``dense`` on CUDA.
+    """Resolve ``model.voxel_backend``: ``auto`` is ``sparse`` on CPU and ``dense`` on CUDA, the faster
+    of the two on each (``benchmarks/RESULTS.md``, "Code choices").
 
-    Measured per training step (B = 8, widths 64/128/256, resolutions 32/16/16): on one CPU thread
-    sparse was 9.9× faster at N = 1,024 and 3.8× at N = 4,096; on an H100 dense was 2.3× faster at
-    N = 1,024 and 1.8× at N = 16,384 (29 vs 66 ms, 34 vs 60 ms) — the sparse loop there is bound by
-    kernel launches (``benchmarks/RESULTS.md``, "dense / sparse step" and "Earlier H100 measurements").
     ``device=None`` means CUDA when it is available.
     """
     if backend in ("dense", "sparse"):
@@ -164,9 +157,9 @@ def _interpolation(corner_rows: Tensor, weight: Tensor, present: Tensor, num_row
 class _Interpolate(torch.autograd.Function):
     """``matrix @ rows`` with the precomputed transpose in the backward pass.
 
-    Sparse-matrix products both ways were 2.5–6× faster fwd+bwd on CPU than ``embedding_bag``
-    (whose backward sorts its indices on every call) and 4–10× faster than gather + ``bmm``.
-    Computed in float32 (or float64) with autocast off: there are no half-precision CPU kernels.
+    Sparse-matrix products both ways: faster on CPU than ``embedding_bag`` or gather + ``bmm``
+    (``benchmarks/RESULTS.md``, "Code choices"). Computed in float32 (or float64) with autocast off:
+    there are no half-precision CPU kernels.
     """
 
     @staticmethod
@@ -184,13 +177,12 @@ class _Interpolate(torch.autograd.Function):
 
 class _SubmanifoldConv(torch.autograd.Function):
     """Submanifold 3×3×3 convolution on occupied voxels: ``out[o] = Σ_k W_k · x[i]`` over the pairs
-    ``(o, i)`` of each offset ``k`` — one gather → matmul → ``index_add_`` per offset (faster than
-    one im2col matmul or 27 dense matmuls, as timed on CPU when this was written).
+    ``(o, i)`` of each offset ``k`` — one gather → matmul → ``index_add_`` per offset.
 
-    A hand-written backward runs the same loop in reverse and accumulates into one buffer; plain
-    autograd allocated, zero-filled and summed a full ``(M, C_in)`` gradient per offset, 1.3–1.8×
-    slower per layer on CPU. The gathered inputs are recomputed, not saved. Under autocast the
-    backward computes in the incoming gradient's precision.
+    A hand-written backward runs the same loop in reverse and accumulates into one buffer, where plain
+    autograd would sum a full ``(M, C_in)`` gradient per offset (both choices measured:
+    ``benchmarks/RESULTS.md``, "Code choices"). The gathered inputs are recomputed, not saved. Under
+    autocast the backward computes in the incoming gradient's precision.
     """
 
     @staticmethod
