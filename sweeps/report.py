@@ -525,7 +525,7 @@ def publish(uri: str, parent_run_id: str, folder: Path) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sweeps/report.py", description=__doc__.split("\n\n")[1])
+    p = argparse.ArgumentParser(prog="sweeps/report.py", description=__doc__.split("\n\n")[0])
     p.add_argument("experiment", help="MLflow experiment name (= the spec's name)")
     p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
     p.add_argument("--run-id", default=None, help="parent run of the sweep (default: the experiment's latest sweep)")

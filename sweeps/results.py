@@ -1,8 +1,5 @@
 """The results table of a sweep: one row per cell, mean ± std over seeds, the paper's number beside it.
 
-(Over 400 lines on purpose: aggregation, pairing against the reference cell and the three renderings —
-terminal, Markdown, CSV — share one row model; split, each half would need the other's internals.)
-
 Knows nothing of Ray or MLflow: the runner turns finished trials into :class:`TrialOutcome` s and
 this module aggregates and formats them — plain text for the terminal, Markdown and CSV for the
 sweep folder. Trivial baselines the trainer reports (``baseline/<name>/<metric>``: sphere, Gaussian,

@@ -1,18 +1,12 @@
 """Ray glue of a sweep: the Tune trainable, the Ray Train loop around ``cdm.train.fit``, and the Tuner.
 
-(Just over 400 lines: the Tune trainable, the Train loop and the Tuner they run in are read together;
-splitting them would scatter one trial's life over three files.)
-
 Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pattern;
 ``Tuner(trainer)`` is deprecated) whose loop is :func:`train_loop`, given the trial's
 :class:`TrialJob`. ``resources.workers_per_trial`` picks how:
 
-- ``0`` — Train's local mode: the loop runs inside the trial's own actor. On 2 CPUs a nested
-  one-worker ``TorchTrainer`` costs 12–25 s of start-up per trial (controller, worker group, sync
-  actors; no supported way keeps a worker group alive between trials in ray 2.60;
-  benchmarks/RESULTS.md, trade-off of target (5)), local mode with reused actors ~2 s including
-  the MLflow run's set-up (measured with the smoke profile: trial ≈ fit + 2 s here, fit + 12.5 s
-  with one worker). So small machines run local mode, the default of the smoke and local profiles.
+- ``0`` — Train's local mode: the loop runs inside the trial's own actor, seconds of start-up per
+  trial where a worker group costs tens (``benchmarks/RESULTS.md``, "Code choices"). So small
+  machines run local mode, the default of the smoke and local profiles.
 - ``>= 1`` — real Train workers (DDP over gloo on CPU, NCCL on GPU), what scales on a cluster.
 
 Local mode only accepts ``ray.tune.report``/``ray.tune.get_checkpoint`` and real workers only
