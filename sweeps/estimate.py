@@ -77,11 +77,14 @@ class Estimate:
     """Paper profile on the GPU of ``benchmarks/gpu_costs.json``; None without figures."""
     gpu: str
     """The GPU of the figures, or why there are none."""
+    worst_case: bool = False
+    """The trials are a sequential sweep's most (every cell at ``max`` seeds); it may stop sooner."""
 
     def text(self) -> str:
         gpu = (f"{self.gpu_hours:.1f} GPU-hours with the paper profile ({self.gpu})" if self.gpu_hours is not None
                else f"paper-profile GPU-hours: {self.gpu} (on a GPU: benchmarks/run.py --device cuda --only throughput)")
-        return (f"estimate: {self.trials} trials × ~{self.trial_s / 60:.1f} min, {self.concurrent} at a time → "
+        return (f"estimate: {'worst case, ' if self.worst_case else ''}{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
+                f"{self.concurrent} at a time → "
                 f"~{self.wall_s / 60:.1f} min wall on this machine; {gpu}")
 
 
@@ -213,4 +216,4 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
     paper = expand(plan.spec, "paper", plan.sets)
     trial_hours, gpu = paper_trial_gpu_hours(paper)
     gpu_hours = None if trial_hours is None else trial_hours * paper.num_trials
-    return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, gpu_hours, gpu)
+    return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, gpu_hours, gpu, plan.sequential is not None)

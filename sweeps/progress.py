@@ -129,16 +129,20 @@ class SweepProgress(ray.tune.Callback):
     """Driver side: one progress line for the whole sweep, kept up to date by a background thread.
 
     Args:
-        trials: trials of the sweep; ``steps``: training steps of each.
+        trials: trials of the sweep (a sequential sweep's worst case); ``steps``: training steps of each.
         label: trial → its label (the name trials report their steps under).
+        round_of: trial → the round it runs in, and ``rounds`` the most there can be (a sequential
+            sweep's, :meth:`sweeps.plan.SweepPlan.round_of`); counted on the line when ``rounds > 1``.
         predicted_s: the calibrated wall-time estimate of the whole sweep (None: no remaining time).
         tty: redraw in place every ``refresh_s`` seconds; else one line each ``every_s`` seconds.
     """
 
     def __init__(self, parent_run_id: str, trials: int, steps: int, label: Callable[[object], str],
                  predicted_s: float | None, tty: bool, stream: TextIO | None = None,
-                 refresh_s: float = 1.0, every_s: float = 60.0):
+                 refresh_s: float = 1.0, every_s: float = 60.0, round_of: Callable[[object], int] | None = None,
+                 rounds: int = 1):
         self.trials, self.steps, self.label, self.predicted_s, self.tty = trials, steps, label, predicted_s, tty
+        self.round_of, self.rounds, self.round = round_of, rounds, 0
         self.stream = stream or sys.stdout
         self.period = refresh_s if tty else every_s
         # On the driver's own node: Ray would place it on any node, and a lost worker node would take
@@ -164,16 +168,21 @@ class SweepProgress(ray.tune.Callback):
             self._draw()
 
     def line(self, steps_now: dict[str, int] | None = None) -> str:
-        """``sweep: 1/5 done, 2 running, 0 failed · 1200/4000 steps · 3:05 elapsed, ~6 min left``."""
+        """``sweep: 1/5 done, 2 running, 0 failed · 1200/4000 steps · 3:05 elapsed, ~6 min left``; a
+        sequential sweep's starts ``sweep: round 2 of ≤4 · 5/≤12 done`` (its totals are the worst case,
+        and so is the time left)."""
         reported = {**(steps_now or {}), **self.finished_steps}
         done_steps = min(sum(reported.values()), self.trials * self.steps)
         total = self.trials * self.steps
         elapsed = time.monotonic() - self.started
-        text = (f"sweep: {len(self.done)}/{self.trials} done, {len(self.running)} running, {len(self.failed)} failed"
-                f" · {done_steps}/{total} steps · {_clock(elapsed)} elapsed")
+        rounds = self.rounds > 1
+        at_most = "≤" if rounds else ""
+        text = ("sweep: " + (f"round {max(1, self.round)} of ≤{self.rounds} · " if rounds else "")
+                + f"{len(self.done)}/{at_most}{self.trials} done, {len(self.running)} running, {len(self.failed)} failed"
+                f" · {done_steps}/{at_most}{total} steps · {_clock(elapsed)} elapsed")
         if self.predicted_s is not None:
             left = self.predicted_s * (1 - done_steps / total) if total else 0.0
-            text += f", ~{left / 60:.1f} min left (calibrated)"
+            text += f", ~{left / 60:.1f} min left (calibrated{', at most' if rounds else ''})"
         return text
 
     def _draw(self) -> None:
@@ -186,6 +195,8 @@ class SweepProgress(ray.tune.Callback):
 
     def on_trial_start(self, iteration, trials, trial, **info) -> None:
         self.running.add(self.label(trial))
+        if self.round_of is not None:
+            self.round = max(self.round, self.round_of(trial))
 
     def _ended(self, trial, into: set[str]) -> None:
         label = self.label(trial)

@@ -30,12 +30,13 @@ from pydantic import ValidationError
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
 from sweeps.claim import ClaimError, SweepClaim, claim
-from sweeps.limits import MAX_TRIALS, LimitError, check_set_text, check_trials
+from sweeps.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
 from sweeps.plan import SweepPlan, expand, lambda_source
 from sweeps.precompute import check_space, shared_root
 from sweeps.protocol import CARD_TAG, plan_card
 from sweeps.resources import plan_concurrency
-from sweeps.spec import Spec, SpecError, load_spec
+from sweeps.settle import check_budget
+from sweeps.spec import SeedBudget, Spec, SpecError, load_spec, parse_budget
 from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
@@ -52,6 +53,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials")
     p.add_argument(TRUST_FLAG, action="store_true",
                    help="with --resume: unpickle Tune's state even where others could have written it (README, Security and limits)")
+    p.add_argument("--until-settled", action="store_true",
+                   help="run seeds until each cell's comparison settles: a list of seeds becomes {min: 2, max: 5} (README, Seeds until settled)")
+    p.add_argument("--budget", default=None, metavar="2h|45m|30s|N",
+                   help="with seeds until settled: no seed starts past this wall time, or past N trials")
     p.add_argument("--dry-run", action="store_true", help="print the trials, the resource plan and the protocol card; start nothing")
     p.add_argument("--no-estimate", action="store_true", help="with --dry-run: skip the cost estimate's calibration steps")
     p.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
@@ -68,8 +73,9 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def describe(plan: SweepPlan, cpus: float | None, gpus: float | None) -> str:
-    """The dry-run text: profile, search, resource plan and every trial (or the Optuna space)."""
+def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, budget: SeedBudget | None = None) -> str:
+    """The dry-run text: profile, search, resource plan and every trial (or the Optuna space); a sequential
+    sweep's rule, worst case and ``budget``."""
     spec, prof, r = plan.spec, plan.profile, plan.profile.resources
     out = [
         f"profile {prof.name}: {prof.description}".rstrip(": "),
@@ -96,15 +102,25 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None) -> str:
         for key, p in s.space.items():
             rng = f"{p.choices}" if p.type == "categorical" else f"[{p.low:g}, {p.high:g}]"
             out.append(f"  {key}: {p.type} {rng}")
+    elif plan.sequential is not None:
+        from sweeps.settle import describe_rule
+
+        out += describe_rule(plan, budget)
     else:
         out.append(f"search: grid, {plan.num_trials} trials ({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):")
+    if spec.search.kind == "grid":
         for i, cell in enumerate(plan.cells, 1):
             values = ", ".join(f"{k}={v}" for k, v in cell.values.items())
             line = f"  {i:3d}. {cell.label}" + (f"   ({values})" if values else "")
+            if plan.round_of(cell) > 1:
+                line += f"   [round {plan.round_of(cell)}, if still open]"
             if cell.paper_label and spec.paper:
                 numbers = ", ".join(f"{k} {v:g}" for k, v in cell.paper.items() if k.count("/") == 1)
                 line += f"   [paper {spec.paper.table} · {cell.paper_label}: {numbers}]"
             out.append(line)
+        if plan.grid_trials is not None:
+            out.append(f"  … and {plan.num_trials - len(plan.cells)} more trials, each checked (a dry-run lists the first "
+                       f"{len(plan.cells)}; their inputs and memory stand for the rest)")
     return "\n".join(out)
 
 
@@ -218,14 +234,24 @@ def main(argv: list[str] | None = None) -> int:
                 return _fail(f"--resume: {sweep_dir} holds no sweep to resume (no {STATE_FILE})")
             if sets:
                 return _fail("--resume continues a sweep with the spec and --set values it started with; drop --set")
+            if args.until_settled or args.budget:
+                return _fail("--resume continues a sweep with the seeds and budget it started with; drop --until-settled and --budget")
             # The spec as it started, even if the file was edited since: trials must stay the same.
             state = parse_state(read_text(state_file), state_file)
             try:
                 spec, sets = Spec.model_validate(state["spec"]), state["sets"]
             except ValidationError as exc:
                 return _fail(f"--resume: {state_file} is damaged ({' '.join(str(exc).split())}); remove the folder to start over")
+        if args.until_settled:
+            spec = spec.until_settled()
+        budget = parse_budget(budget_text) if (budget_text := (state or {}).get("budget") or args.budget) else None
         check_trials(spec, args.max_cells)
-        plan = expand(spec, profile, sets)
+        if args.dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and spec.search.kind == "grid":
+            print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
+            plan = expand(spec, profile, sets, keep=LISTED_TRIALS, each=check_progress(count))
+        else:
+            plan = expand(spec, profile, sets)
+        check_budget(plan, budget)
         if not remote:  # a cluster's nodes have their own memory; this machine's says nothing of them
             check_memory([c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})],
                          _local_concurrency(plan))
@@ -263,8 +289,12 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
-        print(describe(plan, cpus, gpus), flush=True)
+        print(describe(plan, cpus, gpus, budget), flush=True)
         if args.no_estimate:
+            return 0
+        if plan.grid_trials is not None:
+            print(f"estimate: none for a dry-run of more than {LISTED_TRIALS} trials (it would build every cell again "
+                  "at the paper profile); calibrate on a smaller grid")
             return 0
         if cpus is None:
             print("estimate: run --dry-run on the cluster's head (without --address) to size it")
@@ -276,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
         print("calibrating (a few training steps and one evaluation) ...", flush=True)
         _estimate(plan, cpus, concurrent, shared_root(sweep_dir, remote) is not None and bool(plan.cells))
         return 0
-    print(describe(plan, None, None), flush=True)
+    print(describe(plan, None, None, budget), flush=True)
     try:
         return _run(plan, args, sweep_dir, state_file, sets, remote, held)
     finally:
@@ -392,7 +422,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                         "metric": plan.spec.metric.name, "steps": plan.profile.steps, "sets": json.dumps(sets)},
             )
             staging.mkdir(parents=True, exist_ok=True)
-            state = {"spec": plan.spec.model_dump(mode="json"), "sets": sets, "profile": plan.profile.name,
+            state = {"spec": plan.spec.model_dump(mode="json"), "sets": sets, "profile": plan.profile.name, "budget": args.budget,
                      "tracking_uri": uri, "parent_run_id": sweep_run.run_id}
             _write_new(staging / STATE_FILE, json.dumps(state, indent=2))
             plan_file = staging / "plan.json"
@@ -431,17 +461,28 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         # A resumed sweep keeps the callbacks it started with (Tune restores them): no line of its own.
         progress = None if args.resume else SweepProgress(
             sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.names(t.config)[1],
-            predicted.wall_s if predicted else None, tty)
+            predicted.wall_s if predicted else None, tty, rounds=plan.rounds,
+            round_of=(lambda t: plan.round_of(plan.grid_cell(t.config["cell"]))) if plan.sequential else None)
+        budget_text = stored.get("budget") if args.resume else args.budget
+        budget = parse_budget(budget_text) if budget_text else None
         try:
-            outcomes = run_sweep(plan, conc, sweep_dir, sweep_run, args.resume, remote, callbacks=[progress] if progress else [])
+            outcomes = run_sweep(plan, conc, sweep_dir, sweep_run, args.resume, remote, callbacks=[progress] if progress else [],
+                                 budget=budget)
         finally:
             if progress is not None:
                 progress.close()
         took = time.perf_counter() - started_at
+        settled = None
+        if plan.sequential is not None:
+            from sweeps.settle import final_round, settle_json
+
+            settled = final_round(plan, outcomes, sweep_run, budget).records
+            (staging / "settle.json").write_text(settle_json(settled, budget))
+            sweep_run.log_artifacts([staging / "settle.json"])
         table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,
                             f"{plan.spec.name} — profile {plan.profile.name}",
                             f"{plan.spec.paper.table}: {plan.spec.paper.note}" if plan.spec.paper else "",
-                            compare_to=plan.spec.compare_to, settings=_settings(plan))
+                            compare_to=plan.spec.compare_to, settings=_settings(plan), settled=settled)
         md, csv = table.write(staging)
         sweep_run.log_artifacts([md, csv])
         sweep_run.log_results(cell_means(table), baselines_by_eval_set(outcomes),

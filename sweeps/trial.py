@@ -44,6 +44,7 @@ from sweeps.plan import SweepPlan, optuna_distributions
 from sweeps.progress import StepReporter, quiet_loggers
 from sweeps.resources import Concurrency
 from sweeps.results import TrialOutcome
+from sweeps.spec import SeedBudget
 from sweeps.tracking import SweepRun, TrialRun, finished_trial_metrics
 
 __all__ = ["TrialJob", "TrialProgress", "TrialSetup", "error_summary", "run_sweep", "run_trial", "train_loop"]
@@ -260,7 +261,8 @@ class _TrialCloser(ray.tune.Callback):
     def _count(self, trials, ending=None) -> str:
         # Counted from Tune's trial list, so trials finished before a resume count too.
         done = {t.trial_id for t in trials if t.status in ("TERMINATED", "ERROR")} | ({ending.trial_id} if ending else set())
-        return f"{len(done)}/{self.plan.num_trials} trials done"
+        at_most = "≤" if self.plan.sequential else ""  # a sequential sweep's count is its worst case
+        return f"{len(done)}/{at_most}{self.plan.num_trials} trials done"
 
     def on_trial_start(self, iteration, trials, trial, **info) -> None:
         print(f"▶ started [{self._label(trial)}] ({self._count(trials)})", flush=True)
@@ -283,9 +285,14 @@ class _TrialCloser(ray.tune.Callback):
         print(f"✗ failed [{label}]: {reason} ({self._count(trials, trial)})", flush=True)
 
 
-def _search(plan: SweepPlan) -> tuple[dict[str, Any], Any, int]:
-    """Tune param space, search algorithm and sample count: grid cells by label, or Optuna's space."""
+def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> tuple[dict[str, Any], Any, int]:
+    """Tune param space, search algorithm and sample count: grid cells by label, seeds until settled
+    (:class:`sweeps.seed_search.SeedSearcher`, at most every cell at ``max`` seeds), or Optuna's space."""
     s = plan.spec.search
+    if plan.sequential is not None:
+        from sweeps.seed_search import SeedSearcher
+
+        return {}, SeedSearcher(plan, sweep_run, budget), plan.num_trials
     if s.kind == "grid":
         return {"cell": ray.tune.grid_search([c.label for c in plan.cells])}, None, 1
     import optuna
@@ -327,7 +334,7 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
 
 
 def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: SweepRun, resume: bool, remote: bool = False,
-              callbacks: Sequence[ray.tune.Callback] = ()) -> list[TrialOutcome]:
+              callbacks: Sequence[ray.tune.Callback] = (), budget: SeedBudget | None = None) -> list[TrialOutcome]:
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
     ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
@@ -336,7 +343,7 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
     (:func:`sweeps.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
     joined by address and may autoscale. ``callbacks`` (e.g. the
     progress line, :class:`sweeps.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
-    started with.
+    started with. ``budget``: a sequential sweep's ``--budget`` (a resumed one keeps its searcher's).
     """
     # Snapshot the experiment state every second (and sync it to storage as often, below), so a
     # killed driver resumes trials from their checkpoints instead of from step 0 (with
@@ -359,7 +366,7 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
         tuner = ray.tune.Tuner.restore(sweep_dir, trainable=trainable, resume_unfinished=True,
                                        resume_errored=False, restart_errored=False)
     else:
-        param_space, search_alg, num_samples = _search(plan)
+        param_space, search_alg, num_samples = _search(plan, sweep_run, budget)
         tuner = ray.tune.Tuner(
             trainable,
             param_space=param_space,
@@ -398,8 +405,13 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
     # A trial whose worker never started has no config; grid sweeps list it as pending below.
     outcomes = [_outcome(plan, r, sweep_run) for r in grid if r.config is not None]
     if plan.spec.search.kind == "grid":
-        # Trials Tune had not created yet when the sweep was interrupted still get their row.
+        # Trials Tune had not created yet when the sweep was interrupted still get their row; in a sequential
+        # sweep only those its rule would still start (seeds it never needed are no trials of it).
         seen = {o.label for o in outcomes}
+        if plan.sequential is not None:
+            from sweeps.settle import final_round
+
+            seen |= {c.label for c in plan.cells} - set(final_round(plan, outcomes, sweep_run, budget).start)
         outcomes += [TrialOutcome(c.label, c.name, "pending", {}, c.paper_label, c.paper) for c in plan.cells if c.label not in seen]
         order = {c.label: i for i, c in enumerate(plan.cells)}
         return sorted(outcomes, key=lambda o: order[o.label])
