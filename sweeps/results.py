@@ -8,7 +8,9 @@ local recipes land near them: benchmarks/RESULTS.md, "Which recipe learns").
 
 When trials carry their per-object scores, every cell (and every baseline) is also compared pairwise
 with a reference cell (:mod:`sweeps.paired`): mean difference, 95% bootstrap interval and a verdict,
-plus which baselines the cell beats with an interval that excludes 0.
+plus which baselines the cell beats with an interval that excludes 0. A verdict weighs the metric
+and its partner (``better on f1, worse on cd``); cells that ran until their comparison settled
+(:mod:`sweeps.sequential`) show their seeds, why they stopped, and an interval over seeds and objects.
 """
 
 from __future__ import annotations
@@ -17,13 +19,15 @@ import csv
 import math
 import statistics
 import textwrap
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from cdm.evaluate import BASELINES
 from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
+from sweeps.sequential import FOOTNOTE as SETTLED_FOOTNOTE
+from sweeps.sequential import SettleRecord
 
 __all__ = [
     "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "rounded",
@@ -172,6 +176,26 @@ def _partner(metric: str) -> str | None:
     return None
 
 
+def _partner_mode(partner: str) -> Literal["min", "max"]:
+    """Chamfer distance is better lower, F1 higher (the only partners :func:`_partner` names)."""
+    return "min" if partner.endswith("/cd") else "max"
+
+
+def _weighed(verdicts: Sequence[tuple[str, str]]) -> str:
+    """One verdict from ``(metric, verdict)`` pairs, the sweep's metric first, then its partner.
+
+    The metric's verdict when every other one agrees with it or is unclear; otherwise each clear one
+    by name (``better on f1, worse on cd``; ``worse on cd`` when the metric alone is unclear), so a
+    difference the partner's interval shows is never read as "no clear difference".
+    """
+    (metric, first), *rest = verdicts
+    others = [(m, v) for m, v in rest if v not in ("no clear difference", first)]
+    if not others:
+        return first
+    named = ([] if first == "no clear difference" else [(metric, first)]) + others
+    return ", ".join(f"{v} on {m.removeprefix('eval/')}" for m, v in named)
+
+
 def _categories(outcomes: Sequence[TrialOutcome], metric: str) -> list[str]:
     prefix = metric + "/"
     return sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
@@ -218,13 +242,18 @@ class _Pairing:
     diffs: dict[tuple[str, str], PairedDifference | str]
     """``(row name, metric) →`` the difference, or why there is none."""
     against: dict[str, dict[str, str]]
-    """Cell → baseline → verdict of the cell against it on the table's metric (``better``: interval excluding 0)."""
+    """Cell → baseline → weighed verdict of the cell against it (``better``: on the metric, not worse on the partner)."""
+    verdicts: dict[str, str]
+    """Cell → its weighed verdict against the reference cell; a settled cell's says after how many seeds."""
+    settled: Mapping[str, SettleRecord]
     notes: list[str]
 
     @classmethod
-    def build(cls, cells: dict[str, list[TrialOutcome]], reference: str, shown: list[str], metric: str,
-              mode: Literal["min", "max"], baselines: list[str]) -> _Pairing:
-        pairing = cls(reference, {}, {}, [])
+    def build(cls, cells: dict[str, list[TrialOutcome]], reference: str, shown: list[str],
+              mode: Literal["min", "max"], baselines: list[str], settled: Mapping[str, SettleRecord]) -> _Pairing:
+        pairing = cls(reference, {}, {}, {}, {n: r for n, r in settled.items() if n in cells and n != reference}, [])
+        metric, modes = shown[0], {m: mode if m == shown[0] else _partner_mode(m) for m in shown}
+        to_baseline: dict[tuple[str, str, str], str] = {}
         unpaired: list[str] = []
         for m in shown:
             column, category = _object_column(m)  # type: ignore[misc]
@@ -237,14 +266,25 @@ class _Pairing:
                 except UnpairedError:
                     pairing.diffs[(name, m)] = "not paired"
                     unpaired += [name] if m == metric else []
-            if m != metric:
-                continue
             for name, group in cells.items():
                 for b in baselines:
                     # The baselines scored on this cell's own objects, whichever objects those are.
                     ours, theirs = scores[name], _object_scores(group, f"baseline/{b}/{column}", category)
                     if ours and set(ours) == set(theirs):
-                        pairing.against.setdefault(name, {})[b] = compare(ours, theirs, (name, b)).verdict(mode)
+                        to_baseline[(name, b, m)] = compare(ours, theirs, (name, b)).verdict(modes[m])
+        for (name, b, m), verdict in to_baseline.items():
+            if m == metric:
+                others = [(p, to_baseline[(name, b, p)]) for p in shown[1:] if (name, b, p) in to_baseline]
+                pairing.against.setdefault(name, {})[b] = _weighed([(m, verdict), *others])
+        for name in cells:
+            found = {m: d.verdict(modes[m]) for m in shown if isinstance(d := pairing.diffs.get((name, m)), PairedDifference)}
+            record = pairing.settled.get(name)
+            if record is not None:
+                partner = [f"{v} on {m.removeprefix('eval/')}" for m, v in found.items()
+                           if m != metric and v not in ("no clear difference", record.decision.verdict)]
+                pairing.verdicts[name] = "; ".join([record.text(), *partner])
+            elif metric in found:
+                pairing.verdicts[name] = _weighed([(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric])
         if unpaired:
             pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
                                  f"comparison needs the same evaluation set): {', '.join(unpaired)}")
@@ -253,16 +293,21 @@ class _Pairing:
     def beats(self, name: str) -> list[str]:
         return [b for b, v in self.against.get(name, {}).items() if v == "better"]
 
-    def columns(self, name: str, shown: list[str], metric: str, mode: Literal["min", "max"]) -> list[str]:
+    def delta(self, name: str, m: str, metric: str) -> PairedDifference | str | None:
+        """Row ``name``'s Δ on ``m``: a settled cell's interval over seeds and objects on the metric, else the paired one."""
+        record = self.settled.get(name)
+        if record is not None and m == metric:
+            i = record.decision.interval
+            return PairedDifference(i.mean, i.low, i.high, i.objects)
+        return self.diffs.get((name, m))
+
+    def columns(self, name: str, shown: list[str], metric: str) -> list[str]:
         """A cell's Δ per shown metric, verdict and the baselines it beats."""
         out = []
         for m in shown:
-            d = self.diffs.get((name, m))
+            d = self.delta(name, m, metric)
             out.append("reference" if name == self.reference else d.text() if isinstance(d, PairedDifference) else d or "–")
-        d = self.diffs.get((name, metric))
-        out.append(d.verdict(mode) if isinstance(d, PairedDifference) else "")
-        out.append(", ".join(self.beats(name)) or "none")
-        return out
+        return out + [self.verdicts.get(name, ""), ", ".join(self.beats(name)) or "none"]
 
 
 def build_table(
@@ -273,13 +318,18 @@ def build_table(
     paper_note: str = "",
     compare_to: str | None = None,
     settings: Sequence[str] = (),
+    *,
+    settled: Mapping[str, SettleRecord] | None = None,
 ) -> ResultsTable:
-    """Aggregate trials per cell (in first-seen order) and mark the best cell by ``metric``/``mode``.
+    """Aggregate trials per cell (in first-seen order) and star the best cell by ``metric``/``mode``
+    when it is apart from the next at the printed precision (else the leaders are marked tied).
 
     With per-object rows on the trials, every cell and baseline is paired with ``compare_to``
     (default: the first cell): mean difference and 95% bootstrap interval for each shown metric, a
-    verdict by ``metric``, and the baselines the cell beats. ``settings`` lines (what produced the
-    numbers, e.g. the prediction target) head the notes.
+    verdict weighing ``metric`` and its partner, and the baselines the cell beats. ``settled`` (cell →
+    where its run until settled stopped, from the sequential runner) adds a ``seeds`` column and puts
+    that record's interval over seeds and objects, and its verdict, in the cell's row. ``settings``
+    lines (what produced the numbers, e.g. the prediction target) head the notes.
     """
     cells: dict[str, list[TrialOutcome]] = {}
     for o in outcomes:
@@ -294,8 +344,9 @@ def build_table(
     reference = compare_to or next(iter(cells), None)
     pairing = None
     if _object_column(metric) is not None and reference in cells and any(o.objects for o in _finished(cells[reference])):
-        pairing = _Pairing.build(cells, reference, shown, metric, mode, baselines)
-    header = ["cell"] + (["paper setting"] if has_paper_label else []) + ["trials"]
+        pairing = _Pairing.build(cells, reference, shown, mode, baselines, settled or {})
+    seeds_column = bool(pairing and pairing.settled)
+    header = ["cell"] + (["paper setting"] if has_paper_label else []) + ["trials"] + ["seeds"] * seeds_column
     for m in shown:
         header += [m, f"paper {m}"]
     header += [f"{metric}/{c}" for c in categories]
@@ -304,8 +355,11 @@ def build_table(
 
     stats = {name: _Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
              for name, group in cells.items()}
-    ranked = [(s.mean, name) for name, s in stats.items() if s is not None]
-    best = (min(ranked) if mode == "min" else max(ranked))[1] if ranked else None
+    ranked = sorted((s.mean if mode == "min" else -s.mean, name) for name, s in stats.items() if s is not None)
+    # Cells that print the leader's mean: a star between them would rest on digits nobody sees.
+    leaders = [name for _, name in ranked if _num(stats[name].mean) == _num(stats[ranked[0][1]].mean)]  # type: ignore[union-attr]
+    best = leaders[0] if len(leaders) == 1 else None
+    mark = {best: " ★"} if best else {name: " (tied)" for name in leaders}
 
     rows: list[list[str]] = []
     records: list[dict[str, object]] = []
@@ -314,8 +368,12 @@ def build_table(
         counts = {s: sum(o.status == s for o in group) for s in ("ok", "stopped", "failed", "pending")}
         trials = f"{counts['ok'] + counts['stopped']}/{len(group)}" + "".join(
             f" ({counts[s]} {s})" for s in ("stopped", "failed", "pending") if counts[s])
-        row = [name + (" ★" if name == best else "")] + ([first.paper_label or ""] if has_paper_label else []) + [trials]
+        row = [name + mark.get(name, "")] + ([first.paper_label or ""] if has_paper_label else []) + [trials]
         record: dict[str, object] = {"cell": name, "paper_setting": first.paper_label or "", "best": name == best, **counts}
+        if seeds_column:
+            settle = pairing.settled.get(name)  # type: ignore[union-attr]
+            row.append(f"{settle.seeds} ({settle.reason})" if settle else "")
+            record.update({"seeds": settle.seeds if settle else None, "stop reason": settle.reason if settle else ""})
         done = _finished(group)
         for m in shown + [f"{metric}/{c}" for c in categories]:
             stat = _Stat.of([o.metrics[m] for o in done if m in o.metrics])
@@ -328,8 +386,8 @@ def build_table(
             record.update({f"{m} mean": stat.mean if stat else None, f"{m} std": stat.std if stat else None,
                            f"{m} paper": paper})
         if pairing:
-            row += pairing.columns(name, shown, metric, mode)
-            record.update(_paired_record(pairing, name, shown, metric, mode))
+            row += pairing.columns(name, shown, metric)
+            record.update(_paired_record(pairing, name, shown, metric))
         rows.append(row)
         records.append(record)
 
@@ -337,7 +395,7 @@ def build_table(
     for b in baselines if suffix else []:
         done = _finished(outcomes)
         # Baselines depend on the evaluation data only, not on the cell: their mean is the number.
-        row = [f"baseline: {b}"] + ([""] if has_paper_label else []) + [""]
+        row = [f"baseline: {b}"] + ([""] if has_paper_label else []) + [""] + [""] * seeds_column
         record = {"cell": f"baseline: {b}"}
         for m in shown + [f"{metric}/{c}" for c in categories]:
             key = "baseline/" + b + "/" + m.removeprefix("eval/")
@@ -354,18 +412,27 @@ def build_table(
         notes.append(f"paper: {paper_note}")
     if any(f"{metric}/{c}" in o.paper for o in outcomes for c in categories):
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
-    if best is not None:
-        seeds = any(len(_finished(group)) > 1 for group in cells.values())
-        notes.append(f"★ best cell by {metric} ({mode})" + ("; ± is the standard deviation over seeds" if seeds else ""))
+    seeds = max((len(_finished(group)) for group in cells.values()), default=0)
+    if ranked:
+        star = (f"★ best cell by {metric} ({mode})" if best else
+                f"no ★: {', '.join(leaders)} tied for best by {metric} ({mode}) at the printed precision")
+        notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
+        weighed = f"{metric} ({mode})" + (f" and {partner} ({_partner_mode(partner)})" if partner else "")
         notes.append(f"Δ: mean over the same objects of (row − {reference}), seeds averaged per object, with a 95% "
-                     f"paired bootstrap interval; verdict and beats baselines by {metric} ({mode}), interval excluding 0")
+                     f"paired bootstrap interval over the objects; verdict and beats baselines by {weighed}, interval "
+                     f"excluding 0 (a verdict names each metric when they disagree)")
+        notes.append("the bootstrap intervals cover the held-out objects only, not training seeds: "
+                     + ("with one seed per cell, another seed can move a cell by more than an interval's width"
+                        if seeds == 1 else "the seeds are averaged, their spread is not in the interval"))
+        notes += [SETTLED_FOOTNOTE] if seeds_column else []
         notes += pairing.notes
     notes += [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
     narrowing = [f"Δ{partner.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and partner else []
     narrowing += ["paper setting"] + ([f"paper {partner}", partner] if partner else [])
-    answer = ("cell", *shown, *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
-    return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, best, metric, pairing),
+    answer = ("cell", *["seeds"] * seeds_column, *shown,
+              *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
+    return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, leaders, metric, pairing),
                         frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]), tuple(narrowing), answer)
 
 
@@ -373,11 +440,12 @@ def _baseline_name(name: str) -> str:
     return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
 
 
-def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, _Stat | None], best: str | None, metric: str,
+def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, _Stat | None], leaders: list[str], metric: str,
              pairing: _Pairing | None) -> list[str]:
-    """One sentence per class of cells — the best cell, then cells that stand the same against the
-    baselines (paired verdicts on ``metric``) — and one for the cells with no finished trial."""
-    if best is None:
+    """One sentence per class of cells — the best cell (or the tied leaders), then cells that stand the
+    same against the baselines (weighed verdicts), then every cell's verdict against the reference
+    cell — and one for the cells with no finished trial."""
+    if not leaders:
         return ["no cell finished a trial"] if cells else []
 
     def standing(name: str, plural: bool) -> str:
@@ -385,14 +453,18 @@ def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, _Stat | None
         if not against:
             return f"{metric} {stats[name].text()}" if stats[name] else "no result"  # type: ignore[union-attr]
         words = {"better": "beat" if plural else "beats", "no clear difference": "level with", "worse": "below"}
-        parts = []
-        for verdict, word in words.items():
-            names = [_baseline_name(b) for b, v in against.items() if v == verdict]
-            if names:
-                parts.append(f"{word} {', '.join(names)}")
-        return "; ".join(parts)
+        by_verdict: dict[str, list[str]] = {}
+        for b, v in against.items():
+            by_verdict.setdefault(v, []).append(_baseline_name(b))
+        ordered = [v for v in words if v in by_verdict] + [v for v in by_verdict if v not in words]
+        return "; ".join(f"{words[v]} {', '.join(by_verdict[v])}" if v in words else f"{v} than {', '.join(by_verdict[v])}"
+                         for v in ordered)
 
-    out = [f"best cell {best}: {standing(best, False)}"]
+    best = leaders[0] if len(leaders) == 1 else None
+    if best:
+        out = [f"best cell {best}: {standing(best, False)}"]
+    else:
+        out = [f"no best cell: {', '.join(leaders)} tie at {metric} {_num(stats[leaders[0]].mean)}"]  # type: ignore[union-attr]
     if pairing:
         classes: dict[str, list[str]] = {}
         for name in cells:
@@ -400,21 +472,28 @@ def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, _Stat | None
                 classes.setdefault(standing(name, True), []).append(name)
         out += [f"{'cell' if len(names) == 1 else 'cells'} {', '.join(names)}: "
                 f"{standing(names[0], len(names) > 1)}" for names in classes.values()]
+        by_verdict: dict[str, list[str]] = {}
+        for name, verdict in pairing.verdicts.items():
+            by_verdict.setdefault(verdict, []).append(name)
+        if by_verdict:
+            out.append(f"against {pairing.reference}: " + "; ".join(f"{', '.join(n)} {v}" for v, n in by_verdict.items()))
     failed = [name for name in cells if stats[name] is None]
     if failed:
         out.append(f"no result (failed or not run): {', '.join(failed)}")
     return out
 
 
-def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str, mode: Literal["min", "max"]) -> dict[str, object]:
+def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str) -> dict[str, object]:
     record: dict[str, object] = {}
     for m in shown:
-        d = pairing.diffs.get((name, m))
+        d = pairing.delta(name, m, metric)
         ok = isinstance(d, PairedDifference)
         record.update({f"{m} delta": d.mean if ok else None, f"{m} delta low": d.low if ok else None,
                        f"{m} delta high": d.high if ok else None})
-    d = pairing.diffs.get((name, metric))
-    record["verdict"] = d.verdict(mode) if isinstance(d, PairedDifference) else ""
+    settle = pairing.settled.get(name)
+    paired = isinstance(pairing.diffs.get((name, metric)), PairedDifference)
+    record[f"{metric} delta covers"] = settle.decision.interval.covers if settle else "objects" if paired else ""
+    record["verdict"] = pairing.verdicts.get(name, "")
     record["beats baselines"] = ";".join(pairing.beats(name))
     return record
 
