@@ -85,7 +85,7 @@ class Estimate:
                else f"paper-profile GPU-hours: {self.gpu} (on a GPU: benchmarks/run.py --device cuda --only throughput)")
         return (f"estimate: {'worst case, ' if self.worst_case else ''}{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
                 f"{self.concurrent} at a time → "
-                f"~{self.wall_s / 60:.1f} min wall on this machine; {gpu}")
+                f"~{self.wall_s / 60:.1f} min wall on this machine;\n  {gpu}")
 
 
 def calibrate(config: Config, steps: int = 3, eval_set: bool = True, evaluate: bool = True) -> TrialCost:

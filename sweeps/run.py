@@ -19,7 +19,9 @@ import shlex
 import shutil
 import sys
 import tempfile
+import textwrap
 import time
+from dataclasses import replace
 from pathlib import Path
 
 if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sys.path, not the repo root
@@ -121,7 +123,7 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, budget: Se
         if plan.grid_trials is not None:
             out.append(f"  … and {plan.num_trials - len(plan.cells)} more trials, each checked (a dry-run lists the first "
                        f"{len(plan.cells)}; their inputs and memory stand for the rest)")
-    return "\n".join(out)
+    return _wrapped("\n".join(out))
 
 
 def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
@@ -134,7 +136,7 @@ def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
     except TrainingDiverged as exc:
         print(f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way", flush=True)
         return None
-    print(predicted.text(), flush=True)
+    print(_wrapped(predicted.text()), flush=True)
     return predicted
 
 
@@ -144,10 +146,20 @@ def _settings(plan: SweepPlan) -> list[str]:
 
     # Optuna plans have no cells yet: the fixed settings and --set values stand for every trial.
     configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    card = [f"protocol: {line}" for line in plan_card(plan).lines()]
     lambdas = [] if "priors.lambda_3d" in plan.spec.search.space else [c.priors.lambda_3d for c in configs]
     return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs), lambdas,
-                          lambda_source(plan.spec, plan.profile.name, plan.fixed, plan.sets)), *card]
+                          lambda_source(plan.spec, plan.profile.name, plan.fixed, plan.sets)), *_card(plan)]
+
+
+def _card(plan: SweepPlan) -> list[str]:
+    """The protocol card as the table's notes: ``results.md`` keeps it beside the numbers."""
+    return [f"protocol: {line}" for line in plan_card(plan).lines()]
+
+
+def _wrapped(text: str, width: int = 120) -> str:
+    """``text`` with every line over ``width`` folded at spaces, each continuation indented two more."""
+    return "\n".join(textwrap.fill(line, width, subsequent_indent=line[: len(line) - len(line.lstrip())] + "  ",
+                                   break_long_words=False, break_on_hyphens=False) for line in text.splitlines())
 
 
 def _ui_hint(uri: str, path: str) -> str:
@@ -257,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
                          _local_concurrency(plan))
     except (SpecError, ConfigError, LimitError, StoreError) as exc:
         return _fail(str(exc))
-    print(f"spec {spec.name} ({args.spec}): {spec.description}", flush=True)
+    print(_wrapped(f"spec {spec.name} ({args.spec}): {spec.description}"), flush=True)
     try:
         _check_inputs(plan, remote)
     except ValueError as exc:
@@ -512,7 +524,10 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             ray.shutdown()
         if is_uri(sweep_dir):
             shutil.rmtree(staging)
-    print("\n" + table.text() + "\n")
+    # The card was printed before the trials: the terminal's table leaves it to results.md.
+    card = set(_card(plan))
+    shown = replace(table, notes=[n for n in table.notes if n not in card] + ["protocol card: printed above, and in results.md"])
+    print("\n" + shown.text() + "\n")
     if predicted is not None:
         print(f"time: estimated ~{predicted.wall_s / 60:.1f} min, took {took / 60:.1f} min "
               f"(actual / estimate = {took / predicted.wall_s:.2f})")

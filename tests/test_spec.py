@@ -79,7 +79,7 @@ def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, g
     estimate = next(line for line in out.splitlines() if line.startswith("estimate:"))
     assert f"{plan.num_trials} trials ×" in estimate and "min wall on this machine" in estimate
     # The paper profile trains PC²'s PVCNN2, whose GPU step no session has measured: no figure, and why.
-    assert "paper-profile GPU-hours: not measured for model.denoiser=pvcnn2" in estimate
+    assert f"{estimate}\n  paper-profile GPU-hours: not measured for model.denoiser=pvcnn2" in out
     assert list(tmp_path.iterdir()) == []
 
 
