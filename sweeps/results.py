@@ -280,9 +280,10 @@ class _Pairing:
             found = {m: d.verdict(modes[m]) for m in shown if isinstance(d := pairing.diffs.get((name, m)), PairedDifference)}
             record = pairing.settled.get(name)
             if record is not None:
-                partner = [f"{v} on {m.removeprefix('eval/')}" for m, v in found.items()
+                # The partner was not decided on: its interval over objects only, said as such.
+                partner = [f" ({v} on {m.removeprefix('eval/')}, objects only)" for m, v in found.items()
                            if m != metric and v not in ("no clear difference", record.decision.verdict)]
-                pairing.verdicts[name] = "; ".join([record.text(), *partner])
+                pairing.verdicts[name] = "".join([record.text(), *partner])
             elif metric in found:
                 pairing.verdicts[name] = _weighed([(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric])
         if unpaired:

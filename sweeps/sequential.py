@@ -72,8 +72,9 @@ Scores = Mapping[int, Mapping[str, float]]
 
 Verdict = Literal["better", "worse", "level", "open"]
 
-FOOTNOTE = ("seeds: Δ over training seeds and held-out objects, Banerjee's two-way (seeds × objects) "
-            "t-interval, its 5% split evenly over the planned looks (Bonferroni); one seed settles nothing")
+FOOTNOTE = ("seeds column: cells run until their comparison settled; their Δ on the sweep's metric and its "
+            "verdict are over training seeds and held-out objects: Banerjee's two-way (seeds × objects) t-interval, "
+            "its 5% split evenly over the planned looks (Bonferroni); one seed settles nothing")
 """The results table's footnote for cells that ran until settled: which interval, which correction."""
 
 

@@ -155,3 +155,90 @@ def test_settings_note_says_lambda_and_where_it_was_set():
                     "λ (priors.lambda_3d, Eq. 6) 0.1, from profile local, not from the paper")
     assert "λ (priors.lambda_3d, Eq. 6) per cell (0.01, 1)," in settings_note("local", 800, ["x0"], [1.0, 0.01], "the spec's cells")
     assert "λ (priors.lambda_3d, Eq. 6) searched," in settings_note("local", 800, ["x0"], [], "the spec's search")
+
+
+REF_F1 = [0.40, 0.50, 0.30, 0.45, 0.35, 0.50]
+REF_CD = [50.0, 40.0, 60.0, 45.0, 55.0, 40.0]
+WOBBLE = [1, -1, 0.5, -0.5, 1, -1]  # sums to 0: a shift by it alone leaves the mean where it was
+
+
+def _scored(cell: str, f1: list[float], cd: list[float], seed: int = 0) -> TrialOutcome:
+    """A trial with per-object rows on 6 chairs; the sphere scores far worse, the Gaussian worse F1, better CD."""
+    baselines = {"sphere": (0.10, 100.0), "gaussian": (0.10, 10.0)}
+    rows = tuple({"object_id": f"o{i}", "category": "chair", "f1": f, "cd": c}
+                 | {f"baseline/{b}/{m}": v + w / 100 for b, (bf, bc) in baselines.items() for m, v in (("f1", bf), ("cd", bc))}
+                 for i, (f, c, w) in enumerate(zip(f1, cd, WOBBLE)))
+    metrics = {"eval/f1": statistics.fmean(f1), "eval/cd": statistics.fmean(cd)}
+    metrics |= {f"baseline/{b}/{m}": v for b, (bf, bc) in baselines.items() for m, v in (("f1", bf), ("cd", bc))}
+    return TrialOutcome(f"{cell} · seed {seed}", cell, "ok", metrics, objects=rows)
+
+
+def _weighing_outcomes() -> list[TrialOutcome]:
+    """``trade``: F1 up 0.05, CD worse by 5; ``cd only``: F1 only wobbles (Δ 0), CD worse by 3."""
+    return [_scored("ref", REF_F1, REF_CD),
+            _scored("trade", [f + 0.05 + w / 100 for f, w in zip(REF_F1, WOBBLE)], [c + 5 + w for c, w in zip(REF_CD, WOBBLE)]),
+            _scored("cd only", [f + w / 50 for f, w in zip(REF_F1, WOBBLE)], [c + 3 + w for c, w in zip(REF_CD, WOBBLE)])]
+
+
+def test_the_verdict_weighs_the_partner_metric():
+    table = build_table(_weighing_outcomes(), "eval/f1", "max", "t")
+    verdict = {r[0].removesuffix(" ★"): r[table.header.index("verdict")] for r in table.rows}
+    assert verdict["trade"] == "better on f1, worse on cd"
+    assert verdict["cd only"] == "worse on cd"  # F1's interval holds 0; CD's does not: never "no clear difference"
+    assert verdict["ref"] == ""
+    assert [r["verdict"] for r in table.records[:3]] == ["", "better on f1, worse on cd", "worse on cd"]
+    text = table.text()
+    assert "no clear difference" not in text and "level with" not in text
+    # Against the Gaussian every cell scores better F1 and worse CD: that is what the sentence says.
+    assert "best cell trade: beats sphere; better on f1, worse on cd than Gaussian" in table.summary
+    assert "against ref: trade better on f1, worse on cd; cd only worse on cd" in table.summary
+    assert [r["beats baselines"] for r in table.records[:3]] == ["sphere"] * 3
+    assert "verdict and beats baselines by eval/f1 (max) and eval/cd (min)" in text
+
+
+def test_the_star_needs_a_difference_the_table_prints():
+    # The main job's 0.08 over 0.04 by 1.2e-6 in F1: both print 0.468.
+    close = [_trial("a", 0, eval__f1=0.4680004, eval__cd=50.0), _trial("b", 0, eval__f1=0.4680016, eval__cd=51.0),
+             _trial("c", 0, eval__f1=0.30, eval__cd=70.0)]
+    table = build_table(close, "eval/f1", "max", "t")
+    assert table.best is None and [r[0] for r in table.rows] == ["a (tied)", "b (tied)", "c"]
+    assert "no ★: b, a tied for best by eval/f1 (max) at the printed precision" in table.notes
+    assert table.summary[0] == "no best cell: b, a tie at eval/f1 0.468"
+    apart = build_table(close[:1] + [_trial("b", 0, eval__f1=0.469, eval__cd=51.0)], "eval/f1", "max", "t")
+    assert apart.best == "b" and apart.rows[1][0] == "b ★" and apart.notes[-1] == "★ best cell by eval/f1 (max)"
+
+
+def test_the_notes_say_what_the_intervals_cover():
+    one = build_table(_weighing_outcomes(), "eval/f1", "max", "t").notes
+    assert ("the bootstrap intervals cover the held-out objects only, not training seeds: with one seed per cell, "
+            "another seed can move a cell by more than an interval's width") in one
+    two = build_table(_weighing_outcomes() + [_scored("ref", REF_F1, REF_CD, seed=1)], "eval/f1", "max", "t").notes
+    assert ("the bootstrap intervals cover the held-out objects only, not training seeds: the seeds are averaged, "
+            "their spread is not in the interval") in two
+
+
+def test_settled_cells_show_their_seeds_interval_and_verdict(tmp_path):
+    from sweeps.sequential import FOOTNOTE, Decision, SeedInterval, SettleRecord
+
+    settled = {"trade": SettleRecord(2, Decision(SeedInterval(0.05, 0.02, 0.08, 2, 6, "seeds and objects"), "better"),
+                                     "settled"),
+               "cd only": SettleRecord(5, Decision(SeedInterval(0.0, -0.03, 0.03, 5, 6, "seeds and objects"), "open"),
+                                       "max")}
+    plain = build_table(_weighing_outcomes(), "eval/f1", "max", "t")
+    table = build_table(_weighing_outcomes(), "eval/f1", "max", "t", settled=settled)
+    assert table.header == plain.header[:2] + ["seeds"] + plain.header[2:]
+    rows = {r[0].removesuffix(" ★"): dict(zip(table.header, r)) for r in table.rows}
+    assert (rows["trade"]["seeds"], rows["cd only"]["seeds"], rows["ref"]["seeds"]) == ("2 (settled)", "5 (max)", "")
+    assert rows["trade"]["Δf1 vs ref [95% CI]"] == "+0.050 [+0.020, +0.080]"
+    assert rows["trade"]["Δcd vs ref [95% CI]"] == plain.rows[1][plain.header.index("Δcd vs ref [95% CI]")]
+    assert rows["trade"]["verdict"] == "better, settled after 2 seeds (worse on cd, objects only)"
+    assert rows["cd only"]["verdict"] == "open at 5 seeds (worse on cd, objects only)"
+    assert rows["baseline: sphere"]["seeds"] == ""
+    assert FOOTNOTE in table.notes and FOOTNOTE not in plain.notes
+    assert table.answer[:2] == ("cell", "seeds")
+    _, path = table.write(tmp_path)
+    trade = next(r for r in csv.DictReader(path.open()) if r["cell"] == "trade")
+    assert (trade["seeds"], trade["stop reason"], trade["eval/f1 delta covers"]) == ("2", "settled", "seeds and objects")
+    assert float(trade["eval/f1 delta low"]) == 0.02
+    assert "against ref: trade better, settled after 2 seeds (worse on cd, objects only); cd only open at 5 seeds " \
+           "(worse on cd, objects only)" in table.summary
