@@ -63,7 +63,7 @@ from typing import Literal
 import numpy as np
 from scipy import stats
 
-from sweeps.paired import UnpairedError, interval_text, paired_bootstrap
+from sweeps.paired import PairedDifference, UnpairedError, interval_text, paired_bootstrap
 
 __all__ = ["FOOTNOTE", "Decision", "Scores", "SeedInterval", "SettleRecord", "decide", "two_way_interval"]
 
@@ -75,7 +75,8 @@ Verdict = Literal["better", "worse", "level", "open"]
 FOOTNOTE = ("seeds column: cells run until their comparison settled; their Δ on the sweep's metric and its "
             "verdict are over training seeds and held-out objects: Banerjee's two-way (seeds × objects) t-interval, "
             "its 5% split evenly over the planned looks (Bonferroni); one seed settles nothing")
-"""The results table's footnote for cells that ran until settled: which interval, which correction."""
+"""The results table's footnote for cells that ran until settled: which interval, which correction
+(at :func:`decide`'s default ``level``, the one the runner uses)."""
 
 
 @dataclass(frozen=True)
@@ -102,8 +103,9 @@ class Decision:
 
     interval: SeedInterval
     verdict: Verdict
-    """``better``/``worse``: the interval excludes 0 on that side for the metric's mode; ``level``: it lies
-    inside ±margin; ``open``: neither, or one seed only."""
+    """``level``: the interval lies inside ±margin (checked first: the margin says smaller differences do
+    not matter, even when they are sure); ``better``/``worse``: it excludes 0 on that side for the
+    metric's mode; ``open``: neither, or one seed only."""
 
     @property
     def settled(self) -> bool:
@@ -163,7 +165,8 @@ def decide(cell: Scores, reference: Scores, *, mode: Literal["min", "max"], marg
     Seed ``s`` of the cell pairs with seed ``s`` of the reference (seeds only one of them ran are left
     out), objects by id. ``mode`` is the metric's direction (``min``: lower is better); ``margin`` (metric
     units, or None for none) the equivalence margin of a ``level`` verdict; ``level`` the coverage the
-    whole sequence of looks keeps (each look's interval spends (1 − level)/looks).
+    whole sequence of looks keeps: every look's interval spends the same (1 − level)/looks, so ``look``
+    is only checked against ``looks``.
 
     Raises:
         UnpairedError: no seed in common, or a seed scored on other objects than the reference's.
@@ -186,6 +189,5 @@ def decide(cell: Scores, reference: Scores, *, mode: Literal["min", "max"], marg
     interval = SeedInterval(mean, low, high, s, o, "seeds and objects")
     if margin is not None and -margin < low and high < margin:
         return Decision(interval, "level")
-    if low > 0.0 or high < 0.0:
-        return Decision(interval, "better" if (high < 0.0) == (mode == "min") else "worse")
-    return Decision(interval, "open")
+    side = PairedDifference(mean, low, high, o).verdict(mode)
+    return Decision(interval, "open" if side == "no clear difference" else side)
