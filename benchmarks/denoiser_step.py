@@ -1,4 +1,4 @@
-"""One training step of each denoiser on CPU: PC²'s PVCNN2 (``pvcnn2``) against our point-voxel network.
+"""Time one training step of each denoiser on CPU: PC²'s PVCNN2 (``pvcnn2``) against our point-voxel network.
 
     python benchmarks/denoiser_step.py [--quick]
 

@@ -1,4 +1,4 @@
-"""CPU per training step inside a real sweep ÷ the same cells' steps alone (issue 19: ≤ 1.15, was ~1.85).
+"""Measure the CPU a training step takes inside a real sweep against the same cells' steps alone.
 
 Reads a finished sweep from its MLflow store (``--tracking-uri``, ``--experiment``: run the sweep
 first, e.g. the main job ``python sweeps/run.py sweeps/point_size.yaml`` on the local profile) and

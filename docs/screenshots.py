@@ -1,4 +1,4 @@
-"""The README's pictures of a finished sweep, taken from its MLflow store in headless Chromium.
+"""Take the README's pictures of a finished sweep from its MLflow store, in headless Chromium.
 
 ``python docs/screenshots.py --tracking-uri sqlite:///…/mlflow.db [--experiment point_size] [--out docs]``
 

@@ -1,7 +1,5 @@
-"""Run a sweep: ``python sweeps/run.py SPEC [--profile smoke|local|paper] [--smoke] [--resume] [--dry-run]
-[--address ADDR] [--set key=value ...] [--storage PATH] [--tracking-uri URI]``, or re-run one finished
-trial from its MLflow record: ``python sweeps/run.py --rerun RUN_ID [--force]``, or rebuild a finished
-sweep's table and plots from MLflow: ``python sweeps/run.py --report EXPERIMENT`` (:mod:`sweeps.report`).
+"""Run a sweep: train every trial of a spec on Ray, track it in MLflow and print the results table;
+or re-run one finished trial (``--rerun RUN_ID``), or rebuild a finished sweep's report (``--report``).
 
 The spec is expanded and every cell's config validated before Ray starts; a bad spec exits with
 code 2 and one message naming the field, having written nothing. Then the trials run on Ray (a local
@@ -48,7 +46,7 @@ STATE_FILE = "sweep.json"
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sweeps/run.py", description=__doc__.split("\n\n")[1])
+    p = argparse.ArgumentParser(prog="sweeps/run.py", description=__doc__.split("\n\n")[0])
     p.add_argument("spec", type=Path, nargs="?", help="sweep spec, e.g. sweeps/point_size.yaml")
     p.add_argument("--profile", default=None, help="profile in sweeps/profiles.yaml or the spec (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
