@@ -179,7 +179,7 @@ def training_curves(
         ax.set_xlabel("training step")
         ax.set_title(key, fontsize=9)
         ax.grid(alpha=0.3)
-    if len(colours) <= 12 and labelled:  # beyond that a legend hides the curves
+    if 1 < len(colours) <= 12:  # one cell needs no legend; beyond 12 a legend hides the curves
         axes[0][0].legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()

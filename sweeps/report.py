@@ -34,7 +34,7 @@ import numpy as np
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Run
 
-from cdm.config import PriorsConfig
+from cdm.config import DiffusionConfig, PriorsConfig
 from cdm.evaluate import BASELINES
 from sweeps.gallery import grid_png, viewer_html
 from sweeps.paired import PairedDifference
@@ -220,7 +220,7 @@ def _settings(record: SweepRecord) -> list[str]:
     spec, plan = record.spec, record.plan
     targets = sorted({r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params})
     if not targets:
-        targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", "eps")]
+        targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", DiffusionConfig().prediction)]
     lambdas = [] if "priors.lambda_3d" in spec.search.space else sorted(
         {float(r.data.params["priors.lambda_3d"]) for r in record.children if "priors.lambda_3d" in r.data.params})
     if not lambdas and "priors.lambda_3d" not in spec.search.space:

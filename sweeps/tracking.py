@@ -278,40 +278,16 @@ def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
 
 
 def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path:
-    """Plot the run's loss against wall-clock minutes from its MLflow history: the diffusion term, the
-    λ × 3D-prior term (``train/loss − train/loss_diffusion``, Eq. 6) and their sum apart, so a larger λ
-    or point size does not read as worse learning; ``metric`` (the sweep's) on a second axis once the
-    run holds two evaluations (one is a number, in the run's metrics, not a curve). Titled ``title``.
+    """The run's training curves (:func:`sweeps.plots.training_curves` for this one trial: the loss terms
+    apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``.
 
     Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
     """
-    from sweeps.plots import DPI, _pyplot
+    from sweeps.plots import training_curves
 
-    plt = _pyplot()
-    loss = sorted(client.get_metric_history(run_id, "train/loss"), key=lambda m: m.step)
-    diffusion = {m.step: m.value for m in client.get_metric_history(run_id, "train/loss_diffusion")}
-    evals = sorted(client.get_metric_history(run_id, metric), key=lambda m: m.step)
-    t0 = min(m.timestamp for m in loss + evals)
-    minutes = [(m.timestamp - t0) / 60000 for m in loss]
-    fig, ax = plt.subplots(figsize=(6, 3.2))
-    ax.plot(minutes, [m.value for m in loss], color="black", label="total (Eq. 6)")
-    if diffusion:
-        ax.plot(minutes, [diffusion.get(m.step, math.nan) for m in loss], color="tab:blue", label="diffusion term")
-        ax.plot(minutes, [m.value - diffusion.get(m.step, math.nan) for m in loss], color="tab:orange", label="λ × 3D prior term")
-    ax.set_xlabel("wall-clock minutes")
-    ax.set_ylabel("training loss")
-    ax.legend(fontsize=7, loc="upper left")
-    if len(evals) >= 2:
-        ax2 = ax.twinx()
-        ax2.plot([(m.timestamp - t0) / 60000 for m in evals], [m.value for m in evals], "o-", color="tab:red")
-        ax2.set_ylabel(metric + (" (×1000)" if metric.split("/")[1:2] == ["cd"] else ""), color="tab:red")
-    if title:
-        ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    path = folder / "learning_curve.png"
-    fig.savefig(path, dpi=DPI)
-    plt.close(fig)
-    return path
+    keys = ("train/loss", "train/loss_diffusion", metric)
+    history = {k: [(m.step, m.value) for m in client.get_metric_history(run_id, k)] for k in keys}
+    return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png")
 
 
 class TrialRun(Callback):
