@@ -57,12 +57,3 @@ def test_smoke_sweep_runs_every_row(cluster, tmp_path, capsys, spec, rows):
     assert all("eval/f1" in r.data.metrics for r in children)
     table = (tmp_path / "results" / spec / "smoke" / "results.md").read_text()
     assert table.count("0.428") >= 1  # row 1, the PC² baseline, beside its paper number
-
-
-def test_dry_run_names_missing_inputs(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("CDM_INPUTS", str(tmp_path / "nothing"))
-    code = run.main([str(ROOT / "sweeps" / "global_features.yaml"), "--smoke", "--dry-run", "--storage", str(tmp_path / "r")])
-    captured = capsys.readouterr()
-    assert code == 2 and captured.out.count("(MISSING)") == 5
-    assert captured.err.strip().splitlines()[-1].startswith("error: model.global_embeddings: ")
-    assert not (tmp_path / "r").exists()
