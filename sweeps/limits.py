@@ -4,7 +4,10 @@
   aliases may not expand the document past :data:`MAX_YAML_NODES` nodes (a 330-byte "billion
   laughs" anchor chain would otherwise grow to gigabytes inside ``yaml.safe_load``).
 - :func:`check_trials`: at most ``--max-cells`` trials (default :data:`MAX_TRIALS`), counted from
-  the spec's grid, cells and seeds before a single config is built.
+  the spec's grid, cells and seeds before a single config is built (:func:`count_trials`).
+- a ``--dry-run`` of more than :data:`LISTED_TRIALS` grid trials checks them one at a time, holding
+  and listing only the first, with a :func:`check_progress` line every :data:`PROGRESS_EVERY` (10⁶
+  cells held 2.9 GB and printed nothing for 120 s).
 - :func:`check_set_text`: a ``--set key=value`` is at most :data:`MAX_SET_CHARS` characters and
   :data:`MAX_SET_DEPTH` brackets deep, checked before YAML parses it (50,000 nested brackets took
   YAML 93 s to end in a ``RecursionError``).
@@ -16,8 +19,10 @@ Every refusal is a :class:`LimitError` naming the field or file and how to raise
 from __future__ import annotations
 
 import math
+import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import yaml
 
@@ -27,9 +32,13 @@ __all__ = [
     "MAX_TRIALS",
     "MAX_YAML_BYTES",
     "MAX_YAML_NODES",
+    "LISTED_TRIALS",
+    "PROGRESS_EVERY",
     "LimitError",
+    "check_progress",
     "check_set_text",
     "check_trials",
+    "count_trials",
     "load_yaml",
 ]
 
@@ -43,6 +52,11 @@ MAX_SET_DEPTH = 16
 """Deepest bracket (``[``, ``{``) nesting of a ``--set`` value; a config field needs two at most."""
 MAX_TRIALS = 1000
 """Default cap on trials per sweep (cells × seeds, or Optuna samples); ``--max-cells N`` raises it."""
+LISTED_TRIALS = MAX_TRIALS
+"""Most grid trials a ``--dry-run`` holds, lists and estimates (all of a sweep within the default cap); past
+it, as ``--max-cells`` allows, the rest are checked one at a time and counted."""
+PROGRESS_EVERY = 10_000
+"""Trials checked between two progress lines of a long ``--dry-run`` (a few seconds of work)."""
 
 
 class LimitError(ValueError):
@@ -111,19 +125,22 @@ def load_yaml(path: Path) -> Any:
         loader.dispose()
 
 
-def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:
-    """Refuse a :class:`sweeps.spec.Spec` with more than ``max_trials`` trials, counted without building them
-    (typed ``Any``: the spec module reads its files through this one).
+def count_trials(spec: Any) -> tuple[int, str]:
+    """Trials of a :class:`sweeps.spec.Spec`, counted without building them, and what was counted (typed
+    ``Any``: the spec module reads its files through this one).
 
     A grid counts (explicit cells or 1) × the product of its value lists × seeds, an upper bound
     when ``exclude`` drops combinations; Optuna counts its largest ``num_samples``.
     """
     if spec.search.kind == "optuna":
         samples = [spec.search.num_samples, *(p.num_samples for p in spec.profiles.values() if p.num_samples)]
-        count, what = max(samples), "search.num_samples"
-    else:
-        count = max(1, len(spec.cells)) * math.prod(len(v) for v in spec.grid.values()) * len(spec.seed_values)
-        what = "grid × cells × seeds"
+        return max(samples), "search.num_samples"
+    return max(1, len(spec.cells)) * math.prod(len(v) for v in spec.grid.values()) * len(spec.seed_values), "grid × cells × seeds"
+
+
+def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:
+    """Refuse a :class:`sweeps.spec.Spec` with more than ``max_trials`` trials (:func:`count_trials`)."""
+    count, what = count_trials(spec)
     if count > max_trials:
         raise LimitError(f"{what}: {count} trials; a sweep may have at most {max_trials} "
                          f"(pass --max-cells {count} to run it anyway)")
@@ -145,3 +162,12 @@ def check_set_text(text: str) -> None:
             depth -= 1
     if deepest > MAX_SET_DEPTH:
         raise LimitError(f"--set {key}=…: brackets nested {deepest} deep; a value may nest at most {MAX_SET_DEPTH}")
+
+
+def check_progress(total: int, out: TextIO | None = None) -> Callable[[int, Any], None]:
+    """An ``each`` for :func:`sweeps.plan.expand`: prints ``checked i/total trials`` every :data:`PROGRESS_EVERY`
+    cells to ``out`` (default: ``sys.stdout`` at the time of printing)."""
+    def each(i: int, cell: Any) -> None:
+        if i % PROGRESS_EVERY == 0:
+            print(f"  checked {i}/{total} trials …", file=out or sys.stdout, flush=True)
+    return each

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -93,13 +94,15 @@ class SweepPlan:
     cells: tuple[Cell, ...]
     """Every trial of a grid search; empty for Optuna (trials are sampled while the sweep runs)."""
     metric_names: tuple[str, ...]
+    grid_trials: int | None = None
+    """Trials of a grid expanded with ``keep`` (:func:`expand`), when ``cells`` holds only the first of them."""
 
     @property
     def num_trials(self) -> int:
         """Trials of the sweep; a sequential sweep's worst case (every cell at ``max`` seeds)."""
         if self.spec.search.kind == "optuna":
             return self.profile.num_samples or self.spec.search.num_samples
-        return len(self.cells)
+        return len(self.cells) if self.grid_trials is None else self.grid_trials
 
     @property
     def sequential(self) -> SequentialSeeds | None:
@@ -188,18 +191,14 @@ def cell_name(values: dict[str, Any]) -> str:
     return " · ".join(f"{_SHORT_NAMES.get(k, k.split('.')[-1])}={_fmt_value(v)}" for k, v in values.items())
 
 
-def _cell_values(spec: Spec) -> list[tuple[str, dict[str, Any]]]:
-    """(name, swept values) per cell: explicit cells crossed with the grid, minus excluded combinations."""
+def _cell_values(spec: Spec) -> Iterator[tuple[str, dict[str, Any]]]:
+    """(name, swept values) per cell, one at a time: explicit cells crossed with the grid, minus excluded combinations."""
     keys = list(spec.grid)
-    combos = [dict(zip(keys, vals)) for vals in itertools.product(*spec.grid.values())]
-    combos = [c for c in combos if not any(all(c[k] == v for k, v in rule.items()) for rule in spec.exclude)]
-    explicit = spec.cells or [ExplicitCell(label="")]
-    out = []
-    for cell in explicit:
-        for combo in combos:
-            name = " · ".join(p for p in (cell.label, cell_name(combo)) if p)
-            out.append((name, {**cell.set, **combo}))
-    return out
+    for cell in spec.cells or [ExplicitCell(label="")]:
+        for vals in itertools.product(*spec.grid.values()):
+            combo = dict(zip(keys, vals))
+            if not any(all(combo[k] == v for k, v in rule.items()) for rule in spec.exclude):
+                yield " · ".join(p for p in (cell.label, cell_name(combo)) if p), {**cell.set, **combo}
 
 
 def _build(overrides: dict[str, Any], where: str) -> Config:
@@ -222,16 +221,17 @@ def _same(actual: Any, wanted: Any) -> bool:
     return actual == wanted
 
 
-def _check_metric(spec: Spec, configs: list[Config]) -> tuple[str, ...]:
+def _metric_names(cfg: Config) -> set[str]:
     from cdm.data import list_categories
     from cdm.train import metric_names
 
-    names: set[str] = set()
-    for cfg in configs:
-        try:
-            names.update(metric_names(cfg, list_categories(cfg)))
-        except ValueError as exc:
-            raise SpecError(str(exc)) from None
+    try:
+        return set(metric_names(cfg, list_categories(cfg)))
+    except ValueError as exc:
+        raise SpecError(str(exc)) from None
+
+
+def _check_metric(spec: Spec, names: set[str]) -> tuple[str, ...]:
     if spec.metric.name not in names:
         headline = sorted(n for n in names if n.count("/") == 1)
         raise SpecError(f"metric.name: {spec.metric.name!r} is not reported by the trainer; choose one of "
@@ -256,8 +256,14 @@ def expand(
     profile: str = "local",
     sets: dict[str, Any] | None = None,
     shared: dict[str, Profile] | None = None,
+    keep: int | None = None,
+    each: Callable[[int, Cell], None] | None = None,
 ) -> SweepPlan:
     """Resolve ``profile`` and ``--set`` values and build every cell's config.
+
+    ``keep``: hold only a grid's first ``keep`` cells in the plan; every cell is still built and checked,
+    one at a time (a dry-run of 10⁶ cells would otherwise hold gigabytes of configs). ``each(i, cell)``
+    is called with every grid cell once it is checked, ``i`` counting from 1 (progress).
 
     Raises:
         SpecError: unknown profile, unknown field, a value the config rejects, or a metric the trainer
@@ -283,29 +289,36 @@ def expand(
         raise SpecError(f"{where}: {exc}") from None
     rows = spec.paper.rows if spec.paper else []
     cells: list[Cell] = []
-    configs: list[Config] = []
+    names: set[str] = set()
+    labels: set[int] = set()  # their hashes: 10⁶ labels themselves would hold ~150 MB
+    count, compared = 0, False
     if spec.search.kind == "grid":
         for name, values in _cell_values(spec):
             for seed in spec.seed_values:
                 overrides = {**fixed, **values, "train.seed": seed, **sets}
                 config = _build(overrides, f"cell {name}")
                 paper = next((r for r in rows if _matches(r, config)), None)
-                cells.append(Cell(name, f"{name} · seed {seed}", values, seed, config,
-                                  paper.label if paper else None, dict(paper.values) if paper else {}))
-                configs.append(config)
+                cell = Cell(name, f"{name} · seed {seed}", values, seed, config,
+                            paper.label if paper else None, dict(paper.values) if paper else {})
+                if hash(cell.label) in labels:
+                    raise SpecError(f"cells: two cells share the name {cell.label!r}; give explicit cells distinct labels")
+                labels.add(hash(cell.label))
+                names |= _metric_names(config)
+                compared = compared or name == spec.compare_to
+                count += 1
+                if keep is None or len(cells) < keep:
+                    cells.append(cell)
+                if each is not None:
+                    each(count, cell)
     else:
         for key, param in spec.search.space.items():
             for probe in param.probes():
-                configs.append(_build({**fixed, key: probe, "train.seed": spec.seed_values[0], **sets}, f"search.space.{key}={probe!r}"))
-    labels = [c.label for c in cells]
-    if len(set(labels)) != len(labels):
-        twice = sorted({label for label in labels if labels.count(label) > 1})
-        raise SpecError(f"cells: two cells share the name {twice[0]!r}; give explicit cells distinct labels")
-    if spec.compare_to is not None and spec.compare_to not in {c.name for c in cells}:
+                names |= _metric_names(_build({**fixed, key: probe, "train.seed": spec.seed_values[0], **sets},
+                                              f"search.space.{key}={probe!r}"))
+    if spec.compare_to is not None and not compared:
         known = ", ".join(dict.fromkeys(c.name for c in cells))
         raise SpecError(f"compare_to: {spec.compare_to!r} is not a cell of this spec; cells: {known}")
-    names = _check_metric(spec, configs)
-    return SweepPlan(spec, prof, fixed, sets, tuple(cells), names)
+    return SweepPlan(spec, prof, fixed, sets, tuple(cells), _check_metric(spec, names), None if keep is None else count)
 
 
 def optuna_distributions(space: dict[str, SpaceParam]) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from sweeps.claim import ClaimError, claim
 from cdm.memory import check_memory, estimate_train_bytes
 from sweeps.limits import LimitError, check_trials, load_yaml
 from sweeps.plan import expand
-from sweeps.spec import Spec, load_spec
+from sweeps.spec import Spec, SpecError, load_spec
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,6 +83,41 @@ def test_trial_cap_counts_without_building_and_is_raised_by_the_flag(tmp_path):
         "priors.lambda_3d": {"type": "float", "low": 0.1, "high": 1.0}}}, "profiles": {"paper": {"num_samples": 2000}}})
     with pytest.raises(LimitError, match="search.num_samples: 2000 trials"):
         check_trials(optuna)
+
+
+def test_a_dry_run_past_the_listed_trials_checks_each_cell_in_small_memory(tmp_path, monkeypatch, capsys):
+    import torch  # noqa: F401  (imported before measuring: the dry-run's own allocations are what counts)
+
+    from sweeps import limits
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(run, "LISTED_TRIALS", 20)
+    monkeypatch.setattr(limits, "PROGRESS_EVERY", 250)
+    (tmp_path / "big.yaml").write_text(_grid(10, keys=3))  # 1,000 cells: 10⁶ held 2.9 GB at about 3 kB each
+    spec = load_spec(tmp_path / "big.yaml")
+    expand(spec, "smoke", keep=1)  # imports and caches
+    tracemalloc.start()
+    held = expand(spec, "smoke")
+    whole = tracemalloc.get_traced_memory()[1]
+    del held
+    tracemalloc.reset_peak()
+    start = tracemalloc.get_traced_memory()[0]
+    capsys.readouterr()
+    assert run.main(["big.yaml", "--smoke", "--dry-run", "--max-cells", "1000"]) == 0
+    streamed = tracemalloc.get_traced_memory()[1] - start
+    tracemalloc.stop()
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "checking up to 1000 trials one at a time (listing the first 20) …"  # before any cell is built
+    assert [line for line in out if "checked" in line and "/1000" in line] == [
+        f"  checked {i}/1000 trials …" for i in (250, 500, 750, 1000)]  # a line per 250 cells of work
+    listed = [line for line in out if line.startswith("   ") and ". " in line[:8]]
+    assert len(listed) == 20 and listed[-1].startswith("   20. ")
+    assert any(line.startswith("  … and 980 more trials, each checked") for line in out) and out[-1].startswith("estimate: none for a dry-run")
+    assert whole > 5 * 2**20 and streamed < whole / 10, (whole, streamed)
+    text = _grid(10, keys=3)
+    (tmp_path / "bad.yaml").write_text(text[:text.rindex("0.010")] + "-1]\n")  # the 10th cell, past the one kept
+    with pytest.raises(SpecError, match="cell point_size=0.001 · λ=0.001 · lr=-1: train.lr: Input should be greater than 0"):
+        expand(load_spec(tmp_path / "bad.yaml"), "smoke", keep=1)
 
 
 def _annotation(path: str):
