@@ -277,9 +277,10 @@ def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
     return [{k: (v if k in text else float(v)) for k, v in row.items()} for row in rows]
 
 
-def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path:
+def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path | None:
     """The run's training curves (:func:`sweeps.plots.training_curves` for this one trial: the loss terms
-    apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``.
+    apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``;
+    None while the run holds no curve (no loss logged, fewer than two evaluations).
 
     Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
     """
@@ -287,6 +288,8 @@ def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: 
 
     keys = ("train/loss", "train/loss_diffusion", metric)
     history = {k: [(m.step, m.value) for m in client.get_metric_history(run_id, k)] for k in keys}
+    if not history["train/loss"] and len(history[metric]) < 2:
+        return None
     return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png")
 
 
@@ -360,7 +363,8 @@ class TrialRun(Callback):
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}" + (f"/{sub}" if sub else ""))
         if files:
             curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name)
-            self.client.log_artifact(self.run_id, str(curve), "curves")
+            if curve is not None:
+                self.client.log_artifact(self.run_id, str(curve), "curves")
 
     def on_checkpoint(self, step: int, path: Path) -> None:
         self.client.set_tag(self.run_id, "checkpoint", str(path))
