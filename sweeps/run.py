@@ -166,7 +166,7 @@ def _ui_hint(uri: str, path: str) -> str:
 
     if uri.startswith(("http://", "https://")):
         return f"open {uri.rstrip('/')}/{path}"
-    return f"{ui_command(uri)}   (then open http://127.0.0.1:5000/{path})"
+    return f"{ui_command(uri)}\n  (then open http://127.0.0.1:5000/{path})"
 
 
 def _fail(message: str) -> int:
