@@ -23,28 +23,27 @@ def _unproject(ndc_xy: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> t
 
 
 def _naive_rasterize(points, cameras, image_size, radius):
-    """Loop reference: per pixel, the covering point of least depth, ties to the smaller index."""
-    b, n, _ = points.shape
+    """Loop reference: per pixel, the covering point of least depth, ties to the smaller index.
+
+    A loop over pixels, each testing every point (in float64, as Python's floats would)."""
+    b, _, _ = points.shape
     s = image_size
-    proj = project_points(points, cameras)
-    centres = pixel_centers_ndc(s).to(points.dtype)
+    proj = project_points(points, cameras).to(torch.float64)
+    x, y, z = proj.unbind(-1)  # (B, N) each
+    centres = pixel_centers_ndc(s).to(points.dtype).to(torch.float64)
+    own_col, own_row = torch.floor((1 - x) * s / 2), torch.floor((1 - y) * s / 2)
     idx = torch.full((b, s, s), -1, dtype=torch.long)
     zbuf = torch.zeros(b, s, s, dtype=points.dtype)
     for bi in range(b):
         for i in range(s):
             for j in range(s):
-                best = None
-                for k in range(n):
-                    x, y, z = proj[bi, k].tolist()
-                    if z <= 1e-6:
-                        continue
-                    own = math.floor((1 - x) * s / 2) == j and math.floor((1 - y) * s / 2) == i
-                    cx, cy = centres[i, j].tolist()
-                    if (cx - x) ** 2 + (cy - y) ** 2 <= radius**2 or own:
-                        if best is None or z < best[0]:
-                            best = (z, k)
-                if best is not None:
-                    zbuf[bi, i, j], idx[bi, i, j] = best
+                cx, cy = centres[i, j].tolist()
+                own = (own_col[bi] == j) & (own_row[bi] == i)
+                covers = (z[bi] > 1e-6) & (((cx - x[bi]) ** 2 + (cy - y[bi]) ** 2 <= radius**2) | own)
+                if covers.any():
+                    nearest = z[bi][covers].min()
+                    k = int((covers & (z[bi] == nearest)).nonzero()[0])
+                    zbuf[bi, i, j], idx[bi, i, j] = z[bi, k].item(), k
     return idx, zbuf
 
 
