@@ -15,6 +15,7 @@ import json
 import os
 import shlex
 import shutil
+import signal
 import sys
 import tempfile
 import textwrap
@@ -410,6 +411,9 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     if not tty:
         plain_log_handlers()
     sweep_run = None
+    # `kill`, `timeout` and batch schedulers stop a job with SIGTERM, which ends Python at once and leaves
+    # its MLflow runs RUNNING: taken as Ctrl-C, Tune stops the trials and the runs close as KILLED below.
+    previous_sigterm = signal.signal(signal.SIGTERM, lambda signum, frame: signal.raise_signal(signal.SIGINT))
     try:
         machines = cluster_machines(remote)
         if uri.startswith("sqlite:") and machines > 1:
@@ -518,6 +522,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                          + resume_command(args.spec, plan.profile.name, args.storage))
         raise
     finally:
+        signal.signal(signal.SIGTERM, previous_sigterm)
         if started:
             ray.shutdown()
         if is_uri(sweep_dir):

@@ -247,7 +247,8 @@ def test_a_disk_that_fills_mid_run_is_said_as_such_and_the_shared_cache_removed(
     assert [r.info.status for r in parents] == ["FAILED"]
 
 
-def test_sigint_closes_the_interrupted_child_as_killed_and_the_hint_keeps_the_storage(tmp_path):
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])  # Ctrl-C; kill, a scheduler
+def test_a_stopped_driver_closes_the_interrupted_child_as_killed_and_the_hint_keeps_the_storage(tmp_path, stop):
     spec = tmp_path / "spec.yaml"
     spec.write_text("name: sigint\ngrid: {priors.point_size: [0.02, 0.04]}\nresources: {max_concurrent_trials: 1}\n"
                     "profiles: {smoke: {budget: {steps: 400, eval_every: 10}}}\n")
@@ -263,7 +264,7 @@ def test_sigint_closes_the_interrupted_child_as_killed_and_the_hint_keeps_the_st
         while "step 20/" not in log.read_text():  # a trial is running and has logged to its child run
             assert driver.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
             time.sleep(0.2)
-        driver.send_signal(signal.SIGINT)
+        driver.send_signal(stop)
         driver.wait(timeout=300)
     finally:
         if driver.poll() is None:
