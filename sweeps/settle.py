@@ -176,13 +176,14 @@ def describe_rule(plan: SweepPlan, budget: SeedBudget | None) -> list[str]:
     rule, spec = plan.sequential, plan.spec
     cells = len(_by_cell(plan))
     reference = spec.compare_to or plan.cells[0].name
-    margin = f"inside ±{spec.settle.margin:g} (level), " if spec.settle.margin else ""
+    level = (f" or lies inside ±{spec.settle.margin:g} (level)" if spec.settle.margin
+             else " (no settle.margin: no level verdict)")
     return [
         f"search: grid, seeds until settled: round 1 = {cells} cells × {rule.min} seeds = {len(plan.first_round)} "
         f"trials; worst case {plan.num_trials} trials ({cells} cells × {rule.max} seeds, {rule.looks} looks)",
         f"rule: each cell against {reference} on {spec.metric.name}; settled when the interval excludes 0 "
-        f"(better/worse) or lies {margin}else one more seed, up to {rule.max}",
-        f"correction: {FOOTNOTE}",
+        f"(better/worse){level}; else one more seed, up to {rule.max}",
+        f"interval: {FOOTNOTE}",
         f"budget: {budget.text() if budget else f'none (until {rule.max} seeds)'}",
         "trials:",
     ]

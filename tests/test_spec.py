@@ -10,7 +10,7 @@ from cdm.config import ConfigError
 from sweeps import run
 from sweeps.plan import expand, lambda_source
 from sweeps.resources import plan_concurrency
-from sweeps.spec import Resources, Spec, SpecError, load_profiles, load_spec
+from sweeps.spec import Resources, SeedBudget, Spec, SpecError, load_profiles, load_spec, parse_budget
 from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
@@ -196,6 +196,15 @@ def test_optuna_trial_from_sampled_values():
         ("name: t\ngrid: {train.steps: [10]}\n", "grid.train.steps: set it through the profile's budget.steps"),
         ("name: t\ngrid: {priors.point_size: [0.04]}\nexclude: [{priors.point_size: 0.05}]\n", "exclude[0].priors.point_size"),
         ("name: t\n- not a mapping\n", "not valid YAML"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 3, max: 2, until: settled}\n", "seeds: min (3) must be ≤ max (2)"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 0, max: 2, until: settled}\n",
+         "seeds: min: Input should be greater than or equal to 1"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 1, max: 2, until: done}\n", "seeds: until: Input should be 'settled'"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 1, max: 2}\n", "seeds: until: Field required"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: []\n", "seeds: empty list"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nsettle: {margin: -0.1}\n", "settle.margin: Input should be greater than 0"),
+        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 2, max: 3, until: settled}\nscheduler: {kind: asha}\n",
+         "scheduler: seeds until settled compares finished trials"),
     ],
 )
 def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_path, monkeypatch, capsys):
@@ -218,12 +227,62 @@ def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_
         (["--profile", "huge"], "profile 'huge': unknown; available: local, paper, smoke"),
         (["--profile", "local", "--smoke"], "--smoke means --profile smoke"),
         (["--resume"], "holds no sweep to resume"),
+        (["--budget", "2h"], "--budget: only seeds run until settled spend a budget; add --until-settled"),
+        (["--until-settled", "--budget", "2 hours"], "--budget '2 hours': give a wall time (2h, 45m, 30s) or a number of trials (12)"),
+        (["--until-settled", "--budget", "0"], "--budget '0': give a wall time"),
+        (["--until-settled", "--budget", "9"], "--budget 9: round 1 alone runs 10 trials (every cell at 2 seeds); give at least 10"),
     ],
 )
 def test_bad_command_line_exits_2(argv, needle, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(SWEEPS / "point_size.yaml"), *argv]) == 2
     assert needle in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_until_settled_refuses_an_optuna_spec_and_a_resume_keeps_the_seeds_it_started_with(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert run.main([str(SWEEPS / "lambda.yaml"), "--smoke", "--until-settled"]) == 2
+    assert "--until-settled: an Optuna search samples one trial per point" in capsys.readouterr().err
+    state = tmp_path / "results" / "point_size" / "smoke" / "sweep.json"
+    state.parent.mkdir(parents=True)
+    state.write_text("{}")
+    assert run.main([str(SWEEPS / "point_size.yaml"), "--smoke", "--resume", "--budget", "2h"]) == 2
+    assert "drop --until-settled and --budget" in capsys.readouterr().err
+
+
+def test_seeds_until_settled_from_the_spec_or_the_flag():
+    rule = {"min": 3, "max": 6, "until": "settled"}
+    spec = Spec.model_validate({"name": "t", "grid": {"priors.point_size": [0.02, 0.04]}, "seeds": rule})
+    assert spec.sequential.looks == 4 and spec.seed_values == [0, 1, 2, 3, 4, 5]
+    assert spec.until_settled() is spec
+    listed = Spec.model_validate({"name": "t", "grid": {"priors.point_size": [0.02, 0.04]}, "seeds": [4]})
+    assert listed.sequential is None and listed.until_settled().seeds.model_dump() == {"min": 2, "max": 5, "until": "settled"}
+    long = Spec.model_validate({"name": "t", "grid": {"priors.point_size": [0.02]}, "seeds": list(range(7))})
+    assert long.until_settled().seeds.max == 7
+    plan = expand(spec, "smoke")
+    assert plan.num_trials == 12 and plan.rounds == 4
+    assert [(c.label, plan.round_of(c)) for c in plan.cells[:6]] == [
+        ("point_size=0.02 · seed 0", 1), ("point_size=0.02 · seed 1", 1), ("point_size=0.02 · seed 2", 1),
+        ("point_size=0.02 · seed 3", 2), ("point_size=0.02 · seed 4", 3), ("point_size=0.02 · seed 5", 4)]
+    assert [c.label for c in plan.first_round] == [f"point_size={v} · seed {s}" for v in ("0.02", "0.04") for s in range(3)]
+    # The state a resume reads back validates to the same spec.
+    assert Spec.model_validate(spec.model_dump(mode="json")) == spec
+    assert [parse_budget(t) for t in ("2h", "45m", "30s", "1.5h", "12")] == [
+        SeedBudget(seconds=7200.0), SeedBudget(seconds=2700.0), SeedBudget(seconds=30.0), SeedBudget(seconds=5400.0), SeedBudget(trials=12)]
+
+
+def test_a_dry_run_until_settled_says_the_rule_the_worst_case_and_its_time(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert run.main([str(SWEEPS / "point_size.yaml"), "--smoke", "--dry-run", "--until-settled", "--budget", "45m"]) == 0
+    out = " ".join(capsys.readouterr().out.split())  # lines wrapped at the terminal's width, joined
+    assert ("search: grid, seeds until settled: round 1 = 5 cells × 2 seeds = 10 trials; worst case 25 trials "
+            "(5 cells × 5 seeds, 4 looks)") in out
+    assert ("rule: each cell against point_size=0.0075 on eval/f1; settled when the interval excludes 0 (better/worse) "
+            "(no settle.margin: no level verdict); else one more seed, up to 5") in out
+    assert "Bonferroni" in out and "budget: 45 min wall time" in out
+    assert "point_size=0.04 · seed 4 (priors.point_size=0.04) [round 4, if still open]" in out
+    assert "estimate: worst case, 25 trials ×" in out and "min wall on this machine" in out
     assert list(tmp_path.iterdir()) == []
 
 
