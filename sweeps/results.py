@@ -16,6 +16,7 @@ and its partner (``better on f1, worse on cd``); cells that ran until their comp
 from __future__ import annotations
 
 import csv
+import io
 import math
 import statistics
 import textwrap
@@ -28,6 +29,7 @@ from cdm.evaluate import BASELINES
 from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
 from sweeps.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.sequential import SettleRecord
+from sweeps.storage import write_file
 
 __all__ = [
     "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "rounded",
@@ -158,12 +160,12 @@ class ResultsTable:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         md, table = folder / "results.md", folder / "results.csv"
-        md.write_text(self.markdown())
-        keys = list(dict.fromkeys(k for r in self.records for k in r))
-        with table.open("w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=keys)
-            writer.writeheader()
-            writer.writerows(self.records)
+        write_file(md, self.markdown())  # a link planted at either name is refused, not written through
+        rows = io.StringIO()
+        writer = csv.DictWriter(rows, fieldnames=list(dict.fromkeys(k for r in self.records for k in r)))
+        writer.writeheader()
+        writer.writerows(self.records)
+        write_file(table, rows.getvalue())
         return md, table
 
 

@@ -23,6 +23,7 @@ Each refusal is a :class:`StoreError` of one line naming the URI or file and wha
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -38,7 +39,7 @@ from typing import Any
 from sweeps.store_retry import StoreBusy, check_not_locked
 
 __all__ = ["MAX_NAME", "TRACKING_SCHEMES", "StoreError", "check_name", "check_no_links", "check_parent_run", "check_storage", "check_tracking_uri", "exists",
-           "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "write_private", "publish_files", "read_text", "sweep_location"]
+           "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "write_file", "write_private", "publish_files", "read_text", "sweep_location"]
 
 MAX_NAME = 100
 """Longest spec, profile or data set name: one path component, well under the 255 bytes of a file name."""
@@ -258,10 +259,30 @@ def private_folder(path: Path) -> Path:
     return path
 
 
-def write_private(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` with mode 600, never through a link standing at ``path``."""
-    with os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600), "w") as out:
+def write_file(path: Path, text: str, mode: int = 0o644) -> None:
+    """Write ``text`` to ``path`` (made with ``mode`` if absent), never through a link standing at ``path``: a
+    symbolic link (``O_NOFOLLOW``) or a second name of another file (a hard link) is refused, its target untouched.
+
+    Raises:
+        StoreError: naming ``path``.
+    """
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, mode)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise StoreError(f"{path}: a symbolic link where this sweep writes a file; remove it (a write never follows one)") from None
+        raise
+    with os.fdopen(fd, "w") as out:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
+            raise StoreError(f"{path}: not a plain file with one name ({info.st_nlink} links) where this sweep writes a file; remove it")
+        os.ftruncate(fd, 0)
         out.write(text)
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` with mode 600 (:func:`write_file`)."""
+    write_file(path, text, 0o600)
 
 
 def exists(location: str) -> bool:

@@ -115,6 +115,25 @@ def test_a_planted_state_file_link_is_not_written_through(in_tmp):
     assert victim.read_text() == "precious\n"
 
 
+@pytest.mark.parametrize("plant", ["symlink", "hardlink"])
+def test_results_files_are_never_written_through_a_planted_link(tmp_path, plant):
+    from sweeps.results import TrialOutcome, build_table
+
+    table = build_table([TrialOutcome("a · seed 0", "a", "ok", {"eval/f1": 0.5})], "eval/f1", "max", "t")
+    clean = tmp_path / "clean"
+    md, csv_file = table.write(clean)
+    assert md.read_text() == table.markdown() and "0.5" in csv_file.read_text().splitlines()[1].split(",")
+    table.write(clean)  # written again in place (a resumed sweep): one name, its own file
+    folder = tmp_path / "sweep"
+    folder.mkdir()
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    (folder / "results.md").symlink_to(victim) if plant == "symlink" else os.link(victim, folder / "results.md")
+    with pytest.raises(StoreError, match="symbolic link where this sweep writes" if plant == "symlink" else "2 links"):
+        table.write(folder)
+    assert victim.read_text() == "precious\n"
+
+
 # --- item 2: no unpickling of what someone else could have written ----------------------------------
 
 class _Planted:
