@@ -80,6 +80,8 @@ def test_a_planted_null_and_a_large_effect_are_told_apart_by_their_seeds(cluster
     assert "round 2 of ≤2" in out and "(11/≤12 trials done)" in out
     table = out[out.index("settle — profile smoke"):]
     assert "better, settled after 3 seeds" in table and "open at 4 seeds" in table
+    description = parents[0].data.tags["mlflow.note.content"]  # the parent run's page says it too
+    assert "better, settled after 3 seeds" in description and "open at 4 seeds" in description
     print(f"\nnull vs large, 11 trials until settled: {wall:.1f} s wall")
 
 
