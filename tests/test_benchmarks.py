@@ -12,6 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+@pytest.mark.slow
 def test_metrics_benchmark_runs_and_agrees_with_scipy(tmp_path):
     out = subprocess.run(
         [sys.executable, "benchmarks/run.py", "--quick", "--only", "metrics", "--out", str(tmp_path)],

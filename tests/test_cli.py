@@ -69,6 +69,7 @@ def test_empty_and_corrupt_mesh_folders(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_train_evaluate_reconstruct(tmp_path):
     config = write_config(tmp_path, train={"steps": 4, "eval_every": 4})
     out = run_cli("train", "--config", str(config), cwd=tmp_path)

@@ -69,6 +69,7 @@ def _objects(path) -> tuple[dict, ...]:
     return tuple({k: v if k in text else float(v) for k, v in r.items()} for r in csv.DictReader(path.open()))
 
 
+@pytest.mark.slow
 def test_a_trained_model_is_marked_better_than_its_reset_copy(tmp_path):
     from cdm.data import build_dataset
     from cdm.diffusion import GaussianDiffusion

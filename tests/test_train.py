@@ -37,6 +37,7 @@ def _fixed_batch_loss(trainer: Trainer, batches: list) -> float:
         return sum(trainer.losses(b)[0].item() for b in batches) / len(batches)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["sparse", "dense"])
 def test_loss_falls_over_a_few_hundred_steps(tmp_path, backend):
     cfg = tiny_config(tmp_path, **{"train.steps": 300, "train.eval_every": 300, "train.log_every": 50,
