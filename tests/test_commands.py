@@ -1,8 +1,8 @@
 """What the commands print a newcomer: every ``--help`` opens with what the command does, and the
 main job's dry-run prints no line over 200 characters, each profile's description in at most two.
 
-Commands run in this process (``runpy``), as ``python FILE --help`` or ``python -m MODULE --help``
-would, so the check costs no interpreter start per command.
+Each command's file runs in this process (``runpy``) as its ``__main__``, which is what ``python FILE``
+and ``python -m MODULE`` run, so the check costs no interpreter start per command.
 """
 
 from __future__ import annotations
@@ -54,11 +54,7 @@ def _help(command: str, monkeypatch, capsys) -> str:
     monkeypatch.setattr(sys, "argv", [str(path), "--help"])
     monkeypatch.syspath_prepend(str(ROOT))
     with pytest.raises(SystemExit) as exit_:
-        if command.startswith("cdm/"):  # run as `python -m cdm[.tools.x]`
-            module = command.removesuffix(".py").removesuffix("/__main__").replace("/", ".")
-            runpy.run_module(module, run_name="__main__", alter_sys=False)
-        else:
-            runpy.run_path(str(path), run_name="__main__")
+        runpy.run_path(str(path), run_name="__main__")
     assert exit_.value.code == 0
     return capsys.readouterr().out
 
