@@ -78,8 +78,10 @@ def outcome_results(plan: SweepPlan, outcomes: Iterable[TrialOutcome]) -> tuple[
     started, results = set(), {}
     for o in outcomes:
         started.add(o.label)
-        if o.status != "pending":  # a trial Tune had created but not run is still to come
-            results[o.label] = (object_scores(o.objects, plan.spec.metric.name) or None) if o.finished else None
+        # A trial not run, or stopped before its last step (no scheduler stops one here: the sweep was
+        # interrupted), is still to come; a failed one is a result, of no scores.
+        if o.status in ("ok", "failed"):
+            results[o.label] = object_scores(o.objects, plan.spec.metric.name) or None
     return started, results
 
 

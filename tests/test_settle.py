@@ -113,9 +113,9 @@ def test_rows_of_a_trial_become_scores_of_the_metric_and_outcomes_become_started
     assert object_scores(rows, "train/loss") == {}
     plan = _plan(REFERENCE_NULL_LARGE)
     outcomes = [TrialOutcome("ref · seed 0", "ref", "ok", objects=tuple(rows)), TrialOutcome("ref · seed 1", "ref", "failed"),
-                TrialOutcome("null · seed 0", "null", "pending")]
+                TrialOutcome("null · seed 0", "null", "pending"), TrialOutcome("null · seed 1", "null", "stopped", objects=tuple(rows))]
     started, results = outcome_results(plan, outcomes)
-    assert started == {"ref · seed 0", "ref · seed 1", "null · seed 0"}
+    assert started == {"ref · seed 0", "ref · seed 1", "null · seed 0", "null · seed 1"}
     assert results == {"ref · seed 0": {"a": 0.5, "b": 0.25}, "ref · seed 1": None}
 
 
