@@ -38,7 +38,7 @@ from cdm.config import DiffusionConfig, PriorsConfig
 from cdm.evaluate import BASELINES
 from sweeps.gallery import grid_png, viewer_html
 from sweeps.paired import PairedDifference
-from sweeps.plan import lambda_source, optuna_distributions
+from sweeps.plan import expand, lambda_source, optuna_distributions
 from sweeps.plots import (
     PlotPoint,
     metric_vs_value,
@@ -49,7 +49,8 @@ from sweeps.plots import (
 )
 from sweeps.protocol import CARD_TAG
 from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, rounded, settings_note
-from sweeps.spec import SpaceParam, Spec, load_spec
+from sweeps.settle import final_round
+from sweeps.spec import SpaceParam, Spec, load_spec, parse_budget
 from sweeps.tracking import last_eval_files, last_objects, parent_baselines, resolve_tracking_uri, trial_metrics
 
 __all__ = [
@@ -196,7 +197,8 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
     if record.spec.search.kind == "grid":
         seen = {t.outcome.label for t in out}
         for label, c in cells.items():
-            if label not in seen:
+            # A sequential sweep's plan lists every seed up to max; those it never started are no trials of it.
+            if label not in seen and record.spec.sequential is None:
                 name = label.rsplit(" · seed ", 1)[0]
                 out.append(TrialRecord(TrialOutcome(label, name, "pending", {}, _paper_label(record, c), c.get("paper") or {}),
                                        c["values"], None))
@@ -240,9 +242,15 @@ def protocol_card_lines(record: SweepRecord) -> list[str]:
 def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTable:
     """The runner's results table (same columns and notes, paired Δ where per-object rows are present)."""
     spec = record.spec
-    return build_table([t.outcome for t in trials], spec.metric.name, spec.metric.mode, record.title,
+    outcomes = [t.outcome for t in trials]
+    settled = None
+    if spec.sequential is not None:  # where each cell stopped, as the runner's searcher decided (sweeps/settle.py)
+        budget = record.parent.data.params.get("budget")
+        plan = expand(spec, record.profile, record.plan.get("sets", {}))
+        settled = final_round(plan, outcomes, parse_budget(budget) if budget else None, record.parent.data.tags).records
+    return build_table(outcomes, spec.metric.name, spec.metric.mode, record.title,
                        f"{spec.paper.table}: {spec.paper.note}" if spec.paper else "", compare_to=spec.compare_to,
-                       settings=_settings(record))
+                       settings=_settings(record), settled=settled)
 
 
 def paper_layout(trials: list[TrialRecord]):

@@ -433,7 +433,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                 tags={"spec": plan.spec.name, "profile": plan.profile.name, "sweep_dir": sweep_dir,
                       CARD_TAG: "\n".join(plan_card(plan).lines())},
                 params={"profile": plan.profile.name, "search": plan.spec.search.kind, "trials": plan.num_trials,
-                        "metric": plan.spec.metric.name, "steps": plan.profile.steps, "sets": json.dumps(sets)},
+                        "metric": plan.spec.metric.name, "steps": plan.profile.steps, "sets": json.dumps(sets),
+                        **({"budget": args.budget} if args.budget else {})},
             )
             staging.mkdir(parents=True, exist_ok=True)
             state = {"spec": plan.spec.model_dump(mode="json"), "sets": sets, "profile": plan.profile.name, "budget": args.budget,
@@ -490,7 +491,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         if plan.sequential is not None:
             from sweeps.settle import final_round, settle_json
 
-            settled = final_round(plan, outcomes, sweep_run, budget).records
+            settled = final_round(plan, outcomes, budget, sweep_run.client.get_run(sweep_run.run_id).data.tags).records
             (staging / "settle.json").write_text(settle_json(settled, budget))
             sweep_run.log_artifacts([staging / "settle.json"])
         table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,

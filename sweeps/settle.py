@@ -24,16 +24,12 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 from sweeps.paired import UnpairedError
 from sweeps.plan import Cell, SweepPlan
 from sweeps.results import TrialOutcome, _object_column
 from sweeps.sequential import FOOTNOTE, SettleRecord, decide
 from sweeps.spec import SeedBudget, SpecError
-
-if TYPE_CHECKING:
-    from sweeps.tracking import SweepRun
 
 __all__ = ["BUDGET_TAG", "Round", "check_budget", "describe_rule", "final_round", "next_round", "object_scores", "outcome_results",
            "settle_json"]
@@ -137,11 +133,13 @@ def next_round(plan: SweepPlan, started: set[str], results: Results, *, trials_l
     return Round(tuple(sorted(start, key=order.__getitem__)), waiting, records)
 
 
-def final_round(plan: SweepPlan, outcomes: Iterable[TrialOutcome], sweep_run: SweepRun, budget: SeedBudget | None) -> Round:
-    """The rule on ``run_sweep``'s outcomes, as the searcher last applied it: its records (the results
-    table's), and the trials it would still start when the sweep was interrupted."""
+def final_round(plan: SweepPlan, outcomes: Iterable[TrialOutcome], budget: SeedBudget | None,
+                parent_tags: Mapping[str, str]) -> Round:
+    """The rule on a sweep's outcomes, as the searcher last applied it: its records (the results table's),
+    and the trials it would still start when the sweep was interrupted. ``parent_tags``: the parent run's
+    tags, where the searcher noted the wall-time budget's end (:data:`BUDGET_TAG`)."""
     started, results = outcome_results(plan, outcomes)
-    out_of_time = BUDGET_TAG in sweep_run.client.get_run(sweep_run.run_id).data.tags
+    out_of_time = BUDGET_TAG in parent_tags
     left = None if budget is None or budget.trials is None else budget.trials - len(started)
     return next_round(plan, started, results, trials_left=left, out_of_time=out_of_time)
 

@@ -411,7 +411,8 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
         if plan.sequential is not None:
             from sweeps.settle import final_round
 
-            seen |= {c.label for c in plan.cells} - set(final_round(plan, outcomes, sweep_run, budget).start)
+            tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
+            seen |= {c.label for c in plan.cells} - set(final_round(plan, outcomes, budget, tags).start)
         outcomes += [TrialOutcome(c.label, c.name, "pending", {}, c.paper_label, c.paper) for c in plan.cells if c.label not in seen]
         order = {c.label: i for i, c in enumerate(plan.cells)}
         return sorted(outcomes, key=lambda o: order[o.label])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -59,7 +60,8 @@ def _settle(client: MlflowClient, parent_id: str, tmp_path: Path) -> dict:
     return json.loads(Path(client.download_artifacts(parent_id, "settle.json", str(tmp_path))).read_text())
 
 
-def test_a_planted_null_and_a_large_effect_are_told_apart_by_their_seeds(cluster, tmp_path, capsys):
+def test_a_planted_null_and_a_large_effect_are_told_apart_by_their_seeds(cluster, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # --report writes its folder under ./results
     argv, uri = _sweep(tmp_path, "settle", large=True, low=3, high=4)
     t0 = time.perf_counter()
     assert run.main(argv) == 0
@@ -82,6 +84,11 @@ def test_a_planted_null_and_a_large_effect_are_told_apart_by_their_seeds(cluster
     assert "better, settled after 3 seeds" in table and "open at 4 seeds" in table
     description = parents[0].data.tags["mlflow.note.content"]  # the parent run's page says it too
     assert "better, settled after 3 seeds" in description and "open at 4 seeds" in description
+    # Rebuilt from MLflow alone: the same stops, and no row for the seed the large cell never needed.
+    assert run.main(["--report", "settle", "--tracking-uri", uri]) == 0
+    rebuilt = capsys.readouterr().out
+    assert "better, settled after 3 seeds" in rebuilt and "open at 4 seeds" in rebuilt
+    assert re.search(r"^large\b.*\s3/3\s", rebuilt, re.M) and re.search(r"^null\b.*\s4/4\s", rebuilt, re.M), rebuilt
     print(f"\nnull vs large, 11 trials until settled: {wall:.1f} s wall")
 
 
