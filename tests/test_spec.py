@@ -65,6 +65,7 @@ def test_every_shipped_spec_expands_in_every_profile(path, profile):
             assert cell.config.flat()[key] == (list(value) if isinstance(value, (list, tuple)) else value)
 
 
+@pytest.mark.slow  # each estimate trains a few calibration steps: 3-9 s a spec, ~45 s together
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
 def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, given_inputs, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)

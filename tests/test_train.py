@@ -160,6 +160,7 @@ def _ddp_worker(rank: int, world: int, init_file: str, out_dir: str, results) ->
     dist.destroy_process_group()
 
 
+@pytest.mark.slow
 def test_data_parallel_ranks_see_different_batches_and_stay_in_sync(tmp_path):
     """With a process group (as Ray Train sets up), gradients are averaged: weights stay identical."""
     import torch.multiprocessing as mp

@@ -411,6 +411,7 @@ def _lock_store(db: Path, hold_s: float) -> subprocess.Popen:
     return holder
 
 
+@pytest.mark.slow
 def test_a_trial_logs_through_a_store_another_writer_holds_for_longer_than_sqlites_5_s(tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
@@ -425,6 +426,7 @@ def test_a_trial_logs_through_a_store_another_writer_holds_for_longer_than_sqlit
     assert [m.value for m in MlflowClient(uri).get_metric_history(trial.run_id, "train/loss")] == [0.5]
 
 
+@pytest.mark.slow
 def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, capsys, monkeypatch):
     SweepRun.start(f"sqlite:///{in_tmp}/m.db", "other", "other", tags={}, params={}).end("FINISHED")
     monkeypatch.setattr(store_retry, "BUSY_TIMEOUT_S", 2.0)
