@@ -6,14 +6,24 @@ trials of a sweep and left their child runs RUNNING. :func:`wait_when_busy` sets
 timeout (``PRAGMA busy_timeout``: the library retries with back-off until it passes) to
 :data:`BUSY_TIMEOUT_S` on every SQLite connection SQLAlchemy opens in this process, MLflow's
 included; :func:`check_not_locked` waits the same at a sweep's start and then says so in one line.
+
+SQLite skips that wait where waiting could deadlock: a transaction that has read and now wants to
+write while another writer waits for its readers to finish gets "database is locked" at once (a
+smoke sweep's trials failed so, 2 s into another writer's 45 s hold). :class:`PatientClient` therefore
+also retries each MLflow call that failed so, with back-off, for up to :data:`BUSY_TIMEOUT_S` (the
+failed transaction was rolled back: nothing is logged twice).
 """
 
 from __future__ import annotations
 
+import functools
 import sqlite3
+import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
-__all__ = ["BUSY_TIMEOUT_S", "StoreBusy", "check_not_locked", "wait_when_busy"]
+__all__ = ["BUSY_TIMEOUT_S", "PatientClient", "StoreBusy", "check_not_locked", "retry_when_busy", "wait_when_busy"]
 
 BUSY_TIMEOUT_S = 120.0
 """How long a write waits for another writer of the SQLite store (MLflow UI, a second sweep, a backup)."""
@@ -56,3 +66,35 @@ def check_not_locked(path: Path) -> None:
                         "a script) or wait, then start again") from None
     finally:
         connection.close()
+
+
+def retry_when_busy(call: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    """``call(*args, **kwargs)``, again after 0.1, 0.2, … (at most 5) s while it fails with MLflow's "database
+    is locked", until :data:`BUSY_TIMEOUT_S` have passed; then, or on any other error, the error is raised."""
+    from mlflow.exceptions import MlflowException  # deferred: the CLI checks its input before importing MLflow
+
+    deadline = time.monotonic() + BUSY_TIMEOUT_S
+    pause = 0.1
+    while True:
+        try:
+            return call(*args, **kwargs)
+        except MlflowException as exc:
+            if "database is locked" not in str(exc) or time.monotonic() + pause > deadline:
+                raise
+        time.sleep(pause)
+        pause = min(2 * pause, 5.0)
+
+
+class PatientClient:
+    """An ``mlflow.MlflowClient`` of the store ``uri`` whose public methods go through :func:`retry_when_busy`."""
+
+    def __init__(self, uri: str):
+        from mlflow import MlflowClient
+
+        self._client = MlflowClient(uri)
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self._client, name)
+        if name.startswith("_") or not callable(attr):
+            return attr
+        return functools.wraps(attr)(functools.partial(retry_when_busy, attr))

@@ -29,7 +29,7 @@ from mlflow.entities import Metric, Param, RunTag
 from cdm.config import Config
 from cdm.train import Callback
 from sweeps.results import rounded
-from sweeps.store_retry import wait_when_busy
+from sweeps.store_retry import PatientClient, wait_when_busy
 
 __all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
            "resolve_tracking_uri", "trial_metrics", "ui_command"]
@@ -124,7 +124,7 @@ def finished_trial_metrics(uri: str, experiment_id: str, parent_run_id: str, tri
     ``final/…``) while Tune's last experiment snapshot still lists it as running: on ``--resume`` its
     own record says it is done, so it reports these again instead of training (and logging) anew.
     """
-    client = MlflowClient(uri)
+    client = PatientClient(uri)
     run_id = find_trial_run(client, experiment_id, parent_run_id, trial_id)
     if run_id is None:
         return None
@@ -148,12 +148,12 @@ class SweepRun:
 
     def __init__(self, uri: str, experiment_id: str, run_id: str):
         self.uri, self.experiment_id, self.run_id = uri, experiment_id, run_id
-        self.client = MlflowClient(uri)
+        self.client = PatientClient(uri)
 
     @classmethod
     def start(cls, uri: str, experiment: str, run_name: str, tags: dict[str, str], params: dict[str, Any]) -> SweepRun:
         """Create the experiment if needed and open a new parent run."""
-        client = MlflowClient(uri)
+        client = PatientClient(uri)
         experiment_id = _experiment(client, experiment, uri)
         run = client.create_run(experiment_id, run_name=run_name, tags={"kind": "sweep", **tags})
         client.log_batch(run.info.run_id, params=_params(params))
@@ -162,7 +162,7 @@ class SweepRun:
     @classmethod
     def reopen(cls, uri: str, run_id: str) -> SweepRun:
         """The parent run of an interrupted sweep, marked running again."""
-        client = MlflowClient(uri)
+        client = PatientClient(uri)
         run = client.get_run(run_id)
         client.update_run(run_id, status="RUNNING")
         return cls(uri, run.info.experiment_id, run_id)
@@ -311,7 +311,7 @@ class TrialRun(Callback):
         config: Config,
         metric: str = "eval/cd",
     ):
-        self.client = MlflowClient(uri)
+        self.client = PatientClient(uri)
         self.run_name, self.metric = run_name, metric
         found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
         # Last step already in the run, per kind: a crash between a step's log and its evaluation

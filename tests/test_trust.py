@@ -427,6 +427,43 @@ def test_a_trial_logs_through_a_store_another_writer_holds_for_longer_than_sqlit
 
 
 @pytest.mark.slow
+class _LockedThenFree:
+    """An MLflow call that fails with "database is locked" ``times`` times (as when SQLite skips its busy
+    wait to avoid a deadlock), then answers; counts its calls."""
+
+    def __init__(self, times: int, message: str = "(sqlite3.OperationalError) database is locked"):
+        self.times, self.message, self.calls = times, message, 0
+
+    def __call__(self, value: int) -> int:
+        from mlflow.exceptions import MlflowException
+
+        self.calls += 1
+        if self.calls <= self.times:
+            raise MlflowException(self.message, error_code="TEMPORARILY_UNAVAILABLE")
+        return value
+
+
+def test_an_mlflow_call_refused_as_locked_is_retried_with_back_off_until_the_wait_ends(tmp_path, monkeypatch):
+    from mlflow.exceptions import MlflowException
+
+    call = _LockedThenFree(3)
+    started = time.perf_counter()
+    assert store_retry.retry_when_busy(call, 7) == 7 and call.calls == 4
+    assert time.perf_counter() - started >= 0.1 + 0.2 + 0.4  # the pauses between the four calls
+    other = _LockedThenFree(1, "RESOURCE_DOES_NOT_EXIST: run 0 not found")
+    with pytest.raises(MlflowException, match="not found"):
+        store_retry.retry_when_busy(other, 7)
+    assert other.calls == 1  # other errors are not waited on
+    monkeypatch.setattr(store_retry, "BUSY_TIMEOUT_S", 0.5)
+    stuck = _LockedThenFree(100)
+    with pytest.raises(MlflowException, match="database is locked"):
+        store_retry.retry_when_busy(stuck, 7)
+    assert stuck.calls == 3  # after 0.1 + 0.2 s; a third pause of 0.4 s would pass the 0.5 s wait
+    client = store_retry.PatientClient(f"sqlite:///{tmp_path}/m.db")
+    assert client.tracking_uri == f"sqlite:///{tmp_path}/m.db"
+    assert [e.name for e in client.search_experiments()] == ["Default"]
+
+
 def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, capsys, monkeypatch):
     SweepRun.start(f"sqlite:///{in_tmp}/m.db", "other", "other", tags={}, params={}).end("FINISHED")
     monkeypatch.setattr(store_retry, "BUSY_TIMEOUT_S", 2.0)
