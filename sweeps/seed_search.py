@@ -45,6 +45,7 @@ class SeedSearcher(Searcher):
         self.proposed: dict[str, str] = {}
         """Tune trial id → trial label, in the order proposed."""
         self.results: dict[str, dict[str, float] | None] = {}
+        """Trial label → ``object_id → score`` of a finished trial (None: failed or scored nothing), from MLflow."""
         self.spent_before = 0.0
         """Wall seconds the sweep ran before this driver (restored with the proposals)."""
         self.since = time.monotonic()
