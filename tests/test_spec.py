@@ -8,6 +8,7 @@ import pytest
 
 from cdm.config import ConfigError
 from sweeps import run
+from sweeps.estimate import Estimate
 from sweeps.plan import expand, lambda_source
 from sweeps.resources import plan_concurrency
 from sweeps.spec import Resources, SeedBudget, Spec, SpecError, load_profiles, load_spec, parse_budget
@@ -275,7 +276,7 @@ def test_seeds_until_settled_from_the_spec_or_the_flag():
 
 def test_a_dry_run_until_settled_says_the_rule_the_worst_case_and_its_time(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    assert run.main([str(SWEEPS / "point_size.yaml"), "--smoke", "--dry-run", "--until-settled", "--budget", "45m"]) == 0
+    assert run.main([str(SWEEPS / "point_size.yaml"), "--smoke", "--dry-run", "--no-estimate", "--until-settled", "--budget", "45m"]) == 0
     out = " ".join(capsys.readouterr().out.split())  # lines wrapped at the terminal's width, joined
     assert ("search: grid, seeds until settled: round 1 = 5 cells × 2 seeds = 10 trials; worst case 25 trials "
             "(5 cells × 5 seeds, 4 looks)") in out
@@ -283,8 +284,10 @@ def test_a_dry_run_until_settled_says_the_rule_the_worst_case_and_its_time(tmp_p
             "(no settle.margin: no level verdict); else one more seed, up to 5") in out
     assert "Bonferroni" in out and "budget: 45 min wall time" in out
     assert "point_size=0.04 · seed 4 (priors.point_size=0.04) [round 4, if still open]" in out
-    assert "estimate: worst case, 25 trials ×" in out and "min wall on this machine" in out
     assert list(tmp_path.iterdir()) == []
+    # The estimate (calibrated in the slow tier's dry runs) times the worst case and says so.
+    assert Estimate(25, 60.0, 2, 780.0, None, "no GPU figures", worst_case=True).text().startswith(
+        "estimate: worst case, 25 trials × ~1.0 min, 2 at a time → ~13.0 min wall on this machine")
 
 
 def test_a_finished_sweep_folder_is_not_overwritten(tmp_path, monkeypatch, capsys):
