@@ -88,7 +88,7 @@ class DataConfig(_Group):
     """The input image itself: the data set's, or the generated one of ``condition_folder`` (Table 8 rows 4, 6, 7)."""
     condition_folder: str | None = None
     """Folder of generated condition images: ``<object_id>/<round>/<view>.png`` (rendered kinds) or
-    ``<object_id>/<position>.png`` (captured kinds); README, "External inputs"."""
+    ``<object_id>/<position>.png`` (captured kinds); docs/paper.md, "External inputs"."""
     condition_grey: bool = False
     """Use grey versions (ITU-R 601 luma in all three channels) of the generated images (Table 8 rows 4, 7)."""
     train_view: int | None = Field(None, ge=0, le=23)
@@ -258,7 +258,7 @@ class PriorsConfig(_Group):
     """Depth of the ``depth`` prior: the data set's own depth map (an **upper bound**: privileged, not
     estimated from the image) or estimated maps from ``depth_maps`` (the paper: DINOv2), captured data sets."""
     depth_maps: str | None = None
-    """Folder of estimated depth maps for ``depth_source: maps``: ``<object_id>/<position>.npy`` (README,
+    """Folder of estimated depth maps for ``depth_source: maps``: ``<object_id>/<position>.npy`` (docs/paper.md,
     "External inputs"); any per-image scale and shift (normalised away per image). Null: the maps stored
     in a root prepared with ``python -m cdm prepare --depth-maps DIR``."""
     depth_maps_disparity: bool = False

@@ -1,6 +1,6 @@
 """External inputs of a run: the local files a config names (weights, depth maps, embeddings, images).
 
-Nothing is downloaded at run time: a user fetches or computes these once (README, "External inputs").
+Nothing is downloaded at run time: a user fetches or computes these once (docs/paper.md, "External inputs").
 :func:`required_inputs` lists what a config needs, :func:`missing_inputs` which paths are absent,
 :func:`check_inputs` refuses the first absent one, and :func:`check_coverage` checks that a present
 file or folder covers every object of the data sets — all before anything is written or started.
@@ -76,12 +76,12 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
     if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps" and cfg.priors.depth_maps is not None:
         out.append(ExternalInput("priors.depth_maps", input_path(cfg.priors.depth_maps), "estimated depth maps", "folder",
                                  f"{export}, then your depth estimator on the crops, writing "
-                                 f"{cfg.priors.depth_maps}/<object_id>/<position>.npy (README, 'External inputs')"))
+                                 f"{cfg.priors.depth_maps}/<object_id>/<position>.npy (docs/paper.md, 'External inputs')"))
     d = cfg.data
     if d.condition_folder is not None and (d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")):
         out.append(ExternalInput("data.condition_folder", input_path(d.condition_folder), "generated condition images",
                                  "folder", f"{export} --rounds R, then your generator on the point renderings, writing "
-                                 f"{d.condition_folder}/<object_id>/<round>/<view>.png (README, 'External inputs')"))
+                                 f"{d.condition_folder}/<object_id>/<round>/<view>.png (docs/paper.md, 'External inputs')"))
     return out
 
 

@@ -1,6 +1,6 @@
 """Paths of local inputs as configured: ``$VARIABLES`` and ``~`` expanded.
 
-Sweep specs name their external inputs under ``$CDM_INPUTS`` (README, "External inputs"), so one
+Sweep specs name their external inputs under ``$CDM_INPUTS`` (docs/paper.md, "External inputs"), so one
 spec serves every machine; the expansion happens where a file is opened, in the process that opens it.
 """
 

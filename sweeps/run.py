@@ -53,9 +53,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials")
     p.add_argument(TRUST_FLAG, action="store_true",
-                   help="with --resume: unpickle Tune's state even where others could have written it (README, Security and limits)")
+                   help="with --resume: unpickle Tune's state even where others could have written it (docs/security.md)")
     p.add_argument("--until-settled", action="store_true",
-                   help="run seeds until each cell's comparison settles: a list of seeds becomes {min: 2, max: 5} (README, Seeds until settled)")
+                   help="run seeds until each cell's comparison settles: a list of seeds becomes {min: 2, max: 5} (docs/sweeps.md, Seeds until settled)")
     p.add_argument("--budget", default=None, metavar="2h|45m|30s|N",
                    help="with seeds until settled: no seed starts past this wall time, or past N trials")
     p.add_argument("--dry-run", action="store_true", help="print the trials, the resource plan and the protocol card; start nothing")
@@ -69,7 +69,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record")
     p.add_argument("--force", action="store_true", help="with --rerun: run even if the code or config differs from the record")
     p.add_argument("--max-cells", type=int, default=MAX_TRIALS, metavar="N",
-                   help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; README, Security and limits)")
+                   help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; docs/security.md)")
     p.add_argument("--report", metavar="EXPERIMENT", default=None, help="rebuild the results table and plots of this finished sweep from MLflow")
     return p
 

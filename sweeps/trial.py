@@ -180,7 +180,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     categories = ",".join(cell.config.data.categories) or "all"
     tags = {
         "cell": cell.name, "group": cell.group, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
-        # `category` is the short name the UI's search box is documented with (README, Compare in MLflow).
+        # `category` is the short name the UI's search box is documented with (docs/mlflow.md, Search box).
         "categories": categories, "category": categories, "tune_trial_dir": ctx.get_trial_dir(),
         "ray_node_id": ray.get_runtime_context().get_node_id(),
         **{f"repro.{k}": v for k, v in setup.code.items()},

@@ -56,7 +56,7 @@ class Embeddings(NamedTuple):
 def _open(path: str | Path):
     path = input_path(path)
     if not path.is_file():
-        raise ValueError(f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py (README, 'Global embeddings')")
+        raise ValueError(f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py (docs/paper.md, 'External inputs')")
     try:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, zipfile.BadZipFile) as exc:
