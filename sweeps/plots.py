@@ -16,7 +16,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-__all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "partner", "read_ply", "training_curves",
+from sweeps.results import partner
+
+__all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "training_curves",
            "view_cloud"]
 
 DPI = 150
@@ -44,13 +46,6 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def partner(metric: str) -> str | None:
-    """``eval/f1`` ↔ ``eval/cd``: the other headline metric (None for any other metric)."""
-    head, _, tail = metric.partition("/")
-    swap = {"cd": "f1", "f1": "cd"}
-    return f"{head}/{swap[tail]}" if head == "eval" and tail in swap else None
 
 
 def _axis(points: Sequence[PlotPoint]) -> tuple[list[str], dict[str, float], str | None]:

@@ -6,8 +6,9 @@
 (default ``results/<experiment>/report``); ``--log`` also logs the plots onto the parent run.
 A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 listing the known ones.
 
-The runner calls :func:`publish` at the end of every sweep, and ``notebooks/compare.ipynb`` is built
-on the functions here. All MLflow reading lives in this module (``cdm`` knows nothing of MLflow).
+The runner calls :func:`publish` at the end of every sweep: the plots and reconstructions onto the
+parent run, a description on each run, and the runs view (:func:`share_view`). The sweep is read back
+by :mod:`sweeps.finished`; ``notebooks/compare.ipynb`` is built on both modules.
 """
 
 from __future__ import annotations
@@ -23,269 +24,36 @@ import tempfile
 import time
 import textwrap
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 if __package__ in (None, ""):  # `python sweeps/report.py` puts sweeps/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np
-from mlflow import MlflowClient
-from mlflow.entities import Metric, Run
+from mlflow.entities import Metric
 
-from cdm.config import DiffusionConfig, PriorsConfig
 from cdm.evaluate import BASELINES
+from sweeps.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 from sweeps.gallery import grid_png, viewer_html
 from sweeps.paired import PairedDifference
-from sweeps.plan import expand, lambda_source, optuna_distributions
-from sweeps.plots import (
-    PlotPoint,
-    metric_vs_value,
-    optuna_plots,
-    partner,
-    read_ply,
-    training_curves,
-)
-from sweeps.protocol import CARD_TAG
-from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, rounded, settings_note
-from sweeps.settle import final_round
-from sweeps.spec import SpaceParam, Spec, load_spec, parse_budget
-from sweeps.tracking import last_eval_files, last_objects, parent_baselines, resolve_tracking_uri, trial_metrics
+from sweeps.plan import optuna_distributions
+from sweeps.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
+from sweeps.results import ResultsTable, partner, rounded
+from sweeps.spec import Spec
+from sweeps.tracking import last_eval_files, last_objects, resolve_tracking_uri
 
 __all__ = [
-    "ReportError",
-    "SweepRecord",
-    "TrialRecord",
-    "UnknownExperimentError",
+    "DESCRIPTION_WIDTH",
     "describe_sweep",
     "describe_trial",
     "main",
-    "open_sweep",
     "panels",
-    "paper_layout",
     "publish",
     "reconstructions",
-    "results_table",
     "share_view",
     "sort_key",
-    "trial_records",
     "write_plots",
 ]
-
-_STATUS = {"FINISHED": "ok", "FAILED": "failed"}
-"""MLflow run status → :class:`TrialOutcome` status; RUNNING, SCHEDULED and KILLED runs never finished: pending."""
-
-
-class ReportError(ValueError):
-    """The experiment exists but holds no sweep this module can read; the message says what is missing."""
-
-
-class UnknownExperimentError(ReportError):
-    def __init__(self, name: str, known: list[str]):
-        super().__init__(f"no MLflow experiment named {name!r}; known: {', '.join(known) or 'none'}")
-        self.known = known
-
-
-@dataclass(frozen=True)
-class SweepRecord:
-    """One sweep as MLflow holds it: the parent run, its spec and plan, its child runs."""
-
-    client: MlflowClient
-    experiment: str
-    experiment_id: str
-    parent: Run
-    spec: Spec
-    plan: dict[str, Any]
-    """``plan.json``: ``fixed`` overrides, ``sets`` and the grid's ``cells`` (label, values, seed, paper)."""
-    children: list[Run]
-
-    @property
-    def profile(self) -> str:
-        return self.parent.data.tags.get("profile", "?")
-
-    @property
-    def title(self) -> str:
-        return f"{self.spec.name} — profile {self.profile}"
-
-
-@dataclass(frozen=True)
-class TrialRecord:
-    """A trial's outcome (as the results table reads it) with what the plots and panels need besides."""
-
-    outcome: TrialOutcome
-    values: dict[str, Any]
-    """Swept config values (grid cell or Optuna sample), dotted keys."""
-    run_id: str | None
-    """Its child run; None for a grid cell that never started."""
-
-
-def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | None = None) -> SweepRecord:
-    """The latest sweep of ``experiment`` (or the sweep whose parent run is ``parent_run_id``).
-
-    Raises:
-        UnknownExperimentError: no experiment of that name (the error lists the known ones).
-        ReportError: the experiment holds no sweep parent run, or the parent lacks its spec/plan.
-    """
-    client = MlflowClient(uri)
-    if parent_run_id is not None:
-        parent = client.get_run(parent_run_id)
-        exp = client.get_experiment(parent.info.experiment_id)
-    else:
-        exp = client.get_experiment_by_name(experiment)
-        if exp is None:
-            raise UnknownExperimentError(experiment, sorted(e.name for e in client.search_experiments()))
-        parents = client.search_runs([exp.experiment_id], filter_string="tags.kind = 'sweep'",
-                                     order_by=["attributes.start_time DESC"], max_results=1)
-        if not parents:
-            raise ReportError(f"experiment {experiment!r} holds no sweep (no run tagged kind=sweep)")
-        parent = parents[0]
-    run_id = parent.info.run_id
-    names = [a.path for a in client.list_artifacts(run_id)]
-    specs = [n for n in names if n.endswith((".yaml", ".yml"))]
-    if not specs or "plan.json" not in names:
-        raise ReportError(f"sweep run {run_id} has no spec file or plan.json artifact (artifacts: {', '.join(names) or 'none'})")
-    with tempfile.TemporaryDirectory() as tmp:
-        spec = load_spec(client.download_artifacts(run_id, specs[0], tmp))
-        plan = json.loads(Path(client.download_artifacts(run_id, "plan.json", tmp)).read_text())
-    children = client.search_runs([exp.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{run_id}'",
-                                  order_by=["attributes.start_time ASC"], max_results=10000)
-    # `run.py --rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
-    children = [r for r in children if "rerun_of" not in r.data.tags]
-    return SweepRecord(client, exp.name, exp.experiment_id, parent, spec, plan, children)
-
-
-def _sampled(run: Run, space: dict[str, SpaceParam]) -> dict[str, Any]:
-    """An Optuna trial's sampled values, cast back from MLflow's string params by the space's types."""
-    out: dict[str, Any] = {}
-    for key, param in space.items():
-        text = run.data.params.get(key)
-        if text is None:
-            continue
-        if param.type == "categorical":
-            out[key] = next((c for c in param.choices or [] if str(c) == text), text)
-        else:
-            out[key] = int(float(text)) if param.type == "int" else float(text)
-    return out
-
-
-def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord]:
-    """Every trial of the sweep in the runner's order (grid: the plan's; Optuna: best first).
-
-    With ``objects``, finished trials carry their last evaluation's per-object rows, so the results
-    table gets its paired columns (one artifact download per trial).
-    """
-    cells = {c["label"]: c for c in record.plan.get("cells", [])}
-    metric, mode = record.spec.metric.name, record.spec.metric.mode
-    out = []
-    for run in record.children:
-        tags, label = run.data.tags, run.info.run_name
-        status = _STATUS.get(run.info.status, "pending")
-        if status == "ok" and tags.get("stopped_early") == "true":
-            status = "stopped"
-        planned = cells.get(label, {})
-        # A trial that died before opening its run has only the name the driver gave it: `<cell> · seed <n>`.
-        cell = tags.get("cell") or label.rsplit(" · seed ", 1)[0]
-        values = planned.get("values") or _sampled(run, record.spec.search.space)
-        # Baselines live on the parent run, once per evaluation set (older sweeps: on every child).
-        metrics = parent_baselines(record.parent.data.metrics, tags.get("eval_set")) | {
-            k: v for k, v in trial_metrics(run.data.metrics).items() if "/" in k}
-        rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in FINISHED else ()
-        outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
-                               tags.get("error") if status == "failed" else None, rows)
-        out.append(TrialRecord(outcome, values, run.info.run_id))
-    if record.spec.search.kind == "grid":
-        seen = {t.outcome.label for t in out}
-        for label, c in cells.items():
-            # A sequential sweep's plan lists every seed up to max; those it never started are no trials of it.
-            if label not in seen and record.spec.sequential is None:
-                name = label.rsplit(" · seed ", 1)[0]
-                out.append(TrialRecord(TrialOutcome(label, name, "pending", {}, _paper_label(record, c), c.get("paper") or {}),
-                                       c["values"], None))
-        order = {label: i for i, label in enumerate(cells)}
-        return sorted(out, key=lambda t: order.get(t.outcome.label, len(order)))
-    sign = 1 if mode == "min" else -1
-    return sorted(out, key=lambda t: sign * t.outcome.metrics.get(metric, sign * math.inf))
-
-
-def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:
-    """The paper row's label for a planned cell: the row whose numbers it carries."""
-    paper = record.spec.paper
-    if paper is None or not planned.get("paper"):
-        return None
-    return next((r.label for r in paper.rows if r.values == planned["paper"]), None)
-
-
-def _settings(record: SweepRecord) -> list[str]:
-    """The runner's settings note (``sweeps/run.py``'s ``_settings``), from what MLflow recorded: the
-    profile's budget on the parent run and each trial's resolved prediction target and λ in its params."""
-    spec, plan = record.spec, record.plan
-    targets = sorted({r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params})
-    if not targets:
-        targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", DiffusionConfig().prediction)]
-    lambdas = [] if "priors.lambda_3d" in spec.search.space else sorted(
-        {float(r.data.params["priors.lambda_3d"]) for r in record.children if "priors.lambda_3d" in r.data.params})
-    if not lambdas and "priors.lambda_3d" not in spec.search.space:
-        lambdas = [float({**plan.get("fixed", {}), **plan.get("sets", {})}.get("priors.lambda_3d", PriorsConfig().lambda_3d))]
-    return [settings_note(record.profile, record.parent.data.params.get("steps", "?"), targets, lambdas,
-                          lambda_source(spec, record.profile, plan.get("fixed", {}), plan.get("sets", {}))),
-            *(f"protocol: {line}" for line in protocol_card_lines(record))]
-
-
-def protocol_card_lines(record: SweepRecord) -> list[str]:
-    """The sweep's protocol card (``sweeps/protocol.py``) as the runner tagged it on the parent run; a
-    sweep from before the card existed says it has none."""
-    card = record.parent.data.tags.get(CARD_TAG)
-    return card.splitlines() if card else ["no protocol card recorded (a sweep from before the card)"]
-
-
-def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTable:
-    """The runner's results table (same columns and notes, paired Δ where per-object rows are present)."""
-    spec = record.spec
-    outcomes = [t.outcome for t in trials]
-    settled = None
-    if spec.sequential is not None:  # where each cell stopped, as the runner's searcher decided (sweeps/settle.py)
-        budget = record.parent.data.params.get("budget")
-        plan = expand(spec, record.profile, record.plan.get("sets", {}))
-        settled = final_round(plan, outcomes, parse_budget(budget) if budget else None, record.parent.data.tags).records
-    return build_table(outcomes, spec.metric.name, spec.metric.mode, record.title,
-                       f"{spec.paper.table}: {spec.paper.note}" if spec.paper else "", compare_to=spec.compare_to,
-                       settings=_settings(record), settled=settled)
-
-
-def paper_layout(trials: list[TrialRecord]):
-    """The ablation as the paper prints it: one row per cell, CD and F1 for all objects and per category,
-    ours (mean over finished seeds) beside the paper's number.
-
-    Returns:
-        A ``pandas.DataFrame`` indexed by cell, with two-level columns: ``("", "paper setting")``,
-        ``("", "trials")``, then ``(group, "CD ours" | "CD paper" | "F1 ours" | "F1 paper")`` for
-        group ``all`` and each category we evaluated (the paper's value where it reports that category).
-        Columns empty in every row are left out.
-    """
-    import pandas as pd
-
-    groups = ["all", *sorted({k.split("/")[2] for t in trials for k in t.outcome.metrics if k.startswith("eval/cd/")})]
-    cells: dict[str, list[TrialOutcome]] = {}
-    for t in trials:
-        cells.setdefault(t.outcome.cell, []).append(t.outcome)
-    rows = {}
-    for name, group in cells.items():
-        done = [o for o in group if o.finished]
-        failed = sum(o.status == "failed" for o in group)
-        row: dict[tuple[str, str], Any] = {("", "paper setting"): group[0].paper_label or "",
-                                           ("", "trials"): f"{len(done)}/{len(group)}" + (f" ({failed} failed)" if failed else "")}
-        for g in groups:
-            for short in ("cd", "f1"):
-                key = f"eval/{short}" + ("" if g == "all" else f"/{g}")
-                values = [o.metrics[key] for o in done if key in o.metrics and math.isfinite(o.metrics[key])]
-                row[(g, f"{short.upper()} ours")] = statistics.fmean(values) if values else math.nan
-                row[(g, f"{short.upper()} paper")] = group[0].paper.get(key, math.nan)
-        rows[name] = row
-    table = pd.DataFrame.from_dict(rows, orient="index")
-    table.columns = pd.MultiIndex.from_tuples(table.columns)
-    table.index.name = "cell"
-    return table.dropna(axis=1, how="all")
 
 
 def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, ...]) -> dict[str, dict[str, list[tuple[int, float]]]]:

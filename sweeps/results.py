@@ -32,8 +32,8 @@ from sweeps.sequential import SettleRecord
 from sweeps.storage import write_file
 
 __all__ = [
-    "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "rounded",
-    "settings_note",
+    "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "object_column", "partner",
+    "rounded", "settings_note",
 ]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
@@ -169,7 +169,7 @@ class ResultsTable:
         return md, table
 
 
-def _partner(metric: str) -> str | None:
+def partner(metric: str) -> str | None:
     """``eval/f1`` ↔ ``eval/cd``: the other headline metric, shown beside the optimised one."""
     swaps = {"/f1": "/cd", "/cd": "/f1"}
     for a, b in swaps.items():
@@ -179,7 +179,7 @@ def _partner(metric: str) -> str | None:
 
 
 def _partner_mode(partner: str) -> Literal["min", "max"]:
-    """Chamfer distance is better lower, F1 higher (the only partners :func:`_partner` names)."""
+    """Chamfer distance is better lower, F1 higher (the only partners :func:`partner` names)."""
     return "min" if partner.endswith("/cd") else "max"
 
 
@@ -222,7 +222,7 @@ def _finished(group: Sequence[TrialOutcome]) -> list[TrialOutcome]:
     return [o for o in group if o.finished]
 
 
-def _object_column(metric: str) -> tuple[str, str | None] | None:
+def object_column(metric: str) -> tuple[str, str | None] | None:
     """``eval/cd`` → (``cd``, None), ``eval/f1/chair`` → (``f1``, ``chair``): where ``objects.csv`` holds it."""
     parts = metric.split("/")
     if parts[0] != "eval" or len(parts) not in (2, 3) or parts[1] not in ("cd", "f1"):
@@ -258,7 +258,7 @@ class _Pairing:
         to_baseline: dict[tuple[str, str, str], str] = {}
         unpaired: list[str] = []
         for m in shown:
-            column, category = _object_column(m)  # type: ignore[misc]
+            column, category = object_column(m)  # type: ignore[misc]
             scores = {name: _object_scores(group, column, category) for name, group in cells.items()}
             for name, values in scores.items():
                 if name == reference or not values:
@@ -283,9 +283,9 @@ class _Pairing:
             record = pairing.settled.get(name)
             if record is not None:
                 # The partner was not decided on: its interval over objects only, said as such.
-                partner = [f" ({v} on {m.removeprefix('eval/')}, objects only)" for m, v in found.items()
+                aside = [f" ({v} on {m.removeprefix('eval/')}, objects only)" for m, v in found.items()
                            if m != metric and v not in ("no clear difference", record.decision.verdict)]
-                pairing.verdicts[name] = "".join([record.text(), *partner])
+                pairing.verdicts[name] = "".join([record.text(), *aside])
             elif metric in found:
                 pairing.verdicts[name] = _weighed([(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric])
         if unpaired:
@@ -337,8 +337,8 @@ def build_table(
     cells: dict[str, list[TrialOutcome]] = {}
     for o in outcomes:
         cells.setdefault(o.cell, []).append(o)
-    partner = _partner(metric)
-    shown = [m for m in (metric, partner) if m is not None]
+    second = partner(metric)
+    shown = [m for m in (metric, second) if m is not None]
     categories = _categories(outcomes, metric)
     has_paper_label = any(o.paper_label for o in outcomes)
     # In cdm.evaluate's order, weakest first (sphere … retrieval); any other after them.
@@ -346,7 +346,7 @@ def build_table(
     baselines = [b for b in BASELINES if b in found] + sorted(found - set(BASELINES))
     reference = compare_to or next(iter(cells), None)
     pairing = None
-    if _object_column(metric) is not None and reference in cells and any(o.objects for o in _finished(cells[reference])):
+    if object_column(metric) is not None and reference in cells and any(o.objects for o in _finished(cells[reference])):
         pairing = _Pairing.build(cells, reference, shown, mode, baselines, settled or {})
     seeds_column = bool(pairing and pairing.settled)
     header = ["cell"] + (["paper setting"] if has_paper_label else []) + ["trials"] + ["seeds"] * seeds_column
@@ -421,7 +421,7 @@ def build_table(
                 f"no ★: {', '.join(leaders)} tied for best by {metric} ({mode}) at the printed precision")
         notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
-        weighed = f"{metric} ({mode})" + (f" and {partner} ({_partner_mode(partner)})" if partner else "")
+        weighed = f"{metric} ({mode})" + (f" and {second} ({_partner_mode(second)})" if second else "")
         notes.append(f"Δ: mean over the same objects of (row − {reference}), seeds averaged per object, with a 95% "
                      f"paired bootstrap interval over the objects; verdict and beats baselines by {weighed}, interval "
                      f"excluding 0 (a verdict names each metric when they disagree)")
@@ -431,8 +431,8 @@ def build_table(
         notes += [SETTLED_FOOTNOTE] if seeds_column else []
         notes += pairing.notes
     notes += [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
-    narrowing = [f"Δ{partner.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and partner else []
-    narrowing += ["paper setting"] + ([f"paper {partner}", partner] if partner else [])
+    narrowing = [f"Δ{second.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and second else []
+    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else [])
     answer = ("cell", *["seeds"] * seeds_column, *shown,
               *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
     return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, leaders, metric, pairing),

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 from sweeps.paired import UnpairedError
 from sweeps.plan import Cell, SweepPlan
-from sweeps.results import TrialOutcome, _object_column
+from sweeps.results import TrialOutcome, object_column
 from sweeps.sequential import FOOTNOTE, SettleRecord, decide
 from sweeps.spec import SeedBudget, SpecError
 
@@ -60,7 +60,7 @@ class Round:
 def object_scores(rows: Iterable[Mapping[str, object]], metric: str) -> dict[str, float]:
     """``object_id → score`` of ``metric`` (``eval/f1``, ``eval/cd/chair``) in a trial's per-object rows
     (``objects.csv``), where the results table reads it; empty when the rows do not hold it."""
-    where = _object_column(metric)
+    where = object_column(metric)
     if where is None:
         return {}
     column, category = where

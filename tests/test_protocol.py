@@ -231,7 +231,7 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     report.py reads them back and both results tables list them under the rows."""
     import json
 
-    from sweeps import report
+    from sweeps import finished
     from sweeps.protocol import CARD_TAG
     from sweeps.results import build_table
     from sweeps.tracking import SweepRun
@@ -247,10 +247,10 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     plan_file.write_text(json.dumps({"fixed": plan.fixed, "sets": {}, "cells": []}, default=str))
     sweep.log_artifacts([spec_file, plan_file])
     sweep.end()
-    record_ = report.open_sweep(uri, plan.spec.name)
-    assert report.protocol_card_lines(record_) == lines
+    record_ = finished.open_sweep(uri, plan.spec.name)
+    assert finished.protocol_card_lines(record_) == lines
     assert lines[0] == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa stand in for hydrant, teddybear and toytruck"
-    theirs = report.results_table(record_, []).notes
+    theirs = finished.results_table(record_, []).notes
     ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=run._settings(plan)).notes
     assert [n for n in theirs if n.startswith("protocol: ")] == [n for n in ours if n.startswith("protocol: ")] == [
         f"protocol: {line}" for line in lines]

@@ -24,7 +24,7 @@ from scipy.ndimage import binary_dilation
 from cdm.data import build_dataset
 from cdm.data.sample import collate
 from cdm.evaluate import save_panel
-from sweeps import report, results
+from sweeps import finished, report, results
 from sweeps.plan import expand
 from sweeps.spec import load_spec
 from sweeps.tracking import SweepRun, TrialRun
@@ -158,8 +158,8 @@ def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, t
 
 def test_paper_layout_puts_ours_beside_the_paper_per_cell(grid_store):
     uri, _ = grid_store
-    record = report.open_sweep(uri, "synth")
-    table = report.paper_layout(report.trial_records(record, objects=False))
+    record = finished.open_sweep(uri, "synth")
+    table = finished.paper_layout(finished.trial_records(record, objects=False))
     assert list(table.index) == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
     assert table.loc["point_size=0.02", ("all", "F1 ours")] == 0.42 and table.loc["point_size=0.02", ("all", "F1 paper")] == 0.45
     assert table.loc["point_size=0.04", ("all", "CD ours")] == 60.0 and table.loc["point_size=0.04", ("all", "CD paper")] == 105.0
@@ -175,7 +175,7 @@ def test_unknown_experiment_exits_2_listing_the_known_ones(grid_store, capsys):
 
 def test_shared_view_groups_the_sweeps_children_by_cell(grid_store):
     uri, sweep = grid_store
-    record = report.open_sweep(uri, "synth")
+    record = finished.open_sweep(uri, "synth")
     path = report.share_view(record)
     assert path == f"#/experiments/{sweep.experiment_id}/runs?viewStateShareKey=sweep-{sweep.run_id}"
     state = json.loads(MlflowClient(uri).get_experiment(sweep.experiment_id).tags[f"mlflow.sharedViewState.sweep-{sweep.run_id}"])
@@ -198,9 +198,9 @@ def test_sort_key_orders_swept_values_as_numbers():
 
 def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_store):
     uri, sweep = grid_store
-    record = report.open_sweep(uri, "synth")
-    trials = report.trial_records(record)
-    table = report.results_table(record, trials)
+    record = finished.open_sweep(uri, "synth")
+    trials = finished.trial_records(record)
+    table = finished.results_table(record, trials)
     raw = {t.outcome.cell: report.describe_trial(record, t, table) for t in trials}
     assert max(len(line) for d in raw.values() for line in d.splitlines()) <= report.DESCRIPTION_WIDTH
     text = {cell: " ".join(d.split()) for cell, d in raw.items()}  # Markdown joins the wrapped lines
@@ -240,9 +240,9 @@ def test_baselines_once_on_the_parent_and_no_per_trial_paths_in_params(grid_stor
 
 def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_store):
     uri, _ = grid_store
-    record = report.open_sweep(uri, "synth")
-    table = report.results_table(record, report.trial_records(record))
-    card = report.protocol_card_lines(record)
+    record = finished.open_sweep(uri, "synth")
+    table = finished.results_table(record, finished.trial_records(record))
+    card = finished.protocol_card_lines(record)
     text = report.describe_sweep(record.spec, "smoke", "tiny", table, card)
     blocks = text.split("\n\n")
     assert blocks[0] == "**synth**, profile **smoke**, by eval/f1 (higher is better): best cell point_size=0.04: beats sphere."
@@ -256,8 +256,8 @@ def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_stor
 
 def test_description_lines_are_short_and_every_number_rounded(grid_store):
     uri, _ = grid_store
-    record = report.open_sweep(uri, "synth")
-    table = report.results_table(record, report.trial_records(record))
+    record = finished.open_sweep(uri, "synth")
+    table = finished.results_table(record, finished.trial_records(record))
     long_card = ["deviation: train.steps: 20, not 100000 (" + "a source " * 40 + ")"]
     text = report.describe_sweep(record.spec, "smoke", "a profile " * 40, table, long_card)
     assert max(len(line) for line in text.splitlines()) <= 200
@@ -276,8 +276,8 @@ def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
         sweep.close_trial(f"t{i}", label, "FINISHED")
     _trial(tmp_path, sweep, "t3", "λ=5 · seed 0", {"priors.lambda_3d": 5.0}, {})
     sweep.close_trial("t3", "λ=5 · seed 0", "FAILED", error="boom")
-    record = report.open_sweep(uri, "synth_opt")
-    trials = report.trial_records(record, objects=False)
+    record = finished.open_sweep(uri, "synth_opt")
+    trials = finished.trial_records(record, objects=False)
     assert [t.outcome.label for t in trials] == ["λ=0.1 · seed 0", "λ=0.01 · seed 0", "λ=1 · seed 0", "λ=5 · seed 0"]
     assert [t.values["priors.lambda_3d"] for t in trials] == [0.1, 0.01, 1.0, 5.0]
     paths = report.write_plots(record, trials, tmp_path / "plots")
@@ -389,8 +389,8 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
         sweep.close_trial(f"t{i}", label, "FINISHED")
     sweep.log_results({}, {"e1": base}, "grid")
     sweep.end()
-    record = report.open_sweep(uri, "synth")
-    png, page = report.reconstructions(record, report.trial_records(record, objects=False), tmp_path / "out")
+    record = finished.open_sweep(uri, "synth")
+    png, page = report.reconstructions(record, finished.trial_records(record, objects=False), tmp_path / "out")
     width, height = Image.open(png).size
     assert width > 1.5 * height  # 4 columns (2 cells, GT, best baseline) × 2 rows
     text = page.read_text()

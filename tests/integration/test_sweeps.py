@@ -74,7 +74,10 @@ def test_grid_of_two_cells_end_to_end(cluster, tmp_path, capsys):
         assert child.data.params["priors.point_size"] in ("0.02", "0.04") and child.data.params["train.steps"] == "20"
         loss = client.get_metric_history(child.info.run_id, "train/loss")
         assert [m.step for m in sorted(loss, key=lambda m: m.step)] == [5, 10, 15, 20]
-        assert [m.step for m in client.get_metric_history(child.info.run_id, "eval/f1/chair")] in ([10, 20], [20, 10])
+        assert [m.step for m in client.get_metric_history(child.info.run_id, "eval/f1")] in ([10, 20], [20, 10])
+        # Per category: the last evaluation's score once, as final/… (no one-point series beside it).
+        assert [m.step for m in client.get_metric_history(child.info.run_id, "final/f1/chair")] == [20]
+        assert not client.get_metric_history(child.info.run_id, "eval/f1/chair")
         files = last_eval_files(client, child.info.run_id)  # eval/step_0000020/{panels,clouds}/
         assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
         assert "config.yaml" in {a.path for a in client.list_artifacts(child.info.run_id)}
