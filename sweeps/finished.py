@@ -20,9 +20,9 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.config import DiffusionConfig, PriorsConfig
-from sweeps.plan import expand, lambda_source
+from sweeps.plan import expand, lambda_source, split_label
 from sweeps.protocol import CARD_TAG
-from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, settings_note
+from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, settings_note, sweep_order
 from sweeps.settle import final_round
 from sweeps.spec import SpaceParam, Spec, load_spec, parse_budget
 from sweeps.tracking import last_objects, parent_baselines, trial_metrics
@@ -151,7 +151,7 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
             status = "stopped"
         planned = cells.get(label, {})
         # A trial that died before opening its run has only the name the driver gave it: `<cell> · seed <n>`.
-        cell = tags.get("cell") or label.rsplit(" · seed ", 1)[0]
+        cell = tags.get("cell") or split_label(label)[0]
         values = planned.get("values") or _sampled(run, record.spec.search.space)
         # Baselines live on the parent run, once per evaluation set (older sweeps: on every child).
         metrics = parent_baselines(record.parent.data.metrics, tags.get("eval_set")) | {
@@ -165,13 +165,11 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         for label, c in cells.items():
             # A sequential sweep's plan lists every seed up to max; those it never started are no trials of it.
             if label not in seen and record.spec.sequential is None:
-                name = label.rsplit(" · seed ", 1)[0]
+                name = split_label(label)[0]
                 out.append(TrialRecord(TrialOutcome(label, name, "pending", {}, _paper_label(record, c), c.get("paper") or {}),
                                        c["values"], None))
-        order = {label: i for i, label in enumerate(cells)}
-        return sorted(out, key=lambda t: order.get(t.outcome.label, len(order)))
-    sign = 1 if mode == "min" else -1
-    return sorted(out, key=lambda t: sign * t.outcome.metrics.get(metric, sign * math.inf))
+    key = sweep_order(list(cells) if record.spec.search.kind == "grid" else None, metric, mode)
+    return sorted(out, key=lambda t: key(t.outcome))
 
 
 def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:

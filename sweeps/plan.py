@@ -4,8 +4,10 @@ One trial's config is resolved in this order, later wins::
 
     cdm defaults < shared profile overrides < spec base < spec profile overrides
       < the profile's fields for the run's data set (``datasets.<data.kind>``) < the spec's paper run
-      on that data set (``--profile paper --set data.root=...``) < budget (train.steps, train.eval_every) and train.threads (= CPUs per worker)
+      on that data set (``--profile paper --set data.root=...``) < budget (train.steps, train.eval_every)
       < cell values < seed (train.seed) < --set
+
+``train.threads`` is the profile's CPUs per worker unless a level above sets it (then that value stays).
 
 :func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
 the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
@@ -42,7 +44,8 @@ from sweeps.spec import (
 )
 
 __all__ = [
-    "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "lambda_source", "optuna_distributions", "resolve_profile",
+    "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "lambda_source", "optuna_distributions",
+    "resolve_profile", "split_label", "trial_label",
 ]
 
 # Paper notation for readable cell names; other fields use their last dotted part.
@@ -136,7 +139,7 @@ class SweepPlan:
             cell = self.grid_cell(tune_config["cell"])
             return cell.name, cell.label
         name = cell_name({k: tune_config[k] for k in self.spec.search.space})
-        return name, f"{name} · seed {self.spec.seed_values[0]}"
+        return name, trial_label(name, self.spec.seed_values[0])
 
     def trial(self, tune_config: dict[str, Any]) -> Cell:
         """The trial a Tune config stands for: ``{"cell": label}`` (grid) or sampled values (Optuna).
@@ -184,6 +187,21 @@ def _fmt_value(value: Any) -> str:
     if isinstance(value, float):
         return f"{value:.4g}"
     return str(value)
+
+
+SEED_MARK = " · seed "
+"""Between a trial label's cell name and its seed (``point_size=0.04 · seed 1``)."""
+
+
+def trial_label(name: str, seed: int) -> str:
+    """A trial's label, its MLflow child run's name: ``<cell name> · seed <seed>``."""
+    return f"{name}{SEED_MARK}{seed}"
+
+
+def split_label(label: str) -> tuple[str, str | None]:
+    """``(cell name, seed)`` of a trial label; the seed is None for a label without one."""
+    name, mark, seed = label.rpartition(SEED_MARK)
+    return (name, seed) if mark else (label, None)
 
 
 def cell_name(values: dict[str, Any]) -> str:
@@ -298,7 +316,7 @@ def expand(
                 overrides = {**fixed, **values, "train.seed": seed, **sets}
                 config = _build(overrides, f"cell {name}")
                 paper = next((r for r in rows if _matches(r, config)), None)
-                cell = Cell(name, f"{name} · seed {seed}", values, seed, config,
+                cell = Cell(name, trial_label(name, seed), values, seed, config,
                             paper.label if paper else None, dict(paper.values) if paper else {})
                 if hash(cell.label) in labels:
                     raise SpecError(f"cells: two cells share the name {cell.label!r}; give explicit cells distinct labels")

@@ -36,7 +36,7 @@ from cdm.evaluate import BASELINES
 from sweeps.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 from sweeps.gallery import grid_png, viewer_html
 from sweeps.paired import PairedDifference
-from sweeps.plan import optuna_distributions
+from sweeps.plan import optuna_distributions, split_label
 from sweeps.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.results import ResultsTable, partner, rounded
 from sweeps.spec import Spec
@@ -261,7 +261,7 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
     parent run."""
     o, spec = trial.outcome, record.spec
     parent = f"[{record.title}](#/experiments/{record.experiment_id}/runs/{record.parent.info.run_id})"
-    seed = o.label.rsplit(" · seed ", 1)[1] if " · seed " in o.label else "?"
+    seed = split_label(o.label)[1] or "?"
     out = [f"**{o.cell}**, seed {seed}, a trial of the sweep {parent}."]
     if o.status == "failed":
         out.append(f"It failed: {o.error or 'no reason recorded'}.")

@@ -20,7 +20,7 @@ import io
 import math
 import statistics
 import textwrap
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -33,7 +33,7 @@ from sweeps.storage import write_file
 
 __all__ = [
     "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "object_column", "partner",
-    "rounded", "settings_note",
+    "rounded", "settings_note", "sweep_order",
 ]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
@@ -84,6 +84,16 @@ class _Stat:
 def _num(value: float, scale: float | None = None) -> str:
     """3 decimals for F1-like numbers, 2 for CD ×1000-like ones (decided by ``scale``, default ``value``)."""
     return f"{value:.3f}" if abs(value if scale is None else scale) < 10 else f"{value:.2f}"
+
+
+def sweep_order(labels: Sequence[str] | None, metric: str, mode: Literal["min", "max"]) -> Callable[[TrialOutcome], float]:
+    """Sort key of a sweep's outcomes, as the runner and the report list them: a grid's trials in its
+    plan's order ``labels`` (unplanned last); an Optuna sweep's (``labels`` None) best ``metric`` first."""
+    if labels is not None:
+        order = {label: i for i, label in enumerate(labels)}
+        return lambda o: order.get(o.label, len(order))
+    sign = 1 if mode == "min" else -1
+    return lambda o: sign * o.metrics.get(metric, sign * math.inf)
 
 
 def rounded(value: float) -> float:

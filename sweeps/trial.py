@@ -43,7 +43,7 @@ from sweeps.precompute import precompute, shared_root
 from sweeps.plan import SweepPlan, optuna_distributions
 from sweeps.progress import StepReporter, quiet_loggers
 from sweeps.resources import Concurrency
-from sweeps.results import TrialOutcome
+from sweeps.results import TrialOutcome, sweep_order
 from sweeps.spec import SeedBudget
 from sweeps.tracking import SweepRun, TrialRun, finished_trial_metrics
 
@@ -414,7 +414,5 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
             tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
             seen |= {c.label for c in plan.cells} - set(final_round(plan, outcomes, budget, tags).start)
         outcomes += [TrialOutcome(c.label, c.name, "pending", {}, c.paper_label, c.paper) for c in plan.cells if c.label not in seen]
-        order = {c.label: i for i, c in enumerate(plan.cells)}
-        return sorted(outcomes, key=lambda o: order[o.label])
-    sign = 1 if plan.spec.metric.mode == "min" else -1
-    return sorted(outcomes, key=lambda o: sign * o.metrics.get(plan.spec.metric.name, sign * float("inf")))
+    labels = [c.label for c in plan.cells] if plan.spec.search.kind == "grid" else None
+    return sorted(outcomes, key=sweep_order(labels, plan.spec.metric.name, plan.spec.metric.mode))

@@ -416,3 +416,11 @@ def test_dry_run_names_missing_inputs(tmp_path, capsys, monkeypatch):
     assert code == 2 and captured.out.count("(MISSING)") == 5
     assert captured.err.strip().splitlines()[-1].startswith("error: model.global_embeddings: ")
     assert not (tmp_path / "r").exists()
+
+
+def test_trial_labels_are_built_and_split_in_one_place():
+    from sweeps.plan import split_label, trial_label
+
+    assert trial_label("point_size=0.04 · H=10", 3) == "point_size=0.04 · H=10 · seed 3"
+    assert split_label(trial_label("point_size=0.04 · H=10", 3)) == ("point_size=0.04 · H=10", "3")
+    assert split_label("point_size=0.04") == ("point_size=0.04", None)
