@@ -17,6 +17,7 @@ failed transaction was rolled back: nothing is logged twice).
 from __future__ import annotations
 
 import functools
+import logging
 import sqlite3
 import time
 from collections.abc import Callable
@@ -38,13 +39,19 @@ def _busy_timeout(dbapi_connection, connection_record) -> None:
         dbapi_connection.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
 
 
+def _not_locked(record: logging.LogRecord) -> bool:
+    return "database is locked" not in record.getMessage()
+
+
 def wait_when_busy() -> None:
-    """Make every SQLite connection SQLAlchemy opens in this process wait for a busy store (idempotent)."""
+    """Make every SQLite connection SQLAlchemy opens in this process wait for a busy store, and keep MLflow
+    from logging a traceback for each "database is locked" that :func:`retry_when_busy` retries (idempotent)."""
     from sqlalchemy import event
     from sqlalchemy.engine import Engine
 
     if not event.contains(Engine, "connect", _busy_timeout):
         event.listen(Engine, "connect", _busy_timeout)
+        logging.getLogger("mlflow.store.db.utils").addFilter(_not_locked)
 
 
 def check_not_locked(path: Path) -> None:

@@ -9,6 +9,8 @@ import contextlib
 import http.server
 import importlib.util
 import json
+import logging
+import logging.handlers
 import os
 import pickle
 import signal
@@ -462,6 +464,16 @@ def test_an_mlflow_call_refused_as_locked_is_retried_with_back_off_until_the_wai
     client = store_retry.PatientClient(f"sqlite:///{tmp_path}/m.db")
     assert client.tracking_uri == f"sqlite:///{tmp_path}/m.db"
     assert [e.name for e in client.search_experiments()] == ["Default"]
+    store_retry.wait_when_busy()  # MLflow's traceback of each retried "database is locked" is not printed
+    mlflow_db = logging.getLogger("mlflow.store.db.utils")
+    seen = logging.handlers.BufferingHandler(10)
+    mlflow_db.addHandler(seen)
+    try:
+        for error in ("(sqlite3.OperationalError) database is locked", "(sqlite3.OperationalError) disk I/O error"):
+            mlflow_db.error("SQLAlchemy database error. The following exception is caught.\n%s", error)
+    finally:
+        mlflow_db.removeHandler(seen)
+    assert [r.getMessage().split("\n")[1] for r in seen.buffer] == ["(sqlite3.OperationalError) disk I/O error"]
 
 
 def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, capsys, monkeypatch):
@@ -594,3 +606,16 @@ def test_a_data_set_name_that_leaves_its_root_is_refused(in_tmp, capsys):
     assert run.main(_argv(in_tmp, "--set", "data.categories=[chair, ../../etc]", "--dry-run")) == 2
     assert "data.categories: ['../../etc'] not in the procedural data set" in _one_error_line(capsys)
     assert sorted(p.name for p in in_tmp.iterdir()) == ["spec.yaml"]
+
+
+def test_only_rays_note_that_token_auth_is_on_is_dropped():
+    import logging
+
+    from sweeps.local_cluster import DeliberateTokenNote
+
+    def record(message: str) -> logging.LogRecord:
+        return logging.LogRecord("ray", logging.WARNING, __file__, 1, message, None, None)
+
+    drop = DeliberateTokenNote()
+    assert not drop.filter(record("Token authentication is enabled for this Ray cluster. Set RAY_AUTH_MODE=disabled …"))
+    assert drop.filter(record("Token authentication is not enabled. Anyone with network access to the cluster …"))
