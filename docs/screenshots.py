@@ -217,8 +217,10 @@ def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: li
     }
 
 
-RUN_PAGES = ("mlflow_parent_run.png", "mlflow_child_run.png")
-"""Pages shot as their first screen at 1,280 × 800 (:func:`first_screen`): what a reader sees unscrolled."""
+PAGE_TEXT = {"mlflow_sweep_view.png": "final/f1", "mlflow_compare.png": "Comparing", "mlflow_parent_run.png": "Description",
+             "mlflow_child_run.png": "Description"}
+"""The text each page of :func:`pages` shows once it has rendered its data; every page is shot as its
+first screen at 1,280 × 800 (:func:`first_screen`): what a reader sees unscrolled."""
 
 
 def shrink(source: Path, target: Path, width: int = 1000) -> Path:
@@ -260,10 +262,8 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(tmp)
         with mlflow_server(args.tracking_uri, tmp / "server.log") as server:
             for name, url in pages(server, exp.experiment_id, parent, children).items():
-                if name in RUN_PAGES:
-                    first_screen(chromium, url, ["Description"], tmp / name, tmp, storage=ASSISTANT_CLOSED)
-                else:
-                    chromium_page(chromium, url, tmp / name, tmp)
+                # Each page's first screen once the text a reader looks for is in it, the assistant closed.
+                first_screen(chromium, url, [PAGE_TEXT[name]], tmp / name, tmp, storage=ASSISTANT_CLOSED)
                 print(shrink(tmp / name, args.out / name))
         for artifact, name in (("reconstructions/reconstructions.html", None), ("plots/metric_vs_value.png", "metric_vs_value.png"),
                                ("reconstructions/reconstructions.png", "reconstructions.png")):
