@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import logging
 import os
 import signal
 import stat
@@ -34,7 +35,7 @@ from pathlib import Path
 
 from sweeps.storage import StoreError, private_folder, write_private
 
-__all__ = ["LOOPBACK_ENV", "SESSION_RECORDS", "is_session_process", "private_token", "reap_stale_sessions", "session_pids", "start"]
+__all__ = ["LOOPBACK_ENV", "DeliberateTokenNote", "TOKEN_NOTE_LOGGER", "SESSION_RECORDS", "is_session_process", "private_token", "reap_stale_sessions", "session_pids", "start"]
 
 LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 """Ray's switch that, set to ``0``, keeps a node's address (and so its listeners) on loopback."""
@@ -138,6 +139,17 @@ def private_token() -> None:
         token.chmod(0o600)
 
 
+TOKEN_NOTE_LOGGER = "ray._private.authentication.authentication_token_setup"
+
+
+class DeliberateTokenNote(logging.Filter):
+    """Drops Ray's 245-character warning that a new local cluster turned token authentication on: it is
+    on by our choice (docs/security.md). Its warning that authentication is off still shows."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not record.getMessage().startswith("Token authentication is enabled for this Ray cluster")
+
+
 def start(**init_kwargs) -> None:
     """Start a new local Ray cluster of this process, bound to 127.0.0.1, after reaping stale sessions."""
     import ray
@@ -155,6 +167,9 @@ def start(**init_kwargs) -> None:
     # at call time by ray._private.services.get_node_ip_address in this process, which may have
     # imported ray before the variable was set. Both are put back once the node exists (its address
     # is fixed then), so a later cluster joined by address in this process is not pinned to loopback.
+    note = logging.getLogger(TOKEN_NOTE_LOGGER)
+    if not any(isinstance(f, DeliberateTokenNote) for f in note.filters):
+        note.addFilter(DeliberateTokenNote())
     saved_env, saved_flag = os.environ.get(LOOPBACK_ENV), constants.ENABLE_RAY_CLUSTER
     os.environ[LOOPBACK_ENV], constants.ENABLE_RAY_CLUSTER = "0", False
     try:
