@@ -121,14 +121,8 @@ class TrialJob:
     tags: dict[str, str]
     prior_dir: str
     """Where ``prior_checkpoint: auto`` caches category priors (:func:`_prior_dir`)."""
-    tracking_uri: str
-    experiment_id: str
-    parent_run_id: str
-    shared_root: str | None
-    """The sweep's store of shared training views and evaluation sets (:mod:`sweeps.precompute`)."""
-    lease_folder: str
-    lease_cores: int
-    """Core leases the trial takes turns on, in ``lease_folder`` (:mod:`sweeps.cores`); 0 = none."""
+    setup: TrialSetup
+    """The sweep's side: MLflow parent run, shared store, core leases (in ``<sweep_dir>/cores``)."""
 
 
 def train_loop(job: TrialJob) -> None:
@@ -142,21 +136,22 @@ def train_loop(job: TrialJob) -> None:
     # in its folder (the first trial to need it trains it, the others wait on its lock).
     config = ensure_priors(config, job.prior_dir, lambda line: print(f"[{job.label}] {line}", flush=True))
     callbacks: list[Callback] = [_RayReporter(job.local, rank)]
-    lease = CoreLease(job.lease_folder, job.lease_cores) if job.lease_cores else None
+    setup = job.setup
+    lease = CoreLease(f"{setup.sweep_dir}/cores", setup.lease_cores) if setup.lease_cores else None
     if lease is not None:
         callbacks.append(lease)
     if rank == 0:
         callbacks += [
             TrialProgress(job.label, config.train.steps, job.metric),
-            StepReporter(job.parent_run_id, job.label),
-            TrialRun(job.tracking_uri, job.experiment_id, job.parent_run_id, job.trial_id, job.label, job.tags, config,
+            StepReporter(setup.parent_run_id, job.label),
+            TrialRun(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, job.trial_id, job.label, job.tags, config,
                      job.metric),
         ]
     checkpoint = ray.tune.get_checkpoint() if job.local else ray.train.get_checkpoint()
     with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
         if resume_from is not None:
             print(f"[{job.label}] resuming from {resume_from}", flush=True)
-        shared = None if job.shared_root is None else SharedStore(job.shared_root)
+        shared = None if setup.shared_root is None else SharedStore(setup.shared_root)
         try:
             fit(config, callbacks, resume_from=resume_from, shared=shared)
         finally:
@@ -193,12 +188,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         metric=plan.spec.metric.name,
         tags=tags,
         prior_dir=_prior_dir(setup.sweep_dir, ctx.get_trial_dir()),
-        tracking_uri=setup.tracking_uri,
-        experiment_id=setup.experiment_id,
-        parent_run_id=setup.parent_run_id,
-        shared_root=setup.shared_root,
-        lease_folder=f"{setup.sweep_dir}/cores",
-        lease_cores=setup.lease_cores,
+        setup=setup,
     )
     per_worker = {"CPU": r.cpus_per_worker, **({"GPU": r.gpus_per_worker} if r.gpus_per_worker else {})}
     trainer = TorchTrainer(
