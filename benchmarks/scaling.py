@@ -13,9 +13,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from sweeps.estimate import paper_trial_gpu_hours
-from sweeps.plan import expand
-from sweeps.spec import load_spec
+from sweeps.plan.estimate import paper_trial_gpu_hours
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 
 __all__ = ["GPUS", "paper_scaling"]
 

@@ -59,8 +59,8 @@ def _isolated_steps(config: Config, steps: int = 40) -> float:
 def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = None) -> list[dict]:
     from mlflow import MlflowClient
 
-    from sweeps.plan import expand
-    from sweeps.spec import load_spec
+    from sweeps.plan.spec import load_spec
+    from sweeps.plan.trials import expand
 
     client = MlflowClient(tracking_uri)
     exp = client.get_experiment_by_name(experiment)

@@ -1,6 +1,6 @@
 """Sweep efficiency on this machine: 6 identical short trials of the smoke profile through the real runner.
 
-The runner packs trials in Train's local mode with reused actors (sweeps/trial.py): one per CPU at a
+The runner packs trials in Train's local mode with reused actors (sweeps/execute/trial.py): one per CPU at a
 time (on 2 CPUs, two). From the MLflow child runs (start = the trial opens its run, end = the driver closes it):
 
 - efficiency = Σ in-trial time ÷ (concurrent trials × wall of the trial phase); target ≥ 0.8;
@@ -23,9 +23,9 @@ from pathlib import Path
 
 from mlflow import MlflowClient
 
-from sweeps.plan import expand
-from sweeps.resources import plan_concurrency
-from sweeps.spec import load_spec
+from sweeps.plan.resources import plan_concurrency
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 
 __all__ = ["sweep_efficiency"]
 

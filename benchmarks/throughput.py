@@ -4,7 +4,7 @@ Batch 8, 224² images, PC²'s PVCNN2 (the paper profile's denoiser), the CDM ste
 points (ShapeNet) and 16,384 (Co3D). Each row: ``a`` = seconds per training step, ``b`` = seconds per
 sampling step (one denoiser forward on the batch, what evaluation repeats ``diffusion.sample_steps``
 times), ``ratio`` = training samples per second. On CUDA it also writes ``gpu_costs.json`` (figures
-per cloud size), which ``sweeps/estimate.py`` reads for paper-profile GPU-hours once copied to
+per cloud size), which ``sweeps/plan/estimate.py`` reads for paper-profile GPU-hours once copied to
 ``benchmarks/gpu_costs.json``.
 """
 

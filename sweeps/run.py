@@ -30,14 +30,14 @@ from pydantic import ValidationError
 
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
-from sweeps.claim import ClaimError, SweepClaim, claim
-from sweeps.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
-from sweeps.plan import SweepPlan, expand, lambda_source
-from sweeps.precompute import check_space, shared_root
-from sweeps.protocol import CARD_TAG, plan_card
-from sweeps.resources import plan_concurrency
-from sweeps.settle import check_budget
-from sweeps.spec import SeedBudget, Spec, SpecError, load_spec, parse_budget
+from sweeps.compare.settle import check_budget
+from sweeps.execute.claim import ClaimError, SweepClaim, claim
+from sweeps.execute.precompute import check_space, shared_root
+from sweeps.plan.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
+from sweeps.plan.protocol import CARD_TAG, plan_card
+from sweeps.plan.resources import plan_concurrency
+from sweeps.plan.spec import SeedBudget, Spec, SpecError, load_spec, parse_budget
+from sweeps.plan.trials import SweepPlan, expand, lambda_source
 from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
@@ -104,7 +104,7 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, budget: Se
             rng = f"{p.choices}" if p.type == "categorical" else f"[{p.low:g}, {p.high:g}]"
             out.append(f"  {key}: {p.type} {rng}")
     elif plan.sequential is not None:
-        from sweeps.settle import describe_rule
+        from sweeps.compare.settle import describe_rule
 
         out += describe_rule(plan, budget)
     else:
@@ -126,9 +126,9 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, budget: Se
 
 
 def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
-    """Print the cost estimate (:mod:`sweeps.estimate`) and return it; None when calibration diverged."""
+    """Print the cost estimate (:mod:`sweeps.plan.estimate`) and return it; None when calibration diverged."""
     from cdm.train import TrainingDiverged
-    from sweeps.estimate import estimate
+    from sweeps.plan.estimate import estimate
 
     try:
         predicted = estimate(plan, cpus, concurrent, shared)
@@ -141,7 +141,7 @@ def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
 
 def _settings(plan: SweepPlan) -> list[str]:
     """What produced the numbers, for the table's notes: budget and the training target of the cells."""
-    from sweeps.results import settings_note
+    from sweeps.compare.table import settings_note
 
     # Optuna plans have no cells yet: the fixed settings and --set values stand for every trial.
     configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
@@ -163,7 +163,7 @@ def _wrapped(text: str, width: int = 120) -> str:
 
 def _ui_hint(uri: str, path: str) -> str:
     """Where to see ``path`` (``#/experiments/…``) of the MLflow UI: its address, or how to start it."""
-    from sweeps.tracking import ui_command
+    from sweeps.execute.tracking import ui_command
 
     if uri.startswith(("http://", "https://")):
         return f"open {uri.rstrip('/')}/{path}"
@@ -203,19 +203,19 @@ def main(argv: list[str] | None = None) -> int:
     if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
         return _fail("give one of a sweep spec (e.g. sweeps/point_size.yaml), --rerun RUN_ID or --report EXPERIMENT")
     if args.report is not None or args.rerun is not None:
-        from sweeps.tracking import resolve_tracking_uri
+        from sweeps.execute.tracking import resolve_tracking_uri
 
         try:
             check_tracking_uri(resolve_tracking_uri(args.tracking_uri))
         except StoreError as exc:
             return _fail(str(exc))
     if args.report is not None:
-        from sweeps import report
+        from sweeps.results import report
 
         return report.main([args.report, *(["--tracking-uri", args.tracking_uri] if args.tracking_uri else [])])
     if args.rerun is not None:
-        from sweeps.rerun import RerunError, rerun
-        from sweeps.tracking import resolve_tracking_uri
+        from sweeps.execute.tracking import resolve_tracking_uri
+        from sweeps.results.rerun import RerunError, rerun
 
         if is_uri(args.storage):
             return _fail(f"--rerun trains in this process and writes its files here: give --storage a local folder, not {args.storage}")
@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         return _fail(str(exc))
     if not args.dry_run:
-        from sweeps.tracking import resolve_tracking_uri
+        from sweeps.execute.tracking import resolve_tracking_uri
 
         try:  # before Ray starts and before any MLflow run exists
             check_no_links(sweep_dir)
@@ -366,7 +366,7 @@ def resume_command(spec: Path, profile: str, storage: str) -> str:
 
 
 def _kill_running_children(sweep_run) -> int:
-    """Close as KILLED the child runs of ``sweep_run`` (a :class:`sweeps.tracking.SweepRun`) still RUNNING
+    """Close as KILLED the child runs of ``sweep_run`` (a :class:`sweeps.execute.tracking.SweepRun`) still RUNNING
     once Tune has stopped (interrupted trials); ``--resume`` reopens each. Returns how many."""
     running = sweep_run.client.search_runs(
         [sweep_run.experiment_id], max_results=10_000,
@@ -388,17 +388,17 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
          held: SweepClaim) -> int:
     # The results table downloads each trial's per-object scores: no progress bar per small file.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    from sweeps.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
+    from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
 
     tty = is_tty(sys.stdout)
     quiet_environment(tty)
     import ray
 
-    from sweeps.report import describe_sweep, publish
-    from sweeps.results import baselines_by_eval_set, build_table, cell_means
-    from sweeps.tracking import SweepRun, resolve_tracking_uri
-    from sweeps.cluster import cluster_capacity, cluster_machines, connect
-    from sweeps.trial import run_sweep
+    from sweeps.compare.table import baselines_by_eval_set, build_table, cell_means
+    from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
+    from sweeps.execute.tracking import SweepRun, resolve_tracking_uri
+    from sweeps.execute.trial import run_sweep
+    from sweeps.results.report import describe_sweep, publish
 
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
     # in a staging folder, copied at once (sweep.json, so a crashed sweep can be resumed) and at the end.
@@ -489,7 +489,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         took = time.perf_counter() - started_at
         settled = None
         if plan.sequential is not None:
-            from sweeps.settle import final_round, settle_json
+            from sweeps.compare.settle import final_round, settle_json
 
             settled = final_round(plan, outcomes, budget, sweep_run.client.get_run(sweep_run.run_id).data.tags).records
             (staging / "settle.json").write_text(settle_json(settled, budget))

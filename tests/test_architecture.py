@@ -104,7 +104,7 @@ def test_the_import_reader_sees_lazy_relative_and_type_checking_imports(tmp_path
 
 def test_no_import_cycle_in_cdm_or_sweeps():
     graph = _graph()
-    assert len(graph) > 30 and "cdm.train" in graph and "sweeps.trial" in graph  # the walk found the code
+    assert len(graph) > 30 and "cdm.train" in graph and "sweeps.execute.trial" in graph  # the walk found the code
     cycle = _cycle(graph)
     assert cycle is None, f"import cycle: {' -> '.join(cycle)}"
 
@@ -153,11 +153,11 @@ def _doc_modules(path: str, modules: dict[str, Path]) -> set[str]:
 
 
 def test_the_doc_reader_reads_chains_lists_and_skips_prose():
-    text = "prose: `A ─► B` means A imports B\n```\nsweeps/run.py ─► sweeps/plan.py, cdm/ ─► cdm/config.py\n" \
-           "sweeps/*.yaml ─► sweeps/spec.py\n```\n"
+    text = "prose: `A ─► B` means A imports B\n```\nsweeps/run.py ─► sweeps/plan/trials.py, cdm/ ─► cdm/config.py\n" \
+           "sweeps/*.yaml ─► sweeps/plan/spec.py\n```\n"
     assert _doc_arrows(text) == [
-        (3, "sweeps/run.py", "sweeps/plan.py"), (3, "sweeps/run.py", "cdm/"), (3, "cdm/", "cdm/config.py"),
-        (4, "", "sweeps/spec.py"),
+        (3, "sweeps/run.py", "sweeps/plan/trials.py"), (3, "sweeps/run.py", "cdm/"), (3, "cdm/", "cdm/config.py"),
+        (4, "", "sweeps/plan/spec.py"),
     ]
     modules = {"cdm": ROOT, "cdm.data": ROOT, "cdm.data.views": ROOT, "cdm.config": ROOT}
     assert _doc_modules("cdm/data/", modules) == {"cdm.data", "cdm.data.views"}
@@ -189,3 +189,41 @@ def test_every_arrow_of_the_architecture_doc_is_an_import():
         if not sources or not targets or not any(graph[s] & (targets - sources) for s in sources):
             false.append(f"line {number}: {importer or '?'} {ARROW} {imported or '?'}")
     assert not false, "arrows of docs/ARCHITECTURE.md with no import behind them (A ─► B: A imports B):\n" + "\n".join(false)
+
+
+STAGES = ("plan", "compare", "execute", "results")
+"""``sweeps/``'s stage packages in the order a sweep walks them (docs/ARCHITECTURE.md)."""
+
+
+def _stage(module: str) -> int | None:
+    """Position of a ``sweeps`` module's stage in :data:`STAGES`; None for the entry points and the
+    storage modules every stage shares (``sweeps.run``, ``sweeps.report``, ``sweeps.storage``, …)."""
+    parts = module.split(".")
+    return STAGES.index(parts[1]) if len(parts) > 2 and parts[0] == "sweeps" and parts[1] in STAGES else None
+
+
+def _backward_arrows(graph: dict[str, set[str]]) -> list[str]:
+    """Imports that point from a stage to a later one, or from a shared module into any stage."""
+    bad = []
+    for importer, imported in graph.items():
+        if not importer.startswith("sweeps.") or importer in ("sweeps.run", "sweeps.report"):
+            continue
+        for target in imported:
+            if not target.startswith("sweeps."):
+                continue
+            source, dest = _stage(importer), _stage(target)
+            if dest is not None and (source is None or dest > source):
+                bad.append(f"{importer} ─► {target}")
+    return sorted(bad)
+
+
+def test_the_stage_check_catches_an_import_from_a_later_stage():
+    graph = {"sweeps.plan.spec": {"sweeps.execute.trial"}, "sweeps.execute.trial": {"sweeps.plan.spec", "sweeps.storage"},
+             "sweeps.storage": {"sweeps.compare.table"}, "sweeps.run": {"sweeps.results.report"}}
+    assert _backward_arrows(graph) == ["sweeps.plan.spec ─► sweeps.execute.trial", "sweeps.storage ─► sweeps.compare.table"]
+
+
+def test_sweeps_stages_import_only_earlier_stages():
+    modules = _modules()
+    assert {m.split(".")[1] for m in modules if _stage(m) is not None} == set(STAGES)
+    assert _backward_arrows(_graph()) == []

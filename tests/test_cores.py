@@ -1,4 +1,4 @@
-"""Core leases (sweeps/cores.py): at most ``cores`` trials compute at once, a handed-on lease goes to a
+"""Core leases (sweeps/execute/cores.py): at most ``cores`` trials compute at once, a handed-on lease goes to a
 waiting trial, and leases are only used where more one-thread trials than cores share a machine."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 import time
 
-from sweeps.cores import CoreLease, lease_cores
+from sweeps.execute.cores import CoreLease, lease_cores
 
 
 def test_leases_are_used_only_for_packed_local_trials():

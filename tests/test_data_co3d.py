@@ -24,8 +24,8 @@ from cdm.data.co3d import centred_box, crop_camera, load_category
 from cdm.data.co3d_lists import EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE, excluded_sequences
 from cdm.data.checks import inside_mask
 from sweeps import run
-from sweeps.plan import expand
-from sweeps.spec import load_spec
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 from tests.datasets_fixtures import (
     make_co3d,
     mask_check_report,

@@ -18,8 +18,8 @@ from cdm.data.checks import inside_mask
 from cdm.data.priors2d import depth_prior_from_map
 from cdm.data.shapenet import R2N2_FOCAL, SYNSETS
 from sweeps import run
-from sweeps.plan import expand
-from sweeps.spec import load_spec
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 from tests.datasets_fixtures import (
     SHAPENET_SYNSETS,
     make_shapenet,

@@ -91,9 +91,9 @@ def test_bad_maps_name_the_field(tree, tmp_path):
 
 
 def test_protocol_card_names_encoder_and_depth_unless_weights_and_maps_are_given(tmp_path):
-    from sweeps.protocol import plan_card
-    from sweeps.plan import expand
-    from sweeps.spec import load_spec
+    from sweeps.plan.protocol import plan_card
+    from sweeps.plan.spec import load_spec
+    from sweeps.plan.trials import expand
 
     root = make_co3d(tmp_path / "co3d3", categories=("hydrant", "teddybear", "toytruck"), frames=3,
                      splits={"train": 1, "val": 1, "test": 0}).root

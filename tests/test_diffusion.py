@@ -97,8 +97,8 @@ def test_paper_profile_samples_with_pc2s_schedule_and_sampler():
     (1,000 training steps), diffusion_scheduler ddpm, num_inference_steps 1000; no x̂₀ clipping."""
     from pathlib import Path
 
-    from sweeps.plan import expand
-    from sweeps.spec import load_spec
+    from sweeps.plan.spec import load_spec
+    from sweeps.plan.trials import expand
 
     spec = Path(__file__).resolve().parent.parent / "sweeps" / "point_size.yaml"
     cfg = expand(load_spec(spec), "paper").cells[0].config

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from sweeps.estimate import (
+from sweeps.plan.estimate import (
     GPU_COSTS,
     STARTUP_S,
     TrialCost,
@@ -18,8 +18,8 @@ from sweeps.estimate import (
     estimate,
     paper_trial_gpu_hours,
 )
-from sweeps.plan import expand
-from sweeps.spec import load_spec
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
 

@@ -91,7 +91,7 @@ def test_one_drawn_object_per_category_and_drawing_changes_no_score(tmp_path):
     from cdm.evaluate import run_evaluation
     from cdm.model import CDMNetwork
     from cdm.data.priors2d import PRIOR_2D_CHANNELS
-    from sweeps.plots import read_ply
+    from sweeps.compare.plots import read_ply
 
     cfg = tiny_config(tmp_path, **{"data.categories": ["chair", "airplane"], "data.val_objects": 2,
                                    "eval.num_objects": 2, "eval.save_clouds": 8, "eval.retrieval_bank": 2})

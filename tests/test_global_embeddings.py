@@ -107,8 +107,8 @@ def test_missing_object_ids_and_paths_are_refused_before_training(tmp_path, caps
 def test_each_cell_of_tables_7_and_8_is_one_paper_row_and_row_1_is_pc2(spec, rows):
     from pathlib import Path
 
-    from sweeps.plan import expand
-    from sweeps.spec import load_spec
+    from sweeps.plan.spec import load_spec
+    from sweeps.plan.trials import expand
 
     plan = expand(load_spec(Path(__file__).resolve().parent.parent / "sweeps" / f"{spec}.yaml"), "smoke")
     labels = [c.paper_label for c in plan.cells]

@@ -1,4 +1,4 @@
-"""Caps and boundary checks of a sweep (sweeps/limits.py, storage.py, claim.py), each bad input tried
+"""Caps and boundary checks of a sweep (sweeps/plan/limits.py, storage.py, claim.py), each bad input tried
 through ``sweeps/run.py`` too: exit 2, one ``error:`` line naming the field or file, nothing written,
 Ray never started."""
 
@@ -18,11 +18,11 @@ import yaml
 
 from cdm.config import Config, ConfigError, config_field_paths, load_config, parse_override
 from sweeps import run
-from sweeps.claim import ClaimError, claim
+from sweeps.execute.claim import ClaimError, claim
 from cdm.memory import check_memory, estimate_train_bytes
-from sweeps.limits import LimitError, check_trials, load_yaml
-from sweeps.plan import expand
-from sweeps.spec import Spec, SpecError, load_spec
+from sweeps.plan.limits import LimitError, check_trials, load_yaml
+from sweeps.plan.spec import Spec, SpecError, load_spec
+from sweeps.plan.trials import expand
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -88,7 +88,7 @@ def test_trial_cap_counts_without_building_and_is_raised_by_the_flag(tmp_path):
 def test_a_dry_run_past_the_listed_trials_checks_each_cell_in_small_memory(tmp_path, monkeypatch, capsys):
     import torch  # noqa: F401  (imported before measuring: the dry-run's own allocations are what counts)
 
-    from sweeps import limits
+    from sweeps.plan import limits
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(run, "LISTED_TRIALS", 20)
@@ -185,7 +185,7 @@ def test_state_file_tracking_uri_and_storage_checks(tmp_path):
 
 def _hold(folder: str) -> subprocess.Popen:
     """Another process claiming ``folder`` and noting a parent run; it prints once it holds the claim."""
-    code = (f"import sys, time; from sweeps.claim import claim; c = claim({folder!r}); "
+    code = (f"import sys, time; from sweeps.execute.claim import claim; c = claim({folder!r}); "
             "c.record('sqlite:////somewhere/mlflow.db', 'abc123'); print('held', flush=True); time.sleep(60)")
     holder = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"

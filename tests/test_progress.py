@@ -1,11 +1,11 @@
-"""The sweep's terminal hygiene (sweeps/progress.py): output that is not a terminal carries no colour codes."""
+"""The sweep's terminal hygiene (sweeps/execute/progress.py): output that is not a terminal carries no colour codes."""
 
 from __future__ import annotations
 
 import io
 import logging
 
-from sweeps.progress import plain_log_handlers
+from sweeps.execute.progress import plain_log_handlers
 
 
 def test_plain_log_handlers_take_colour_codes_out_of_every_stream_handler_once():

@@ -8,11 +8,12 @@ import pytest
 
 from cdm.config import config_field_paths, load_config
 from cdm.data.shapenet import SYNSETS
-from sweeps import references, run
-from sweeps.plan import expand
-from sweeps.protocol import NO_DEVIATIONS, CardContext, ProtocolCard, plan_card, protocol_card
-from sweeps.references import DATA_SETS, TABLES, Stated, record, show
-from sweeps.spec import SpecError, load_spec
+from sweeps import run
+from sweeps.plan import references
+from sweeps.plan.protocol import NO_DEVIATIONS, CardContext, ProtocolCard, plan_card, protocol_card
+from sweeps.plan.references import DATA_SETS, TABLES, Stated, record, show
+from sweeps.plan.spec import SpecError, load_spec
+from sweeps.plan.trials import expand
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
@@ -174,7 +175,7 @@ def test_swept_fields_are_the_tables_axes_and_free_choices_are_noted(shapenet):
 def test_a_field_the_record_lacks_is_named_not_passed_over(monkeypatch):
     monkeypatch.delitem(references._COMMON, "train.lr")
     card = protocol_card(load_config(None, {"train.lr": 5e-4}))
-    assert "not compared (no entry in sweeps/references.py): train.lr" in card.notes
+    assert "not compared (no entry in sweeps/plan/references.py): train.lr" in card.notes
 
 
 def test_a_missing_split_file_is_the_data_protocols_line_and_one_model_per_class_is_compared(shapenet, co3d, tmp_path):
@@ -231,10 +232,10 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     report.py reads them back and both results tables list them under the rows."""
     import json
 
-    from sweeps import finished
-    from sweeps.protocol import CARD_TAG
-    from sweeps.results import build_table
-    from sweeps.tracking import SweepRun
+    from sweeps.compare.table import build_table
+    from sweeps.execute.tracking import SweepRun
+    from sweeps.plan.protocol import CARD_TAG
+    from sweeps.results import finished
 
     spec_file = SWEEPS / "co3d.yaml"
     plan = expand(load_spec(spec_file), "smoke")

@@ -24,10 +24,11 @@ from scipy.ndimage import binary_dilation
 from cdm.data import build_dataset
 from cdm.data.sample import collate
 from cdm.evaluate import save_panel
-from sweeps import finished, report, results
-from sweeps.plan import expand
-from sweeps.spec import load_spec
-from sweeps.tracking import SweepRun, TrialRun
+from sweeps.compare import table as results
+from sweeps.execute.tracking import SweepRun, TrialRun
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
+from sweeps.results import finished, report
 from tests.conftest import tiny_config
 
 GRID = """name: synth
@@ -216,7 +217,7 @@ def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_st
 def test_training_curves_split_the_loss_and_draw_no_single_evaluation_panel(tmp_path):
     from PIL import Image
 
-    from sweeps.plots import training_curves
+    from sweeps.compare.plots import training_curves
 
     loss = {"train/loss": [(5, 3.0), (10, 2.0)], "train/loss_diffusion": [(5, 1.0), (10, 0.5)]}
     once = training_curves({"a": loss | {"eval/f1": [(10, 0.4)]}}, {"a": "a"}, "eval/f1", "t", tmp_path / "once.png")
@@ -339,7 +340,7 @@ def test_panel_views_match_where_the_clouds_match_and_differ_where_they_differ(t
 def test_metric_vs_value_log_axis_baseline_lines_and_resolution(tmp_path):
     from PIL import Image
 
-    from sweeps.plots import PlotPoint, log_spaced, metric_vs_value
+    from sweeps.compare.plots import PlotPoint, log_spaced, metric_vs_value
 
     assert log_spaced([0.0075, 0.01, 0.02, 0.04, 0.08]) and log_spaced([1e-3, 1e-2, 1e-1, 1.0])
     assert not log_spaced([1, 2, 3, 4]) and not log_spaced([0.02, 0.04]) and not log_spaced([0.0, 0.1, 1.0])

@@ -8,7 +8,7 @@ import statistics
 import pytest
 import torch
 
-from sweeps.results import TrialOutcome, build_table, settings_note
+from sweeps.compare.table import TrialOutcome, build_table, settings_note
 
 
 def _trial(cell, seed, status="ok", **metrics):
@@ -219,7 +219,7 @@ def test_the_notes_say_what_the_intervals_cover():
 
 
 def test_settled_cells_show_their_seeds_interval_and_verdict(tmp_path):
-    from sweeps.sequential import FOOTNOTE, Decision, SeedInterval, SettleRecord
+    from sweeps.compare.sequential import FOOTNOTE, Decision, SeedInterval, SettleRecord
 
     settled = {"trade": SettleRecord(2, Decision(SeedInterval(0.05, 0.02, 0.08, 2, 6, "seeds and objects"), "better"),
                                      "settled"),

@@ -1,4 +1,4 @@
-"""The Tune searcher of seeds until settled (sweeps/seed_search.py) against a real MLflow SQLite store, driven
+"""The Tune searcher of seeds until settled (sweeps/execute/seed_search.py) against a real MLflow SQLite store, driven
 the way Tune drives it (suggest, on_trial_complete, save, restore), without a Ray cluster."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ from pathlib import Path
 
 from ray.tune.search import Searcher
 
-from sweeps.plan import expand
-from sweeps.seed_search import SeedSearcher
-from sweeps.settle import BUDGET_TAG
-from sweeps.spec import SeedBudget, Spec
-from sweeps.tracking import SweepRun
+from sweeps.compare.settle import BUDGET_TAG
+from sweeps.execute.seed_search import SeedSearcher
+from sweeps.execute.tracking import SweepRun
+from sweeps.plan.spec import SeedBudget, Spec
+from sweeps.plan.trials import expand
 
 CELLS = [{"label": "ref"}, {"label": "null", "set": {"eval.save_clouds": 1}}]
 

@@ -2,7 +2,7 @@
 
 The simulation draws per-object, per-seed scores of a cell and its reference with a known effect,
 then runs the sequential loop the Tune searcher runs (min 2, max 5 seeds: decide after each round,
-an open cell gets one more seed) through :func:`sweeps.sequential.decide` itself. The rejected
+an open cell gets one more seed) through :func:`sweeps.compare.sequential.decide` itself. The rejected
 intervals are computed beside it, vectorised over sweeps, to show why they were rejected.
 """
 
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from sweeps.paired import UnpairedError, paired_bootstrap
-from sweeps.sequential import FOOTNOTE, Decision, SeedInterval, SettleRecord, decide
+from sweeps.compare.paired import UnpairedError, paired_bootstrap
+from sweeps.compare.sequential import FOOTNOTE, Decision, SeedInterval, SettleRecord, decide
 
 MIN_SEEDS, MAX_SEEDS, OBJECTS = 2, 5, 40
 LOOKS = MAX_SEEDS - MIN_SEEDS + 1
@@ -97,7 +97,7 @@ def test_large_effects_settle_at_the_first_look_and_small_ones_later(name):
 
 
 def _banerjee(d: np.ndarray, alpha: float) -> np.ndarray:
-    """Half-widths of :func:`sweeps.sequential.two_way_interval` for d (n, S, O), vectorised over sweeps."""
+    """Half-widths of :func:`sweeps.compare.sequential.two_way_interval` for d (n, S, O), vectorised over sweeps."""
     s, o = d.shape[1:]
     ms_seed, ms_object = o * d.mean(axis=2).var(axis=1, ddof=1), s * d.mean(axis=1).var(axis=1, ddof=1)
     t_seed, t_object = stats.t.ppf(1 - alpha / 2, [s - 1, o - 1])

@@ -1,14 +1,14 @@
-"""The rule of seeds until settled (sweeps/settle.py), round by round on planted scores: no Ray, no MLflow."""
+"""The rule of seeds until settled (sweeps/compare/settle.py), round by round on planted scores: no Ray, no MLflow."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from sweeps.plan import SweepPlan, expand
-from sweeps.results import TrialOutcome
-from sweeps.settle import check_budget, describe_rule, next_round, object_scores, outcome_results
-from sweeps.spec import SeedBudget, Spec, SpecError, parse_budget
+from sweeps.compare.settle import check_budget, describe_rule, next_round, object_scores, outcome_results
+from sweeps.compare.table import TrialOutcome
+from sweeps.plan.spec import SeedBudget, Spec, SpecError, parse_budget
+from sweeps.plan.trials import SweepPlan, expand
 
 OBJECTS = [f"obj{i:02d}" for i in range(20)]
 

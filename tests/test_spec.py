@@ -8,10 +8,10 @@ import pytest
 
 from cdm.config import ConfigError
 from sweeps import run
-from sweeps.estimate import Estimate
-from sweeps.plan import expand, lambda_source
-from sweeps.resources import plan_concurrency
-from sweeps.spec import Resources, SeedBudget, Spec, SpecError, load_profiles, load_spec, parse_budget
+from sweeps.plan.estimate import Estimate
+from sweeps.plan.resources import plan_concurrency
+from sweeps.plan.spec import Resources, SeedBudget, Spec, SpecError, load_profiles, load_spec, parse_budget
+from sweeps.plan.trials import expand, lambda_source
 from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
@@ -419,7 +419,7 @@ def test_dry_run_names_missing_inputs(tmp_path, capsys, monkeypatch):
 
 
 def test_trial_labels_are_built_and_split_in_one_place():
-    from sweeps.plan import split_label, trial_label
+    from sweeps.plan.trials import split_label, trial_label
 
     assert trial_label("point_size=0.04 · H=10", 3) == "point_size=0.04 · H=10 · seed 3"
     assert split_label(trial_label("point_size=0.04 · H=10", 3)) == ("point_size=0.04 · H=10", "3")

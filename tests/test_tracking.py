@@ -7,7 +7,7 @@ import pickle
 from mlflow import MlflowClient
 
 from cdm.config import load_config
-from sweeps.tracking import (
+from sweeps.execute.tracking import (
     SweepRun,
     TrialRun,
     find_trial_run,

@@ -31,11 +31,12 @@ from mlflow import MlflowClient
 
 from cdm.data.images import read_image
 from cdm.config import load_config
-from sweeps import local_cluster, run, store_retry
-from sweeps.claim import ClaimError, claim, claims_folder
-from sweeps.plan import expand
-from sweeps.spec import load_spec
-from sweeps.tracking import SweepRun, TrialRun
+from sweeps import run, store_retry
+from sweeps.execute import local_cluster
+from sweeps.execute.claim import ClaimError, claim, claims_folder
+from sweeps.execute.tracking import SweepRun, TrialRun
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
 
 SPEC = "name: s\ngrid: {priors.point_size: [0.04]}\n"
@@ -119,7 +120,7 @@ def test_a_planted_state_file_link_is_not_written_through(in_tmp):
 
 @pytest.mark.parametrize("plant", ["symlink", "hardlink"])
 def test_results_files_are_never_written_through_a_planted_link(tmp_path, plant):
-    from sweeps.results import TrialOutcome, build_table
+    from sweeps.compare.table import TrialOutcome, build_table
 
     table = build_table([TrialOutcome("a · seed 0", "a", "ok", {"eval/f1": 0.5})], "eval/f1", "max", "t")
     clean = tmp_path / "clean"
@@ -556,7 +557,7 @@ def small_disk(folder: Path, size: str) -> Iterator[Path]:
 
 
 def test_a_disk_too_small_for_the_shared_views_is_refused_before_anything_is_made(in_tmp, capsys):
-    from sweeps.precompute import shared_bytes
+    from sweeps.execute.precompute import shared_bytes
 
     plan = expand(load_spec(in_tmp / "spec.yaml"), "smoke")
     need = shared_bytes(plan)
@@ -611,7 +612,7 @@ def test_a_data_set_name_that_leaves_its_root_is_refused(in_tmp, capsys):
 def test_only_rays_note_that_token_auth_is_on_is_dropped():
     import logging
 
-    from sweeps.local_cluster import DeliberateTokenNote
+    from sweeps.execute.local_cluster import DeliberateTokenNote
 
     def record(message: str) -> logging.LogRecord:
         return logging.LogRecord("ray", logging.WARNING, __file__, 1, message, None, None)

@@ -27,10 +27,10 @@ import ray
 from mlflow import MlflowClient
 
 from sweeps import run
-from sweeps.local_cluster import SESSION_RECORDS, session_pids
-from sweeps.plan import expand
-from sweeps.precompute import shared_bytes
-from sweeps.spec import load_spec
+from sweeps.execute.local_cluster import SESSION_RECORDS, session_pids
+from sweeps.execute.precompute import shared_bytes
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 from tests.integration.servers import free_port, wait_http
 from tests.test_trust import small_disk
 

@@ -24,10 +24,11 @@ from mlflow.entities import Run
 from nbclient import NotebookClient
 
 from docs import screenshots
-from sweeps import report, run
+from sweeps import run
+from sweeps.results import report
 from tests.integration.local_ray import local_ray
-from sweeps.results import rounded
-from sweeps.tracking import last_eval_files, last_objects
+from sweeps.compare.table import rounded
+from sweeps.execute.tracking import last_eval_files, last_objects
 from tests.test_report import _overlap, panel_views
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
@@ -196,7 +197,7 @@ def test_mlflow_ui_shows_the_child_runs_and_swept_params(chromium, smoke, mlflow
     # Grouped under the swept value alone, short enough for the name column (tag `group`).
     assert "Group: 0.02" in dom and "Group: 0.04" in dom
     assert "swept/priors.point_size" in dom and "final/f1" in dom and "final/cd" in dom
-    # Sorted by the swept value as a number (sweeps.report.sort_key): its column is the one ordered by,
+    # Sorted by the swept value as a number (sweeps.results.report.sort_key): its column is the one ordered by,
     # the groups follow it. (The runs table lays out metrics by name, whatever the view selects first.)
     assert re.search(r'class="is-ordered-by[^"]*"><span data-testid="sort-header-swept/priors\.point_size"', dom)
     assert dom.index("Group: 0.02") < dom.index("Group: 0.04")

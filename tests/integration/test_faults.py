@@ -190,7 +190,7 @@ def test_autoscaler_bounds_count_as_what_a_remote_cluster_could_offer(machines):
     from ray.core.generated import autoscaler_pb2
     from ray.experimental.internal_kv import _internal_kv_del, _internal_kv_put
 
-    from sweeps.cluster import cluster_capacity, cluster_machines
+    from sweeps.execute.cluster import cluster_capacity, cluster_machines
 
     # The record an autoscaler keeps in the GCS (what Ray Data reads): up to 4 nodes of 2 GPUs each.
     config = autoscaler_pb2.ClusterConfig(node_group_configs=[

@@ -13,8 +13,8 @@ import pytest
 from mlflow import MlflowClient
 
 from sweeps import run
-from sweeps.plan import expand
-from sweeps.spec import load_spec
+from sweeps.plan.spec import load_spec
+from sweeps.plan.trials import expand
 from tests.input_fixtures import object_ids, write_condition_images, write_embeddings
 from tests.integration.local_ray import local_ray
 

@@ -20,7 +20,7 @@ import ray
 from mlflow import MlflowClient
 
 from sweeps import run
-from sweeps.tracking import last_eval_files
+from sweeps.execute.tracking import last_eval_files
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -210,7 +210,7 @@ def test_progress_line_counts_steps_across_trials_in_place_on_a_terminal(cluster
     import io
     from types import SimpleNamespace
 
-    from sweeps.progress import StepReporter, SweepProgress
+    from sweeps.execute.progress import StepReporter, SweepProgress
 
     for tty in (True, False):
         out = io.StringIO()
@@ -237,12 +237,12 @@ def test_progress_line_counts_steps_across_trials_in_place_on_a_terminal(cluster
 def test_a_crash_after_the_parent_run_exists_marks_it_failed(cluster, tmp_path, monkeypatch):
     """An unexpected error once the parent run is open (here: the trials' runner itself raising) reaches
     the user as it is, and leaves the parent run FAILED, not RUNNING forever in the UI."""
-    import sweeps.trial
+    import sweeps.execute.trial
 
     def broken(*args, **kwargs):
         raise RuntimeError("the trials' runner broke")
 
-    monkeypatch.setattr(sweeps.trial, "run_sweep", broken)
+    monkeypatch.setattr(sweeps.execute.trial, "run_sweep", broken)
     argv, uri = _sweep(tmp_path, "name: crash\ngrid: {priors.point_size: [0.02]}\n")
     with pytest.raises(RuntimeError, match="runner broke"):
         run.main(argv)

@@ -28,7 +28,7 @@ from mlflow.entities import Metric, Param, RunTag
 
 from cdm.config import Config
 from cdm.train import Callback
-from sweeps.results import rounded
+from sweeps.compare.table import rounded
 from sweeps.store_retry import PatientClient, wait_when_busy
 
 __all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
@@ -278,13 +278,13 @@ def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
 
 
 def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path | None:
-    """The run's training curves (:func:`sweeps.plots.training_curves` for this one trial: the loss terms
+    """The run's training curves (:func:`sweeps.compare.plots.training_curves` for this one trial: the loss terms
     apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``;
     None while the run holds no curve (no loss logged, fewer than two evaluations).
 
     Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
     """
-    from sweeps.plots import training_curves
+    from sweeps.compare.plots import training_curves
 
     keys = ("train/loss", "train/loss_diffusion", metric)
     history = {k: [(m.step, m.value) for m in client.get_metric_history(run_id, k)] for k in keys}

@@ -126,7 +126,7 @@ def load_yaml(path: Path) -> Any:
 
 
 def count_trials(spec: Any) -> tuple[int, str]:
-    """Trials of a :class:`sweeps.spec.Spec`, counted without building them, and what was counted (typed
+    """Trials of a :class:`sweeps.plan.spec.Spec`, counted without building them, and what was counted (typed
     ``Any``: the spec module reads its files through this one).
 
     A grid counts (explicit cells or 1) × the product of its value lists × seeds, an upper bound
@@ -139,7 +139,7 @@ def count_trials(spec: Any) -> tuple[int, str]:
 
 
 def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:
-    """Refuse a :class:`sweeps.spec.Spec` with more than ``max_trials`` trials (:func:`count_trials`)."""
+    """Refuse a :class:`sweeps.plan.spec.Spec` with more than ``max_trials`` trials (:func:`count_trials`)."""
     count, what = count_trials(spec)
     if count > max_trials:
         raise LimitError(f"{what}: {count} trials; a sweep may have at most {max_trials} "
@@ -165,7 +165,7 @@ def check_set_text(text: str) -> None:
 
 
 def check_progress(total: int, out: TextIO | None = None) -> Callable[[int, Any], None]:
-    """An ``each`` for :func:`sweeps.plan.expand`: prints ``checked i/total trials`` every :data:`PROGRESS_EVERY`
+    """An ``each`` for :func:`sweeps.plan.trials.expand`: prints ``checked i/total trials`` every :data:`PROGRESS_EVERY`
     cells to ``out`` (default: ``sys.stdout`` at the time of printing)."""
     def each(i: int, cell: Any) -> None:
         if i % PROGRESS_EVERY == 0:

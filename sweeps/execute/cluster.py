@@ -1,6 +1,6 @@
 """The Ray cluster a sweep runs on: joining it (or starting a loopback one) and what it can offer.
 
-:func:`cluster_capacity` is the input of :func:`sweeps.resources.plan_concurrency`;
+:func:`cluster_capacity` is the input of :func:`sweeps.plan.resources.plan_concurrency`;
 :func:`cluster_machines` decides whether a SQLite MLflow store can serve every trial.
 """
 
@@ -26,14 +26,14 @@ def connect(address: str | None) -> bool:
     if address:
         ray.init(address=address, logging_level="WARNING")
     else:
-        from sweeps import local_cluster
+        from sweeps.execute import local_cluster
 
         local_cluster.start()
     return True
 
 
 def cluster_capacity(remote: bool) -> dict[str, float]:
-    """CPUs and GPUs for :func:`sweeps.resources.plan_concurrency`: the nodes up now, or, on a ``remote``
+    """CPUs and GPUs for :func:`sweeps.plan.resources.plan_concurrency`: the nodes up now, or, on a ``remote``
     cluster, the most it could offer — the larger of its nodes and the node-group bounds an
     autoscaler publishes in the GCS (none on a fixed cluster: then its nodes).
     """

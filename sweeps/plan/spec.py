@@ -7,8 +7,8 @@ optimised, an optional ASHA ``scheduler``, ``resources``, ``failure`` handling, 
 numbers per cell, and per-spec patches of the shared profiles in ``sweeps/profiles.yaml``
 (``smoke``, ``local``, ``paper``; a profile holds sizes, the ``budget`` and resources).
 
-This module only reads and validates files; :mod:`sweeps.plan` expands a spec into trials and
-:mod:`sweeps.resources` sizes them onto a Ray cluster.
+This module only reads and validates files; :mod:`sweeps.plan.trials` expands a spec into trials and
+:mod:`sweeps.plan.resources` sizes them onto a Ray cluster.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from cdm.config import config_field_paths, format_validation_error
-from sweeps.limits import LimitError, load_yaml
+from sweeps.plan.limits import LimitError, load_yaml
 
 __all__ = [
     "OWNED_FIELDS",
@@ -49,7 +49,7 @@ __all__ = [
     "parse_budget",
 ]
 
-PROFILES_FILE = Path(__file__).with_name("profiles.yaml")
+PROFILES_FILE = Path(__file__).resolve().parents[1] / "profiles.yaml"
 """Shared profiles every spec inherits; a spec's ``profiles:`` section patches them."""
 
 _KNOWN_FIELDS = frozenset(config_field_paths())
@@ -213,7 +213,7 @@ class DatasetRun(_Strict):
 
 class SequentialSeeds(_Strict):
     """``seeds: {min: 2, max: 5, until: settled}``: seeds ``0, 1, …, max − 1`` run in rounds until each
-    cell's comparison with its reference settles (:mod:`sweeps.seed_search`, :mod:`sweeps.sequential`).
+    cell's comparison with its reference settles (:mod:`sweeps.execute.seed_search`, :mod:`sweeps.compare.sequential`).
 
     Round 1 trains every cell at ``min`` seeds; after each round a cell whose interval against the
     reference still holds 0 (and is not inside ``settle.margin``) gets one more seed, the reference

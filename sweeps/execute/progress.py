@@ -5,7 +5,7 @@ Trials push their step count (every ``train.log_every`` steps) to one small Ray 
 :class:`StepCounter`, named after the sweep's parent run; the driver's :class:`SweepProgress` (a
 Tune callback) reads it and redraws one line in place on a terminal, or prints one plain line a
 minute when the output goes to a file. Remaining time comes from the runner's calibration
-(:mod:`sweeps.estimate`): the predicted wall time scaled by the share of steps still to run.
+(:mod:`sweeps.plan.estimate`): the predicted wall time scaled by the share of steps still to run.
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ class SweepProgress(ray.tune.Callback):
         trials: trials of the sweep (a sequential sweep's worst case); ``steps``: training steps of each.
         label: trial → its label (the name trials report their steps under).
         round_of: trial → the round it runs in, and ``rounds`` the most there can be (a sequential
-            sweep's, :meth:`sweeps.plan.SweepPlan.round_of`); counted on the line when ``rounds > 1``.
+            sweep's, :meth:`sweeps.plan.trials.SweepPlan.round_of`); counted on the line when ``rounds > 1``.
         predicted_s: the calibrated wall-time estimate of the whole sweep (None: no remaining time).
         tty: redraw in place every ``refresh_s`` seconds; else one line each ``every_s`` seconds.
     """

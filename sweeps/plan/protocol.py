@@ -2,7 +2,7 @@
 
 The card is a diff. :func:`protocol_card` compares every field of a trial's resolved config
 (:meth:`cdm.config.Config.flat`) with the reference record of the spec's paper table on the data set
-the trial reads (:func:`sweeps.references.record`: the paper's, PC²'s or BDM's value of each field, with
+the trial reads (:func:`sweeps.plan.references.record`: the paper's, PC²'s or BDM's value of each field, with
 its source) and adds what the config cannot say about the data on disk (a stand-in data set, BDM's
 split file). Any field that differs from a stated value is a deviation; fields no source fixes are not,
 though the card names the free choices that shape a result. Fields a spec sweeps (its grid, cells or
@@ -10,7 +10,7 @@ search space) are the table's own axes and are not compared. "Paper protocol, no
 nothing differs.
 
 :func:`sweep_card` merges the cards of a sweep's cells and :func:`plan_card` builds it for a
-:class:`sweeps.plan.SweepPlan`. The card is printed by ``--dry-run``, shown in the results table, tagged on
+:class:`sweeps.plan.trials.SweepPlan`. The card is printed by ``--dry-run``, shown in the results table, tagged on
 the parent MLflow run (:data:`CARD_TAG`) and in the report.
 """
 
@@ -22,10 +22,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from cdm.config import Config, config_field_paths, load_config
-from sweeps.references import DATA_SETS, TABLES, Entry, Kind, NotStated, Stated, record, show
+from sweeps.plan.references import DATA_SETS, TABLES, Entry, Kind, NotStated, Stated, record, show
 
 if TYPE_CHECKING:
-    from sweeps.plan import SweepPlan
+    from sweeps.plan.trials import SweepPlan
 
 __all__ = ["CARD_TAG", "NO_DEVIATIONS", "CardContext", "ProtocolCard", "plan_card", "protocol_card", "sweep_card"]
 
@@ -48,7 +48,7 @@ class CardContext:
     stand_in: str = ""
     """What the procedural data set stands in with (the spec's ``stand_in``)."""
     table: str | None = None
-    """The spec's ``paper.table`` (a key of :data:`sweeps.references.TABLES`); None: the paper's CDM."""
+    """The spec's ``paper.table`` (a key of :data:`sweeps.plan.references.TABLES`); None: the paper's CDM."""
     swept: frozenset[str] = frozenset()
     """Dotted fields the spec sweeps: the table's axes, not compared."""
 
@@ -160,7 +160,7 @@ def sweep_card(configs: Iterable[Config], datasets: Iterable[Kind] = (), stand_i
     if free := merged(line for d in diffs for line in d.free):
         notes.append("free choices (no source states them): " + ", ".join(free))
     if unreviewed := list(dict.fromkeys(path for d in diffs for path in d.unreviewed)):
-        notes.append("not compared (no entry in sweeps/references.py): " + ", ".join(unreviewed))
+        notes.append("not compared (no entry in sweeps/plan/references.py): " + ", ".join(unreviewed))
     return ProtocolCard(tuple(merged(line for d in diffs for line in d.deviations)), tuple(notes))
 
 

@@ -1,6 +1,6 @@
 """Plots of a sweep for comparing its cells: metric vs swept value, training curves, Optuna's own views.
 
-Knows nothing of MLflow: :mod:`sweeps.report` reads the runs and hands in plain numbers. Every
+Knows nothing of MLflow: :mod:`sweeps.results.report` reads the runs and hands in plain numbers. Every
 function writes one PNG (matplotlib's Agg backend, no display needed) and returns its path.
 """
 
@@ -16,7 +16,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from sweeps.results import partner
+from sweeps.compare.table import partner
 
 __all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "training_curves",
            "view_cloud"]

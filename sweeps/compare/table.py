@@ -7,10 +7,10 @@ category mean, retrieval) get their own rows, so a local result is never read wi
 local recipes land near them: benchmarks/RESULTS.md, "Which recipe learns").
 
 When trials carry their per-object scores, every cell (and every baseline) is also compared pairwise
-with a reference cell (:mod:`sweeps.paired`): mean difference, 95% bootstrap interval and a verdict,
+with a reference cell (:mod:`sweeps.compare.paired`): mean difference, 95% bootstrap interval and a verdict,
 plus which baselines the cell beats with an interval that excludes 0. A verdict weighs the metric
 and its partner (``better on f1, worse on cd``); cells that ran until their comparison settled
-(:mod:`sweeps.sequential`) show their seeds, why they stopped, and an interval over seeds and objects.
+(:mod:`sweeps.compare.sequential`) show their seeds, why they stopped, and an interval over seeds and objects.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from pathlib import Path
 from typing import Literal
 
 from cdm.evaluate import BASELINES
-from sweeps.paired import PairedDifference, UnpairedError, compare, per_object_means
-from sweeps.sequential import FOOTNOTE as SETTLED_FOOTNOTE
-from sweeps.sequential import SettleRecord
+from sweeps.compare.paired import PairedDifference, UnpairedError, compare, per_object_means
+from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
+from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
 
 __all__ = [

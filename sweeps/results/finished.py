@@ -3,7 +3,7 @@
 :func:`open_sweep` finds the sweep (the experiment's latest, or a given parent run), :func:`trial_records`
 rebuilds each trial's outcome as the runner's results table reads it, and :func:`results_table` the
 table itself; :func:`paper_layout` sets the cells out as the paper prints them (for the notebook).
-The runner's end-of-sweep publishing and ``sweeps/report.py`` are built on these; so is the notebook.
+The runner's end-of-sweep publishing and ``sweeps/results/report.py`` are built on these; so is the notebook.
 """
 
 from __future__ import annotations
@@ -20,12 +20,12 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.config import DiffusionConfig, PriorsConfig
-from sweeps.plan import expand, lambda_source, split_label
-from sweeps.protocol import CARD_TAG
-from sweeps.results import FINISHED, ResultsTable, TrialOutcome, build_table, settings_note, sweep_order
-from sweeps.settle import final_round
-from sweeps.spec import SpaceParam, Spec, load_spec, parse_budget
-from sweeps.tracking import last_objects, parent_baselines, trial_metrics
+from sweeps.compare.settle import final_round
+from sweeps.compare.table import FINISHED, ResultsTable, TrialOutcome, build_table, settings_note, sweep_order
+from sweeps.execute.tracking import last_objects, parent_baselines, trial_metrics
+from sweeps.plan.protocol import CARD_TAG
+from sweeps.plan.spec import SpaceParam, Spec, load_spec, parse_budget
+from sweeps.plan.trials import expand, lambda_source, split_label
 
 __all__ = [
     "ReportError",
@@ -197,7 +197,7 @@ def _settings(record: SweepRecord) -> list[str]:
 
 
 def protocol_card_lines(record: SweepRecord) -> list[str]:
-    """The sweep's protocol card (``sweeps/protocol.py``) as the runner tagged it on the parent run; a
+    """The sweep's protocol card (``sweeps/plan/protocol.py``) as the runner tagged it on the parent run; a
     sweep from before the card existed says it has none."""
     card = record.parent.data.tags.get(CARD_TAG)
     return card.splitlines() if card else ["no protocol card recorded (a sweep from before the card)"]
@@ -208,7 +208,7 @@ def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTabl
     spec = record.spec
     outcomes = [t.outcome for t in trials]
     settled = None
-    if spec.sequential is not None:  # where each cell stopped, as the runner's searcher decided (sweeps/settle.py)
+    if spec.sequential is not None:  # where each cell stopped, as the runner's searcher decided (sweeps/compare/settle.py)
         budget = record.parent.data.params.get("budget")
         plan = expand(spec, record.profile, record.plan.get("sets", {}))
         settled = final_round(plan, outcomes, parse_budget(budget) if budget else None, record.parent.data.tags).records

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sweeps.spec import Resources, SpecError
+from sweeps.plan.spec import Resources, SpecError
 
 __all__ = ["Concurrency", "plan_concurrency"]
 
@@ -34,7 +34,7 @@ def plan_concurrency(
 
     Args:
         cpus, gpus: what the cluster has; with ``remote``, the most it could offer (its nodes, or
-            the bounds its autoscaler publishes: :func:`sweeps.cluster.cluster_capacity`).
+            the bounds its autoscaler publishes: :func:`sweeps.execute.cluster.cluster_capacity`).
         remote: a cluster joined by address, which may autoscale. Only one trial must fit, and
             concurrency is ``resources.max_concurrent_trials`` or every trial at once: waiting
             trials are the demand that makes the autoscaler add nodes (a GPU cluster often starts

@@ -13,7 +13,7 @@ One trial's config is resolved in this order, later wins::
 the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
 searcher may start has its label and config before Ray starts), validates the Optuna space at its bounds, and checks
 the metric against :func:`cdm.train.metric_names`, so a typo fails with one
-:class:`sweeps.spec.SpecError` naming the field. :func:`optuna_distributions` is the one mapping of a
+:class:`sweeps.plan.spec.SpecError` naming the field. :func:`optuna_distributions` is the one mapping of a
 spec's ``search.space`` onto Optuna.
 """
 
@@ -28,7 +28,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from cdm.config import Config, ConfigError, load_config
-from sweeps.spec import (
+from sweeps.plan.spec import (
     Budget,
     DatasetRun,
     ExplicitCell,
@@ -62,7 +62,7 @@ class ResolvedProfile:
     resources: Resources
     num_samples: int | None
     datasets: dict[str, dict[str, Any]] = field(default_factory=dict)
-    """Fields set when a run reads one of these data sets (:attr:`sweeps.spec.Profile.datasets`)."""
+    """Fields set when a run reads one of these data sets (:attr:`sweeps.plan.spec.Profile.datasets`)."""
 
 
 @dataclass(frozen=True)
@@ -109,7 +109,7 @@ class SweepPlan:
 
     @property
     def sequential(self) -> SequentialSeeds | None:
-        """The spec's rule when its seeds run until settled (:class:`sweeps.spec.SequentialSeeds`), else None."""
+        """The spec's rule when its seeds run until settled (:class:`sweeps.plan.spec.SequentialSeeds`), else None."""
         return self.spec.sequential
 
     @property

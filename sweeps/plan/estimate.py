@@ -4,7 +4,7 @@ Local time comes from a short calibration in this process, on one torch thread (
 small machine): a few training steps of every distinct cell (up to :data:`CALIBRATED_CELLS`, spread over
 the grid; a cell's loss can cost more than its neighbour's, e.g. depth renders against none) and one
 evaluation per distinct evaluation cost (:func:`_eval_signature`, at most :data:`EVALUATED_CELLS`). Trials run one thread each; when
-the sweep shares its training views and evaluation set (:mod:`sweeps.precompute`), they are rendered
+the sweep shares its training views and evaluation set (:mod:`sweeps.execute.precompute`), they are rendered
 once before the trials, on every CPU, and the trials no longer pay them:
 
     trial ≈ start-up + set-up + steps × (step [+ batch]) + evaluations × evaluation [− building the set]
@@ -34,11 +34,11 @@ from cdm.prior_model import ensure_priors
 from cdm.optim import TrainingDiverged
 from cdm.evaluate import build_eval_set
 from cdm.train import Trainer
-from sweeps.plan import SweepPlan, expand
+from sweeps.plan.trials import SweepPlan, expand
 
 __all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate", "paper_trial_gpu_hours"]
 
-GPU_COSTS = Path(__file__).resolve().parents[1] / "benchmarks" / "gpu_costs.json"
+GPU_COSTS = Path(__file__).resolve().parents[2] / "benchmarks" / "gpu_costs.json"
 STARTUP_S = 2.0
 """Seconds per trial outside training in local mode with reused actors (measured with ray 2.60 on 2 CPUs; benchmarks/RESULTS.md, sweep efficiency)."""
 CALIBRATED_CELLS = 8
@@ -170,7 +170,7 @@ def paper_trial_gpu_hours(paper: SweepPlan) -> tuple[float | None, str]:
 def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False) -> Estimate:
     """Calibrate on this machine and estimate the sweep's wall time and paper-profile GPU-hours.
 
-    ``shared``: the sweep renders its cells' training views and evaluation sets once (:mod:`sweeps.precompute`).
+    ``shared``: the sweep renders its cells' training views and evaluation sets once (:mod:`sweeps.execute.precompute`).
 
     Raises:
         TrainingDiverged: every calibrated cell diverged in its first steps (the sweep's trials will

@@ -60,8 +60,8 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     Raises:
         RerunError: unknown run, no record, other code or config (without ``force``).
     """
-    from sweeps.tracking import TrialRun
-    from sweeps.trial import TrialProgress
+    from sweeps.execute.tracking import TrialRun
+    from sweeps.execute.trial import TrialProgress
 
     client = MlflowClient(uri)
     try:

@@ -1,10 +1,10 @@
 """Seeds until settled on Ray Tune's own machinery: a ``Searcher`` that proposes each cell's next seed.
 
-The rule is :mod:`sweeps.settle`'s :func:`~sweeps.settle.next_round`; this searcher applies it to the
+The rule is :mod:`sweeps.compare.settle`'s :func:`~sweeps.compare.settle.next_round`; this searcher applies it to the
 trials it proposed and the results they logged. It proposes ``{"cell": <trial label>}``, the grid's own
 Tune config, so every trial is built, named and tracked as a grid trial is (one MLflow child run per
 seed). It keeps no results of its own: per-object scores are read from each finished trial's MLflow run
-(:meth:`sweeps.tracking.SweepRun.trial_objects`), and after ``--resume`` from the runs again, so a restored
+(:meth:`sweeps.execute.tracking.SweepRun.trial_objects`), and after ``--resume`` from the runs again, so a restored
 searcher needs from Tune's snapshot only which trials it had proposed and the time spent (a JSON file, no
 pickle of its own): no seed runs twice, none is lost. Concurrency is Tune's: ``max_concurrent_trials``
 wraps the searcher in a ``ConcurrencyLimiter``, on 2 CPUs and on a cluster alike.
@@ -19,10 +19,10 @@ from typing import Any
 
 from ray.tune.search import Searcher
 
-from sweeps.plan import SweepPlan
-from sweeps.settle import BUDGET_TAG, Round, next_round, object_scores
-from sweeps.spec import SeedBudget
-from sweeps.tracking import SweepRun, find_trial_run
+from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
+from sweeps.execute.tracking import SweepRun, find_trial_run
+from sweeps.plan.spec import SeedBudget
+from sweeps.plan.trials import SweepPlan
 
 __all__ = ["SeedSearcher"]
 

@@ -20,7 +20,7 @@ Every field of :func:`cdm.config.config_field_paths` has one :data:`Entry` in ea
 
 A record may name fields the config does not have (yet): the card lists a stated one as a deviation
 (this code cannot be set to the reference) and skips entries conditioned on one
-(:func:`sweeps.protocol.protocol_card`).
+(:func:`sweeps.plan.protocol.protocol_card`).
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from sweeps.plan import SweepPlan
+from sweeps.plan.trials import SweepPlan
 from sweeps.storage import StoreError
 
 if TYPE_CHECKING:

@@ -4,7 +4,7 @@ A sweep whose spec says ``seeds: {min, max, until: settled}`` (or ``--until-sett
 
 - round 1 trains every cell at its first ``min`` seeds;
 - once a cell's seeds and the reference's same seeds (``compare_to``, default the first cell) have
-  finished, :func:`sweeps.sequential.decide` looks at their per-object scores (look ``k − min + 1`` of
+  finished, :func:`sweeps.compare.sequential.decide` looks at their per-object scores (look ``k − min + 1`` of
   ``max − min + 1`` at ``k`` seeds); a settled cell (better, worse, or level within ``settle.margin``)
   stops, an open one gets its next seed, and the reference that seed too, until ``max`` seeds or the
   budget ends (``--budget``: no seed starts once the trials would pass the trial count, or once the time
@@ -13,7 +13,7 @@ A sweep whose spec says ``seeds: {min, max, until: settled}`` (or ``--until-sett
   record: the results table shows why.
 
 :func:`next_round` is that rule as a pure function of what has started and finished. The Tune searcher
-(:mod:`sweeps.seed_search`) calls it to propose trials, and the runner calls it on the sweep's outcomes
+(:mod:`sweeps.execute.seed_search`) calls it to propose trials, and the runner calls it on the sweep's outcomes
 (:func:`final_round`) for the results table's records, so the table shows the searcher's decisions.
 The one fact the outcomes cannot show, that the wall-time budget ended, is a tag on the parent run
 (:data:`BUDGET_TAG`). Knows nothing of Ray.
@@ -25,11 +25,11 @@ import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from sweeps.paired import UnpairedError
-from sweeps.plan import Cell, SweepPlan
-from sweeps.results import TrialOutcome, object_column
-from sweeps.sequential import FOOTNOTE, SettleRecord, decide
-from sweeps.spec import SeedBudget, SpecError
+from sweeps.compare.paired import UnpairedError
+from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
+from sweeps.compare.table import TrialOutcome, object_column
+from sweeps.plan.spec import SeedBudget, SpecError
+from sweeps.plan.trials import Cell, SweepPlan
 
 __all__ = ["BUDGET_TAG", "Round", "check_budget", "describe_rule", "final_round", "next_round", "object_scores", "outcome_results",
            "settle_json"]

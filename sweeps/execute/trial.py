@@ -11,7 +11,7 @@ Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pat
 
 Local mode only accepts ``ray.tune.report``/``ray.tune.get_checkpoint`` and real workers only
 ``ray.train.report``/``ray.train.get_checkpoint``; :class:`_RayReporter` picks the pair once.
-Concurrency comes from the cluster's resources (:func:`sweeps.resources.plan_concurrency`, sized
+Concurrency comes from the cluster's resources (:func:`sweeps.plan.resources.plan_concurrency`, sized
 once by the runner), so trials never wait on each other for CPUs.
 """
 
@@ -37,15 +37,15 @@ from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
-from sweeps.checkpoints import KEEP, CheckpointPruner, prune_finished
-from sweeps.cores import CoreLease, lease_cores
-from sweeps.precompute import precompute, shared_root
-from sweeps.plan import SweepPlan, optuna_distributions
-from sweeps.progress import StepReporter, quiet_loggers
-from sweeps.resources import Concurrency
-from sweeps.results import TrialOutcome, sweep_order
-from sweeps.spec import SeedBudget
-from sweeps.tracking import SweepRun, TrialRun, finished_trial_metrics
+from sweeps.compare.table import TrialOutcome, sweep_order
+from sweeps.execute.checkpoints import KEEP, CheckpointPruner, prune_finished
+from sweeps.execute.cores import CoreLease, lease_cores
+from sweeps.execute.precompute import precompute, shared_root
+from sweeps.execute.progress import StepReporter, quiet_loggers
+from sweeps.execute.tracking import SweepRun, TrialRun, finished_trial_metrics
+from sweeps.plan.resources import Concurrency
+from sweeps.plan.spec import SeedBudget
+from sweeps.plan.trials import SweepPlan, optuna_distributions
 
 __all__ = ["TrialJob", "TrialProgress", "TrialSetup", "error_summary", "run_sweep", "run_trial", "train_loop"]
 
@@ -62,9 +62,9 @@ class TrialSetup:
     code: dict[str, str]
     """The driver's :func:`cdm.provenance.code_version` (trials may run on a copy without git)."""
     shared_root: str | None = None
-    """The sweep's store of shared training views and evaluation sets (:mod:`sweeps.precompute`)."""
+    """The sweep's store of shared training views and evaluation sets (:mod:`sweeps.execute.precompute`)."""
     lease_cores: int = 0
-    """Core leases the trials take turns on (:mod:`sweeps.cores`); 0 = none."""
+    """Core leases the trials take turns on (:mod:`sweeps.execute.cores`); 0 = none."""
 
 
 class _RayReporter(Callback):
@@ -112,7 +112,7 @@ class TrialJob:
     """One trial's input to :func:`train_loop`, built once by :func:`run_trial` from its cell."""
 
     config: Config
-    """The trial's validated config (resolved once, by :mod:`sweeps.plan`), writing into the trial's folder."""
+    """The trial's validated config (resolved once, by :mod:`sweeps.plan.trials`), writing into the trial's folder."""
     local: bool
     """Train's local mode: the loop runs in the trial's own actor (``resources.workers_per_trial == 0``)."""
     label: str
@@ -204,7 +204,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
             name=f"trial_{trial_id}",
             storage_path=f"{setup.sweep_dir}/train",
             failure_config=ray.train.FailureConfig(max_failures=plan.spec.failure.max_retries),
-            # Safe here, unlike Tune's (sweeps/checkpoints.py): Train writes the state naming its newest
+            # Safe here, unlike Tune's (sweeps/execute/checkpoints.py): Train writes the state naming its newest
             # checkpoints before deleting older ones (ray/train/v2/.../checkpoint_manager.py).
             checkpoint_config=ray.train.CheckpointConfig(num_to_keep=KEEP),
             callbacks=_tune_report_callbacks() if r.workers_per_trial else None,
@@ -277,10 +277,10 @@ class _TrialCloser(ray.tune.Callback):
 
 def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> tuple[dict[str, Any], Any, int]:
     """Tune param space, search algorithm and sample count: grid cells by label, seeds until settled
-    (:class:`sweeps.seed_search.SeedSearcher`, at most every cell at ``max`` seeds), or Optuna's space."""
+    (:class:`sweeps.execute.seed_search.SeedSearcher`, at most every cell at ``max`` seeds), or Optuna's space."""
     s = plan.spec.search
     if plan.sequential is not None:
-        from sweeps.seed_search import SeedSearcher
+        from sweeps.execute.seed_search import SeedSearcher
 
         return {}, SeedSearcher(plan, sweep_run, budget), plan.num_trials
     if s.kind == "grid":
@@ -330,9 +330,9 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
     ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
     (``s3://…``, ``file://…``). Resume re-runs only unfinished trials, each from its last
     checkpoint; errored trials stay failed. ``conc``: how trials fit the cluster
-    (:func:`sweeps.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
+    (:func:`sweeps.plan.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
     joined by address and may autoscale. ``callbacks`` (e.g. the
-    progress line, :class:`sweeps.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
+    progress line, :class:`sweeps.execute.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
     started with. ``budget``: a sequential sweep's ``--budget`` (a resumed one keeps its searcher's).
     """
     # Snapshot the experiment state every second (and sync it to storage as often, below), so a
@@ -376,7 +376,7 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
                 name=sweep_dir.rsplit("/", 1)[1],
                 storage_path=sweep_dir.rsplit("/", 1)[0],
                 failure_config=ray.tune.FailureConfig(max_failures=plan.spec.failure.max_retries),
-                # Every checkpoint stays until CheckpointPruner (sweeps/checkpoints.py) deletes it
+                # Every checkpoint stays until CheckpointPruner (sweeps/execute/checkpoints.py) deletes it
                 # safely: Tune's num_to_keep deletes before the state naming the newer one is uploaded.
                 checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=None),
                 sync_config=ray.tune.SyncConfig(sync_period=1),
@@ -399,7 +399,7 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
         # sweep only those its rule would still start (seeds it never needed are no trials of it).
         seen = {o.label for o in outcomes}
         if plan.sequential is not None:
-            from sweeps.settle import final_round
+            from sweeps.compare.settle import final_round
 
             tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
             seen |= {c.label for c in plan.cells} - set(final_round(plan, outcomes, budget, tags).start)

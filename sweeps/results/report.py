@@ -1,0 +1,332 @@
+"""Rebuild a finished sweep's comparison straight from MLflow: results table, the paper's layout, plots, panels.
+
+``python sweeps/report.py EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]``
+(also ``python sweeps/run.py --report EXPERIMENT``) reads the sweep's parent run (its spec file and
+``plan.json``) and its child runs, and writes ``results.{md,csv}`` and the plots into ``--out``
+(default ``results/<experiment>/report``); ``--log`` also logs the plots onto the parent run.
+A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 listing the known ones.
+
+The runner calls :func:`publish` at the end of every sweep: the plots and reconstructions onto the
+parent run, a description on each run, and the runs view (:func:`share_view`). The sweep is read back
+by :mod:`sweeps.results.finished`; ``notebooks/compare.ipynb`` is built on both modules.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import re
+import statistics
+import sys
+import tempfile
+import time
+import textwrap
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from mlflow.entities import Metric
+
+from cdm.evaluate import BASELINES
+from sweeps.compare.gallery import grid_png, viewer_html
+from sweeps.compare.paired import PairedDifference
+from sweeps.compare.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
+from sweeps.compare.table import ResultsTable, partner, rounded
+from sweeps.execute.tracking import last_eval_files, last_objects, resolve_tracking_uri
+from sweeps.plan.spec import Spec
+from sweeps.plan.trials import optuna_distributions, split_label
+from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
+
+__all__ = [
+    "DESCRIPTION_WIDTH",
+    "describe_sweep",
+    "describe_trial",
+    "main",
+    "panels",
+    "publish",
+    "reconstructions",
+    "share_view",
+    "sort_key",
+    "write_plots",
+]
+
+
+def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, ...]) -> dict[str, dict[str, list[tuple[int, float]]]]:
+    """Trial label → metric → ``(step, value)`` history, for the trials that logged any of ``keys``."""
+    out = {}
+    for t in trials:
+        if t.run_id is not None:
+            history = {k: [(m.step, m.value) for m in record.client.get_metric_history(t.run_id, k)] for k in keys}
+            if any(history.values()):
+                out[t.outcome.label] = history
+    return out
+
+
+def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) -> list[Path]:
+    """``metric_vs_value.png``, ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
+    spec, folder = record.spec, Path(folder)
+    metric = spec.metric.name
+    done = [t for t in trials if t.outcome.finished]
+    points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done]
+    paths = []
+    if points:
+        paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
+                                     spec.paper.table if spec.paper else "paper"))
+    curves = _histories(record, trials, ("train/loss", "train/loss_diffusion", metric))
+    if curves:
+        cells = {t.outcome.label: t.outcome.cell for t in trials}
+        paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
+    if spec.search.kind == "optuna":
+        searched = [(t.values, t.outcome.metrics.get(metric) if t.outcome.finished else None)
+                    for t in trials if set(t.values) == set(spec.search.space)]
+        if searched:
+            paths += optuna_plots(searched, optuna_distributions(spec.search.space), spec.metric.mode, metric, folder)
+    return paths
+
+
+def panels(record: SweepRecord, trials: list[TrialRecord], folder: Path, per_trial: int = 2) -> dict[str, list[Path]]:
+    """Download up to ``per_trial`` PNG panels (and their PLY clouds) of each finished trial's last evaluation.
+
+    Returns:
+        Trial label → local PNG paths, the PLY of each beside it under the same stem.
+    """
+    out = {}
+    for t in trials:
+        if t.run_id is None or not t.outcome.finished:
+            continue
+        files = last_eval_files(record.client, t.run_id)
+        pngs = sorted(f for f in files if f.endswith(".png"))[:per_trial]
+        clouds = {Path(f).name: f for f in files if f.endswith(".ply")}  # panels/<stem>.png beside clouds/<stem>.ply
+        dest = Path(folder) / t.run_id
+        for f in pngs + [clouds[Path(p).stem + ".ply"] for p in pngs if Path(p).stem + ".ply" in clouds]:
+            record.client.download_artifacts(t.run_id, f, str(dest))
+        out[t.outcome.label] = [dest / Path(f).name for f in pngs]  # download_artifacts keeps only the file name
+    return out
+
+
+DESCRIPTION_WIDTH = 200
+"""Most characters on one line of a run description. MLflow renders each line break (a collapsed
+paragraph would hide the rest), so prose goes one sentence a line, wrapped only past this width."""
+
+
+def _prose(text: str, bullet: bool = False) -> str:
+    """``text`` one sentence a line (a list item when ``bullet``), no line over :data:`DESCRIPTION_WIDTH`."""
+    lead, indent = ("- ", "  ") if bullet else ("", "")
+    lines = []
+    for sentence in re.split(r"(?<=[.;])\s+(?=[A-Z*(])", text.strip()):
+        lines += textwrap.wrap(sentence, DESCRIPTION_WIDTH, initial_indent=lead if not lines else indent,
+                               subsequent_indent=indent, break_long_words=False, break_on_hyphens=False)
+    return "\n".join(lines)
+
+
+def describe_sweep(spec: Spec, profile: str, profile_description: str, table: ResultsTable, card: Sequence[str] = ()) -> str:
+    """The parent run's description (Markdown, the run page's first block), the answer first: the
+    best cell's verdict sentence, the narrow table (cell, metric, partner, Δ with its interval,
+    verdict) that fits MLflow's description pane at 1,280 px — MLflow shows a description's first
+    lines and folds the rest behind "Show more" — then the other verdict sentences, the notes, the
+    protocol card's changes (``sweeps/plan/protocol.py``; their sources in ``results.md``) and what was
+    swept with which profile. The wide table (paper's column, per category, baselines beaten) is the
+    run's ``results.md``."""
+    better = "lower" if spec.metric.mode == "min" else "higher"
+    head, *rest = table.summary or ["no cell finished a trial"]
+    out = [_prose(f"**{spec.name}**, profile **{profile}**, by {spec.metric.name} ({better} is better): {head}."),
+           table.grid(table.answer or None),
+           "\n".join(_prose(line, bullet=True) for line in rest),
+           _prose("Every column (the paper's numbers, per category, the baselines each cell beats) is in this run's "
+                  "`results.md` artifact.")]
+    notes = [n for n in table.notes if not n.startswith("protocol: ")]
+    out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
+    # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists them whole.
+    out += ["**Protocol card** (sources in `results.md`):\n"
+            + "\n".join(_prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)] if card else []
+    out += [_prose(f"**{spec.name}**: {spec.description}".rstrip(": ")),
+            _prose(f"Profile **{profile}**: {profile_description}".rstrip(": "))]
+    return "\n\n".join(part for part in out if part)
+
+
+def _best_baseline(record: SweepRecord, trials: list[TrialRecord]) -> str | None:
+    """The baseline scoring best on the sweep's metric (F1 when the metric is neither CD nor F1)."""
+    metric, mode = record.spec.metric.name, record.spec.metric.mode
+    short = metric.removeprefix("eval/") if metric in ("eval/cd", "eval/f1") else "f1"
+    mode = mode if short == metric.removeprefix("eval/") else "max"
+    means = {}
+    for b in BASELINES:
+        values = [t.outcome.metrics[f"baseline/{b}/{short}"] for t in trials if f"baseline/{b}/{short}" in t.outcome.metrics]
+        if values:
+            means[b] = statistics.fmean(values)
+    return (min if mode == "min" else max)(means, key=means.__getitem__) if means else None
+
+
+def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path) -> list[Path]:
+    """``reconstructions.png`` (a grid) and ``reconstructions.html`` (a 3D viewer) of the drawn objects:
+    rows the objects every cell drew at its last evaluation, columns each cell (its first finished
+    seed), the ground truth and the best baseline. Empty when no finished trial drew an object."""
+    folder = Path(folder)
+    firsts: dict[str, TrialRecord] = {}
+    for t in trials:
+        if t.run_id is not None and t.outcome.finished:
+            firsts.setdefault(t.outcome.cell, t)
+    files = {cell: last_eval_files(record.client, t.run_id) for cell, t in firsts.items()}
+    stems = [f.removesuffix(".gt.ply") for f in next(iter(files.values()), []) if f.endswith(".gt.ply")]
+    # The same objects in every column; evaluation folders differ by step, so match on the file name.
+    names = [Path(s).name for s in stems if all(any(Path(f).name == Path(s).name + ".ply" for f in fs) for fs in files.values())]
+    if not names:
+        return []
+    best = _best_baseline(record, trials)
+    baseline = f"baseline: {best}" if best else None
+    gallery: dict[str, dict[str, np.ndarray]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for cell, t in firsts.items():
+            folder_of = {Path(f).name: f for f in files[cell]}
+            for name in names:
+                wanted = {cell: f"{name}.ply"}
+                if cell == next(iter(firsts)):
+                    wanted |= {"ground truth": f"{name}.gt.ply"} | ({baseline: f"{name}.{best}.ply"} if baseline else {})
+                for label, file in wanted.items():
+                    if file in folder_of:
+                        local = record.client.download_artifacts(t.run_id, folder_of[file], str(Path(tmp) / t.run_id))
+                        gallery.setdefault(name, {})[label] = read_ply(Path(local))
+    columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
+    title = f"{record.title}: reconstructions at the last evaluation"
+    return [grid_png(gallery, columns, title, folder / "reconstructions.png"),
+            viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=_object_scores(record, firsts, best))]
+
+
+def _object_scores(record: SweepRecord, firsts: dict[str, TrialRecord], best: str | None) -> dict[str, dict[str, tuple[float, float]]]:
+    """Object file stem → column (each cell; the best baseline) → its ``(CD, F1)`` in ``objects.csv``."""
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    for i, (cell, t) in enumerate(firsts.items()):
+        for row in last_objects(record.client, t.run_id):
+            stem = str(row["object_id"]).replace("/", "_")  # the clouds' file names (cdm/evaluate.py)
+            scores = out.setdefault(stem, {})
+            scores[cell] = (float(row["cd"]), float(row["f1"]))
+            if i == 0 and best is not None and f"baseline/{best}/cd" in row:
+                scores[f"baseline: {best}"] = (float(row[f"baseline/{best}/cd"]), float(row[f"baseline/{best}/f1"]))
+    return out
+
+
+def sort_key(text: str) -> float | None:
+    """A swept param's value as a number the runs view can sort by, or None when it is not one.
+
+    MLflow orders params as text (``10`` before ``2``, ``1e-3`` after ``0.5``) but metrics as numbers,
+    so :func:`share_view` logs this as the metric ``swept/<param>`` and orders the view by it."""
+    try:
+        value = float(text)
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def share_view(record: SweepRecord) -> str:
+    """Save an MLflow UI view of this sweep and return its path on the UI server (``#/experiments/…``).
+
+    The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
+    reads) lists the sweep's child runs grouped by cell (the tag ``group``: its swept values, short
+    enough for the name column) — the group row averages the seeds — with
+    ``final/<metric>`` and its partner, the swept values and the seed as columns. A swept field whose
+    values are all numbers is shown as the metric ``swept/<field>`` (:func:`sort_key`, logged here
+    on each child) and, when it is the only one, the rows are sorted by it as numbers."""
+    metric = record.spec.metric.name
+    swept = list(dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])]))
+    numeric = [k for k in swept if all(sort_key(r.data.params[k]) is not None for r in record.children if k in r.data.params)]
+    now = int(time.time() * 1000)
+    for run in record.children:
+        keys = [k for k in numeric if k in run.data.params and f"swept/{k}" not in run.data.metrics]
+        if keys:
+            record.client.log_batch(run.info.run_id, metrics=[Metric(f"swept/{k}", sort_key(run.data.params[k]), now, 0) for k in keys])
+    finals = ["final/" + m.removeprefix("eval/") for m in (metric, partner(metric)) if m and m.startswith("eval/")]
+    # Grouped by the swept values alone (sweeps older than the `group` tag: by the full cell name).
+    group = "group" if any("group" in r.data.tags for r in record.children) else "cell"
+    state = {
+        "searchFilter": f"tags.mlflow.parentRunId = '{record.parent.info.run_id}'",
+        "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": group}]},
+        "selectedColumns": [f"metrics.`{m}`" for m in finals or [metric]] + [f"metrics.`swept/{k}`" for k in numeric]
+        + [f"params.`{k}`" for k in swept if k not in numeric] + ["tags.`seed`"],
+    }
+    if len(swept) == 1:
+        state |= {"orderByKey": f"metrics.`swept/{swept[0]}`" if numeric else f"params.`{swept[0]}`", "orderByAsc": True}
+    key = f"sweep-{record.parent.info.run_id}"
+    record.client.set_experiment_tag(record.experiment_id, f"mlflow.sharedViewState.{key}", json.dumps(state))
+    return f"#/experiments/{record.experiment_id}/runs?viewStateShareKey={key}"
+
+
+def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable) -> str:
+    """A child run's description (Markdown, one paragraph): its cell and seed, its result, its cell
+    against the reference cell and the baselines (from ``table``'s records), and a link to the sweep's
+    parent run."""
+    o, spec = trial.outcome, record.spec
+    parent = f"[{record.title}](#/experiments/{record.experiment_id}/runs/{record.parent.info.run_id})"
+    seed = split_label(o.label)[1] or "?"
+    out = [f"**{o.cell}**, seed {seed}, a trial of the sweep {parent}."]
+    if o.status == "failed":
+        out.append(f"It failed: {o.error or 'no reason recorded'}.")
+    elif not o.finished:
+        out.append("It did not finish.")
+    else:
+        shown = [m for m in (spec.metric.name, partner(spec.metric.name)) if m and m in o.metrics]
+        out.append("At its last evaluation " + ", ".join(f"{m} {rounded(o.metrics[m])}" for m in shown) + ".")
+        cell = next((r for r in table.records if r["cell"] == o.cell), {})
+        delta = cell.get(f"{spec.metric.name} delta")
+        if delta is None and f"{spec.metric.name} delta" in cell and not cell.get("verdict"):
+            out.append("Its cell is the reference cell the others are paired with.")
+        elif delta is not None:
+            short = spec.metric.name.removeprefix("eval/")
+            diff = PairedDifference(delta, cell[f"{spec.metric.name} delta low"], cell[f"{spec.metric.name} delta high"], 0)
+            out.append(f"Its cell against the reference cell: Δ{short} {diff.text()} (95% paired interval), {cell['verdict']}.")
+        if "beats baselines" in cell:
+            beaten = str(cell["beats baselines"]).replace(";", ", ")
+            out.append(f"Baselines it beats on {spec.metric.name}: {beaten or 'none'}.")
+    return _prose(" ".join(out))
+
+
+def publish(uri: str, parent_run_id: str, folder: Path) -> str:
+    """End of a sweep: plots and reconstructions into ``folder`` and onto the parent run (``plots/``,
+    ``reconstructions/``), a description on each child run, and the UI view; returns its path."""
+    record = open_sweep(uri, parent_run_id=parent_run_id)
+    trials = trial_records(record)
+    table = results_table(record, trials)
+    for t in trials:
+        if t.run_id is not None:
+            record.client.set_tag(t.run_id, "mlflow.note.content", describe_trial(record, t, table))
+    for path in write_plots(record, trials, folder):
+        record.client.log_artifact(parent_run_id, str(path), "plots")
+    for path in reconstructions(record, trials, folder):
+        record.client.log_artifact(parent_run_id, str(path), "reconstructions")
+    return share_view(record)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sweeps/report.py", description=__doc__.split("\n\n")[0])
+    p.add_argument("experiment", help="MLflow experiment name (= the spec's name)")
+    p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
+    p.add_argument("--run-id", default=None, help="parent run of the sweep (default: the experiment's latest sweep)")
+    p.add_argument("--out", type=Path, default=None, help="folder for results.{md,csv} and plots (default: results/<experiment>/report)")
+    p.add_argument("--log", action="store_true", help="also log the plots onto the parent run and save the UI view")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    # One small download per trial: no progress bar for each.
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    uri = resolve_tracking_uri(args.tracking_uri)
+    try:
+        record = open_sweep(uri, args.experiment, args.run_id)
+    except ReportError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = (args.out or Path("results") / record.experiment / "report").resolve()
+    trials = trial_records(record)
+    table = results_table(record, trials)
+    md, csv = table.write(out)
+    plots = write_plots(record, trials, out) + reconstructions(record, trials, out)
+    print(table.text() + "\n")
+    print(f"results: {md} and {csv}")
+    print("plots: " + ", ".join(str(p) for p in plots))
+    if args.log:
+        for path in plots:
+            record.client.log_artifact(record.parent.info.run_id, str(path), "plots")
+        print(f"MLflow view of this sweep: <UI address>/{share_view(record)}")
+    return 0
