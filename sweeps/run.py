@@ -10,15 +10,12 @@ table is printed and written to ``<storage>/<spec name>/<profile>/results.{md,cs
 from __future__ import annotations
 
 import argparse
-import errno
 import json
 import os
-import shlex
 import shutil
 import signal
 import sys
 import tempfile
-import textwrap
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -30,9 +27,11 @@ from pydantic import ValidationError
 
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
-from sweeps.compare.settle import check_budget
+from sweeps.compare.settle import check_budget, describe_rule
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.precompute import check_space, shared_root
+from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
+from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.resources import plan_concurrency
@@ -41,7 +40,7 @@ from sweeps.plan.trials import SweepPlan, expand, lambda_source
 from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
-__all__ = ["describe", "main", "no_space_left", "resume_command"]
+__all__ = ["main"]
 
 STATE_FILE = "sweep.json"
 
@@ -74,55 +73,9 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, budget: SeedBudget | None = None) -> str:
-    """The dry-run text: profile, search, resource plan and every trial (or the Optuna space); a sequential
-    sweep's rule, worst case and ``budget``."""
-    spec, prof, r = plan.spec, plan.profile, plan.profile.resources
-    out = [
-        f"profile {prof.name}: {prof.description}".rstrip(": "),
-        f"budget: {prof.steps} steps, evaluation every {prof.eval_every}",
-        (f"metric: {spec.metric.name} ({spec.metric.mode}); scheduler: {spec.scheduler.kind}; "
-         f"max retries per trial: {spec.failure.max_retries}"),
-    ]
-    mode = "Train local mode (loop inside the trial)" if r.workers_per_trial == 0 else f"{r.workers_per_trial} Train workers"
-    line = f"resources: {mode}, {r.cpus_per_worker:g} CPUs + {r.gpus_per_worker:g} GPUs per worker"
-    if cpus is None:
-        line += "; concurrency derived from the cluster at run time"
-    else:
-        try:
-            conc = plan_concurrency(r, cpus, gpus or 0.0, plan.num_trials)
-            line += f"; this machine: {cpus:g} CPUs, {gpus or 0:g} GPUs → {conc.max_concurrent} concurrent trials"
-        except SpecError as exc:
-            line += f"; this machine cannot run it: {exc}"
-    out.append(line)
-    out.append("fixed: " + ", ".join(f"{k}={v}" for k, v in {**plan.fixed, **plan.sets}.items()))
-    out += ["protocol card:"] + [f"  {line}" for line in plan_card(plan).lines()]
-    if spec.search.kind == "optuna":
-        s = spec.search
-        out.append(f"search: Optuna {s.sampler} (seed {s.seed}), {plan.num_trials} trials, seed {spec.seeds[0]}, over:")
-        for key, p in s.space.items():
-            rng = f"{p.choices}" if p.type == "categorical" else f"[{p.low:g}, {p.high:g}]"
-            out.append(f"  {key}: {p.type} {rng}")
-    elif plan.sequential is not None:
-        from sweeps.compare.settle import describe_rule
-
-        out += describe_rule(plan, budget)
-    else:
-        out.append(f"search: grid, {plan.num_trials} trials ({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):")
-    if spec.search.kind == "grid":
-        for i, cell in enumerate(plan.cells, 1):
-            values = ", ".join(f"{k}={v}" for k, v in cell.values.items())
-            line = f"  {i:3d}. {cell.label}" + (f"   ({values})" if values else "")
-            if plan.round_of(cell) > 1:
-                line += f"   [round {plan.round_of(cell)}, if still open]"
-            if cell.paper_label and spec.paper:
-                numbers = ", ".join(f"{k} {v:g}" for k, v in cell.paper.items() if k.count("/") == 1)
-                line += f"   [paper {spec.paper.table} · {cell.paper_label}: {numbers}]"
-            out.append(line)
-        if plan.grid_trials is not None:
-            out.append(f"  … and {plan.num_trials - len(plan.cells)} more trials, each checked (a dry-run lists the first "
-                       f"{len(plan.cells)}; their inputs and memory stand for the rest)")
-    return _wrapped("\n".join(out))
+def _rule(plan: SweepPlan, budget: SeedBudget | None) -> list[str]:
+    """A sequential sweep's dry-run lines (:func:`sweeps.compare.settle.describe_rule`); none otherwise."""
+    return describe_rule(plan, budget) if plan.sequential is not None else []
 
 
 def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
@@ -135,13 +88,13 @@ def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
     except TrainingDiverged as exc:
         print(f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way", flush=True)
         return None
-    print(_wrapped(predicted.text()), flush=True)
+    print(wrapped(predicted.text()), flush=True)
     return predicted
 
 
 def _settings(plan: SweepPlan) -> list[str]:
     """What produced the numbers, for the table's notes: budget and the training target of the cells."""
-    from sweeps.compare.table import settings_note
+    from sweeps.compare.rules import settings_note
 
     # Optuna plans have no cells yet: the fixed settings and --set values stand for every trial.
     configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
@@ -153,12 +106,6 @@ def _settings(plan: SweepPlan) -> list[str]:
 def _card(plan: SweepPlan) -> list[str]:
     """The protocol card as the table's notes: ``results.md`` keeps it beside the numbers."""
     return [f"protocol: {line}" for line in plan_card(plan).lines()]
-
-
-def _wrapped(text: str, width: int = 120) -> str:
-    """``text`` with every line over ``width`` folded at spaces, each continuation indented two more."""
-    return "\n".join(textwrap.fill(line, width, subsequent_indent=line[: len(line) - len(line.lstrip())] + "  ",
-                                   break_long_words=False, break_on_hyphens=False) for line in text.splitlines())
 
 
 def _ui_hint(uri: str, path: str) -> str:
@@ -268,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
                          _local_concurrency(plan))
     except (SpecError, ConfigError, LimitError, StoreError) as exc:
         return _fail(str(exc))
-    print(_wrapped(f"spec {spec.name} ({args.spec}): {spec.description}"), flush=True)
+    print(wrapped(f"spec {spec.name} ({args.spec}): {spec.description}"), flush=True)
     try:
         _check_inputs(plan, remote)
     except ValueError as exc:
@@ -300,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
-        print(describe(plan, cpus, gpus, budget), flush=True)
+        print(describe(plan, cpus, gpus, _rule(plan, budget)), flush=True)
         if args.no_estimate:
             return 0
         if plan.grid_trials is not None:
@@ -317,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
         print("calibrating (a few training steps and one evaluation) ...", flush=True)
         _estimate(plan, cpus, concurrent, shared_root(sweep_dir, remote) is not None and bool(plan.cells))
         return 0
-    print(describe(plan, None, None, budget), flush=True)
+    print(describe(plan, None, None, _rule(plan, budget)), flush=True)
     try:
         return _run(plan, args, sweep_dir, state_file, sets, remote, held)
     finally:
@@ -330,50 +277,6 @@ def _write_new(path: Path, text: str) -> None:
     """Create ``path`` with ``text``; a file or link already there (planted in the folder) is refused by the OS."""
     with os.fdopen(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o644), "w") as out:
         out.write(text)
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
-
-
-def no_space_left(exc: BaseException) -> bool:
-    """``exc`` or one it was raised from is a full disk: ``ENOSPC``, or torch's ``PytorchStreamWriter``
-    "unexpected pos" (its only report of a write that found no space) and Ray's wrapped copies of either."""
-    while exc is not None:
-        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            return True
-        if "No space left on device" in str(exc) or "unexpected pos" in str(exc):
-            return True
-        exc = exc.__cause__ or exc.__context__
-    return False
-
-
-def _discard_start(sweep_dir: str) -> None:
-    """Remove the sweep folder a start that ran no trial wrote (``sweep.json``, ``plan.json``, the shared
-    cache), so the same command, once its input is fixed, is not refused as "already holds a sweep"."""
-    if is_uri(sweep_dir):
-        from pyarrow import fs
-
-        filesystem, path = fs.FileSystem.from_uri(sweep_dir)
-        filesystem.delete_dir(path)
-    else:
-        shutil.rmtree(sweep_dir, ignore_errors=True)
-
-
-def resume_command(spec: Path, profile: str, storage: str) -> str:
-    """The command that continues this sweep: the storage too, or the resume would look in ./results."""
-    return shlex.join(["python", "sweeps/run.py", str(spec), "--profile", profile, "--storage", storage, "--resume"])
-
-
-def _kill_running_children(sweep_run) -> int:
-    """Close as KILLED the child runs of ``sweep_run`` (a :class:`sweeps.execute.tracking.SweepRun`) still RUNNING
-    once Tune has stopped (interrupted trials); ``--resume`` reopens each. Returns how many."""
-    running = sweep_run.client.search_runs(
-        [sweep_run.experiment_id], max_results=10_000,
-        filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}' and attributes.status = 'RUNNING'")
-    for child in running:
-        sweep_run.client.set_terminated(child.info.run_id, status="KILLED")
-    return len(running)
 
 
 def _local_concurrency(plan: SweepPlan) -> int:
@@ -394,7 +297,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     quiet_environment(tty)
     import ray
 
-    from sweeps.compare.table import baselines_by_eval_set, build_table, cell_means
+    from sweeps.compare.table import build_table
+    from sweeps.execute.tracking import baselines_by_eval_set, cell_means
     from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
     from sweeps.execute.tracking import SweepRun, resolve_tracking_uri
     from sweeps.execute.trial import run_sweep
@@ -468,10 +372,10 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                     predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent,
                                           shared_root(sweep_dir, remote) is not None and bool(plan.cells))
                 except (ValueError, OSError) as exc:  # an input every trial would fail on (an unreadable mesh)
-                    _kill_running_children(sweep_run)
+                    kill_running_children(sweep_run)
                     sweep_run.end("FAILED")
-                    _discard_start(sweep_dir)
-                    return _fail(f"the cost estimate could not read an input: {_one_line(exc)}")
+                    discard_start(sweep_dir)
+                    return _fail(f"the cost estimate could not read an input: {one_line(exc)}")
         started_at = time.perf_counter()
         # A resumed sweep keeps the callbacks it started with (Tune restores them): no line of its own.
         progress = None if args.resume else SweepProgress(
@@ -506,20 +410,20 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         if is_uri(sweep_dir):
             publish_files(staging, sweep_dir)
         unfinished = any(o.status == "pending" for o in outcomes)
-        _kill_running_children(sweep_run)
+        kill_running_children(sweep_run)
         sweep_run.end("KILLED" if unfinished else "FINISHED")
     except BaseException as exc:
         # Whatever stopped the sweep, its parent run must not stay RUNNING in the UI; re-raised as is,
         # but for a full disk: said as such, and the shared cache that filled it removed.
         if sweep_run is not None:
-            _kill_running_children(sweep_run)
+            kill_running_children(sweep_run)
             sweep_run.end("KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
         if no_space_left(exc):
             shared = shared_root(sweep_dir, remote)
             if shared is not None:
                 shutil.rmtree(shared, ignore_errors=True)
             return _fail(f"no space left on the device of {sweep_dir}" + (f" (removed the shared cache {shared})" if shared else "")
-                         + f": {_one_line(exc)[:200]}; free space, then resume with: "
+                         + f": {one_line(exc)[:200]}; free space, then resume with: "
                          + resume_command(args.spec, plan.profile.name, args.storage))
         raise
     finally:

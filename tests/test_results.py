@@ -8,7 +8,8 @@ import statistics
 import pytest
 import torch
 
-from sweeps.compare.table import TrialOutcome, build_table, settings_note
+from sweeps.compare.rules import settings_note
+from sweeps.compare.table import TrialOutcome, build_table
 
 
 def _trial(cell, seed, status="ok", **metrics):

@@ -32,7 +32,7 @@ from mlflow import MlflowClient
 from cdm.data.images import read_image
 from cdm.config import load_config
 from sweeps import run, store_retry
-from sweeps.execute import local_cluster
+from sweeps.execute import local_cluster, stopping
 from sweeps.execute.claim import ClaimError, claim, claims_folder
 from sweeps.execute.tracking import SweepRun, TrialRun
 from sweeps.plan.spec import load_spec
@@ -497,7 +497,7 @@ def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, c
 # --- item 8: the smaller items -----------------------------------------------------------------------
 
 def test_the_resume_hint_keeps_the_storage():
-    assert run.resume_command(Path("sweeps/s.yaml"), "smoke", "/mnt/my results") == (
+    assert stopping.resume_command(Path("sweeps/s.yaml"), "smoke", "/mnt/my results") == (
         "python sweeps/run.py sweeps/s.yaml --profile smoke --storage '/mnt/my results' --resume")
 
 
@@ -507,7 +507,7 @@ def test_interrupted_children_are_closed_as_killed_and_reopened_by_resume(tmp_pa
     running = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, load_config(None))
     done = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t1", "b · seed 0", {}, load_config(None))
     sweep.close_trial("t1", "b · seed 0", "FINISHED")
-    assert run._kill_running_children(sweep) == 1
+    assert stopping.kill_running_children(sweep) == 1
     client = MlflowClient(uri)
     assert [client.get_run(r.run_id).info.status for r in (running, done)] == ["KILLED", "FINISHED"]
     again = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, load_config(None))
@@ -535,12 +535,12 @@ def test_a_full_disk_is_recognised_from_python_and_from_torch():
             out.write(b"x" * 65536)
     with pytest.raises(RuntimeError) as torch_full:
         torch.save(torch.zeros(100_000), "/dev/full")  # torch says only "unexpected pos"
-    assert run.no_space_left(full.value) and run.no_space_left(torch_full.value)
+    assert stopping.no_space_left(full.value) and stopping.no_space_left(torch_full.value)
     try:
         raise RuntimeError("trial failed") from full.value  # as Ray wraps a worker's error
     except RuntimeError as wrapped:
-        assert run.no_space_left(wrapped)
-    assert not run.no_space_left(ValueError("data.root: cannot read"))
+        assert stopping.no_space_left(wrapped)
+    assert not stopping.no_space_left(ValueError("data.root: cannot read"))
 
 
 @contextlib.contextmanager
@@ -576,8 +576,8 @@ def test_a_start_that_ran_no_trial_is_discarded_whole(tmp_path):
     for sweep in (tmp_path / "local" / "s" / "smoke", tmp_path / "uri" / "s" / "smoke"):
         (sweep / "shared").mkdir(parents=True)
         (sweep / "sweep.json").write_text("{}")
-    run._discard_start(str(tmp_path / "local" / "s" / "smoke"))
-    run._discard_start(f"file://{tmp_path}/uri/s/smoke")
+    stopping.discard_start(str(tmp_path / "local" / "s" / "smoke"))
+    stopping.discard_start(f"file://{tmp_path}/uri/s/smoke")
     assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["local", "local/s", "uri", "uri/s"]
 
 

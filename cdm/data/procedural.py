@@ -1,13 +1,11 @@
 """The embedded default data set: eight procedural shape categories, generated on the fly.
 
-Each category is a small program over trimesh primitives whose sizes, proportions and optional parts
-are drawn from *continuous* ranges, so no two objects are alike and nearest-image retrieval is a weak
-baseline (every evaluation scores it: :mod:`cdm.evaluate`). Objects are built Z-up in arbitrary units and turned to the world's +Y-up frame
-of :mod:`cdm.cameras`; :mod:`cdm.data.views` maps them into their category's fixed frame
-(:data:`FRAMES`) and renders them. Objects keep their own size and place in it: a small chair is small.
-
-Every object is fixed by its id ``procedural/<category>/<split>/<index>`` and ``data.seed``: the
-train and held-out splits never share an object, and the same config always yields the same data.
+Each category is a small program over trimesh primitives whose sizes, proportions and optional parts are
+drawn from *continuous* ranges, so no two objects are alike and nearest-image retrieval is a weak baseline
+(:mod:`cdm.evaluate`). Objects are built Z-up in arbitrary units and turned to the world's +Y-up frame of
+:mod:`cdm.cameras`; :mod:`cdm.data.views` maps them into their category's fixed frame (:data:`FRAMES`) and
+renders them. Objects keep their own size and place in it: a small chair is small. Every object is fixed
+by its id ``procedural/<category>/<split>/<index>`` and ``data.seed``: the splits never share an object.
 """
 
 from __future__ import annotations
@@ -417,10 +415,9 @@ FRAMES: dict[str, Frame] = {
         "table": ((0.0, 0.54, 0.0), 1.25),
     }.items()
 }
-"""Each category's frame (:mod:`cdm.normalise`), fixed for the data set: the union bounding box of 1,000
-objects of the category (seeds ``[7, i]``) in the world frame of :func:`make_shape`, its largest
-half-extent widened by 2 % and rounded up. Every object the category's program makes fits ``[-1, 1]³``
-in it; the median object reaches 0.6–0.8 of it (``tests/test_normalise.py`` holds both true)."""
+"""Each category's frame (:mod:`cdm.normalise`), fixed for the data set: the union bounding box of 1,000 objects
+of the category (seeds ``[7, i]``) in the world frame of :func:`make_shape`, its largest half-extent widened by
+2 % and rounded up. Every object fits ``[-1, 1]³`` in it; the median one reaches 0.6–0.8 (``tests/test_normalise.py``)."""
 
 
 class ProceduralDataset(ObjectDataset):

@@ -16,7 +16,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from sweeps.compare.table import partner
+from sweeps.compare.rules import partner
 
 __all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "training_curves",
            "view_cloud"]

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 from sweeps.compare.paired import UnpairedError
 from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
-from sweeps.compare.table import TrialOutcome, object_column
+from sweeps.compare.rules import object_column
+from sweeps.compare.table import TrialOutcome
 from sweeps.plan.spec import SeedBudget, SpecError
 from sweeps.plan.trials import Cell, SweepPlan
 

@@ -18,22 +18,21 @@ from __future__ import annotations
 import csv
 import io
 import math
-import statistics
 import textwrap
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from cdm.evaluate import BASELINES
 from sweeps.compare.paired import PairedDifference, UnpairedError, compare, per_object_means
+from sweeps.compare.rules import Stat, number_text, object_column, partner, partner_mode, weighed
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
 
 __all__ = [
-    "FINISHED", "ResultsTable", "TrialOutcome", "baselines_by_eval_set", "build_table", "cell_means", "object_column", "partner",
-    "rounded", "settings_note", "sweep_order",
+    "FINISHED", "ResultsTable", "TrialOutcome", "build_table", "sweep_order",
 ]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
@@ -64,28 +63,6 @@ class TrialOutcome:
         return self.status in FINISHED
 
 
-@dataclass(frozen=True)
-class _Stat:
-    mean: float
-    std: float | None
-    n: int
-
-    @classmethod
-    def of(cls, values: Sequence[float]) -> _Stat | None:
-        values = [v for v in values if math.isfinite(v)]
-        if not values:
-            return None
-        return cls(statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None, len(values))
-
-    def text(self) -> str:
-        return _num(self.mean) + ("" if self.std is None else f" ± {_num(self.std, self.mean)}")
-
-
-def _num(value: float, scale: float | None = None) -> str:
-    """3 decimals for F1-like numbers, 2 for CD ×1000-like ones (decided by ``scale``, default ``value``)."""
-    return f"{value:.3f}" if abs(value if scale is None else scale) < 10 else f"{value:.2f}"
-
-
 def sweep_order(labels: Sequence[str] | None, metric: str, mode: Literal["min", "max"]) -> Callable[[TrialOutcome], float]:
     """Sort key of a sweep's outcomes, as the runner and the report list them: a grid's trials in its
     plan's order ``labels`` (unplanned last); an Optuna sweep's (``labels`` None) best ``metric`` first."""
@@ -94,12 +71,6 @@ def sweep_order(labels: Sequence[str] | None, metric: str, mode: Literal["min", 
         return lambda o: order.get(o.label, len(order))
     sign = 1 if mode == "min" else -1
     return lambda o: sign * o.metrics.get(metric, sign * math.inf)
-
-
-def rounded(value: float) -> float:
-    """``value`` at the precision the tables print it (3 decimals below 10, else 2): what MLflow
-    shows a reader, so the UI's columns and the tables agree digit for digit."""
-    return float(_num(value)) if math.isfinite(value) else value
 
 
 @dataclass(frozen=True)
@@ -179,65 +150,13 @@ class ResultsTable:
         return md, table
 
 
-def partner(metric: str) -> str | None:
-    """``eval/f1`` ↔ ``eval/cd``: the other headline metric, shown beside the optimised one."""
-    swaps = {"/f1": "/cd", "/cd": "/f1"}
-    for a, b in swaps.items():
-        if metric.startswith("eval/") and metric.endswith(a) and metric.count("/") == 1:
-            return metric[: -len(a)] + b
-    return None
-
-
-def _partner_mode(partner: str) -> Literal["min", "max"]:
-    """Chamfer distance is better lower, F1 higher (the only partners :func:`partner` names)."""
-    return "min" if partner.endswith("/cd") else "max"
-
-
-def _weighed(verdicts: Sequence[tuple[str, str]]) -> str:
-    """One verdict from ``(metric, verdict)`` pairs, the sweep's metric first, then its partner.
-
-    The metric's verdict when every other one agrees with it or is unclear; otherwise each clear one
-    by name (``better on f1, worse on cd``; ``worse on cd`` when the metric alone is unclear), so a
-    difference the partner's interval shows is never read as "no clear difference".
-    """
-    (metric, first), *rest = verdicts
-    others = [(m, v) for m, v in rest if v not in ("no clear difference", first)]
-    if not others:
-        return first
-    named = ([] if first == "no clear difference" else [(metric, first)]) + others
-    return ", ".join(f"{v} on {m.removeprefix('eval/')}" for m, v in named)
-
-
 def _categories(outcomes: Sequence[TrialOutcome], metric: str) -> list[str]:
     prefix = metric + "/"
     return sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
 
 
-def settings_note(profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float], lambda_from: str) -> str:
-    """The table's first note: what produced the numbers (profile, budget, prediction target, λ).
-
-    ``lambda_from`` says where the λ of Eq. 6 (``priors.lambda_3d``) was set (``profile local``,
-    ``--set``, ``the spec``, ``the config default``): the paper gives no value, so the paper's column
-    was not measured with it.
-    """
-    targets = sorted(set(targets))
-    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
-    values = sorted(set(lambdas))
-    lam = f"{values[0]:g}" if len(values) == 1 else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")" if values else "searched"
-    return (f"profile {profile}: {steps} steps per trial; prediction target {shown}; "
-            f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")
-
-
 def _finished(group: Sequence[TrialOutcome]) -> list[TrialOutcome]:
     return [o for o in group if o.finished]
-
-
-def object_column(metric: str) -> tuple[str, str | None] | None:
-    """``eval/cd`` → (``cd``, None), ``eval/f1/chair`` → (``f1``, ``chair``): where ``objects.csv`` holds it."""
-    parts = metric.split("/")
-    if parts[0] != "eval" or len(parts) not in (2, 3) or parts[1] not in ("cd", "f1"):
-        return None
-    return parts[1], parts[2] if len(parts) == 3 else None
 
 
 def _object_scores(group: Sequence[TrialOutcome], key: str, category: str | None) -> dict[str, float]:
@@ -264,7 +183,7 @@ class _Pairing:
     def build(cls, cells: dict[str, list[TrialOutcome]], reference: str, shown: list[str],
               mode: Literal["min", "max"], baselines: list[str], settled: Mapping[str, SettleRecord]) -> _Pairing:
         pairing = cls(reference, {}, {}, {}, {n: r for n, r in settled.items() if n in cells and n != reference}, [])
-        metric, modes = shown[0], {m: mode if m == shown[0] else _partner_mode(m) for m in shown}
+        metric, modes = shown[0], {m: mode if m == shown[0] else partner_mode(m) for m in shown}
         to_baseline: dict[tuple[str, str, str], str] = {}
         unpaired: list[str] = []
         for m in shown:
@@ -287,7 +206,7 @@ class _Pairing:
         for (name, b, m), verdict in to_baseline.items():
             if m == metric:
                 others = [(p, to_baseline[(name, b, p)]) for p in shown[1:] if (name, b, p) in to_baseline]
-                pairing.against.setdefault(name, {})[b] = _weighed([(m, verdict), *others])
+                pairing.against.setdefault(name, {})[b] = weighed([(m, verdict), *others])
         for name in cells:
             found = {m: d.verdict(modes[m]) for m in shown if isinstance(d := pairing.diffs.get((name, m)), PairedDifference)}
             record = pairing.settled.get(name)
@@ -297,7 +216,7 @@ class _Pairing:
                            if m != metric and v not in ("no clear difference", record.decision.verdict)]
                 pairing.verdicts[name] = "".join([record.text(), *aside])
             elif metric in found:
-                pairing.verdicts[name] = _weighed([(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric])
+                pairing.verdicts[name] = weighed([(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric])
         if unpaired:
             pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
                                  f"comparison needs the same evaluation set): {', '.join(unpaired)}")
@@ -366,11 +285,11 @@ def build_table(
     if pairing:
         header += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in shown] + ["verdict", "beats baselines"]
 
-    stats = {name: _Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
+    stats = {name: Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
              for name, group in cells.items()}
     ranked = sorted((s.mean if mode == "min" else -s.mean, name) for name, s in stats.items() if s is not None)
     # Cells that print the leader's mean: a star between them would rest on digits nobody sees.
-    leaders = [name for _, name in ranked if _num(stats[name].mean) == _num(stats[ranked[0][1]].mean)]  # type: ignore[union-attr]
+    leaders = [name for _, name in ranked if number_text(stats[name].mean) == number_text(stats[ranked[0][1]].mean)]  # type: ignore[union-attr]
     best = leaders[0] if len(leaders) == 1 else None
     mark = {best: " ★"} if best else {name: " (tied)" for name in leaders}
 
@@ -389,13 +308,13 @@ def build_table(
             record.update({"seeds": settle.seeds if settle else None, "stop reason": settle.reason if settle else ""})
         done = _finished(group)
         for m in shown + [f"{metric}/{c}" for c in categories]:
-            stat = _Stat.of([o.metrics[m] for o in done if m in o.metrics])
+            stat = Stat.of([o.metrics[m] for o in done if m in o.metrics])
             paper = first.paper.get(m)
             text = "failed" if stat is None and counts["failed"] else ("–" if stat is None else stat.text())
             if m in shown:
-                row += [text, "" if paper is None else _num(paper)]
+                row += [text, "" if paper is None else number_text(paper)]
             else:
-                row.append(text + ("" if paper is None else f" ({_num(paper)})"))
+                row.append(text + ("" if paper is None else f" ({number_text(paper)})"))
             record.update({f"{m} mean": stat.mean if stat else None, f"{m} std": stat.std if stat else None,
                            f"{m} paper": paper})
         if pairing:
@@ -412,8 +331,8 @@ def build_table(
         record = {"cell": f"baseline: {b}"}
         for m in shown + [f"{metric}/{c}" for c in categories]:
             key = "baseline/" + b + "/" + m.removeprefix("eval/")
-            stat = _Stat.of([o.metrics[key] for o in done if key in o.metrics])
-            row += [_num(stat.mean) if stat else "–"] + ([""] if m in shown else [])
+            stat = Stat.of([o.metrics[key] for o in done if key in o.metrics])
+            row += [number_text(stat.mean) if stat else "–"] + ([""] if m in shown else [])
             record.update({f"{m} mean": stat.mean if stat else None})
         if pairing:  # a reference row: no difference to the reference cell, no verdict
             row += [""] * (len(shown) + 2)
@@ -431,7 +350,7 @@ def build_table(
                 f"no ★: {', '.join(leaders)} tied for best by {metric} ({mode}) at the printed precision")
         notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
-        weighed = f"{metric} ({mode})" + (f" and {second} ({_partner_mode(second)})" if second else "")
+        weighed = f"{metric} ({mode})" + (f" and {second} ({partner_mode(second)})" if second else "")
         notes.append(f"Δ: mean over the same objects of (row − {reference}), seeds averaged per object, with a 95% "
                      f"paired bootstrap interval over the objects; verdict and beats baselines by {weighed}, interval "
                      f"excluding 0 (a verdict names each metric when they disagree)")
@@ -453,7 +372,7 @@ def _baseline_name(name: str) -> str:
     return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
 
 
-def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, _Stat | None], leaders: list[str], metric: str,
+def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, Stat | None], leaders: list[str], metric: str,
              pairing: _Pairing | None) -> list[str]:
     """One sentence per class of cells — the best cell (or the tied leaders), then cells that stand the
     same against the baselines (weighed verdicts), then every cell's verdict against the reference
@@ -477,7 +396,7 @@ def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, _Stat | None
     if best:
         out = [f"best cell {best}: {standing(best, False)}"]
     else:
-        out = [f"no best cell: {', '.join(leaders)} tie at {metric} {_num(stats[leaders[0]].mean)}"]  # type: ignore[union-attr]
+        out = [f"no best cell: {', '.join(leaders)} tie at {metric} {number_text(stats[leaders[0]].mean)}"]  # type: ignore[union-attr]
     if pairing:
         classes: dict[str, list[str]] = {}
         for name in cells:
@@ -509,29 +428,3 @@ def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str) 
     record["verdict"] = pairing.verdicts.get(name, "")
     record["beats baselines"] = ";".join(pairing.beats(name))
     return record
-
-
-def cell_means(table: ResultsTable) -> dict[str, dict[str, float]]:
-    """Cell → metric (``f1``, ``cd``, ``f1/chair``: ``eval/`` dropped) → mean over its finished seeds."""
-    out: dict[str, dict[str, float]] = {}
-    for record in table.records:
-        name = str(record["cell"])
-        if name.startswith("baseline: "):
-            continue
-        out[name] = {k.removesuffix(" mean").removeprefix("eval/"): float(v) for k, v in record.items()
-                     if k.endswith(" mean") and v is not None}
-    return out
-
-
-def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[str, float]]:
-    """Evaluation-set fingerprint → the ``baseline/…`` metrics scored on it (the same in every trial on it).
-
-    A trial without per-object rows files its baselines under ``""``.
-    """
-    out: dict[str, dict[str, float]] = {}
-    for o in _finished(outcomes):
-        eval_set = str(o.objects[0].get("eval_set", "")) if o.objects else ""
-        found = {k: v for k, v in o.metrics.items() if k.startswith("baseline/")}
-        if found and eval_set not in out:
-            out[eval_set] = found
-    return out

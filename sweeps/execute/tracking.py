@@ -28,10 +28,11 @@ from mlflow.entities import Metric, Param, RunTag
 
 from cdm.config import Config
 from cdm.train import Callback
-from sweeps.compare.table import rounded
+from sweeps.compare.rules import rounded
+from sweeps.compare.table import ResultsTable, TrialOutcome
 from sweeps.store_retry import PatientClient, wait_when_busy
 
-__all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
+__all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "baselines_by_eval_set", "cell_means", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
            "resolve_tracking_uri", "trial_metrics", "ui_command"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
@@ -141,6 +142,32 @@ def trial_metrics(logged: Mapping[str, float]) -> dict[str, float]:
     per_category = {"eval/" + k.removeprefix("final/"): v for k, v in logged.items()
                     if k.startswith("final/") and _per_category("eval/" + k.removeprefix("final/"))}
     return {**per_category, **{k: v for k, v in logged.items() if not k.startswith("final/")}}
+
+
+def cell_means(table: ResultsTable) -> dict[str, dict[str, float]]:
+    """Cell → metric (``f1``, ``cd``, ``f1/chair``: ``eval/`` dropped) → mean over its finished seeds."""
+    out: dict[str, dict[str, float]] = {}
+    for record in table.records:
+        name = str(record["cell"])
+        if name.startswith("baseline: "):
+            continue
+        out[name] = {k.removesuffix(" mean").removeprefix("eval/"): float(v) for k, v in record.items()
+                     if k.endswith(" mean") and v is not None}
+    return out
+
+
+def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[str, float]]:
+    """Evaluation-set fingerprint → the ``baseline/…`` metrics scored on it (the same in every trial on it).
+
+    A trial without per-object rows files its baselines under ``""``.
+    """
+    out: dict[str, dict[str, float]] = {}
+    for o in (o for o in outcomes if o.finished):
+        eval_set = str(o.objects[0].get("eval_set", "")) if o.objects else ""
+        found = {k: v for k, v in o.metrics.items() if k.startswith("baseline/")}
+        if found and eval_set not in out:
+            out[eval_set] = found
+    return out
 
 
 class SweepRun:

@@ -21,7 +21,8 @@ from mlflow.entities import Run
 
 from cdm.config import DiffusionConfig, PriorsConfig
 from sweeps.compare.settle import final_round
-from sweeps.compare.table import FINISHED, ResultsTable, TrialOutcome, build_table, settings_note, sweep_order
+from sweeps.compare.rules import settings_note
+from sweeps.compare.table import FINISHED, ResultsTable, TrialOutcome, build_table, sweep_order
 from sweeps.execute.tracking import last_objects, parent_baselines, trial_metrics
 from sweeps.plan.protocol import CARD_TAG
 from sweeps.plan.spec import SpaceParam, Spec, load_spec, parse_budget

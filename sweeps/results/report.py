@@ -33,7 +33,8 @@ from cdm.evaluate import BASELINES
 from sweeps.compare.gallery import grid_png, viewer_html
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
-from sweeps.compare.table import ResultsTable, partner, rounded
+from sweeps.compare.rules import partner, rounded
+from sweeps.compare.table import ResultsTable
 from sweeps.execute.tracking import last_eval_files, last_objects, resolve_tracking_uri
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import optuna_distributions, split_label

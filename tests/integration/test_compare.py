@@ -27,7 +27,7 @@ from docs import screenshots
 from sweeps import run
 from sweeps.results import report
 from tests.integration.local_ray import local_ray
-from sweeps.compare.table import rounded
+from sweeps.compare.rules import rounded
 from sweeps.execute.tracking import last_eval_files, last_objects
 from tests.test_report import _overlap, panel_views
 

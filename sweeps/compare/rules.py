@@ -1,0 +1,95 @@
+"""The rules a results table reads numbers by: which metric partners which, the precision it prints
+(and MLflow shows) them at, how verdicts on two metrics combine into one, where ``objects.csv`` holds
+a metric, and the note that says what produced the numbers. Plain functions of names and numbers."""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+__all__ = ["Stat", "number_text", "object_column", "partner", "partner_mode", "rounded", "settings_note", "weighed"]
+
+
+@dataclass(frozen=True)
+class Stat:
+    """Mean ± standard deviation over a cell's seeds (no ± from one seed), as the table prints it."""
+
+    mean: float
+    std: float | None
+    n: int
+
+    @classmethod
+    def of(cls, values: Sequence[float]) -> Stat | None:
+        values = [v for v in values if math.isfinite(v)]
+        if not values:
+            return None
+        return cls(statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None, len(values))
+
+    def text(self) -> str:
+        return number_text(self.mean) + ("" if self.std is None else f" ± {number_text(self.std, self.mean)}")
+
+
+def number_text(value: float, scale: float | None = None) -> str:
+    """3 decimals for F1-like numbers, 2 for CD ×1000-like ones (decided by ``scale``, default ``value``)."""
+    return f"{value:.3f}" if abs(value if scale is None else scale) < 10 else f"{value:.2f}"
+
+
+def rounded(value: float) -> float:
+    """``value`` at the precision the tables print it (3 decimals below 10, else 2): what MLflow
+    shows a reader, so the UI's columns and the tables agree digit for digit."""
+    return float(number_text(value)) if math.isfinite(value) else value
+
+
+def partner(metric: str) -> str | None:
+    """``eval/f1`` ↔ ``eval/cd``: the other headline metric, shown beside the optimised one."""
+    swaps = {"/f1": "/cd", "/cd": "/f1"}
+    for a, b in swaps.items():
+        if metric.startswith("eval/") and metric.endswith(a) and metric.count("/") == 1:
+            return metric[: -len(a)] + b
+    return None
+
+
+def partner_mode(partner: str) -> Literal["min", "max"]:
+    """Chamfer distance is better lower, F1 higher (the only partners :func:`partner` names)."""
+    return "min" if partner.endswith("/cd") else "max"
+
+
+def weighed(verdicts: Sequence[tuple[str, str]]) -> str:
+    """One verdict from ``(metric, verdict)`` pairs, the sweep's metric first, then its partner.
+
+    The metric's verdict when every other one agrees with it or is unclear; otherwise each clear one
+    by name (``better on f1, worse on cd``; ``worse on cd`` when the metric alone is unclear), so a
+    difference the partner's interval shows is never read as "no clear difference".
+    """
+    (metric, first), *rest = verdicts
+    others = [(m, v) for m, v in rest if v not in ("no clear difference", first)]
+    if not others:
+        return first
+    named = ([] if first == "no clear difference" else [(metric, first)]) + others
+    return ", ".join(f"{v} on {m.removeprefix('eval/')}" for m, v in named)
+
+
+def settings_note(profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float], lambda_from: str) -> str:
+    """The table's first note: what produced the numbers (profile, budget, prediction target, λ).
+
+    ``lambda_from`` says where the λ of Eq. 6 (``priors.lambda_3d``) was set (``profile local``,
+    ``--set``, ``the spec``, ``the config default``): the paper gives no value, so the paper's column
+    was not measured with it.
+    """
+    targets = sorted(set(targets))
+    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
+    values = sorted(set(lambdas))
+    lam = f"{values[0]:g}" if len(values) == 1 else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")" if values else "searched"
+    return (f"profile {profile}: {steps} steps per trial; prediction target {shown}; "
+            f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")
+
+
+def object_column(metric: str) -> tuple[str, str | None] | None:
+    """``eval/cd`` → (``cd``, None), ``eval/f1/chair`` → (``f1``, ``chair``): where ``objects.csv`` holds it."""
+    parts = metric.split("/")
+    if parts[0] != "eval" or len(parts) not in (2, 3) or parts[1] not in ("cd", "f1"):
+        return None
+    return parts[1], parts[2] if len(parts) == 3 else None

@@ -1,0 +1,69 @@
+"""A plan in words, before anything starts: what ``--dry-run`` prints (profile, budget, resources, the
+fixed settings, the protocol card and every trial), folded to the terminal's 120 columns."""
+
+from __future__ import annotations
+
+import textwrap
+from collections.abc import Sequence
+
+from sweeps.plan.protocol import plan_card
+from sweeps.plan.resources import plan_concurrency
+from sweeps.plan.spec import SpecError
+from sweeps.plan.trials import SweepPlan
+
+__all__ = ["describe", "wrapped"]
+
+
+def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequence[str] = ()) -> str:
+    """The dry-run text: profile, search, resource plan and every trial (or the Optuna space); ``rule``:
+    a sequential sweep's lines (its rule, worst case and budget, :func:`sweeps.compare.settle.describe_rule`)."""
+    spec, prof, r = plan.spec, plan.profile, plan.profile.resources
+    out = [
+        f"profile {prof.name}: {prof.description}".rstrip(": "),
+        f"budget: {prof.steps} steps, evaluation every {prof.eval_every}",
+        (f"metric: {spec.metric.name} ({spec.metric.mode}); scheduler: {spec.scheduler.kind}; "
+         f"max retries per trial: {spec.failure.max_retries}"),
+    ]
+    mode = "Train local mode (loop inside the trial)" if r.workers_per_trial == 0 else f"{r.workers_per_trial} Train workers"
+    line = f"resources: {mode}, {r.cpus_per_worker:g} CPUs + {r.gpus_per_worker:g} GPUs per worker"
+    if cpus is None:
+        line += "; concurrency derived from the cluster at run time"
+    else:
+        try:
+            conc = plan_concurrency(r, cpus, gpus or 0.0, plan.num_trials)
+            line += f"; this machine: {cpus:g} CPUs, {gpus or 0:g} GPUs → {conc.max_concurrent} concurrent trials"
+        except SpecError as exc:
+            line += f"; this machine cannot run it: {exc}"
+    out.append(line)
+    out.append("fixed: " + ", ".join(f"{k}={v}" for k, v in {**plan.fixed, **plan.sets}.items()))
+    out += ["protocol card:"] + [f"  {line}" for line in plan_card(plan).lines()]
+    if spec.search.kind == "optuna":
+        s = spec.search
+        out.append(f"search: Optuna {s.sampler} (seed {s.seed}), {plan.num_trials} trials, seed {spec.seeds[0]}, over:")
+        for key, p in s.space.items():
+            rng = f"{p.choices}" if p.type == "categorical" else f"[{p.low:g}, {p.high:g}]"
+            out.append(f"  {key}: {p.type} {rng}")
+    elif plan.sequential is not None:
+        out += rule
+    else:
+        out.append(f"search: grid, {plan.num_trials} trials ({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):")
+    if spec.search.kind == "grid":
+        for i, cell in enumerate(plan.cells, 1):
+            values = ", ".join(f"{k}={v}" for k, v in cell.values.items())
+            line = f"  {i:3d}. {cell.label}" + (f"   ({values})" if values else "")
+            if plan.round_of(cell) > 1:
+                line += f"   [round {plan.round_of(cell)}, if still open]"
+            if cell.paper_label and spec.paper:
+                numbers = ", ".join(f"{k} {v:g}" for k, v in cell.paper.items() if k.count("/") == 1)
+                line += f"   [paper {spec.paper.table} · {cell.paper_label}: {numbers}]"
+            out.append(line)
+        if plan.grid_trials is not None:
+            out.append(f"  … and {plan.num_trials - len(plan.cells)} more trials, each checked (a dry-run lists the first "
+                       f"{len(plan.cells)}; their inputs and memory stand for the rest)")
+    return wrapped("\n".join(out))
+
+
+def wrapped(text: str, width: int = 120) -> str:
+    """``text`` with every line over ``width`` folded at spaces, each continuation indented two more."""
+    return "\n".join(textwrap.fill(line, width, subsequent_indent=line[: len(line) - len(line.lstrip())] + "  ",
+                                   break_long_words=False, break_on_hyphens=False) for line in text.splitlines())
