@@ -266,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(describe(plan, None, None, _rule(plan, budget)), flush=True)
     try:
-        return _run(plan, args, sweep_dir, state_file, sets, remote, held)
+        return _run(plan, args, sweep_dir, state_file, state or {}, sets, remote, held)
     finally:
         if is_uri(sweep_dir) and exists(sweep_dir):
             record_digest(sweep_dir)  # what this driver leaves is what the next --resume may unpickle
@@ -287,7 +287,7 @@ def _local_concurrency(plan: SweepPlan) -> int:
         return 1
 
 
-def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: str, sets: dict, remote: bool,
+def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: str, stored: dict, sets: dict, remote: bool,
          held: SweepClaim) -> int:
     # The results table downloads each trial's per-object scores: no progress bar per small file.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
@@ -307,8 +307,8 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
     # in a staging folder, copied at once (sweep.json, so a crashed sweep can be resumed) and at the end.
     staging = Path(tempfile.mkdtemp(prefix="cdm-sweep-")) if is_uri(sweep_dir) else Path(sweep_dir)
-    # A resumed sweep keeps logging into the store it started with, wherever it is resumed from.
-    stored = json.loads(read_text(state_file)) if args.resume else {}
+    # A resumed sweep keeps logging into the store it started with (``stored``: its sweep.json, read and
+    # checked once by main), wherever it is resumed from.
     uri = resolve_tracking_uri(args.tracking_uri or stored.get("tracking_uri"))
     started = connect(args.address)
     quiet_loggers()
