@@ -89,12 +89,14 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
                        name, {"rerun_of": run_id}, config)
     seen = _Record()
     try:
-        result = fit(config, [TrialProgress(name, config.train.steps, "eval/cd"), tracked, seen])
+        fit(config, [TrialProgress(name, config.train.steps, "eval/cd"), tracked, seen])
     except BaseException:  # re-raised: only marks the re-run's MLflow run failed instead of left running
         client.set_terminated(tracked.run_id, "FAILED")
         raise
     client.set_terminated(tracked.run_id)
-    rows = [(m, run.data.metrics.get(m), result.metrics.get(m)) for m in COMPARED]
+    # Both runs' scores as their child runs hold them (the tables' precision, sweeps.execute.tracking).
+    rerun_metrics = client.get_run(tracked.run_id).data.metrics
+    rows = [(m, run.data.metrics.get(m), rerun_metrics.get(m)) for m in COMPARED]
     rows += [(f"repro.{k}", tags.get(f"repro.{k}"), v) for k, v in seen.record.items() if tags.get(f"repro.{k}") != v]
     same = all(a == b for _, a, b in rows)
     width = max(len(r[0]) for r in rows)
