@@ -32,7 +32,7 @@ from sweeps.compare.rules import rounded
 from sweeps.compare.table import ResultsTable, TrialOutcome
 from sweeps.store_retry import PatientClient, wait_when_busy
 
-__all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "baselines_by_eval_set", "cell_means", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_key", "parent_baselines",
+__all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "baselines_by_eval_set", "cell_means", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_histories", "metric_key", "parent_baselines",
            "resolve_tracking_uri", "trial_metrics", "ui_command"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
@@ -304,6 +304,11 @@ def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
     return [{k: (v if k in text else float(v)) for k, v in row.items()} for row in rows]
 
 
+def metric_histories(client: MlflowClient, run_id: str, keys: Iterable[str]) -> dict[str, list[tuple[int, float]]]:
+    """Metric → its ``(step, value)`` history in the run (empty where the run logged none)."""
+    return {k: [(m.step, m.value) for m in client.get_metric_history(run_id, k)] for k in keys}
+
+
 def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path | None:
     """The run's training curves (:func:`sweeps.compare.plots.training_curves` for this one trial: the loss terms
     apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``;
@@ -314,7 +319,7 @@ def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: 
     from sweeps.compare.plots import training_curves
 
     keys = ("train/loss", "train/loss_diffusion", metric)
-    history = {k: [(m.step, m.value) for m in client.get_metric_history(run_id, k)] for k in keys}
+    history = metric_histories(client, run_id, keys)
     if not history["train/loss"] and len(history[metric]) < 2:
         return None
     return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png")

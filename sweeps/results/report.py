@@ -35,7 +35,7 @@ from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.compare.rules import partner, rounded
 from sweeps.compare.table import ResultsTable
-from sweeps.execute.tracking import last_eval_files, last_objects, resolve_tracking_uri
+from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import optuna_distributions, split_label
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
@@ -59,7 +59,7 @@ def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, 
     out = {}
     for t in trials:
         if t.run_id is not None:
-            history = {k: [(m.step, m.value) for m in record.client.get_metric_history(t.run_id, k)] for k in keys}
+            history = metric_histories(record.client, t.run_id, keys)
             if any(history.values()):
                 out[t.outcome.label] = history
     return out
