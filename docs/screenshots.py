@@ -25,50 +25,81 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.error
 import urllib.parse
 import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["chromium_page", "first_screen", "main", "mlflow_server", "pages", "shrink"]
+__all__ = ["chromium_page", "first_screen", "free_port", "main", "mlflow_server", "pages", "shrink", "wait_http"]
 
 
-def _free_port() -> int:
+STARTUP_S = 240.0
+"""How long a local server may take to answer: minutes on a loaded 2-core machine (benchmarks/RESULTS.md)."""
+
+
+def free_port() -> int:
+    """A TCP port free on every interface (Ray's GCS and raylet listen on all of them)."""
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
+        s.bind(("", 0))
         return s.getsockname()[1]
 
 
+def wait_http(url: str, proc: subprocess.Popen, log: Path, headers: dict[str, str] | None = None,
+              timeout_s: float = STARTUP_S) -> None:
+    """Poll ``url`` until it answers 200.
+
+    Raises:
+        RuntimeError: the server process ``proc`` exited, or ``timeout_s`` passed; with the tail of its ``log``.
+    """
+    t0 = time.monotonic()
+    last = "no answer yet"
+    while time.monotonic() - t0 < timeout_s:
+        if proc.poll() is not None:
+            raise RuntimeError(f"server exited with {proc.returncode}:\n{log.read_text()[-3000:]}")
+        try:
+            # A long read timeout: a slow first answer abandoned would only queue the next request behind it.
+            with urllib.request.urlopen(urllib.request.Request(url, headers=headers or {}), timeout=30) as resp:
+                if resp.status == 200:
+                    return
+                last = f"HTTP {resp.status}"
+        except urllib.error.HTTPError as exc:
+            last = f"HTTP {exc.code}"
+        except (urllib.error.URLError, ConnectionError, TimeoutError) as exc:
+            last = repr(exc)  # not listening yet, or busy starting
+        time.sleep(0.5)
+    raise RuntimeError(f"{url} did not answer within {timeout_s:.0f} s (last: {last}); server log:\n{log.read_text()[-3000:]}")
+
+
 @contextmanager
-def mlflow_server(uri: str, log: Path) -> Iterator[str]:
-    """``mlflow server`` on ``uri`` bound to 127.0.0.1; yields its address; stops its process group on exit."""
-    port = _free_port()
+def mlflow_server(uri: str, log: Path, artifacts: Path | None = None, grace_s: float = 15.0) -> Iterator[str]:
+    """``mlflow server`` on ``uri`` bound to 127.0.0.1; yields its address; stops its process group on exit.
+
+    ``artifacts``: where the server keeps the artifacts clients upload through it (``mlflow-artifacts:/``),
+    as ``cluster/README.md`` starts it; None serves the store's own. ``grace_s``: how long it may take to
+    stop before it is killed (uvicorn waits on idle keep-alive connections).
+    """
+    port = free_port()
     # No background job runner (a pool of worker processes) and one web worker: the UI needs neither.
     env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
+    command = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", uri, "--host", "127.0.0.1",
+               "--port", str(port), "--workers", "1"]
+    if artifacts is not None:
+        command += ["--artifacts-destination", str(artifacts)]
     with log.open("w") as out:
-        command = [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", uri, "--host", "127.0.0.1",
-                   "--port", str(port), "--workers", "1"]
         server = subprocess.Popen(command, env=env, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-        url = f"http://127.0.0.1:{port}"
+    url = f"http://127.0.0.1:{port}"
+    try:
+        wait_http(f"{url}/health", server, log)
+        yield url
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
         try:
-            deadline = time.monotonic() + 90
-            while True:
-                try:
-                    urllib.request.urlopen(f"{url}/health", timeout=2)
-                    break
-                except OSError:
-                    if server.poll() is not None or time.monotonic() > deadline:
-                        raise RuntimeError(f"mlflow server did not come up: {log.read_text()[-3000:]}") from None
-                    time.sleep(0.5)
-            yield url
-        finally:
-            os.killpg(server.pid, signal.SIGTERM)
-            try:
-                server.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(server.pid, signal.SIGKILL)
-                server.wait()
+            server.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)
+            server.wait()
 
 
 def chromium_page(chromium: str, url: str, screenshot: Path, profile: Path, width: int = 1600, height: int = 800) -> str:

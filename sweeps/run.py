@@ -27,6 +27,7 @@ from pydantic import ValidationError
 
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
+from sweeps.compare.rules import PROTOCOL_NOTE, settings_notes
 from sweeps.compare.settle import check_budget, describe_rule
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.precompute import check_space, shared_root
@@ -36,7 +37,7 @@ from sweeps.plan.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_prog
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.resources import plan_concurrency
 from sweeps.plan.spec import SeedBudget, Spec, SpecError, load_spec, parse_budget
-from sweeps.plan.trials import SweepPlan, expand, lambda_source
+from sweeps.plan.trials import SweepPlan, expand
 from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
 
@@ -93,19 +94,12 @@ def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
 
 
 def _settings(plan: SweepPlan) -> list[str]:
-    """What produced the numbers, for the table's notes: budget and the training target of the cells."""
-    from sweeps.compare.rules import settings_note
+    """What produced the numbers, for the table's notes: budget, the cells' training target and λ, the card."""
 
-    # Optuna plans have no cells yet: the fixed settings and --set values stand for every trial.
+    # A sampled search's plan has no cells yet: the fixed settings and --set values stand for every trial.
     configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    lambdas = [] if "priors.lambda_3d" in plan.spec.search.space else [c.priors.lambda_3d for c in configs]
-    return [settings_note(plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs), lambdas,
-                          lambda_source(plan.spec, plan.profile.name, plan.fixed, plan.sets)), *_card(plan)]
-
-
-def _card(plan: SweepPlan) -> list[str]:
-    """The protocol card as the table's notes: ``results.md`` keeps it beside the numbers."""
-    return [f"protocol: {line}" for line in plan_card(plan).lines()]
+    return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs),
+                          (c.priors.lambda_3d for c in configs), plan.fixed, plan.sets, plan_card(plan).lines())
 
 
 def _ui_hint(uri: str, path: str) -> str:
@@ -204,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
             spec = spec.until_settled()
         budget = parse_budget(budget_text) if (budget_text := (state or {}).get("budget") or args.budget) else None
         check_trials(spec, args.max_cells)
-        if args.dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and spec.search.kind == "grid":
+        if args.dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and not spec.search.sampled:
             print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
             plan = expand(spec, profile, sets, keep=LISTED_TRIALS, each=check_progress(count))
         else:
@@ -433,8 +427,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         if is_uri(sweep_dir):
             shutil.rmtree(staging)
     # The card was printed before the trials: the terminal's table leaves it to results.md.
-    card = set(_card(plan))
-    shown = replace(table, notes=[n for n in table.notes if n not in card] + ["protocol card: printed above, and in results.md"])
+    shown = replace(table, notes=[n for n in table.notes if not n.startswith(PROTOCOL_NOTE)] + ["protocol card: printed above, and in results.md"])
     print("\n" + shown.text() + "\n")
     if predicted is not None:
         print(f"time: estimated ~{predicted.wall_s / 60:.1f} min, took {took / 60:.1f} min "

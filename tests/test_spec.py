@@ -245,7 +245,7 @@ def test_bad_command_line_exits_2(argv, needle, tmp_path, monkeypatch, capsys):
 def test_until_settled_refuses_an_optuna_spec_and_a_resume_keeps_the_seeds_it_started_with(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(SWEEPS / "lambda.yaml"), "--smoke", "--until-settled"]) == 2
-    assert "--until-settled: an Optuna search samples one trial per point" in capsys.readouterr().err
+    assert "--until-settled: search.kind optuna samples one trial per point" in capsys.readouterr().err
     state = tmp_path / "results" / "point_size" / "smoke" / "sweep.json"
     state.parent.mkdir(parents=True)
     state.write_text("{}")

@@ -32,7 +32,7 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={"profile": "smoke"}, params={"trials": 2})
     assert pickle.loads(pickle.dumps(sweep)).run_id == sweep.run_id  # Tune pickles it with its callbacks
-    cfg = load_config(None, {"priors.point_size": 0.02})
+    cfg = load_config(None, {"priors.point_size": 0.02, "train.steps": 10})  # evaluated at step 10: the last
     first = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg)
     panel = tmp_path / "obj.png"
     panel.write_bytes(b"\x89PNG")
@@ -93,5 +93,6 @@ def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
     parent = client.get_run(sweep.run_id).data.metrics
     assert (parent["a/f1"], parent["baseline/sphere/cd"]) == (0.123, 150.0)
     assert sorted(last_eval_files(client, trial.run_id)) == ["eval/step_0000010/clouds/o1.ply", "eval/step_0000010/objects.csv"]
+    assert "curves" not in {a.path for a in client.list_artifacts(trial.run_id)}  # drawn at the last evaluation only
     curve = learning_curve_png(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
     assert curve.stat().st_size > 2000

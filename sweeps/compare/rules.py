@@ -1,6 +1,7 @@
 """The rules a results table reads numbers by: which metric partners which, the precision it prints
 (and MLflow shows) them at, how verdicts on two metrics combine into one, where ``objects.csv`` holds
-a metric, and the note that says what produced the numbers. Plain functions of names and numbers."""
+a metric, and the notes that say what produced the numbers. Plain functions of names, numbers and the
+spec."""
 
 from __future__ import annotations
 
@@ -8,9 +9,13 @@ import math
 import statistics
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
-__all__ = ["Stat", "number_text", "object_column", "partner", "partner_mode", "rounded", "settings_note", "weighed"]
+from sweeps.plan.spec import Spec
+from sweeps.plan.trials import lambda_source
+
+__all__ = ["PROTOCOL_NOTE", "Stat", "number_text", "object_column", "partner", "partner_mode", "rounded", "settings_note", "settings_notes",
+           "weighed"]
 
 
 @dataclass(frozen=True)
@@ -85,6 +90,21 @@ def settings_note(profile: str, steps: object, targets: Iterable[str], lambdas: 
     lam = f"{values[0]:g}" if len(values) == 1 else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")" if values else "searched"
     return (f"profile {profile}: {steps} steps per trial; prediction target {shown}; "
             f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")
+
+
+PROTOCOL_NOTE = "protocol: "
+"""How a note of the table that is a line of the protocol card begins."""
+
+
+def settings_notes(spec: Spec, profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float],
+                   fixed: dict[str, Any], sets: dict[str, Any], card: Iterable[str]) -> list[str]:
+    """The table's notes on what produced the numbers, the runner's and the report's alike: the
+    :func:`settings_note` (a λ the spec searches is "searched", whatever the trials drew), then the
+    protocol card (:mod:`sweeps.plan.protocol`) a line per note. ``fixed``/``sets``: the plan's fixed
+    overrides and ``--set`` values, where :func:`sweeps.plan.trials.lambda_source` looks for λ."""
+    searched = "priors.lambda_3d" in spec.search.space
+    return [settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),
+            *(PROTOCOL_NOTE + line for line in card)]
 
 
 def object_column(metric: str) -> tuple[str, str | None] | None:

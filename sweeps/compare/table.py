@@ -19,7 +19,7 @@ import csv
 import io
 import math
 import textwrap
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -32,7 +32,7 @@ from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
 
 __all__ = [
-    "FINISHED", "ResultsTable", "TrialOutcome", "build_table", "sweep_order",
+    "FINISHED", "ResultsTable", "TrialOutcome", "build_table", "sweep_order", "unstarted",
 ]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
@@ -71,6 +71,15 @@ def sweep_order(labels: Sequence[str] | None, metric: str, mode: Literal["min", 
         return lambda o: order.get(o.label, len(order))
     sign = 1 if mode == "min" else -1
     return lambda o: sign * o.metrics.get(metric, sign * math.inf)
+
+
+def unstarted(planned: Sequence[str], outcomes: Iterable[TrialOutcome], next_round: Collection[str] | None = None) -> list[str]:
+    """Labels of a grid's ``planned`` trials with no outcome, in plan order: the rows an interrupted sweep
+    lists as pending, the runner's table and the report's alike. ``next_round``: a sequential sweep's
+    trials its rule would start next (:func:`sweeps.compare.settle.final_round`); the seeds it never
+    needed are no trials of it."""
+    seen = {o.label for o in outcomes}
+    return [label for label in planned if label not in seen and (next_round is None or label in next_round)]
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ import os
 import re
 import tempfile
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -345,6 +345,7 @@ class TrialRun(Callback):
     ):
         self.client = PatientClient(uri)
         self.run_name, self.metric = run_name, metric
+        self.last_step = config.train.steps
         found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
         # Last step already in the run, per kind: a crash between a step's log and its evaluation
         # must not make the re-run evaluation look logged.
@@ -393,7 +394,9 @@ class TrialRun(Callback):
         for path in files:
             sub = EVAL_FOLDERS.get(path.suffix)
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}" + (f"/{sub}" if sub else ""))
-        if files:
+        # The curve at the last evaluation only: MLflow charts the metrics live, and drawing it took ~0.7 s
+        # per evaluation (benchmarks/RESULTS.md).
+        if files and step >= self.last_step:
             curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name)
             if curve is not None:
                 self.client.log_artifact(self.run_id, str(curve), "curves")

@@ -37,7 +37,7 @@ from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
-from sweeps.compare.table import TrialOutcome, sweep_order
+from sweeps.compare.table import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.checkpoints import KEEP, CheckpointPruner, prune_finished
 from sweeps.execute.cores import CoreLease, lease_cores
 from sweeps.execute.precompute import precompute, shared_root
@@ -45,7 +45,8 @@ from sweeps.execute.progress import StepReporter, quiet_loggers
 from sweeps.execute.tracking import SweepRun, TrialRun, finished_trial_metrics
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.spec import SeedBudget
-from sweeps.plan.trials import SweepPlan, optuna_distributions
+from sweeps.plan.search import search_kind
+from sweeps.plan.trials import SweepPlan
 
 __all__ = ["TrialJob", "TrialProgress", "TrialSetup", "error_summary", "run_sweep", "run_trial", "train_loop"]
 
@@ -277,22 +278,17 @@ class _TrialCloser(ray.tune.Callback):
 
 def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> tuple[dict[str, Any], Any, int]:
     """Tune param space, search algorithm and sample count: grid cells by label, seeds until settled
-    (:class:`sweeps.execute.seed_search.SeedSearcher`, at most every cell at ``max`` seeds), or Optuna's space."""
+    (:class:`sweeps.execute.seed_search.SeedSearcher`, at most every cell at ``max`` seeds), or the searcher
+    of a kind that samples ``search.space`` (:data:`sweeps.plan.search.SEARCHES`)."""
     s = plan.spec.search
     if plan.sequential is not None:
         from sweeps.execute.seed_search import SeedSearcher
 
         return {}, SeedSearcher(plan, sweep_run, budget), plan.num_trials
-    if s.kind == "grid":
+    if not s.sampled:
         return {"cell": ray.tune.grid_search([c.label for c in plan.cells])}, None, 1
-    import optuna
-    from ray.tune.search.optuna import OptunaSearch
-
-    sampler = (optuna.samplers.TPESampler if s.sampler == "tpe" else optuna.samplers.RandomSampler)(seed=s.seed)
-    study = f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # Optuna study names must be unique per sweep
-    # Given its own space, OptunaSearch never receives TuneConfig's metric/mode: pass them here too.
-    searcher = OptunaSearch(space=optuna_distributions(s.space), metric=plan.spec.metric.name, mode=plan.spec.metric.mode, sampler=sampler,
-                            study_name=study)
+    study = f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # e.g. Optuna's study names are unique per sweep
+    searcher = search_kind(s.kind).tune_searcher(s, plan.spec.metric.name, plan.spec.metric.mode, study)
     return {}, searcher, plan.num_trials
 
 
@@ -394,15 +390,13 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
         shutil.rmtree(root, ignore_errors=True)
     # A trial whose worker never started has no config; grid sweeps list it as pending below.
     outcomes = [_outcome(plan, r, sweep_run) for r in grid if r.config is not None]
-    if plan.spec.search.kind == "grid":
-        # Trials Tune had not created yet when the sweep was interrupted still get their row; in a sequential
-        # sweep only those its rule would still start (seeds it never needed are no trials of it).
-        seen = {o.label for o in outcomes}
+    if not plan.spec.search.sampled:  # trials Tune had not created when the sweep was interrupted get their row
+        next_round = None
         if plan.sequential is not None:
             from sweeps.compare.settle import final_round
 
-            tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
-            seen |= {c.label for c in plan.cells} - set(final_round(plan, outcomes, budget, tags).start)
-        outcomes += [TrialOutcome(c.label, c.name, "pending", {}, c.paper_label, c.paper) for c in plan.cells if c.label not in seen]
-    labels = [c.label for c in plan.cells] if plan.spec.search.kind == "grid" else None
+            next_round = final_round(plan, outcomes, budget, sweep_run.client.get_run(sweep_run.run_id).data.tags).start
+        for cell in map(plan.grid_cell, unstarted([c.label for c in plan.cells], outcomes, next_round)):
+            outcomes.append(TrialOutcome(cell.label, cell.name, "pending", {}, cell.paper_label, cell.paper))
+    labels = [c.label for c in plan.cells] if not plan.spec.search.sampled else None
     return sorted(outcomes, key=sweep_order(labels, plan.spec.metric.name, plan.spec.metric.mode))

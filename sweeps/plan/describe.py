@@ -8,6 +8,7 @@ from collections.abc import Sequence
 
 from sweeps.plan.protocol import plan_card
 from sweeps.plan.resources import plan_concurrency
+from sweeps.plan.search import search_kind
 from sweeps.plan.spec import SpecError
 from sweeps.plan.trials import SweepPlan
 
@@ -15,7 +16,7 @@ __all__ = ["describe", "wrapped"]
 
 
 def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequence[str] = ()) -> str:
-    """The dry-run text: profile, search, resource plan and every trial (or the Optuna space); ``rule``:
+    """The dry-run text: profile, search, resource plan and every trial (or a sampled search's space); ``rule``:
     a sequential sweep's lines (its rule, worst case and budget, :func:`sweeps.compare.settle.describe_rule`)."""
     spec, prof, r = plan.spec, plan.profile, plan.profile.resources
     out = [
@@ -37,9 +38,9 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
     out.append(line)
     out.append("fixed: " + ", ".join(f"{k}={v}" for k, v in {**plan.fixed, **plan.sets}.items()))
     out += ["protocol card:"] + [f"  {line}" for line in plan_card(plan).lines()]
-    if spec.search.kind == "optuna":
+    if spec.search.sampled:
         s = spec.search
-        out.append(f"search: Optuna {s.sampler} (seed {s.seed}), {plan.num_trials} trials, seed {spec.seeds[0]}, over:")
+        out.append(f"search: {search_kind(s.kind).describe(s)}, {plan.num_trials} trials, seed {spec.seeds[0]}, over:")
         for key, p in s.space.items():
             rng = f"{p.choices}" if p.type == "categorical" else f"[{p.low:g}, {p.high:g}]"
             out.append(f"  {key}: {p.type} {rng}")
@@ -47,7 +48,7 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
         out += rule
     else:
         out.append(f"search: grid, {plan.num_trials} trials ({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):")
-    if spec.search.kind == "grid":
+    if not spec.search.sampled:
         for i, cell in enumerate(plan.cells, 1):
             values = ", ".join(f"{k}={v}" for k, v in cell.values.items())
             line = f"  {i:3d}. {cell.label}" + (f"   ({values})" if values else "")

@@ -132,7 +132,7 @@ def count_trials(spec: Any) -> tuple[int, str]:
     A grid counts (explicit cells or 1) × the product of its value lists × seeds, an upper bound
     when ``exclude`` drops combinations; Optuna counts its largest ``num_samples``.
     """
-    if spec.search.kind == "optuna":
+    if spec.search.sampled:
         samples = [spec.search.num_samples, *(p.num_samples for p in spec.profiles.values() if p.num_samples)]
         return max(samples), "search.num_samples"
     return max(1, len(spec.cells)) * math.prod(len(v) for v in spec.grid.values()) * len(spec.seed_values), "grid × cells × seeds"

@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError,
 
 from cdm.config import config_field_paths, format_validation_error
 from sweeps.plan.limits import LimitError, load_yaml
+from sweeps.plan.search import SEARCHES, search_kind
 
 __all__ = [
     "OWNED_FIELDS",
@@ -133,18 +134,33 @@ class SpaceParam(_Strict):
 
 
 class Search(_Strict):
-    kind: Literal["grid", "optuna"] = "grid"
+    """How trials are chosen: ``kind`` names a registered algorithm (:data:`sweeps.plan.search.SEARCHES`)."""
+
+    kind: str = "grid"
     sampler: Literal["tpe", "random"] = "tpe"
+    """Optuna's sampler (``kind: optuna``)."""
     num_samples: int = Field(8, ge=1)
     seed: int = 0
     space: dict[str, SpaceParam] = {}
 
+    @field_validator("kind")
+    @classmethod
+    def _known(cls, kind: str) -> str:
+        search_kind(kind)
+        return kind
+
+    @property
+    def sampled(self) -> bool:
+        """True when the kind draws trials from ``space`` (e.g. Optuna), False for the grid's cells."""
+        return search_kind(self.kind).samples_space
+
     @model_validator(mode="after")
     def _check(self) -> Search:
-        if self.kind == "optuna" and not self.space:
-            raise ValueError("search.space: optuna needs at least one dimension")
-        if self.kind == "grid" and self.space:
-            raise ValueError("search.space: only used with search.kind optuna")
+        if self.sampled and not self.space:
+            raise ValueError(f"search.space: search.kind {self.kind} samples it; give at least one dimension")
+        if not self.sampled and self.space:
+            samplers = ", ".join(name for name, kind in SEARCHES.items() if kind.samples_space)
+            raise ValueError(f"search.space: only used by a search that samples it ({samplers})")
         return self
 
 
@@ -347,10 +363,10 @@ class Spec(_Strict):
         for key, values in self.grid.items():
             if not values:
                 raise ValueError(f"grid.{key}: empty list; give at least one value")
-        if self.search.kind == "grid" and not self.grid and not self.cells:
+        if not self.search.sampled and not self.grid and not self.cells:
             raise ValueError("grid: empty; give at least one dotted config field with a list of values (or cells)")
-        if self.search.kind == "optuna" and (self.grid or self.cells or len(self.seed_values) > 1):
-            raise ValueError("search: optuna explores search.space; leave grid and cells empty and give one seed")
+        if self.search.sampled and (self.grid or self.cells or len(self.seed_values) > 1):
+            raise ValueError(f"search: {self.search.kind} explores search.space; leave grid and cells empty and give one seed")
         if self.sequential is not None and self.scheduler.kind != "none":
             raise ValueError("scheduler: seeds until settled compares finished trials; a scheduler stopping some early "
                              "would compare unequal training: use kind none")
@@ -377,9 +393,9 @@ class Spec(_Strict):
         Raises:
             SpecError: an Optuna spec (it samples one trial per point, with no cell to settle).
         """
-        if self.search.kind == "optuna":
-            raise SpecError("--until-settled: an Optuna search samples one trial per point; seeds until settled "
-                            "need a grid of cells")
+        if self.search.sampled:
+            raise SpecError(f"--until-settled: search.kind {self.search.kind} samples one trial per point; seeds until "
+                            "settled need a grid of cells")
         if self.sequential is not None:
             return self
         rule = UNTIL_SETTLED.model_copy(update={"max": max(UNTIL_SETTLED.max, len(self.seed_values))})

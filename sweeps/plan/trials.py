@@ -11,10 +11,9 @@ One trial's config is resolved in this order, later wins::
 
 :func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
 the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
-searcher may start has its label and config before Ray starts), validates the Optuna space at its bounds, and checks
+searcher may start has its label and config before Ray starts), validates a sampled search's space at its bounds, and checks
 the metric against :func:`cdm.train.metric_names`, so a typo fails with one
-:class:`sweeps.plan.spec.SpecError` naming the field. :func:`optuna_distributions` is the one mapping of a
-spec's ``search.space`` onto Optuna.
+:class:`sweeps.plan.spec.SpecError` naming the field.
 """
 
 from __future__ import annotations
@@ -36,7 +35,6 @@ from sweeps.plan.spec import (
     Profile,
     Resources,
     SequentialSeeds,
-    SpaceParam,
     Spec,
     SpecError,
     field_error,
@@ -44,7 +42,7 @@ from sweeps.plan.spec import (
 )
 
 __all__ = [
-    "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "lambda_source", "optuna_distributions",
+    "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "lambda_source",
     "resolve_profile", "split_label", "trial_label",
 ]
 
@@ -103,7 +101,7 @@ class SweepPlan:
     @property
     def num_trials(self) -> int:
         """Trials of the sweep; a sequential sweep's worst case (every cell at ``max`` seeds)."""
-        if self.spec.search.kind == "optuna":
+        if self.spec.search.sampled:
             return self.profile.num_samples or self.spec.search.num_samples
         return len(self.cells) if self.grid_trials is None else self.grid_trials
 
@@ -135,7 +133,7 @@ class SweepPlan:
 
     def names(self, tune_config: dict[str, Any]) -> tuple[str, str]:
         """(cell name, trial label) of a Tune config, without resolving its config: for the driver's callbacks."""
-        if self.spec.search.kind == "grid":
+        if not self.spec.search.sampled:
             cell = self.grid_cell(tune_config["cell"])
             return cell.name, cell.label
         name = cell_name({k: tune_config[k] for k in self.spec.search.space})
@@ -147,7 +145,7 @@ class SweepPlan:
         A grid cell's config was resolved by :func:`expand`; an Optuna trial's is resolved here, once,
         in the trial that runs it.
         """
-        if self.spec.search.kind == "grid":
+        if not self.spec.search.sampled:
             return self.grid_cell(tune_config["cell"])
         values = {k: tune_config[k] for k in self.spec.search.space}
         seed = self.spec.seed_values[0]
@@ -310,7 +308,7 @@ def expand(
     names: set[str] = set()
     labels: set[int] = set()  # their hashes: 10⁶ labels themselves would hold ~150 MB
     count, compared = 0, False
-    if spec.search.kind == "grid":
+    if not spec.search.sampled:
         for name, values in _cell_values(spec):
             for seed in spec.seed_values:
                 overrides = {**fixed, **values, "train.seed": seed, **sets}
@@ -337,21 +335,6 @@ def expand(
         known = ", ".join(dict.fromkeys(c.name for c in cells))
         raise SpecError(f"compare_to: {spec.compare_to!r} is not a cell of this spec; cells: {known}")
     return SweepPlan(spec, prof, fixed, sets, tuple(cells), _check_metric(spec, names), None if keep is None else count)
-
-
-def optuna_distributions(space: dict[str, SpaceParam]) -> dict[str, Any]:
-    """The spec's ``search.space`` as Optuna distributions (what the searcher samples, what plots read)."""
-    import optuna.distributions as od
-
-    out: dict[str, Any] = {}
-    for key, p in space.items():
-        if p.type == "categorical":
-            out[key] = od.CategoricalDistribution(p.choices)
-        elif p.type == "int":
-            out[key] = od.IntDistribution(int(p.low), int(p.high), step=int(p.step or 1))
-        else:
-            out[key] = od.FloatDistribution(p.low, p.high, log=p.type == "log_float", step=p.step)
-    return out
 
 
 def lambda_source(spec: Spec, profile: str, fixed: dict[str, Any], sets: dict[str, Any]) -> str:

@@ -13,6 +13,7 @@ import math
 import statistics
 import tempfile
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -20,13 +21,13 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.config import DiffusionConfig, PriorsConfig
-from sweeps.compare.settle import final_round
-from sweeps.compare.rules import settings_note
-from sweeps.compare.table import FINISHED, ResultsTable, TrialOutcome, build_table, sweep_order
+from sweeps.compare.settle import Round, final_round
+from sweeps.compare.rules import settings_notes
+from sweeps.compare.table import FINISHED, ResultsTable, TrialOutcome, build_table, sweep_order, unstarted
 from sweeps.execute.tracking import last_objects, parent_baselines, trial_metrics
 from sweeps.plan.protocol import CARD_TAG
 from sweeps.plan.spec import SpaceParam, Spec, load_spec, parse_budget
-from sweeps.plan.trials import expand, lambda_source, split_label
+from sweeps.plan.trials import SweepPlan, expand, split_label
 
 __all__ = [
     "ReportError",
@@ -74,6 +75,12 @@ class SweepRecord:
     @property
     def title(self) -> str:
         return f"{self.spec.name} — profile {self.profile}"
+
+    @cached_property
+    def expanded(self) -> SweepPlan:
+        """The spec expanded again with the sweep's ``--set`` values, once per record: what a sequential
+        sweep's rule reads (the pending rows and the table's stops both ask it)."""
+        return expand(self.spec, self.profile, self.plan.get("sets", {}))
 
 
 @dataclass(frozen=True)
@@ -161,15 +168,14 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
                                tags.get("error") if status == "failed" else None, rows)
         out.append(TrialRecord(outcome, values, run.info.run_id))
-    if record.spec.search.kind == "grid":
-        seen = {t.outcome.label for t in out}
-        for label, c in cells.items():
-            # A sequential sweep's plan lists every seed up to max; those it never started are no trials of it.
-            if label not in seen and record.spec.sequential is None:
-                name = split_label(label)[0]
-                out.append(TrialRecord(TrialOutcome(label, name, "pending", {}, _paper_label(record, c), c.get("paper") or {}),
-                                       c["values"], None))
-    key = sweep_order(list(cells) if record.spec.search.kind == "grid" else None, metric, mode)
+    if not record.spec.search.sampled:
+        outcomes = [t.outcome for t in out]
+        next_round = _final_round(record, outcomes).start if record.spec.sequential is not None else None
+        for label in unstarted(list(cells), outcomes, next_round):
+            c = cells[label]
+            out.append(TrialRecord(TrialOutcome(label, split_label(label)[0], "pending", {}, _paper_label(record, c),
+                                                c.get("paper") or {}), c["values"], None))
+    key = sweep_order(list(cells) if not record.spec.search.sampled else None, metric, mode)
     return sorted(out, key=lambda t: key(t.outcome))
 
 
@@ -182,19 +188,16 @@ def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:
 
 
 def _settings(record: SweepRecord) -> list[str]:
-    """The runner's settings note (``sweeps/run.py``'s ``_settings``), from what MLflow recorded: the
+    """The runner's notes (:func:`sweeps.compare.rules.settings_notes`) from what MLflow recorded: the
     profile's budget on the parent run and each trial's resolved prediction target and λ in its params."""
-    spec, plan = record.spec, record.plan
-    targets = sorted({r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params})
-    if not targets:
-        targets = [plan.get("sets", {}).get("diffusion.prediction") or plan.get("fixed", {}).get("diffusion.prediction", DiffusionConfig().prediction)]
-    lambdas = [] if "priors.lambda_3d" in spec.search.space else sorted(
-        {float(r.data.params["priors.lambda_3d"]) for r in record.children if "priors.lambda_3d" in r.data.params})
-    if not lambdas and "priors.lambda_3d" not in spec.search.space:
-        lambdas = [float({**plan.get("fixed", {}), **plan.get("sets", {})}.get("priors.lambda_3d", PriorsConfig().lambda_3d))]
-    return [settings_note(record.profile, record.parent.data.params.get("steps", "?"), targets, lambdas,
-                          lambda_source(spec, record.profile, plan.get("fixed", {}), plan.get("sets", {}))),
-            *(f"protocol: {line}" for line in protocol_card_lines(record))]
+    plan = record.plan
+    fixed, sets = plan.get("fixed", {}), plan.get("sets", {})
+    targets = {r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params}
+    lambdas = {float(r.data.params["priors.lambda_3d"]) for r in record.children if "priors.lambda_3d" in r.data.params}
+    return settings_notes(record.spec, record.profile, record.parent.data.params.get("steps", "?"),
+                          targets or [sets.get("diffusion.prediction") or fixed.get("diffusion.prediction", DiffusionConfig().prediction)],
+                          lambdas or [float({**fixed, **sets}.get("priors.lambda_3d", PriorsConfig().lambda_3d))],
+                          fixed, sets, protocol_card_lines(record))
 
 
 def protocol_card_lines(record: SweepRecord) -> list[str]:
@@ -204,15 +207,19 @@ def protocol_card_lines(record: SweepRecord) -> list[str]:
     return card.splitlines() if card else ["no protocol card recorded (a sweep from before the card)"]
 
 
+def _final_round(record: SweepRecord, outcomes: list[TrialOutcome]) -> Round:
+    """A sequential sweep's rule on its recorded outcomes, as its searcher last applied it."""
+    budget = record.parent.data.params.get("budget")
+    return final_round(record.expanded, outcomes, parse_budget(budget) if budget else None, record.parent.data.tags)
+
+
 def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTable:
     """The runner's results table (same columns and notes, paired Δ where per-object rows are present)."""
     spec = record.spec
     outcomes = [t.outcome for t in trials]
     settled = None
     if spec.sequential is not None:  # where each cell stopped, as the runner's searcher decided (sweeps/compare/settle.py)
-        budget = record.parent.data.params.get("budget")
-        plan = expand(spec, record.profile, record.plan.get("sets", {}))
-        settled = final_round(plan, outcomes, parse_budget(budget) if budget else None, record.parent.data.tags).records
+        settled = _final_round(record, outcomes).records
     return build_table(outcomes, spec.metric.name, spec.metric.mode, record.title,
                        f"{spec.paper.table}: {spec.paper.note}" if spec.paper else "", compare_to=spec.compare_to,
                        settings=_settings(record), settled=settled)

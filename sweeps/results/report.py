@@ -33,11 +33,12 @@ from cdm.evaluate import BASELINES
 from sweeps.compare.gallery import grid_png, viewer_html
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
-from sweeps.compare.rules import partner, rounded
+from sweeps.compare.rules import PROTOCOL_NOTE, partner, rounded
 from sweeps.compare.table import ResultsTable
 from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri
 from sweeps.plan.spec import Spec
-from sweeps.plan.trials import optuna_distributions, split_label
+from sweeps.plan.search import optuna_distributions
+from sweeps.plan.trials import split_label
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 
 __all__ = [
@@ -79,7 +80,7 @@ def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) ->
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
         paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
-    if spec.search.kind == "optuna":
+    if spec.search.sampled:
         searched = [(t.values, t.outcome.metrics.get(metric) if t.outcome.finished else None)
                     for t in trials if set(t.values) == set(spec.search.space)]
         if searched:
@@ -137,7 +138,7 @@ def describe_sweep(spec: Spec, profile: str, profile_description: str, table: Re
            "\n".join(_prose(line, bullet=True) for line in rest),
            _prose("Every column (the paper's numbers, per category, the baselines each cell beats) is in this run's "
                   "`results.md` artifact.")]
-    notes = [n for n in table.notes if not n.startswith("protocol: ")]
+    notes = [n for n in table.notes if not n.startswith(PROTOCOL_NOTE)]
     out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
     # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists them whole.
     out += ["**Protocol card** (sources in `results.md`):\n"
