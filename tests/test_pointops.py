@@ -211,7 +211,7 @@ def test_voxelize_rounds_half_to_even_and_clamps():
 
 def _naive_devoxelize(vox: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
     """``trilinear_devox.cu``: floor corner plus, per axis with a positive fraction, the next voxel."""
-    c, r = vox.shape[0], vox.shape[1]
+    c = vox.shape[0]
     out = torch.zeros(c, coords.shape[1], dtype=vox.dtype)
     for p, (x, y, z) in enumerate(coords.T.tolist()):
         lo = [math.floor(v) for v in (x, y, z)]

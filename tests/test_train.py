@@ -38,10 +38,10 @@ def _fixed_batch_loss(trainer: Trainer, batches: list) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("backend", ["sparse", "dense"])
-def test_loss_falls_over_a_few_hundred_steps(tmp_path, backend):
+def test_loss_falls_over_a_few_hundred_steps(tmp_path):
+    # The local profile's sparse voxels; the dense back-end computes the same (tests/test_voxels.py).
     cfg = tiny_config(tmp_path, **{"train.steps": 300, "train.eval_every": 300, "train.log_every": 50,
-                                   "model.voxel_backend": backend})
+                                   "model.voxel_backend": "sparse"})
     rec = Recorder()
     result = fit(cfg, [rec])
     losses = [rec.steps[s]["train/loss"] for s in sorted(rec.steps)]

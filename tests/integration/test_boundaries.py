@@ -31,10 +31,10 @@ from sweeps.execute.local_cluster import SESSION_RECORDS, session_pids
 from sweeps.execute.precompute import shared_bytes
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
-from tests.integration.servers import free_port, wait_http
+from docs.screenshots import free_port, wait_http
 from tests.test_trust import small_disk
 
-pytestmark = [pytest.mark.ray, pytest.mark.slow]
+pytestmark = [pytest.mark.ray, pytest.mark.faults, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 BUCKET = "cdm-sweeps"

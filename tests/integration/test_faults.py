@@ -41,7 +41,7 @@ from sweeps import run
 from sweeps.compare.rules import rounded
 from tests.integration.test_job_submit import _stop, serve_mlflow
 
-pytestmark = [pytest.mark.ray, pytest.mark.slow]
+pytestmark = [pytest.mark.ray, pytest.mark.faults, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 WORKER_IP = "127.0.0.2"
@@ -286,17 +286,14 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}, resources:
 def test_killed_driver_after_one_finished_trial_resumes_the_rest(machines, mlflow_http, tmp_path, capfd):
     machines.ensure_worker()
     steps, every = 120, 30
-    # A file:// URI: sweep.json, plan.json, results and Tune's state go through pyarrow, as on S3.
-    storage = f"file://{tmp_path}/store"
+    storage = str(tmp_path / "store")  # a URI's kill and resume: test_boundaries.py (S3)
     argv = _argv(tmp_path, f"""
 name: driver_kill
 grid: {{priors.point_size: [0.01, 0.02, 0.04]}}
 failure: {{max_retries: 1}}
 profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
 """, mlflow_http, storage)
-    env = {**os.environ,
-           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",  # the ray#59110 workaround, for the driver process
-           "TMPDIR": str(tmp_path)}  # its staging folder for the URI, which SIGKILL leaves behind
+    env = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}  # the ray#59110 workaround, for the driver process
     log = tmp_path / "driver.log"
     with log.open("w") as fh:
         driver = subprocess.Popen([sys.executable, str(ROOT / "sweeps" / "run.py"), *argv, "--address", machines.cluster.address],
@@ -334,12 +331,7 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
     before = {c.info.run_name: c.data.metrics["eval/f1"] for c in _children(mlflow_http, "driver_kill") if c.info.run_name in settled}
     capfd.readouterr()
 
-    # Tune's state behind a URI is pickles anyone writing the store could have changed, and the killed
-    # driver recorded no digest of it: refused in one line, until the user vouches for the store.
-    assert run.main([*argv, "--resume"]) == 2
-    refusal = capfd.readouterr().err
-    assert "no digest of" in refusal and "--trust-storage" in refusal and refusal.count("error:") == 1, refusal
-    assert run.main([*argv, "--resume", "--trust-storage"]) == 0  # in this process, already connected: joins the same cluster
+    assert run.main([*argv, "--resume"]) == 0  # in this process, already connected: joins the same cluster
     out = capfd.readouterr().out
     for label in before:
         assert f"▶ started [{label}]" not in out  # finished trials are not re-run
@@ -354,7 +346,7 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
     for label, f1 in before.items():
         # MLflow holds the score at the table's precision; results.csv the unrounded mean.
         assert rounded(float(rows[label.removesuffix(" · seed 0")]["eval/f1 mean"])) == f1
-    # The sweep's own files went through the URI too, and the parent run holds the table.
+    # The parent run holds the table.
     assert json.loads((folder / "sweep.json").read_text())["tracking_uri"] == mlflow_http
     assert (folder / "plan.json").is_file() and (folder / "results.md").is_file()
     parent = json.loads((folder / "sweep.json").read_text())["parent_run_id"]

@@ -36,7 +36,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.integration.servers import free_port, wait_http
+from docs import screenshots
+from docs.screenshots import free_port, wait_http
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -116,9 +117,9 @@ class Head:
     temp_dir: str
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def ray_head() -> Iterator[Head]:
-    """A one-node Ray head (2 CPUs, dashboard on 127.0.0.1, token auth on), stopped afterwards."""
+    """A one-node Ray head (2 CPUs, dashboard on 127.0.0.1, token auth on) for this module's tests, stopped afterwards."""
     # Without ray[default] the dashboard starts in minimal mode with no HTTP server, so no job can
     # be submitted: say so instead of timing out.
     missing = [m for m in ("aiohttp_cors", "grpc", "opencensus") if importlib.util.find_spec(m) is None]
@@ -158,25 +159,22 @@ def ray_head() -> Iterator[Head]:
 @contextmanager
 def serve_mlflow(store: Path, grace_s: float = 10.0) -> Iterator[str]:
     """``mlflow server`` on 127.0.0.1 with a SQLite backend and proxied artifacts in ``store``; its URL."""
-    port = free_port()
     store.mkdir(parents=True, exist_ok=True)
-    cmd = [str(BIN / "mlflow"), "server", "--host", "127.0.0.1", "--port", str(port),
-           "--backend-store-uri", f"sqlite:///{store / 'mlflow.db'}",
-           # Clients upload through the server (mlflow-artifacts:/), so trials on any node reach it.
-           "--artifacts-destination", str(store / "artifacts"), "--workers", "1"]
-    log = store / "server.log"
-    with log.open("w") as out:
-        proc = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        wait_http(f"http://127.0.0.1:{port}/health", proc, log)
-        yield f"http://127.0.0.1:{port}"
-    finally:
-        _stop(proc, None, grace_s=grace_s)
+    # Clients upload through the server (mlflow-artifacts:/), so trials on any node reach it.
+    with screenshots.mlflow_server(f"sqlite:///{store / 'mlflow.db'}", store / "server.log", artifacts=store / "artifacts",
+                       grace_s=grace_s) as url:
+        yield url
 
 
-@pytest.fixture
-def mlflow_server(tmp_path) -> Iterator[str]:
-    with serve_mlflow(tmp_path / "mlflow_server") as url:
+@pytest.fixture(scope="module")
+def mlflow_store(tmp_path_factory) -> Path:
+    """Where the module's ``mlflow server`` keeps its runs and the artifacts uploaded through it."""
+    return tmp_path_factory.mktemp("mlflow_server")
+
+
+@pytest.fixture(scope="module")
+def mlflow_server(mlflow_store) -> Iterator[str]:
+    with serve_mlflow(mlflow_store) as url:
         yield url
 
 
@@ -211,7 +209,7 @@ def test_head_binds_loopback_and_requires_the_token(ray_head, mlflow_server):
     assert _listening_on(int(mlflow_server.rsplit(":", 1)[1])) == {"127.0.0.1"}
 
 
-def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, mlflow_server, tmp_path):
+def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, mlflow_server, mlflow_store, tmp_path):
     from mlflow import MlflowClient
 
     from sweeps.execute.tracking import last_eval_files
@@ -259,7 +257,7 @@ def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, 
         assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
         assert "config.yaml" in {a.path for a in client.list_artifacts(child.info.run_id)}
     # Artifacts went through the server into its own store, not into the job's working directory.
-    stored = list((tmp_path / "mlflow_server" / "artifacts").rglob("*.ply"))
+    stored = list((mlflow_store / "artifacts").rglob("*.ply"))
     assert len(stored) >= 5
     assert all(math.isfinite(c.data.metrics["eval/cd"]) for c in children)
     assert (storage / "point_size" / "smoke" / "results.md").is_file()

@@ -1,18 +1,17 @@
 """End-to-end sweeps on a real local Ray cluster, real Optuna and a real MLflow SQLite store.
 
 One Ray session serves the whole module (start-up is the slow part on 2 CPUs); every sweep uses the
-smoke profile, shrunk further by the test specs. The interrupted-sweep test runs its first driver as
-a separate process joined to that cluster, kills it with SIGKILL, and resumes in-process.
+smoke profile, shrunk further by the test specs. The 2-cell grid runs once (:func:`e2e`): its test
+reads it end to end, the re-run test re-trains one of its trials.
 """
 
 from __future__ import annotations
 
-import os
+import contextlib
+import io
 import re
-import signal
-import subprocess
-import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -47,22 +46,41 @@ def _children(uri: str, experiment: str):
     return client, parents, children
 
 
-def test_grid_of_two_cells_end_to_end(cluster, tmp_path, capsys):
+@dataclass(frozen=True)
+class Sweep:
+    folder: Path
+    """The sweep's storage (``--storage``)."""
+    uri: str
+    out: str
+    """What the runner printed."""
+    wall: float
+
+
+@pytest.fixture(scope="module")
+def e2e(cluster, tmp_path_factory) -> Sweep:
+    """A 2-cell smoke grid with a paper row, run once for the module's tests."""
+    tmp_path = tmp_path_factory.mktemp("e2e")
     argv, uri = _sweep(tmp_path, "name: e2e\ngrid: {priors.point_size: [0.02, 0.04]}\n"
                           "paper: {table: T5, rows: [{label: size 0.04, when: {priors.point_size: 0.04}, values: {eval/f1: 0.461}}]}\n")
+    printed = io.StringIO()
     t0 = time.perf_counter()
-    assert run.main(argv) == 0
-    wall = time.perf_counter() - t0
-    out = capsys.readouterr().out
+    with contextlib.redirect_stdout(printed):
+        assert run.main(argv) == 0
+    return Sweep(tmp_path / "results", uri, printed.getvalue(), time.perf_counter() - t0)
+
+
+def test_grid_of_two_cells_end_to_end(e2e):
+    out, uri = e2e.out, e2e.uri
     assert "profile in force: smoke" in out
     assert f"mlflow ui --backend-store-uri {uri} --host 127.0.0.1" in out
     table = out[out.index("e2e — profile smoke"):]
     assert "point_size=0.02" in table and "point_size=0.04" in table and "0.461" in table and "baseline: sphere" in table
-    folder = tmp_path / "results" / "e2e" / "smoke"
+    folder = e2e.folder / "e2e" / "smoke"
     assert (folder / "results.md").read_text().count("| point_size=0.0") == 2
     assert (folder / "results.csv").read_text().splitlines()[0].startswith("cell,")
 
     client, parents, children = _children(uri, "e2e")
+    children = [c for c in children if "rerun_of" not in c.data.tags]  # the re-run test's run joins the experiment
     assert len(parents) == 1 and len(children) == 2
     parent = parents[0]
     assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"spec.yaml", "plan.json", "results.md", "results.csv"}
@@ -81,7 +99,7 @@ def test_grid_of_two_cells_end_to_end(cluster, tmp_path, capsys):
         files = last_eval_files(client, child.info.run_id)  # eval/step_0000020/{panels,clouds}/
         assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
         assert "config.yaml" in {a.path for a in client.list_artifacts(child.info.run_id)}
-    print(f"\n2-cell smoke grid: {wall:.1f} s wall")
+    print(f"\n2-cell smoke grid: {e2e.wall:.1f} s wall")
 
 
 def test_optuna_search_with_asha_stops_a_trial(cluster, tmp_path):
@@ -135,59 +153,15 @@ def test_a_diverging_trial_fails_with_its_reason_and_the_sweep_goes_on(cluster, 
     assert "lr=1e+30" in csv and ",1," in csv.splitlines()[2]
 
 
-def test_killed_driver_resumes_each_trial_exactly_once(cluster, tmp_path, capfd):
-    argv, uri = _sweep(tmp_path, """
-name: kill
-grid: {priors.point_size: [0.01, 0.02, 0.04]}
-resources: {max_concurrent_trials: 1}
-profiles: {smoke: {budget: {steps: 200, eval_every: 20}}}
-""")
-    log = (tmp_path / "driver.log").open("w")
-    driver = subprocess.Popen([sys.executable, str(ROOT / "sweeps" / "run.py"), *argv, "--address", cluster],
-                              cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
-    folder = tmp_path / "results" / "kill" / "smoke"
-    deadline = time.monotonic() + 240
-    while time.monotonic() < deadline and driver.poll() is None:
-        # sweep.json appears once the driver has created the database; reading earlier races its migration.
-        _, _, children = _children(uri, "kill") if (folder / "sweep.json").exists() else (None, [], [])
-        finished = [c for c in children if c.info.status == "FINISHED"]
-        # Kill once the second trial has checkpointed a few times (Tune snapshots its state each second).
-        first_dir = finished[0].data.tags["tune_trial_dir"].split("/")[-1] if finished else None
-        second = [int(c.name.split("_")[-1]) for t in folder.glob("trial_*") if t.name != first_dir for c in t.glob("checkpoint_*")]
-        if finished and max(second, default=-1) >= 2:
-            break
-        time.sleep(0.2)
-    assert driver.poll() is None, (tmp_path / "driver.log").read_text()[-3000:]
-    os.kill(driver.pid, signal.SIGKILL)
-    driver.wait()
-    first_label = finished[0].info.run_name
-    capfd.readouterr()
-
-    assert run.main([*argv, "--resume"]) == 0
-    out = capfd.readouterr().out
-    assert f"▶ started [{first_label}]" not in out  # the finished trial is not re-run
-    assert "resuming from" in out  # the interrupted trial continues from its checkpoint
-    client, parents, children = _children(uri, "kill")
-    assert len(parents) == 1 and len(children) == 3
-    assert len({c.data.tags["trial_id"] for c in children}) == 3
-    for child in children:
-        assert child.info.status == "FINISHED"
-        steps = [m.step for m in client.get_metric_history(child.info.run_id, "train/loss")]
-        assert sorted(steps) == list(range(5, 201, 5)), (child.info.run_name, steps)
-    table = out[out.index("kill — profile smoke"):]
-    assert table.count(" 1/1 ") == 3 and "(3/3 trials done)" in out
-
-
-def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(cluster, tmp_path, capsys):
-    argv, uri = _sweep(tmp_path, "name: again\ngrid: {priors.point_size: [0.04]}\n")
-    assert run.main(argv) == 0
-    client, _, children = _children(uri, "again")
-    child = children[0]
+def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys):
+    uri = e2e.uri
+    client, _, children = _children(uri, "e2e")
+    child = next(c for c in children if c.info.run_name == "point_size=0.04 · seed 0")
     tags = child.data.tags
     assert tags["repro.git_commit"] and tags["repro.config_hash"] and tags["repro.version_torch"]
     assert tags["repro.data_fingerprint"].startswith("train ") and tags["eval_set"]
     capsys.readouterr()
-    rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--storage", str(tmp_path / "results")]
+    rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--storage", str(e2e.folder)]
     assert run.main(rerun_argv) == 0
     out = capsys.readouterr().out
     assert "reproduced exactly" in out and "DIFFERENT" not in out
@@ -204,6 +178,7 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(cluster, tm
     client.set_tag(child.info.run_id, "repro.config_hash", "0" * 16)
     assert run.main(rerun_argv) == 2
     assert f"differs from the recorded {'0' * 16}" in capsys.readouterr().err
+    client.set_tag(child.info.run_id, "repro.config_hash", tags["repro.config_hash"])
 
 
 def test_progress_line_counts_steps_across_trials_in_place_on_a_terminal(cluster):
