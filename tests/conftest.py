@@ -47,17 +47,6 @@ def tiny_config(tmp_path, **overrides) -> Config:
     return load_config(TINY, {"train.out_dir": str(tmp_path / "run"), **overrides})
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Ray tests run in two groups, each one test after another on one pytest-xdist worker
-    (``--dist loadgroup``), so at most two Ray clusters share the machine: the ``faults`` modules, which
-    time kills against training progress, and the other sweeps. The unit tests fill the workers' gaps.
-    A module stays in one group: its Ray cluster is a module fixture."""
-    for item in items:
-        if item.get_closest_marker("ray"):
-            item.add_marker(pytest.mark.xdist_group("ray-faults" if item.get_closest_marker("faults") else "ray"))
-
-
 @pytest.fixture
 def tiny(tmp_path) -> Config:
     return tiny_config(tmp_path)

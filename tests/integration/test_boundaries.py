@@ -34,7 +34,7 @@ from sweeps.plan.trials import expand
 from docs.screenshots import free_port, wait_http
 from tests.test_trust import small_disk
 
-pytestmark = [pytest.mark.ray, pytest.mark.faults, pytest.mark.slow]
+pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 BUCKET = "cdm-sweeps"

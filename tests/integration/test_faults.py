@@ -41,7 +41,7 @@ from sweeps import run
 from sweeps.compare.rules import rounded
 from tests.integration.test_job_submit import _stop, serve_mlflow
 
-pytestmark = [pytest.mark.ray, pytest.mark.faults, pytest.mark.slow]
+pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 WORKER_IP = "127.0.0.2"
