@@ -24,7 +24,7 @@ from mlflow import MlflowClient
 
 from sweeps import run
 
-pytestmark = [pytest.mark.ray, pytest.mark.faults, pytest.mark.slow]
+pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -108,13 +108,19 @@ def test_a_driver_killed_after_round_1_resumes_without_running_a_seed_twice(clus
     driver.wait()
     _, _, children = _children(uri, "again")
     finished = [c for c in children if c.info.status == "FINISHED"]
-    assert {c.info.run_name for c in finished} >= {f"{cell} · seed {s}" for cell in ("reference", "null") for s in (0, 1)}
+    round_1 = {f"{cell} · seed {s}" for cell in ("reference", "null") for s in (0, 1)}
+    assert {c.info.run_name for c in finished} >= round_1
     capfd.readouterr()
 
     assert run.main([*argv, "--resume"]) == 0
     out = capfd.readouterr().out
-    for child in finished:  # round 1 is not trained again
-        assert f"▶ started [{child.info.run_name}]" not in out
+    for name in (c.info.run_name for c in finished):
+        # Round 1 is in Tune's snapshot as done: not scheduled again. A round-2 seed that finished after the
+        # last snapshot is scheduled again, and its trial must find its finished MLflow run and not train.
+        if name in round_1:
+            assert f"▶ started [{name}]" not in out
+        assert f"[{name}] step " not in out
+        assert f"▶ started [{name}]" not in out or f"[{name}] already finished before the driver stopped" in out
     assert "[null · seed 2] resuming from" in out or "▶ started [null · seed 2]" in out
     client, parents, children = _children(uri, "again")
     labels = Counter(c.info.run_name for c in children)
