@@ -10,7 +10,6 @@ schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Fil
 from __future__ import annotations
 
 import os
-import pickle
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -23,6 +22,7 @@ from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.runtime import resolve_device
+from cdm.torch_files import load_tensors
 
 __all__ = ["CHECKPOINT_FILE", "Checkpoint", "LoadedNetwork", "load_checkpoint", "load_network", "network_config", "save_checkpoint"]
 
@@ -88,14 +88,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     file = path / CHECKPOINT_FILE if path.is_dir() else path
     if not file.is_file():
         raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
-    try:
-        state = torch.load(file, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        # Our own words: torch's message ends advising weights_only=False, i.e. running the file's code.
-        raise ValueError(f"checkpoint: {file} holds Python objects other than tensors and plain data; refused, "
-                         "since loading them could run code from the file. Load only checkpoints written by cdm") from None
-    except (RuntimeError, EOFError) as exc:
-        raise ValueError(f"checkpoint: {file} is not a readable CDM checkpoint ({exc})") from None
+    state = load_tensors(file, f"checkpoint: {file}", "CDM checkpoint", "Load only checkpoints written by cdm")
     missing = set(_REQUIRED) - set(state if isinstance(state, dict) else ())
     if missing:
         raise ValueError(f"checkpoint: {file} is not a CDM checkpoint (missing {', '.join(sorted(missing))})")

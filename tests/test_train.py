@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 
 import pytest
@@ -132,7 +133,10 @@ def test_resume_accepts_auto_resolved_to_the_same_backend_and_refuses_other_math
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     bad = tmp_path / "checkpoint.pt"
-    bad.write_bytes(b"not a checkpoint")  # not a pickle: weights_only refuses it, in our words (issue 23)
+    bad.write_bytes(b"not a checkpoint")  # not torch's format at all: said so, not called pickled objects
+    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt is not a readable CDM checkpoint: not in torch's file format"):
+        load_checkpoint(tmp_path)
+    torch.save({"step": 0, "model": argparse.Namespace(code=1)}, bad)  # weights_only refuses it, in our words (issue 23)
     with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt holds Python objects other than tensors and plain data; refused") as err:
         load_checkpoint(tmp_path)
     assert "weights_only" not in str(err.value)

@@ -590,8 +590,8 @@ def test_the_encoder_weights_refusal_never_advises_weights_only_false(tmp_path):
 
     torch.save({"target_encoder": argparse.Namespace(code=1)}, tmp_path / "objects.pth")
     (tmp_path / "garbage.pth").write_bytes(b"not a torch file")
-    for name in ("objects.pth", "garbage.pth"):
-        with pytest.raises(ValueError, match="could run code from the file") as refused:
+    for name, reason in (("objects.pth", "could run code from the file"), ("garbage.pth", "not in torch's file format")):
+        with pytest.raises(ValueError, match=reason) as refused:
             load_msn_state_dict(tmp_path / name)
         assert "weights_only" not in str(refused.value)
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import pickle
 from pathlib import Path
 from typing import NamedTuple
 
@@ -36,6 +35,7 @@ from cdm.config import ModelConfig
 from cdm.data.lru import ByteLRU
 from cdm.paths import input_path
 from cdm.model.voxels import norm_groups
+from cdm.torch_files import load_tensors
 
 __all__ = [
     "MSN_WEIGHTS_URL",
@@ -208,14 +208,7 @@ def load_msn_state_dict(path: str | Path) -> dict[str, Tensor]:
     field = f"model.encoder_weights: {path}"
     if not path.is_file():
         raise ValueError(f"{field}: no such file; download MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
-    try:
-        raw = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
-        # Our own words: torch's message advises weights_only=False, i.e. running the file's code.
-        raise ValueError(f"{field}: not a readable torch file of tensors and plain data; anything else is refused, "
-                         f"since loading it could run code from the file. Use MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}") from None
-    except (RuntimeError, EOFError) as exc:
-        raise ValueError(f"{field}: not a readable torch file ({exc})") from None
+    raw = load_tensors(path, field, "torch file", f"Use MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
     state = raw.get("target_encoder", raw) if isinstance(raw, dict) else None
     if not isinstance(state, dict):
         raise ValueError(f"{field}: expected a state dict or MSN's checkpoint with 'target_encoder'")

@@ -23,15 +23,14 @@ Files are read with ``torch.load(weights_only=True)``. PC²'s checkpoints also p
 
 from __future__ import annotations
 
-import pickle
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
-import torch
 from torch import Tensor
 
 from cdm.model.pvcnn2 import PVCNN2Denoiser
+from cdm.torch_files import load_tensors
 
 __all__ = [
     "Reference",
@@ -111,18 +110,13 @@ def load_reference_checkpoint(path: str | Path, reference: Reference) -> dict[st
     """Read a reference checkpoint file on CPU and return its PVCNN2 weights under our names.
 
     Raises:
-        ValueError: the file pickles objects other than tensors and containers (PC²'s ``cfg``). Extract
-            the model once in an environment you trust:
+        ValueError: the file pickles objects other than tensors and containers (PC²'s ``cfg``), or torch
+            cannot read it. Extract the model once in an environment you trust:
             ``torch.save(torch.load(p, weights_only=False)["model"], "pc2_model.pth")``.
     """
-    try:
-        checkpoint = torch.load(Path(path), map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as err:
-        raise ValueError(
-            f"{path} holds more than tensors (PC²'s checkpoints pickle their config), which we do not unpickle. "
-            f"Where you trust the file, run: python -c \"import torch; torch.save(torch.load('{path}', "
-            f"weights_only=False)['model'], 'model_only.pth')\" and pass model_only.pth. ({err.__class__.__name__})"
-        ) from err
+    checkpoint = load_tensors(Path(path), str(path), "torch file", (
+        "PC²'s checkpoints pickle their config: where you trust the file, run: python -c \"import torch; "
+        f"torch.save(torch.load('{path}', weights_only=False)['model'], 'model_only.pth')\" and pass model_only.pth"))
     return reference_state_dict(checkpoint, reference)
 
 
