@@ -277,6 +277,13 @@ def main(argv: list[str] | None = None) -> int:
     except TrainingDiverged as exc:
         print(f"error: training diverged: {exc}", file=sys.stderr)
         return 1
+    except MemoryError:
+        # The readers' caps (cdm/safe_io.py) come first; what still runs out names the command's inputs.
+        inputs = ", ".join(f"--{k.replace('_', '-')} {v}" for k in ("root", "config", "checkpoint", "image", "depth_maps")
+                           if (v := getattr(args, k, None)))
+        print(f"error: out of memory in `python -m cdm {args.command}` ({inputs or 'no input files'}); "
+              "check those inputs' sizes, or free memory", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -86,7 +86,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     """
     path = Path(path)
     file = path / CHECKPOINT_FILE if path.is_dir() else path
-    if not file.is_file():
+    if not file.exists():
         raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
     state = load_tensors(file, f"checkpoint: {file}", "CDM checkpoint", "Load only checkpoints written by cdm")
     missing = set(_REQUIRED) - set(state if isinstance(state, dict) else ())

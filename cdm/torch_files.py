@@ -13,6 +13,8 @@ from typing import Any
 
 import torch
 
+from cdm.safe_io import open_regular
+
 __all__ = ["load_tensors"]
 
 
@@ -26,13 +28,21 @@ def load_tensors(file: Path, label: str, kind: str, advice: str) -> Any:
         advice: the sentence after a refusal of pickled objects: what to pass instead.
 
     Raises:
-        ValueError: the file pickles other objects, or torch cannot read it; the message starts with ``label``.
+        ValueError: the file pickles other objects, torch cannot read it, or it is not a regular file (a
+            FIFO, a device such as ``/dev/zero``, a folder: refused before a byte is read); the message
+            starts with ``label``.
     """
+    with open_regular(file, label, show_path=False) as f:
+        return _load(f, label, kind, advice)
+
+
+def _load(f, label: str, kind: str, advice: str) -> Any:
     try:
-        return torch.load(file, map_location="cpu", weights_only=True)
+        return torch.load(f, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
         # torch.save writes a zip archive; what is not one is not a torch file at all, pickled objects or not.
-        if not zipfile.is_zipfile(file):
+        f.seek(0)
+        if not zipfile.is_zipfile(f):
             raise ValueError(f"{label} is not a readable {kind}: not in torch's file format") from None
         raise ValueError(f"{label} holds Python objects other than tensors and plain data; refused, since loading "
                          f"them could run code from the file. {advice}") from None

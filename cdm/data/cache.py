@@ -34,6 +34,7 @@ from torch import Tensor
 from cdm.cameras import Cameras
 from cdm.data.lru import ByteLRU
 from cdm.data.views import interleave
+from cdm.safe_io import MAX_TEXT_BYTES, object_id_parts, open_regular, parse_json, read_json
 
 __all__ = [
     "DECODED",
@@ -150,16 +151,17 @@ class Shard(NamedTuple):
 def read_shard(path: Path) -> Shard:
     """Map one shard; ValueError naming the file if it is not a complete shard."""
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, "data.root") as f:
             head = f.read(16)
             if len(head) != 16 or head[:8] != _MAGIC:
                 raise ValueError(f"data.root: {path} is not a CDM shard (bad magic); delete it and rerun `python -m cdm prepare`")
-            header = json.loads(f.read(int.from_bytes(head[8:], "little")))
+            length = int.from_bytes(head[8:], "little")
+            if length > MAX_TEXT_BYTES:
+                raise ValueError(f"data.root: {path} has a header of {length} bytes; delete it and rerun `python -m cdm prepare`")
+            header = parse_json(f.read(length), "data.root", path)
             buffer = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
     except OSError as exc:
         raise ValueError(f"data.root: cannot read shard {path}: {exc.strerror}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ValueError(f"data.root: {path} has a damaged header ({exc}); delete it and rerun `python -m cdm prepare`") from None
     start = -(-(16 + int.from_bytes(head[8:], "little")) // _ALIGN) * _ALIGN
     arrays = {}
     for name, spec in header["arrays"].items():
@@ -192,12 +194,9 @@ class PreparedRoot:
     def open(cls, root: Path, kind: str) -> PreparedRoot:
         """Read ``root``'s manifest; ValueError if it is damaged or was prepared for another kind."""
         path = root / MANIFEST
-        try:
-            manifest = json.loads(path.read_text())
-        except OSError as exc:
-            raise ValueError(f"data.root: cannot read {path}: {exc.strerror}") from None
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"data.root: {path} is not valid JSON ({exc}); prepare the root again") from None
+        manifest = read_json(path, "data.root")
+        if not isinstance(manifest, dict):
+            raise ValueError(f"data.root: {path} is not a manifest of `python -m cdm prepare`; prepare the root again")
         if manifest.get("format") != FORMAT:
             raise ValueError(f"data.root: {path} has format {manifest.get('format')!r}, this version reads {FORMAT}; prepare again")
         if manifest["kind"] != kind:
@@ -215,6 +214,8 @@ class PreparedRoot:
                 f"data.eval_split: {self.root} was prepared with splits {sorted(splits)}, not {published!r}; "
                 f"run `python -m cdm prepare ... --set data.eval_split={published}` into another --out"
             )
+        for c, oid in splits[published]:  # ids become shard paths: none may leave the root
+            object_id_parts(oid, f"data.root: {self.root / MANIFEST}, split {published!r}, category {str(c)[:40]!r}")
         per_category = [[(c, oid) for c, oid in splits[published] if c == category] for category in categories]
         refs = interleave(per_category)
         missing = [p for p in (self.shard_path(published, oid) for _, oid in refs) if not p.is_file()]

@@ -42,9 +42,9 @@ centred on the frame (:func:`centred_box`): from the annotation alone, no image 
 
 from __future__ import annotations
 
-import gzip
 import hashlib
-import json
+import io
+import math
 import random
 from collections import defaultdict
 from functools import lru_cache
@@ -65,6 +65,7 @@ from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
 from cdm.normalise import IDENTITY
 from cdm.normalise import Frame as NormalisedFrame
+from cdm.safe_io import MAX_ARRAY_BYTES, inside, plain_name, read_bounded, read_json
 
 __all__ = ["CROP_MARGIN", "SET_LIST", "Co3DDataset", "centred_box", "crop_camera", "kept_frames", "load_depth"]
 
@@ -104,36 +105,71 @@ class Category(NamedTuple):
 
 
 def _read_json(path: Path, gzipped: bool):
-    try:
-        raw = gzip.decompress(path.read_bytes()) if gzipped else path.read_bytes()
-        return json.loads(raw)
-    except FileNotFoundError:
-        raise ValueError(f"data.root: annotation file {path} is missing; Co3D v2 has it in every category folder") from None
-    except OSError as exc:  # gzip.BadGzipFile is an OSError
-        raise ValueError(f"data.root: cannot read {path}: {exc}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError, EOFError) as exc:
-        raise ValueError(f"data.root: {path} is not {'gzipped ' if gzipped else ''}JSON ({exc})") from None
+    if not path.exists():
+        raise ValueError(f"data.root: annotation file {path} is missing; Co3D v2 has it in every category folder")
+    return read_json(path, "data.root", gzipped)
+
+
+MIN_FOCAL, MAX_FOCAL = 0.05, 50.0
+"""Accepted NDC focal lengths (Co3D v2's are about 1 to 5): outside, a crop or camera would be degenerate."""
+MAX_FRAME_SIDE = 4096
+"""Longest image side an annotation may give, in pixels (Co3D v2's frames are at most 1,920): with
+:data:`MAX_PIXEL_ASPECT` it bounds the memory of one crop (~170 MB)."""
+MAX_PIXEL_ASPECT = 2.0
+"""Most ratio between a frame's horizontal and vertical pixel size (``fx·hx : fy·hy``; Co3D's are square),
+which sets the crop's width: past it one crop could allocate without bound."""
+MAX_PRINCIPAL = 10.0
+"""Largest NDC principal-point coordinate accepted (Co3D's are near 0)."""
+
+
+def _finite(values, count: int, what: str) -> np.ndarray:
+    array = np.asarray(values, dtype=np.float64)
+    if array.size != count or not np.isfinite(array).all():
+        raise ValueError(f"{what} must be {count} finite numbers")
+    return array
 
 
 def _frame(entry: dict, file_order: int) -> Frame:
+    """One entry of ``frame_annotations.jgz``, every field checked: paths stay below the root, sizes,
+    intrinsics and depth scale in range (ValueError saying which field)."""
     depth = entry.get("depth") or {}
-    view = entry["viewpoint"]
-    mass = entry["mask"].get("mass")
-    return Frame(
+    view, image, mask = entry["viewpoint"], entry["image"], entry["mask"]
+    if not all(isinstance(x, dict) for x in (depth, view, image, mask)):
+        raise ValueError("image, mask, depth and viewpoint must be objects")
+    mass = mask.get("mass")
+    if mass is not None and not (isinstance(mass, (int, float)) and math.isfinite(mass) and mass >= 0):
+        raise ValueError(f"mask.mass {mass!r} must be a finite number ≥ 0")
+    size = tuple(int(x) for x in _finite(image["size"], 2, "image.size"))
+    if not all(0 < x <= MAX_FRAME_SIDE for x in size):
+        raise ValueError(f"image.size {list(size)} must be two sides of 1 to {MAX_FRAME_SIDE} pixels")
+    focal = _finite(view["focal_length"], 2, "viewpoint.focal_length")
+    if not all(MIN_FOCAL <= f <= MAX_FOCAL for f in focal):
+        raise ValueError(f"viewpoint.focal_length {focal.tolist()} must lie in [{MIN_FOCAL}, {MAX_FOCAL}] (NDC)")
+    principal = _finite(view["principal_point"], 2, "viewpoint.principal_point")
+    if np.abs(principal).max() > MAX_PRINCIPAL:
+        raise ValueError(f"viewpoint.principal_point {principal.tolist()} must lie in [-{MAX_PRINCIPAL}, {MAX_PRINCIPAL}] (NDC)")
+    scale = float(depth.get("scale_adjustment") or 1.0)
+    if not (math.isfinite(scale) and scale > 0):
+        raise ValueError(f"depth.scale_adjustment {scale!r} must be finite and > 0")
+    frame = Frame(
         number=int(entry["frame_number"]),
         file_order=file_order,
         mask_mass=None if mass is None else float(mass),
-        image=entry["image"]["path"],
-        size=(int(entry["image"]["size"][0]), int(entry["image"]["size"][1])),
-        mask=entry["mask"]["path"],
-        depth=depth.get("path"),
-        scale_adjustment=float(depth.get("scale_adjustment") or 1.0),
-        R=np.asarray(view["R"], dtype=np.float64).reshape(3, 3),
-        T=np.asarray(view["T"], dtype=np.float64).reshape(3),
-        focal=(float(view["focal_length"][0]), float(view["focal_length"][1])),
-        principal=(float(view["principal_point"][0]), float(view["principal_point"][1])),
+        image=inside(image["path"], "image.path"),
+        size=(size[0], size[1]),
+        mask=inside(mask["path"], "mask.path"),
+        depth=None if depth.get("path") is None else inside(depth["path"], "depth.path"),
+        scale_adjustment=scale,
+        R=_finite(view["R"], 9, "viewpoint.R").reshape(3, 3),
+        T=_finite(view["T"], 3, "viewpoint.T"),
+        focal=(float(focal[0]), float(focal[1])),
+        principal=(float(principal[0]), float(principal[1])),
         ndc_format=view.get("intrinsics_format", "ndc_norm_image_bounds"),
     )
+    hx, hy = _half_sizes(frame)
+    if not 1 / MAX_PIXEL_ASPECT <= frame.focal[0] * hx / (frame.focal[1] * hy) <= MAX_PIXEL_ASPECT:
+        raise ValueError(f"viewpoint.focal_length {focal.tolist()} gives pixels {MAX_PIXEL_ASPECT}× wider than high or more")
+    return frame
 
 
 @lru_cache(maxsize=8)
@@ -141,19 +177,31 @@ def _category(folder: Path, stamp: tuple[int, ...]) -> Category:
     """Parse one category's annotations (once per process and file version: ``stamp`` = mtimes)."""
     files = [folder / name for name in _ANNOTATIONS]
     frames: dict[str, list[Frame]] = defaultdict(list)
-    for entry in _read_json(files[0], gzipped=True):
+    entries = _read_json(files[0], gzipped=True)
+    if not isinstance(entries, list):
+        raise ValueError(f"data.root: {files[0]} is not a JSON list of frame entries")
+    for number, entry in enumerate(entries):
         try:
-            seq = frames[entry["sequence_name"]]
+            seq = frames[plain_name(entry["sequence_name"], "sequence_name")]
             seq.append(_frame(entry, len(seq)))
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise ValueError(f"data.root: {files[0]} has a malformed frame entry ({type(exc).__name__}: {exc})") from None
+        except ValueError as exc:  # the checks say which field; int() and float() say which value
+            raise ValueError(f"data.root: {files[0]} entry {number}: {exc}") from None
+        except (KeyError, TypeError, IndexError, AttributeError, OverflowError) as exc:
+            raise ValueError(f"data.root: {files[0]} entry {number} is malformed ({type(exc).__name__}: {exc})") from None
     for seq in frames.values():
         seq.sort(key=lambda f: f.number)
+    sequences, set_lists = _read_json(files[1], gzipped=True), _read_json(files[2], gzipped=False)
+    where = f"data.root: {files[1]}, sequence"
     try:
-        clouds = {s["sequence_name"]: s["point_cloud"]["path"] for s in _read_json(files[1], gzipped=True) if s.get("point_cloud")}
-        lists = {k: [(str(e[0]), int(e[1])) for e in v] for k, v in _read_json(files[2], gzipped=False).items()}
-    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
-        raise ValueError(f"data.root: malformed sequence annotation or set list in {folder} ({type(exc).__name__}: {exc})") from None
+        clouds = {plain_name(s["sequence_name"], f"{where} name"):
+                  inside(s["point_cloud"]["path"], f"{where} {str(s['sequence_name'])[:80]!r}: point_cloud.path")
+                  for s in sequences if s.get("point_cloud")}
+    except (KeyError, TypeError, IndexError, AttributeError) as exc:
+        raise ValueError(f"data.root: malformed sequence annotation in {files[1]} ({type(exc).__name__}: {exc})") from None
+    try:
+        lists = {k: [(str(e[0]), int(e[1])) for e in v] for k, v in set_lists.items()}
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError) as exc:
+        raise ValueError(f"data.root: malformed set list {files[2]} ({type(exc).__name__}: {exc})") from None
     return Category(dict(frames), clouds, lists)
 
 
@@ -194,7 +242,8 @@ def _half_sizes(frame: Frame) -> tuple[float, float]:
         return min(h, w) / 2.0, min(h, w) / 2.0
     if frame.ndc_format == "ndc_norm_image_bounds":
         return w / 2.0, h / 2.0
-    raise ValueError(f"data.root: unknown viewpoint.intrinsics_format {frame.ndc_format!r}")
+    raise ValueError(f"viewpoint.intrinsics_format {str(frame.ndc_format)[:40]!r} is unknown; Co3D uses "
+                     "ndc_isotropic (v2) or ndc_norm_image_bounds (v1)")
 
 
 def crop_camera(frame: Frame, box: tuple[int, int, int, int]) -> tuple[float, tuple[float, float]]:
@@ -246,9 +295,10 @@ def _crop(array: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
 
 
 def _read_cloud(path: Path) -> np.ndarray:
+    data = read_bounded(path, "data.root", MAX_ARRAY_BYTES)
     try:
-        loaded = trimesh.load(str(path), file_type="ply")
-    except (ValueError, KeyError, IndexError, TypeError, EOFError, OSError) as exc:
+        loaded = trimesh.load(io.BytesIO(data), file_type="ply")
+    except (ValueError, KeyError, IndexError, TypeError, EOFError, OSError, MemoryError) as exc:
         raise ValueError(f"data.root: cannot read point cloud {path}: {type(exc).__name__}: {exc}") from None
     points = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 16 or not np.isfinite(points).all():

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from cdm.paths import input_path
+from cdm.safe_io import load_npy
 
 __all__ = ["DepthMaps"]
 
@@ -59,12 +60,9 @@ class DepthMaps:
     def read(self, object_id: str, position: int, size: int) -> Tensor:
         """``(1, S, S)`` float32 view depth (larger = farther, 0 = unknown) of one input view."""
         path = self.folder / object_id / f"{position}.npy"
-        if not path.is_file():
+        if not path.exists():
             raise ValueError(f"{_FIELD}: {path} does not exist (object {object_id!r}, sequence position {position})")
-        try:
-            raw = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"{_FIELD}: {path} is not a .npy array ({exc})") from None
+        raw = load_npy(path, _FIELD)
         if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.floating) or min(raw.shape) < 1:
             raise ValueError(f"{_FIELD}: {path} must be a 2-D float array (h, w), got {raw.dtype} {raw.shape}")
         depth = np.where(np.isfinite(raw) & (raw > 0), raw, 0.0).astype(np.float32)

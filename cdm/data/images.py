@@ -4,17 +4,21 @@ A PNG's size is in its header, not in its bytes: a 130 KB 1-bit PNG of 32,768² 
 gigabytes, and a 16-bit one asks OpenCV for 8.6 GB at once (then a bare ``cv2.error``). So
 :func:`read_image` reads the header first (PIL opens a file lazily: size and mode, no pixels) and
 refuses more than :data:`MAX_IMAGE_PIXELS` pixels, naming the file, its size and what decoding it
-would take, before OpenCV decodes it.
+would take, before OpenCV decodes it. The file is opened once (:func:`cdm.safe_io.open_regular`: a
+FIFO or device is refused, not read) and both the header and the pixels come from the bytes read.
 """
 
 from __future__ import annotations
 
+import io
 import warnings
 from pathlib import Path
 
 import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
+
+from cdm.safe_io import MAX_ARRAY_BYTES, read_bounded
 
 __all__ = ["MAX_IMAGE_PIXELS", "read_image"]
 
@@ -35,12 +39,17 @@ def read_image(path: Path, flags: int, field: str) -> np.ndarray | None:
         field: the config field or option that named the file, for the message.
 
     Raises:
-        ValueError: the header says more than :data:`MAX_IMAGE_PIXELS` pixels.
+        ValueError: the header says more than :data:`MAX_IMAGE_PIXELS` pixels, or ``path`` is not a
+            regular file (a FIFO, a device, a folder) or is over :data:`cdm.safe_io.MAX_ARRAY_BYTES`.
     """
+    path = Path(path)
+    if not path.exists():
+        return None
+    data = read_bounded(path, field, MAX_ARRAY_BYTES)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # our own cap follows
-            with Image.open(path) as header:
+            with Image.open(io.BytesIO(data)) as header:
                 width, height = header.size
     except Image.DecompressionBombError:  # PIL's own cap (twice Image.MAX_IMAGE_PIXELS) refused the header
         _refuse(field, path, f"over {2 * Image.MAX_IMAGE_PIXELS} pixels")
@@ -49,7 +58,7 @@ def read_image(path: Path, flags: int, field: str) -> np.ndarray | None:
     if width * height > MAX_IMAGE_PIXELS:
         need = width * height * _BYTES_PER_PIXEL[flags]
         _refuse(field, path, f"{width}×{height} pixels (decoding takes {need / 2**30:.1f} GiB)")
-    return cv2.imread(str(path), flags)
+    return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
 
 
 def _refuse(field: str, path: Path, size: str) -> None:

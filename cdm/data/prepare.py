@@ -26,6 +26,7 @@ from cdm.data.cache import (
 )
 from cdm.data.captured import CapturedDataset
 from cdm.data.depth_maps import DepthMaps
+from cdm.safe_io import read_json
 
 __all__ = ["PrepareReport", "prepare"]
 
@@ -53,6 +54,18 @@ def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, n
     for key in ("R", "T", "focal", "principal"):
         arrays[f"cam_{key}"] = torch.stack([getattr(v.camera, key) for v in views]).numpy()
     return arrays
+
+
+def _shard_path(out: Path, published: str, object_id: str) -> Path:
+    """Where the shard of ``object_id`` goes: below ``out``, whatever the id says (ValueError otherwise).
+
+    The data sets check every name they read; this is the last check, on the resolved path, before a
+    write."""
+    path = out / published / f"{object_id}.shard"
+    if not path.resolve().is_relative_to(out.resolve()):
+        raise ValueError(f"--out: object {object_id[:200]!r} would be written to {path.resolve()}, outside {out}; "
+                         "refused (its name comes from the data set's annotations)")
+    return path
 
 
 def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bool = True,
@@ -87,11 +100,12 @@ def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bo
         manifest[ESTIMATED_DEPTHS] = str(maps.folder)
     out = out.expanduser()
     if is_prepared(out):
-        earlier = json.loads((out / MANIFEST).read_text())
+        earlier = read_json(out / MANIFEST, "--out")
         if earlier != manifest:
+            said = earlier if isinstance(earlier, dict) else {}
             raise ValueError(
-                f"--out: {out} holds a different preparation (kind {earlier.get('kind')}, image size "
-                f"{earlier.get('image_size')}, {earlier.get('categories')}); choose another --out"
+                f"--out: {out} holds a different preparation (kind {said.get('kind')}, image size "
+                f"{said.get('image_size')}, {said.get('categories')}); choose another --out"
             )
     out.mkdir(parents=True, exist_ok=True)
     for stale in out.rglob(".*.tmp-*"):  # left by a killed run: never renamed, so never complete
@@ -104,7 +118,7 @@ def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bo
         # The context closes the bar on errors too, so an error message starts on its own line.
         with tqdm(total=len(ds), desc=f"{dataset.kind} {ds.published}", unit="object", disable=not progress) as bar:
             for index, ref in enumerate(ds.objects):
-                path = out / ds.published / f"{ref.object_id}.shard"
+                path = _shard_path(out, ds.published, ref.object_id)
                 if path.is_file():
                     skipped += 1
                 else:

@@ -43,7 +43,6 @@ The prior views are the 24 renderings sorted by azimuth (a turntable sequence).
 
 from __future__ import annotations
 
-import json
 import math
 from functools import lru_cache
 from pathlib import Path
@@ -59,6 +58,7 @@ from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
 from cdm.normalise import Frame, bdm_frame
+from cdm.safe_io import load_npy, plain_name, read_bounded, read_json
 
 __all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
 
@@ -76,6 +76,7 @@ DISTANCE_SCALE = 1.75
 """Camera distance per unit of the metadata's distance ratio (world units of the model frame)."""
 
 _RENDERINGS, _CLOUDS = "ShapeNetRendering", "ShapeNetCore.v2.PC15k"
+_PC15K_SPLITS = ("train", "val", "test")
 BDM_SPLIT_FILE = "pc_dict_v2.json"
 """BDM's R2N2 split file, read from ``data.root`` when present (module docstring)."""
 
@@ -95,10 +96,12 @@ def r2n2_cameras(metadata: np.ndarray) -> torch.Tensor:
 
 def _read_metadata(path: Path) -> np.ndarray:
     """``(V, 5)`` rows of ``rendering_metadata.txt``; ValueError naming the file if malformed."""
+    if not path.exists():
+        raise ValueError(f"data.root: {path} does not exist; expected 24 lines of 5 numbers")
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ValueError(f"data.root: cannot read {path}: {exc.strerror}; expected 24 lines of 5 numbers") from None
+        text = read_bounded(path, "data.root").decode("utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"data.root: {path} is not UTF-8 text; expected 24 lines of 5 numbers") from None
     try:
         rows = np.array([[float(x) for x in line.split()] for line in text.splitlines() if line.strip()])
     except ValueError:
@@ -113,10 +116,7 @@ def _read_metadata(path: Path) -> np.ndarray:
 
 def _read_cloud(npy: Path) -> np.ndarray:
     """``(P, 3)`` float64 PC15k cloud at ``npy`` in the v1 frame; ValueError naming the file if unusable."""
-    try:
-        cloud = np.load(npy, allow_pickle=False)
-    except (OSError, ValueError, EOFError) as exc:
-        raise ValueError(f"data.root: cannot read point cloud {npy}: {exc}") from None
+    cloud = load_npy(npy, "data.root")
     if cloud.ndim != 2 or cloud.shape[1] != 3 or len(cloud) == 0 or not np.isfinite(cloud).all():
         raise ValueError(f"data.root: {npy} holds {cloud.shape} values; expected finite (P, 3) points")
     return v2_to_v1(cloud.astype(np.float64))
@@ -163,10 +163,9 @@ class ShapeNetR2N2Dataset(CapturedDataset):
         path = self.root / BDM_SPLIT_FILE
         if not path.is_file():
             return None
-        try:
-            table = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"data.root: cannot read BDM's split file {path}: {exc}") from None
+        table = read_json(path, "data.root")
+        if not isinstance(table, dict) or not all(isinstance(v, dict) for v in table.values()):
+            raise ValueError(f"data.root: {path} is not BDM's split file (split → synset → model → PC15k folder)")
         if published not in table:
             raise ValueError(f"data.eval_split: {path} (BDM's R2N2 split) has splits {sorted(table)}, not "
                              f"{published!r}; BDM scores the R2N2 test split: data.eval_split=test")
@@ -183,7 +182,15 @@ class ShapeNetR2N2Dataset(CapturedDataset):
             entries = [(npy.stem, published) for npy in sorted(source.glob("*.npy"))]
         else:
             source = self.root / BDM_SPLIT_FILE
-            entries = sorted(members.get(synset, {}).items())
+            models = members.get(synset, {})
+            if not isinstance(models, dict):
+                raise ValueError(f"data.root: {source}, split {published!r}, synset {synset}: expected model → PC15k folder")
+            entries = sorted(models.items())
+            for model, pc_folder in entries:
+                where = f"data.root: {source}, split {published!r}, synset {synset}"
+                plain_name(model, f"{where}, model")
+                if pc_folder not in _PC15K_SPLITS:
+                    raise ValueError(f"{where}, model {model}: PC15k folder {str(pc_folder)[:40]!r}; expected one of {', '.join(_PC15K_SPLITS)}")
         # PC15k has models R2N2 never rendered (and BDM's file names clouds PC15k may lack): skipped.
         found = [(model, pc_folder) for model, pc_folder in entries
                  if (self.root / _RENDERINGS / synset / model / "rendering" / "rendering_metadata.txt").is_file()

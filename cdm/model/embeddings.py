@@ -17,7 +17,6 @@ same shape, float, finite:
 
 from __future__ import annotations
 
-import zipfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -26,6 +25,7 @@ import torch
 from torch import Tensor
 
 from cdm.paths import input_path
+from cdm.safe_io import load_npz, open_regular
 
 __all__ = ["Embeddings", "embedding_ids", "load_embeddings"]
 
@@ -53,23 +53,20 @@ class Embeddings(NamedTuple):
         return torch.stack([self.tokens[o] for o in object_ids])
 
 
-def _open(path: str | Path):
+def _read(path: str | Path, names: bool):
     path = input_path(path)
-    if not path.is_file():
+    if not path.exists():
         raise ValueError(f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py (docs/paper.md, 'External inputs')")
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{_FIELD}: {path} is not an .npz file ({exc})") from None
-    if not isinstance(data, np.lib.npyio.NpzFile):
+    with open_regular(path, _FIELD) as f:
+        single = f.read(6) == b"\x93NUMPY"
+    if single:
         raise ValueError(f"{_FIELD}: {path} is a single array, not an .npz keyed by object id (use numpy.savez)")
-    return data
+    return load_npz(path, _FIELD, names=names)
 
 
 def embedding_ids(path: str | Path) -> set[str]:
     """Object ids the file holds (reads the index only, not the arrays)."""
-    with _open(path) as data:
-        return set(data.files)
+    return set(_read(path, names=True))
 
 
 def load_embeddings(path: str | Path) -> Embeddings:
@@ -77,12 +74,11 @@ def load_embeddings(path: str | Path) -> Embeddings:
 
     Raises:
         ValueError: missing or unreadable file, no arrays, mixed shapes, non-float or non-finite
-            values; the message names ``model.global_embeddings``.
+            values, over :mod:`cdm.safe_io`'s array caps; the message names ``model.global_embeddings``.
     """
-    with _open(path) as data:
-        if not data.files:
-            raise ValueError(f"{_FIELD}: {path} holds no arrays; save one per object id with numpy.savez")
-        arrays = {key: data[key] for key in data.files}
+    arrays = _read(path, names=False)
+    if not arrays:
+        raise ValueError(f"{_FIELD}: {path} holds no arrays; save one per object id with numpy.savez")
     shapes = {a.shape for a in arrays.values()}
     first = next(iter(arrays.values()))
     if len(shapes) != 1 or first.ndim not in (1, 2) or first.shape[-1] < 1:

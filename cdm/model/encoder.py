@@ -35,6 +35,7 @@ from cdm.config import ModelConfig
 from cdm.data.lru import ByteLRU
 from cdm.paths import input_path
 from cdm.model.voxels import norm_groups
+from cdm.safe_io import open_regular
 from cdm.torch_files import load_tensors
 
 __all__ = [
@@ -188,7 +189,7 @@ class ViTS16(nn.Module):
 def sha256_file(path: Path) -> str:
     """Hex SHA-256 of a file's bytes (read in 1 MiB chunks)."""
     digest = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_regular(path, "model.encoder_weights") as f:
         for chunk in iter(lambda: f.read(2**20), b""):
             digest.update(chunk)
     return digest.hexdigest()
@@ -206,7 +207,7 @@ def load_msn_state_dict(path: str | Path) -> dict[str, Tensor]:
     """
     path = input_path(path)
     field = f"model.encoder_weights: {path}"
-    if not path.is_file():
+    if not path.exists():
         raise ValueError(f"{field}: no such file; download MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
     raw = load_tensors(path, field, "torch file", f"Use MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
     state = raw.get("target_encoder", raw) if isinstance(raw, dict) else None

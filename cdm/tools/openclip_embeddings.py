@@ -18,11 +18,12 @@ Each entry is a unit-norm ``(E,)`` float32 vector under the object id (:mod:`cdm
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
+
+from cdm.safe_io import load_npy, object_id_parts, read_json
 
 __all__ = ["main"]
 
@@ -36,7 +37,7 @@ def _reference(folder: Path) -> Path:
 def _depth_image(path: Path):
     from PIL import Image
 
-    depth = np.load(path)
+    depth = load_npy(path, "--depth-maps")
     fg = depth > 0
     near = np.zeros_like(depth)
     if fg.any():
@@ -61,7 +62,9 @@ def main(argv: list[str] | None = None) -> int:
     model, _, preprocess = open_clip.create_model_and_transforms(args.model, pretrained=args.pretrained)
     tokenizer = open_clip.get_tokenizer(args.model)
     model.eval()
-    objects = json.loads((args.views / "objects.json").read_text())
+    objects = read_json(args.views / "objects.json", "--views")
+    for object_id in objects:  # ids become paths read below --views
+        object_id_parts(object_id, f"--views: {args.views / 'objects.json'}")
     out = {}
     with torch.no_grad():
         for object_id, category in objects.items():
