@@ -58,7 +58,11 @@ def cmd_train(args: argparse.Namespace) -> int:
     check_inputs(cfg)
     check_memory([cfg], concurrent=1)
     print(f"training {cfg.train.steps} steps on data.kind={cfg.data.kind}, output in {cfg.train.out_dir}", flush=True)
-    result = fit(cfg, [_Progress(cfg.train.steps, 0)], resume_from=args.resume)
+    progress = _Progress(cfg.train.steps, 0)
+    try:
+        result = fit(cfg, [progress], resume_from=args.resume)
+    finally:  # an error then starts on its own line, not after the bar
+        progress.bar.close()
     print(f"done at step {result.step}: CD×1000 {result.metrics.get('eval/cd', float('nan')):.2f}, "
           f"F1 {result.metrics.get('eval/f1', float('nan')):.3f}; checkpoint {result.checkpoint_dir}")
     return 0

@@ -148,7 +148,7 @@ def _frame(entry: dict, file_order: int) -> Frame:
     principal = _finite(view["principal_point"], 2, "viewpoint.principal_point")
     if np.abs(principal).max() > MAX_PRINCIPAL:
         raise ValueError(f"viewpoint.principal_point {principal.tolist()} must lie in [-{MAX_PRINCIPAL}, {MAX_PRINCIPAL}] (NDC)")
-    scale = float(depth.get("scale_adjustment") or 1.0)
+    scale = 1.0 if depth.get("scale_adjustment") is None else float(depth["scale_adjustment"])
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"depth.scale_adjustment {scale!r} must be finite and > 0")
     frame = Frame(
@@ -210,7 +210,7 @@ def load_category(folder: Path) -> Category:
     stamp = []
     for name in _ANNOTATIONS:
         path = folder / name
-        if not path.is_file():
+        if not path.exists():  # a FIFO or a folder there is refused by name when read
             raise ValueError(f"data.root: annotation file {path} is missing; expected {Co3DDataset.layout}")
         stamp.append(path.stat().st_mtime_ns)
     return _category(folder, tuple(stamp))
