@@ -20,6 +20,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from cdm.safe_io import read_bounded
+
 __all__ = [
     "BlendConfig",
     "Config",
@@ -516,6 +518,12 @@ def parse_override(text: str) -> tuple[str, Any]:
         value = yaml.safe_load(raw)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{key}: cannot parse value {raw!r}: {' '.join(str(exc).split())}") from None
+    except RecursionError:  # brackets nested thousands deep; sweeps/run.py refuses them earlier by count
+        raise ConfigError(f"{key}: the value is nested too deeply") from None
+    except ConfigError:
+        raise
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise ConfigError(f"{key}: cannot parse value {raw[:40]!r}…: {exc}") from None
     return key.strip(), value
 
 
@@ -548,12 +556,20 @@ def load_config(source: str | Path | dict[str, Any] | None = None, overrides: di
         tree = source
     else:
         path = Path(source)
+        if not path.exists():
+            raise ConfigError(f"config file {path}: cannot read (no such file)")
         try:
-            tree = yaml.safe_load(path.read_text()) or {}
+            tree = yaml.safe_load(read_bounded(path, "config file").decode("utf-8")) or {}
         except OSError as exc:
             raise ConfigError(f"config file {path}: cannot read ({exc.strerror})") from None
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start})") from None
         except yaml.YAMLError as exc:
             raise ConfigError(f"config file {path}: not valid YAML: {exc}") from None
+        except RecursionError:  # PyYAML composes recursively: a planted file nests past Python's stack
+            raise ConfigError(f"config file {path}: nested too deeply to be a config") from None
+        except ValueError as exc:  # not a regular file, or over the size cap (cdm.safe_io)
+            raise ConfigError(str(exc)) from None
     if not isinstance(tree, dict):
         raise ConfigError("config: top level must be a mapping of groups (data, model, ...)")
     tree = apply_overrides(tree, overrides or {})

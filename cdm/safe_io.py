@@ -88,13 +88,15 @@ def open_regular(path: Path, label: str, show_path: bool = True) -> IO[bytes]:
     return os.fdopen(fd, "rb")
 
 
-def read_bounded(path: Path, label: str, cap: int = MAX_TEXT_BYTES) -> bytes:
-    """The bytes of the regular file ``path``, refused past ``cap`` bytes before reading them."""
-    with open_regular(path, label) as f:
+def read_bounded(path: Path, label: str, cap: int = MAX_TEXT_BYTES, show_path: bool = True) -> bytes:
+    """The bytes of the regular file ``path``, refused past ``cap`` bytes before reading them (messages
+    as :func:`open_regular`'s)."""
+    with open_regular(path, label, show_path) as f:
         size = os.fstat(f.fileno()).st_size
         if size > cap:
-            raise ValueError(f"{label}: {path} is {size} bytes; at most {cap} are read")
-        return f.read(cap + 1)[:cap]
+            raise ValueError(f"{label}: {path} is {size} bytes; at most {cap} are read" if show_path
+                             else f"{label} is {size} bytes; at most {cap} are read")
+        return f.read(size + 1)[:cap]  # not read(cap): a reader allocates the size it is asked for
 
 
 def annotation_cap() -> int:

@@ -36,7 +36,8 @@ from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.resources import plan_concurrency
-from sweeps.plan.spec import SeedBudget, Spec, SpecError, load_spec, parse_budget
+from sweeps.plan.budget import SeedBudget, budget_option
+from sweeps.plan.spec import Spec, SpecError, load_spec
 from sweeps.plan.trials import SweepPlan, expand
 from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
                             exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
@@ -186,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
                 return _fail(f"--resume: {sweep_dir} holds no sweep to resume (no {STATE_FILE})")
             if sets:
                 return _fail("--resume continues a sweep with the spec and --set values it started with; drop --set")
-            if args.until_settled or args.budget:
+            if args.until_settled or args.budget is not None:
                 return _fail("--resume continues a sweep with the seeds and budget it started with; drop --until-settled and --budget")
             # The spec as it started, even if the file was edited since: trials must stay the same.
             state = parse_state(read_text(state_file), state_file)
@@ -196,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
                 return _fail(f"--resume: {state_file} is damaged ({' '.join(str(exc).split())}); remove the folder to start over")
         if args.until_settled:
             spec = spec.until_settled()
-        budget = parse_budget(budget_text) if (budget_text := (state or {}).get("budget") or args.budget) else None
+        budget = budget_option((state or {}).get("budget") if args.resume else args.budget)
         check_trials(spec, args.max_cells)
         if args.dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and not spec.search.sampled:
             print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
@@ -231,9 +232,14 @@ def main(argv: list[str] | None = None) -> int:
         if not args.resume and exists(sweep_dir):
             held.release()
             return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
-        if args.resume and not args.trust_storage:
+        if args.resume:
             try:  # under the claim: no other copy of this runner rewrites Tune's state meanwhile
-                check_resume_trust(sweep_dir)
+                if not args.trust_storage:
+                    check_resume_trust(sweep_dir)
+                if plan.sequential is not None:
+                    from sweeps.execute.seed_search import check_searcher_state
+
+                    check_searcher_state(sweep_dir, plan)  # Tune would start a fresh searcher on a damaged one
             except StoreError as exc:
                 held.release()
                 return _fail(str(exc))
@@ -376,8 +382,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.names(t.config)[1],
             predicted.wall_s if predicted else None, tty, rounds=plan.rounds,
             round_of=(lambda t: plan.round_of(plan.grid_cell(t.config["cell"]))) if plan.sequential else None)
-        budget_text = stored.get("budget") if args.resume else args.budget
-        budget = parse_budget(budget_text) if budget_text else None
+        budget = budget_option(stored.get("budget") if args.resume else args.budget)
         try:
             outcomes = run_sweep(plan, conc, sweep_dir, sweep_run, args.resume, remote, callbacks=[progress] if progress else [],
                                  budget=budget)
@@ -387,11 +392,10 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         took = time.perf_counter() - started_at
         settled = None
         if plan.sequential is not None:
-            from sweeps.compare.settle import final_round, settle_json
+            from sweeps.compare.settle import final_round, write_settle_json
 
             settled = final_round(plan, outcomes, budget, sweep_run.client.get_run(sweep_run.run_id).data.tags).records
-            (staging / "settle.json").write_text(settle_json(settled, budget))
-            sweep_run.log_artifacts([staging / "settle.json"])
+            sweep_run.log_artifacts([write_settle_json(staging / "settle.json", settled, budget)])
         table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,
                             f"{plan.spec.name} — profile {plan.profile.name}",
                             f"{plan.spec.paper.table}: {plan.spec.paper.note}" if plan.spec.paper else "",

@@ -182,10 +182,12 @@ def parse_state(text: str, where: str) -> dict[str, Any]:
     Raises:
         StoreError: not JSON, or a key missing or of the wrong type.
     """
-    try:
-        state = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise StoreError(f"--resume: {where} is damaged (not JSON: {exc}); remove the folder to start over") from None
+    from cdm.safe_io import parse_json
+
+    try:  # nesting bounded: a planted file deep enough would overflow the parser's recursion
+        state = parse_json(text.encode(errors="replace"), "--resume", Path(where))
+    except ValueError as exc:
+        raise StoreError(f"{exc}; {where} is damaged: remove the folder to start over") from None
     if not isinstance(state, dict):
         raise StoreError(f"--resume: {where} is damaged (a JSON {type(state).__name__}, not an object); "
                          "remove the folder to start over")
@@ -259,8 +261,8 @@ def private_folder(path: Path) -> Path:
     return path
 
 
-def write_file(path: Path, text: str, mode: int = 0o644) -> None:
-    """Write ``text`` to ``path`` (made with ``mode`` if absent), never through a link standing at ``path``: a
+def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
+    """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent), never through a link standing at ``path``: a
     symbolic link (``O_NOFOLLOW``) or a second name of another file (a hard link) is refused, its target untouched.
 
     Raises:
@@ -272,7 +274,7 @@ def write_file(path: Path, text: str, mode: int = 0o644) -> None:
         if exc.errno == errno.ELOOP:
             raise StoreError(f"{path}: a symbolic link where this sweep writes a file; remove it (a write never follows one)") from None
         raise
-    with os.fdopen(fd, "w") as out:
+    with os.fdopen(fd, "wb" if isinstance(text, bytes) else "w") as out:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
             raise StoreError(f"{path}: not a plain file with one name ({info.st_nlink} links) where this sweep writes a file; remove it")
@@ -292,12 +294,22 @@ def exists(location: str) -> bool:
     return filesystem.get_file_info(path).type != fs.FileType.NotFound
 
 
+MAX_STATE_BYTES = 16 * 2**20
+"""Most bytes of ``sweep.json`` read back (a spec of the 1,000-trial cap is well under 1 MiB)."""
+
+
 def read_text(location: str) -> str:
+    """The file at ``location`` (a path or URI) as text, refused past :data:`MAX_STATE_BYTES`."""
     from pyarrow import fs
 
     filesystem, path = fs.FileSystem.from_uri(location)
-    with filesystem.open_input_stream(path) as stream:
-        return stream.read().decode(errors="replace")  # a damaged file fails as JSON, with its name
+    size = filesystem.get_file_info(path).size
+    if size is not None and size <= MAX_STATE_BYTES:
+        with filesystem.open_input_stream(path) as stream:
+            raw = stream.read(size + 1)
+    if size is None or size > MAX_STATE_BYTES or len(raw) > MAX_STATE_BYTES:
+        raise StoreError(f"--resume: {location} is over {MAX_STATE_BYTES} bytes, not a sweep's record; remove the folder to start over")
+    return raw.decode(errors="replace")  # a damaged file fails as JSON, with its name
 
 
 def publish_files(local: Path, location: str) -> None:

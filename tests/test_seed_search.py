@@ -4,15 +4,20 @@ the way Tune drives it (suggest, on_trial_complete, save, restore), without a Ra
 from __future__ import annotations
 
 import csv
+import json
+import re
 from pathlib import Path
 
+import pytest
 from ray.tune.search import Searcher
 
 from sweeps.compare.settle import BUDGET_TAG
-from sweeps.execute.seed_search import SeedSearcher
+from sweeps.execute.seed_search import SeedSearcher, check_searcher_state
 from sweeps.execute.tracking import SweepRun
-from sweeps.plan.spec import SeedBudget, Spec
+from sweeps.plan.budget import SeedBudget
+from sweeps.plan.spec import Spec
 from sweeps.plan.trials import expand
+from sweeps.storage import StoreError
 
 CELLS = [{"label": "ref"}, {"label": "null", "set": {"eval.save_clouds": 1}}]
 
@@ -97,3 +102,93 @@ def test_the_wall_time_budget_ends_on_the_parent_run_and_a_trial_budget_counts_p
     assert len(_suggest_all(counted, 0)) == 4
     counted.results = {label: {"o0": 0.0, "o1": 1.0} for label in counted.proposed.values()}
     assert counted.suggest("t10") == Searcher.FINISHED  # the null cell's next seed needs the reference's too: 2 > 1
+
+
+def _state_folder(tmp_path, text: str | bytes, name: str = "seed-searcher-2026-12-04_20-00-00.json") -> Path:
+    folder = tmp_path / "sweep"
+    folder.mkdir(exist_ok=True)
+    (folder / name).write_bytes(text.encode() if isinstance(text, str) else text)
+    return folder
+
+
+@pytest.mark.parametrize(("text", "said"), [
+    ('{"proposed": {"t0": "ref · seed 0"', "is not JSON"),
+    ("[" * 100_000 + "]" * 100_000, "nests 100000 levels deep"),
+    (json.dumps({"proposed": {f"t{i}": "ref · seed 0" for i in range(10**6)}, "spent_s": 1.0}), "bytes; a seed searcher's state is at most"),
+    (json.dumps({"proposed": {f"t{i}": "ref · seed 0" for i in range(7)}, "spent_s": 1.0}), "7 proposals, more than the plan's 6 trials"),
+    (json.dumps({"proposed": {"t0": "ref · seed 9"}, "spent_s": 1.0}), "proposal 'ref · seed 9' is no trial of this sweep"),
+    (json.dumps({"proposed": {"t0": "ref · seed 0", "t1": "ref · seed 0"}, "spent_s": 1.0}), "a trial proposed twice"),
+    ('{"proposed": {}, "spent_s": NaN}', "spent_s nan is not a finite number"),
+    ('{"proposed": [], "spent_s": 1}', 'expected {"proposed"'),
+])
+def test_a_damaged_or_oversized_searcher_state_is_refused_before_tune_restores_it(tmp_path, text, said):
+    folder = _state_folder(tmp_path, text)
+    with pytest.raises(StoreError, match=re.escape(said)) as refused:
+        check_searcher_state(str(folder), _plan())
+    assert str(refused.value).startswith("--resume: ") and "\n" not in str(refused.value)
+    assert "without it a finished seed could run again" in str(refused.value)
+
+
+def test_the_state_tune_restores_is_the_one_checked_and_a_missing_one_is_refused(tmp_path):
+    with pytest.raises(StoreError, match="holds no seed searcher state"):
+        check_searcher_state(str(tmp_path), _plan())
+    folder = _state_folder(tmp_path, "not json", "seed-searcher-2026-01-01_00-00-00.json")
+    _state_folder(tmp_path, json.dumps({"proposed": {"t0": "ref · seed 0"}, "spent_s": 3.0}))  # the later name: Tune's pick
+    check_searcher_state(str(folder), _plan())
+
+
+def test_restore_asks_mlflow_a_bounded_number_of_times_whatever_the_file_says(tmp_path):
+    """Every trial of the plan proposed and finished: one search of the parent's children and one parent
+    lookup, plus one evaluation table per finished trial (bounded by the plan, not by the file)."""
+    from mlflow import MlflowClient
+
+    class Counting(MlflowClient):
+        calls: dict[str, int] = {}
+
+        def search_runs(self, *args, **kwargs):
+            Counting.calls["search_runs"] = Counting.calls.get("search_runs", 0) + 1
+            return super().search_runs(*args, **kwargs)
+
+        def get_run(self, *args, **kwargs):
+            Counting.calls["get_run"] = Counting.calls.get("get_run", 0) + 1
+            return super().get_run(*args, **kwargs)
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep_run = SweepRun.start(uri, "t", "t", tags={}, params={})
+    plan = _plan()
+    proposed = {f"t{i}": c.label for i, c in enumerate(plan.cells)}
+    for trial_id, label in proposed.items():
+        _finish(sweep_run, trial_id, label, tmp_path)
+    (tmp_path / "state.json").write_text(json.dumps({"proposed": proposed, "spent_s": 5.0}))
+    restored = SeedSearcher(plan, SweepRun(uri, sweep_run.experiment_id, sweep_run.run_id))
+    restored.sweep_run.client = Counting(uri)
+    restored.restore(str(tmp_path / "state.json"))
+    assert set(restored.results) == set(proposed.values()) and restored.spent_before == 5.0
+    assert Counting.calls == {"search_runs": 1, "get_run": 1}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("damage", ["truncated", "a million entries"])
+def test_resume_with_a_damaged_searcher_state_exits_2_and_runs_no_seed_again(tmp_path, damage):
+    """Through the command a user types: `python sweeps/run.py SPEC --resume`, a sweep folder whose searcher
+    state was damaged after seed 0 finished. Tune would have restored a fresh searcher and run seed 0
+    again; the runner refuses before Ray starts and MLflow keeps the one child run."""
+    from sweeps.plan.spec import load_spec
+    from tests.hostile_files import ROOT, assert_refused, run_command
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep_run = SweepRun.start(uri, "point_size", "point_size", tags={}, params={})
+    _finish(sweep_run, "t0", "ref · seed 0", tmp_path)
+    folder = tmp_path / "results" / "point_size" / "smoke"
+    folder.mkdir(parents=True)
+    spec = load_spec(ROOT / "sweeps" / "point_size.yaml").until_settled()
+    (folder / "sweep.json").write_text(json.dumps({"spec": spec.model_dump(mode="json"), "sets": {}, "profile": "smoke",
+                                                   "budget": None, "tracking_uri": uri, "parent_run_id": sweep_run.run_id}))
+    text = ('{"proposed": {"t0": "' if damage == "truncated"
+            else json.dumps({"proposed": {f"t{i}": str(i) for i in range(10**6)}, "spent_s": 1.0}))
+    (folder / "seed-searcher-2026-12-04_20-00-00.json").write_text(text)
+    outcome = run_command([str(ROOT / "sweeps" / "run.py"), str(ROOT / "sweeps" / "point_size.yaml"), "--resume",
+                           "--trust-storage", "--profile", "smoke", "--storage", str(tmp_path / "results")], tmp_path, timeout=300)
+    assert_refused(outcome, "--resume: ", "seed-searcher-2026-12-04_20-00-00.json", "without it a finished seed could run again")
+    children = sweep_run.client.search_runs([sweep_run.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}'")
+    assert [c.data.tags["trial_id"] for c in children] == ["t0"]

@@ -7,7 +7,8 @@ import pytest
 
 from sweeps.compare.settle import check_budget, describe_rule, next_round, object_scores, outcome_results
 from sweeps.compare.table import TrialOutcome
-from sweeps.plan.spec import SeedBudget, Spec, SpecError, parse_budget
+from sweeps.plan.budget import SeedBudget, parse_budget
+from sweeps.plan.spec import Spec, SpecError
 from sweeps.plan.trials import SweepPlan, expand
 
 OBJECTS = [f"obj{i:02d}" for i in range(20)]

@@ -10,7 +10,8 @@ from cdm.config import ConfigError
 from sweeps import run
 from sweeps.plan.estimate import Estimate
 from sweeps.plan.resources import plan_concurrency
-from sweeps.plan.spec import Resources, SeedBudget, Spec, SpecError, load_profiles, load_spec, parse_budget
+from sweeps.plan.budget import SeedBudget, parse_budget
+from sweeps.plan.spec import Resources, Spec, SpecError, load_profiles, load_spec
 from sweeps.plan.trials import expand, lambda_source
 from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings
 
@@ -230,7 +231,14 @@ def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_
         (["--profile", "local", "--smoke"], "--smoke means --profile smoke"),
         (["--resume"], "holds no sweep to resume"),
         (["--budget", "2h"], "--budget: only seeds run until settled spend a budget; add --until-settled"),
-        (["--until-settled", "--budget", "2 hours"], "--budget '2 hours': give a wall time (2h, 45m, 30s) or a number of trials (12)"),
+        (["--until-settled", "--budget", "2 hours"], "--budget '2 hours': give a wall time (2h, 45m, 30s; at most 366 days) or a "
+                                                     "number of trials (1 to 100000)"),
+        (["--until-settled", "--budget", "²"], "--budget '²': give a wall time"),
+        (["--until-settled", "--budget", "9" * 5001], "--budget '" + "9" * 40 + "'…: give a wall time"),
+        (["--until-settled", "--budget", "1" + "0" * 400], "number of trials (1 to 100000)"),
+        (["--until-settled", "--budget", "1" + "0" * 400 + "s"], "at most 366 days"),
+        (["--until-settled", "--budget="], "--budget '': give a wall time"),
+        (["--budget="], "--budget '': give a wall time"),
         (["--until-settled", "--budget", "0"], "--budget '0': give a wall time"),
         (["--until-settled", "--budget", "9"], "--budget 9: round 1 alone runs 10 trials (every cell at 2 seeds); give at least 10"),
     ],
@@ -238,7 +246,8 @@ def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_
 def test_bad_command_line_exits_2(argv, needle, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(SWEEPS / "point_size.yaml"), *argv]) == 2
-    assert needle in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert needle in err and err.count("\n") == 1 and err.startswith("error: ")
     assert list(tmp_path.iterdir()) == []
 
 

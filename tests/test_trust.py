@@ -137,6 +137,33 @@ def test_results_files_are_never_written_through_a_planted_link(tmp_path, plant)
     assert victim.read_text() == "precious\n"
 
 
+
+@pytest.mark.parametrize("kind", ["settle.json", "plot", "viewer"])
+def test_settle_json_plots_and_the_viewer_are_never_written_through_a_planted_link(tmp_path, kind):
+    """What a sequential sweep and the report write beside the table, under --trust-storage too: the
+    writers take no flag, so nothing can follow a link planted at their names."""
+    import numpy as np
+
+    from sweeps.compare.gallery import grid_png, viewer_html
+    from sweeps.compare.settle import write_settle_json
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    clouds = {"o1": {"a": np.zeros((8, 3))}}
+    write = {"settle.json": lambda path: write_settle_json(path, {}, None),
+             "plot": lambda path: grid_png(clouds, ["a"], "t", path),
+             "viewer": lambda path: viewer_html(clouds, ["a"], "t", path)}[kind]
+    clean = tmp_path / "clean" / "out"
+    clean.parent.mkdir()
+    write(clean)
+    assert clean.stat().st_size > 0
+    planted = tmp_path / "planted"
+    planted.symlink_to(victim)
+    with pytest.raises(StoreError, match="symbolic link where this sweep writes"):
+        write(planted)
+    assert victim.read_text() == "precious\n"
+
+
 # --- item 2: no unpickling of what someone else could have written ----------------------------------
 
 class _Planted:

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sweeps.storage import write_file
+
 __all__ = ["Gallery", "Scores", "grid_png", "viewer_html"]
 
 Gallery = Mapping[str, Mapping[str, np.ndarray]]
@@ -40,7 +42,7 @@ def _view(points: np.ndarray, elevation: float = ELEVATION, azimuth: float = AZI
 
 def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path) -> Path:
     """One row per object, one column per label in ``columns`` (missing clouds: an empty square)."""
-    from sweeps.compare.plots import DPI, _pyplot
+    from sweeps.compare.plots import _pyplot, save_figure
 
     plt = _pyplot()
     rows = list(gallery)
@@ -66,7 +68,7 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path) -
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI, bbox_inches="tight")
+    save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -173,5 +175,5 @@ def viewer_html(gallery: Gallery, columns: Sequence[str], title: str, path: Path
     # "</" cannot end the inline script early: JSON allows the escaped form.
     data = json.dumps({"columns": list(columns), "objects": objects}, separators=(",", ":")).replace("</", "<\\/")
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(_PAGE.format(title=html.escape(title), data=data))
+    write_file(path, _PAGE.format(title=html.escape(title), data=data))
     return path

@@ -6,6 +6,7 @@ function writes one PNG (matplotlib's Agg backend, no display needed) and return
 
 from __future__ import annotations
 
+import io
 import math
 import statistics
 import warnings
@@ -17,8 +18,9 @@ from typing import Any, Literal
 import numpy as np
 
 from sweeps.compare.rules import partner
+from sweeps.storage import write_file
 
-__all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "training_curves",
+__all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "save_figure", "training_curves",
            "view_cloud"]
 
 DPI = 150
@@ -249,6 +251,13 @@ def view_cloud(points: np.ndarray, elevation: float = 20.0, azimuth: float = 30.
 
 def _save(fig, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI, bbox_inches="tight")
+    save_figure(fig, path)
     _pyplot().close(fig)
     return path
+
+
+def save_figure(fig, path: Path) -> None:
+    """``fig`` as a PNG at ``path``, never written through a link planted there (:func:`sweeps.storage.write_file`)."""
+    image = io.BytesIO()
+    fig.savefig(image, format="png", dpi=DPI, bbox_inches="tight")
+    write_file(path, image.getvalue())

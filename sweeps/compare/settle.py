@@ -24,15 +24,18 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 from sweeps.compare.paired import UnpairedError
 from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
 from sweeps.compare.rules import object_column
 from sweeps.compare.table import TrialOutcome
-from sweeps.plan.spec import SeedBudget, SpecError
+from sweeps.plan.budget import SeedBudget
+from sweeps.plan.spec import SpecError
 from sweeps.plan.trials import Cell, SweepPlan
+from sweeps.storage import write_file
 
-__all__ = ["BUDGET_TAG", "Round", "check_budget", "describe_rule", "final_round", "next_round", "object_scores", "outcome_results",
+__all__ = ["BUDGET_TAG", "Round", "check_budget", "describe_rule", "final_round", "next_round", "object_scores", "outcome_results", "write_settle_json",
            "settle_json"]
 
 BUDGET_TAG = "settle.budget_ended"
@@ -153,6 +156,12 @@ def settle_json(records: Mapping[str, SettleRecord], budget: SeedBudget | None) 
                                  "covers": r.decision.interval.covers}}
              for name, r in records.items()}
     return json.dumps({"budget": budget.text() if budget else None, "cells": cells}, indent=2)
+
+
+def write_settle_json(path: Path, records: Mapping[str, SettleRecord], budget: SeedBudget | None) -> Path:
+    """:func:`settle_json` written to ``path``, never through a link planted there, trusted storage or not."""
+    write_file(path, settle_json(records, budget))
+    return path
 
 
 def check_budget(plan: SweepPlan, budget: SeedBudget | None) -> None:

@@ -13,18 +13,80 @@ wraps the searcher in a ``ConcurrencyLimiter``, on 2 CPUs and on a cluster alike
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import time
+from pathlib import Path
 from typing import Any
 
 from ray.tune.search import Searcher
 
+from cdm.safe_io import parse_json
 from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
-from sweeps.execute.tracking import SweepRun, find_trial_run
-from sweeps.plan.spec import SeedBudget
+from sweeps.execute.tracking import SweepRun, last_objects
+from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import SweepPlan
+from sweeps.storage import StoreError
 
-__all__ = ["SeedSearcher"]
+__all__ = ["MAX_STATE_BYTES", "SeedSearcher", "check_searcher_state"]
+
+MAX_STATE_BYTES = 4 * 2**20
+"""Most bytes of a searcher state file (a proposal is ~60 bytes; a sweep has at most a few thousand)."""
+_STATE_GLOB = "seed-searcher-*.json"
+_FRESH_START = ("without it a finished seed could run again: start the sweep again in a new folder (finished trials "
+                "stay in MLflow)")
+
+
+def parse_searcher_state(raw: bytes, where: str, plan: SweepPlan) -> tuple[dict[str, str], float]:
+    """``(proposed, spent_s)`` of a searcher state file's bytes, every entry checked against ``plan``: a
+    trial label of the plan, each proposed once, at most one per label; StoreError naming ``where``."""
+    try:
+        state = parse_json(raw, "--resume", Path(where))
+    except ValueError as exc:
+        raise StoreError(f"{exc}; the seed searcher's state is damaged, {_FRESH_START}") from None
+    labels = {c.label for c in plan.cells}
+    proposed = state.get("proposed") if isinstance(state, dict) else None
+    spent = state.get("spent_s") if isinstance(state, dict) else None
+    problem = None
+    if not isinstance(proposed, dict) or not isinstance(spent, (int, float)) or isinstance(spent, bool):
+        problem = "expected {\"proposed\": {trial id: trial label}, \"spent_s\": seconds}"
+    elif not (math.isfinite(spent) and 0 <= spent):
+        problem = f"spent_s {spent!r} is not a finite number of seconds"
+    elif len(proposed) > len(labels):
+        problem = f"{len(proposed)} proposals, more than the plan's {len(labels)} trials"
+    elif bad := next((v for v in proposed.values() if v not in labels), None):
+        problem = f"proposal {str(bad)[:80]!r} is no trial of this sweep"
+    elif len(set(proposed.values())) != len(proposed):
+        problem = "a trial proposed twice"
+    if problem:
+        raise StoreError(f"--resume: {where}: the seed searcher's state is damaged ({problem}); {_FRESH_START}")
+    return {str(k): str(v) for k, v in proposed.items()}, float(spent)
+
+
+def check_searcher_state(sweep_dir: str, plan: SweepPlan) -> None:
+    """Refuse, before Tune restores it, a sequential sweep's searcher state that is missing, damaged or
+    oversized: Tune would log the failure and start a fresh searcher, which runs finished seeds again.
+
+    Reads the file Tune restores (the last by name, ``Searcher.restore_from_dir``) in ``sweep_dir``, a
+    local folder or a URI, at most :data:`MAX_STATE_BYTES` of it.
+
+    Raises:
+        StoreError: naming the file and what is wrong.
+    """
+    from pyarrow import fs
+
+    filesystem, folder = fs.FileSystem.from_uri(sweep_dir if "://" in sweep_dir else str(Path(sweep_dir).resolve()))
+    found = sorted(i.path for i in filesystem.get_file_info(fs.FileSelector(folder, allow_not_found=True))
+                   if i.type == fs.FileType.File and Path(i.path).match(_STATE_GLOB))
+    if not found:
+        raise StoreError(f"--resume: {sweep_dir} holds no seed searcher state ({_STATE_GLOB}); {_FRESH_START}")
+    where = found[-1]
+    info = filesystem.get_file_info(where)
+    if info.size > MAX_STATE_BYTES:
+        raise StoreError(f"--resume: {where} is {info.size} bytes; a seed searcher's state is at most {MAX_STATE_BYTES} "
+                         f"(damaged or planted); {_FRESH_START}")
+    with filesystem.open_input_stream(where) as stream:
+        parse_searcher_state(stream.read(info.size + 1)[:MAX_STATE_BYTES + 1], where, plan)
 
 
 class SeedSearcher(Searcher):
@@ -99,38 +161,44 @@ class SeedSearcher(Searcher):
             json.dump({"proposed": self.proposed, "spent_s": self._spent()}, out)
 
     def restore(self, checkpoint_path: str) -> None:
-        with open(checkpoint_path) as fh:
-            state = json.load(fh)
-        labels = {c.label for c in self.plan.cells}
-        self.proposed = {str(k): str(v) for k, v in state["proposed"].items() if v in labels}
-        self.spent_before, self.since = float(state["spent_s"]), time.monotonic()
+        """Proposals from ``checkpoint_path`` (checked as :func:`check_searcher_state` checked it before
+        Tune started), results from MLflow: one search over the parent's children, then the scores of
+        each finished one (at most one per trial of the plan)."""
+        with open(checkpoint_path, "rb") as fh:
+            self.proposed, spent = parse_searcher_state(fh.read(MAX_STATE_BYTES + 1), checkpoint_path, self.plan)
+        self.spent_before, self.since = spent, time.monotonic()
         self.started_at, self.durations = {}, []
         self.out_of_time = BUDGET_TAG in self.sweep_run.client.get_run(self.sweep_run.run_id).data.tags
         self.results = {}
-        self._drop_unseen_runs()
+        children = self._children()
         for trial_id, label in self.proposed.items():
-            if (found := self._finished_record(trial_id)) is not None:
+            if (found := self._finished_record(children.get(trial_id))) is not None:
                 self.results[label] = found or None
 
-    def _drop_unseen_runs(self) -> None:
-        """Delete the child runs of trials Tune's last snapshot never saw (started in the second before the
-        driver died): the rule starts their seeds again, and each seed keeps one child run."""
+    def _children(self) -> dict[str, Any]:
+        """The parent's child runs by trial id, in one query; the child runs of trials Tune's last
+        snapshot never saw (started in the second before the driver died) are deleted: the rule starts
+        their seeds again, and each seed keeps one child run."""
         client, run = self.sweep_run.client, self.sweep_run
         children = client.search_runs([run.experiment_id], max_results=10_000,
                                       filter_string=f"tags.mlflow.parentRunId = '{run.run_id}'")
+        kept = {}
         for child in children:
-            if "rerun_of" not in child.data.tags and child.data.tags.get("trial_id") not in self.proposed:
+            if "rerun_of" in child.data.tags:
+                continue
+            if (trial_id := child.data.tags.get("trial_id")) in self.proposed:
+                kept.setdefault(trial_id, child)  # newest first, as MLflow orders a search
+            else:
                 client.delete_run(child.info.run_id)
+        return kept
 
-    def _finished_record(self, trial_id: str) -> dict[str, float] | None:
+    def _finished_record(self, child: Any) -> dict[str, float] | None:
         """Scores of a trial whose MLflow run the driver closed as FINISHED ({} for FAILED); None while it
         is still to run (Tune re-queues it and reports its end to :meth:`on_trial_complete`)."""
-        run_id = find_trial_run(self.sweep_run.client, self.sweep_run.experiment_id, self.sweep_run.run_id, trial_id)
-        if run_id is None:
+        if child is None:
             return None
-        status = self.sweep_run.client.get_run(run_id).info.status
-        if status == "FAILED":
+        if child.info.status == "FAILED":
             return {}
-        if status != "FINISHED":
+        if child.info.status != "FINISHED":
             return None
-        return object_scores(self.sweep_run.trial_objects(trial_id), self.plan.spec.metric.name)
+        return object_scores(last_objects(self.sweep_run.client, child.info.run_id), self.plan.spec.metric.name)

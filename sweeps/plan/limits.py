@@ -26,6 +26,8 @@ from typing import Any, TextIO
 
 import yaml
 
+from cdm.safe_io import read_bounded
+
 __all__ = [
     "MAX_SET_CHARS",
     "MAX_SET_DEPTH",
@@ -95,10 +97,11 @@ def load_yaml(path: Path) -> Any:
             expands past :data:`MAX_YAML_NODES` nodes.
     """
     try:
-        size = path.stat().st_size
-        if size > MAX_YAML_BYTES:
-            raise LimitError(f"{path}: {size} bytes; a spec may be at most {MAX_YAML_BYTES} bytes")
-        text = path.read_bytes().decode("utf-8")
+        raw = read_bounded(path, str(path), MAX_YAML_BYTES, show_path=False)  # a FIFO or device is refused, not read
+    except ValueError as exc:
+        raise LimitError(f"{exc}; a spec may be at most {MAX_YAML_BYTES} bytes of YAML") from None
+    try:
+        text = raw.decode("utf-8")
     except OSError as exc:
         raise LimitError(f"{path}: cannot read ({exc.strerror})") from None
     except UnicodeDecodeError as exc:

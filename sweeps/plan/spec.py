@@ -13,8 +13,6 @@ This module only reads and validates files; :mod:`sweeps.plan.trials` expands a 
 
 from __future__ import annotations
 
-import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -38,7 +36,6 @@ __all__ = [
     "Resources",
     "Scheduler",
     "Search",
-    "SeedBudget",
     "SequentialSeeds",
     "Settle",
     "SpaceParam",
@@ -47,7 +44,6 @@ __all__ = [
     "field_error",
     "load_profiles",
     "load_spec",
-    "parse_budget",
 ]
 
 PROFILES_FILE = Path(__file__).resolve().parents[1] / "profiles.yaml"
@@ -271,36 +267,6 @@ class Settle(_Strict):
     margin: float | None = Field(None, gt=0)
     """Equivalence margin in the metric's units: a cell whose interval against the reference lies inside
     ±margin is settled as ``level`` (a TOST-style verdict); null = only better/worse settle."""
-
-
-@dataclass(frozen=True)
-class SeedBudget:
-    """``--budget``: the wall time after which no new seed starts, or the most trials a sequential sweep runs."""
-
-    seconds: float | None = None
-    trials: int | None = None
-
-    def text(self) -> str:
-        if self.trials is not None:
-            return f"{self.trials} trials"
-        return f"{self.seconds / 60:g} min wall time"
-
-
-_DURATION = re.compile(r"(\d+(?:\.\d+)?)([hms])")
-
-
-def parse_budget(text: str) -> SeedBudget:
-    """``2h``, ``45m``, ``30s`` (wall time) or ``12`` (trials) as a :class:`SeedBudget`.
-
-    Raises:
-        SpecError: anything else, naming ``--budget`` and the accepted forms.
-    """
-    text = text.strip()
-    if text.isdigit() and int(text) >= 1:
-        return SeedBudget(trials=int(text))
-    if (match := _DURATION.fullmatch(text)) and float(match[1]) > 0:
-        return SeedBudget(seconds=float(match[1]) * {"h": 3600, "m": 60, "s": 1}[match[2]])
-    raise SpecError(f"--budget {text!r}: give a wall time (2h, 45m, 30s) or a number of trials (12)")
 
 
 class Spec(_Strict):

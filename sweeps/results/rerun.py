@@ -38,10 +38,16 @@ class _Record(Callback):
         self.record = record
 
 
+def _shown(value: str) -> str:
+    """A recorded tag value as one short line: quoted when it is not plain (a newline, a quote, 60+ characters)."""
+    return value if value.isprintable() and len(value) <= 60 and "'" not in value else repr(value[:60])
+
+
 def _code_warnings(tags: dict[str, str], force: bool) -> list[str]:
     """Refuse another commit (unless ``force``); uncommitted changes on either side only warn."""
     code = code_version()
-    recorded = {k: tags.get(f"repro.{k}", "missing") for k in code}
+    # Recorded values are shown, never run, and one line each: a planted newline or a page of text stays quoted.
+    recorded = {k: _shown(tags.get(f"repro.{k}", "missing")) for k in code}
     if recorded["git_commit"] != code["git_commit"] and not force:
         raise RerunError(f"recorded commit {recorded['git_commit']}, checked out {code['git_commit']} — check out the "
                          "recorded commit, or pass --force to re-run anyway")
@@ -52,6 +58,20 @@ def _code_warnings(tags: dict[str, str], force: bool) -> list[str]:
         warnings.append(f"uncommitted changes (recorded run: {recorded['git_dirty']}, this checkout: {code['git_dirty']}); "
                         "the code may differ from the recorded run's")
     return warnings
+
+
+MAX_THREADS = 4096
+"""Most torch threads a recorded ``repro.torch_threads`` may name."""
+
+
+def _recorded_threads(text: str | None) -> int:
+    """The recorded torch thread count (this process's when none was recorded), 1 to :data:`MAX_THREADS`."""
+    if text is None:
+        return torch.get_num_threads()
+    if not (text.isascii() and text.isdigit() and len(text) <= 4 and 1 <= int(text) <= MAX_THREADS):
+        raise RerunError(f"--rerun: the record's repro.torch_threads is {text[:40]!r}; expected a whole number from 1 to "
+                         f"{MAX_THREADS} (a damaged or edited record)")
+    return int(text)
 
 
 def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
@@ -72,18 +92,24 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     if "repro.config_hash" not in tags:
         raise RerunError(f"--rerun: run {run_id} has no reproducibility record (repro.* tags); was it a sweep trial?")
     warnings = _code_warnings(tags, force)
+    threads = _recorded_threads(tags.get("repro.torch_threads"))
     with tempfile.TemporaryDirectory() as tmp:
-        config = load_config(client.download_artifacts(run_id, "config.yaml", tmp),
-                             {"train.out_dir": str(out_root / run_id)})
+        try:
+            config = load_config(client.download_artifacts(run_id, "config.yaml", tmp),
+                                 {"train.out_dir": str(out_root / run_id)})
+        except (MlflowException, OSError) as exc:
+            raise RerunError(f"--rerun: run {run_id} has no readable config.yaml ({' '.join(str(exc).split())[:200]})") from None
+        except ValueError as exc:  # ConfigError: a recorded value this code no longer accepts
+            raise RerunError(f"--rerun: run {run_id}'s config.yaml: {exc}") from None
     if config_hash(config) != tags["repro.config_hash"]:
-        message = f"config hash {config_hash(config)} differs from the recorded {tags['repro.config_hash']} (defaults changed?)"
+        message = f"config hash {config_hash(config)} differs from the recorded {_shown(tags['repro.config_hash'])} (defaults changed?)"
         if not force:
             raise RerunError(message + "; pass --force to re-run anyway")
         warnings.append(message)
     for w in warnings:
         print(f"warning: {w}", flush=True)
     # Float sums depend on how work is split between threads; the trial's count makes them equal.
-    torch.set_num_threads(int(tags.get("repro.torch_threads", torch.get_num_threads())))
+    torch.set_num_threads(threads)
     name = f"rerun of {run.info.run_name}"
     tracked = TrialRun(uri, run.info.experiment_id, tags.get("mlflow.parentRunId", ""), f"rerun:{run_id}:{time.time_ns()}",
                        name, {"rerun_of": run_id}, config)
