@@ -9,8 +9,8 @@ the check and the read) and reads through a bounded function here, each refusal 
 names the file and the cap. The caps (also in docs/security.md):
 
 - :data:`MAX_TEXT_BYTES`: a JSON or text file read whole (set lists, split files, metadata, manifests);
-- :func:`annotation_cap`: a decompressed annotation file (``CDM_MAX_ANNOTATION_MIB``, default 256 MiB;
-  Co3D v2's largest ``frame_annotations.jgz`` is about a tenth of that);
+- :func:`annotation_cap`: a decompressed annotation file (``CDM_MAX_ANNOTATION_MIB``, default 256 MiB:
+  ~320,000 Co3D frame entries of ~830 bytes);
 - :data:`MAX_JSON_DEPTH`: nesting of any JSON read (Co3D's annotations nest 4 deep);
 - :data:`MAX_ARRAY_BYTES`: one ``.npy`` array or ``.npz`` member, from its header before allocation,
   and :data:`MAX_NPZ_BYTES` all members of an ``.npz`` together.

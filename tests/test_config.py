@@ -75,3 +75,29 @@ def test_replace_sets_dotted_fields_through_the_same_validation():
         cfg.replace(**{"train.stpes": 3})
     with pytest.raises(ConfigError, match="sampling.blend.prior_checkpoint is required"):
         cfg.replace(**{"sampling.blend.enabled": True})
+
+
+@pytest.mark.parametrize(("text", "said"), [
+    ("data.categories=" + "[" * 2000 + "]" * 2000, "data.categories: the value is nested too deeply"),
+    ("data.num_points=" + "9" * 5001, "data.num_points: cannot parse value"),
+])
+def test_a_set_value_nested_deep_or_of_5001_digits_is_one_config_error(text, said):
+    with pytest.raises(ConfigError, match=said) as refused:
+        parse_override(text)
+    assert "\n" not in str(refused.value)
+
+
+@pytest.mark.parametrize(("kind", "said"), [("fifo", "is a FIFO; expected a regular file"), ("deep", "nested too deeply"),
+                                            ("latin1", "not UTF-8 text")])
+def test_a_config_file_that_is_a_fifo_nested_deep_or_not_utf8_is_refused(tmp_path, kind, said):
+    import os
+
+    path = tmp_path / "config.yaml"
+    if kind == "fifo":
+        os.mkfifo(path)  # no writer: reading it would wait forever
+    elif kind == "deep":
+        path.write_text("[" * 100_000 + "]" * 100_000)
+    else:
+        path.write_bytes(b"train: {steps: \xe9}\n")
+    with pytest.raises(ConfigError, match=said):
+        load_config(path)
