@@ -20,7 +20,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from cdm.safe_io import read_bounded
+from cdm.safe_io import MAX_JSON_DEPTH, bracket_depth, read_bounded
 
 __all__ = [
     "BlendConfig",
@@ -511,6 +511,8 @@ def parse_override(text: str) -> tuple[str, Any]:
     if "=" not in text:
         raise ConfigError(f"override {text!r} must look like key=value, e.g. priors.lambda_3d=0.5")
     key, raw = text.split("=", 1)
+    if (depth := bracket_depth(raw.encode(errors="replace"))) > MAX_JSON_DEPTH:  # before PyYAML's recursive parser
+        raise ConfigError(f"{key}: the value is nested {depth} deep; at most {MAX_JSON_DEPTH}")
     try:
         # An alias chain of a few hundred bytes can expand to gigabytes: a value has no need of one.
         if any(isinstance(event, yaml.AliasEvent) for event in yaml.parse(raw, Loader=yaml.SafeLoader)):
@@ -559,7 +561,10 @@ def load_config(source: str | Path | dict[str, Any] | None = None, overrides: di
         if not path.exists():
             raise ConfigError(f"config file {path}: cannot read (no such file)")
         try:
-            tree = yaml.safe_load(read_bounded(path, "config file").decode("utf-8")) or {}
+            raw = read_bounded(path, "config file")
+            if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
+                raise ConfigError(f"config file {path}: nested {depth} deep; at most {MAX_JSON_DEPTH}")
+            tree = yaml.safe_load(raw.decode("utf-8")) or {}
         except OSError as exc:
             raise ConfigError(f"config file {path}: cannot read ({exc.strerror})") from None
         except UnicodeDecodeError as exc:
@@ -568,6 +573,8 @@ def load_config(source: str | Path | dict[str, Any] | None = None, overrides: di
             raise ConfigError(f"config file {path}: not valid YAML: {exc}") from None
         except RecursionError:  # PyYAML composes recursively: a planted file nests past Python's stack
             raise ConfigError(f"config file {path}: nested too deeply to be a config") from None
+        except ConfigError:
+            raise
         except ValueError as exc:  # not a regular file, or over the size cap (cdm.safe_io)
             raise ConfigError(str(exc)) from None
     if not isinstance(tree, dict):

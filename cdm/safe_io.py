@@ -36,6 +36,7 @@ __all__ = [
     "MAX_NPZ_BYTES",
     "MAX_TEXT_BYTES",
     "annotation_cap",
+    "bracket_depth",
     "inside",
     "load_npy",
     "load_npz",
@@ -129,8 +130,9 @@ _BRACKETS = bytes(range(256)).translate(None, b"[]{}")
 """Every byte but the four brackets: deleted from a JSON text, what remains is its nesting."""
 
 
-def _depth(raw: bytes) -> int:
-    """Deepest bracket nesting of the JSON text ``raw`` outside strings (an upper bound inside them)."""
+def bracket_depth(raw: bytes) -> int:
+    """Deepest bracket nesting of the JSON (or YAML flow) text ``raw`` outside double-quoted strings; an
+    upper bound where brackets sit in other quoting."""
     # Strings may hold brackets; dropping them first keeps the count honest for valid JSON.
     brackets = _STRING.sub(b"", raw).translate(None, _BRACKETS)
     if not brackets:
@@ -142,7 +144,7 @@ def _depth(raw: bytes) -> int:
 def parse_json(raw: bytes, label: str, path: Path) -> Any:
     """``raw`` (the contents of ``path``) as JSON, refused past :data:`MAX_JSON_DEPTH` levels of nesting
     before the parser sees it."""
-    if (depth := _depth(raw)) > MAX_JSON_DEPTH:
+    if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
         raise ValueError(f"{label}: {path} nests {depth} levels deep; JSON read here may nest at most {MAX_JSON_DEPTH}")
     try:
         return json.loads(raw)

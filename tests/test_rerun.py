@@ -42,7 +42,7 @@ def test_a_recorded_thread_count_out_of_range_is_refused_before_training(store, 
 
 
 @pytest.mark.parametrize(("config", "said"), [(None, "has no readable config.yaml"),
-                                              ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+                                              ("[" * 100_000 + "]" * 100_000, "nested 100000 deep; at most 64"),
                                               ("data:\n  num_points: ²\n", "data.num_points")])
 def test_a_missing_or_damaged_recorded_config_is_refused_in_one_line(store, tmp_path, config, said):
     uri, run = _recorded(store, tmp_path, {"repro.torch_threads": "1"}, config)
