@@ -35,6 +35,7 @@ __all__ = [
     "MAX_JSON_DEPTH",
     "MAX_NPZ_BYTES",
     "MAX_TEXT_BYTES",
+    "PLAIN_NAME",
     "annotation_cap",
     "bracket_depth",
     "inside",
@@ -158,7 +159,8 @@ def read_json(path: Path, label: str, gzipped: bool = False) -> Any:
     return parse_json(raw, label, path)
 
 
-_PLAIN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
+PLAIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
+"""One plain file name: letters, digits, ``_ . -``, not starting with a dot, at most 128 characters."""
 
 
 def plain_name(name: object, where: str) -> str:
@@ -166,7 +168,7 @@ def plain_name(name: object, where: str) -> str:
     most 128 characters), as every sequence, model and category of the published data sets is;
     ValueError naming ``where`` (the file and entry) otherwise. A name that becomes part of a path we
     read or write can then neither climb out (``..``) nor descend (``/``)."""
-    if not isinstance(name, str) or not _PLAIN.fullmatch(name):
+    if not isinstance(name, str) or not PLAIN_NAME.fullmatch(name):
         raise ValueError(f"{where} names {str(name)[:80]!r}; expected a plain name (letters, digits, "
                          "'_', '.', '-'; not starting with '.')")
     return name

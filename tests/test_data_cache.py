@@ -161,3 +161,17 @@ def test_a_root_prepared_in_the_per_object_box_frame_is_refused(tmp_path):
     (tmp_path / MANIFEST).write_text(json.dumps({"format": 1, "kind": "shapenet_r2n2", "categories": [], "splits": {}}))
     with pytest.raises(ValueError, match=rf"format 1, this version reads {FORMAT}; prepare again"):
         PreparedRoot.open(tmp_path, "shapenet_r2n2")
+
+
+def test_a_prepared_root_naming_an_object_outside_it_is_refused(tmp_path):
+    """A manifest's object ids become shard paths: one that climbs out is refused, not read."""
+    import json
+
+    from cdm.data.cache import FORMAT, MANIFEST, PreparedRoot
+
+    escape = "co3d/teddybear/../../../../outside"
+    (tmp_path / MANIFEST).write_text(json.dumps({"format": FORMAT, "kind": "co3d", "categories": ["teddybear"],
+                                                 "splits": {"train": [["teddybear", escape]]}}))
+    root = PreparedRoot.open(tmp_path, "co3d")
+    with pytest.raises(ValueError, match=r"cdm_prepared.json, split 'train', category 'teddybear' names object 'co3d/teddybear/\.\./"):
+        root.objects("train", ("teddybear",))

@@ -65,7 +65,7 @@ from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
 from cdm.normalise import IDENTITY
 from cdm.normalise import Frame as NormalisedFrame
-from cdm.safe_io import MAX_ARRAY_BYTES, inside, plain_name, read_bounded, read_json
+from cdm.safe_io import MAX_ARRAY_BYTES, PLAIN_NAME, inside, plain_name, read_bounded, read_json
 
 __all__ = ["CROP_MARGIN", "SET_LIST", "Co3DDataset", "centred_box", "crop_camera", "kept_frames", "load_depth"]
 
@@ -326,7 +326,7 @@ class Co3DDataset(CapturedDataset):
             raise ValueError(f"data.root: cannot list {root}: {exc.strerror}") from None
         # A category folder is recognised by any of its annotation files, so one missing file is
         # reported by name rather than hiding the category.
-        found = tuple(p.name for p in folders if any((p / name).exists() for name in _ANNOTATIONS))
+        found = tuple(p.name for p in folders if PLAIN_NAME.fullmatch(p.name) and any((p / name).exists() for name in _ANNOTATIONS))
         if not found:
             raise ValueError(f"data.root: {root} has no Co3D category folder (none holds frame_annotations.jgz); expected {cls.layout}")
         return found

@@ -58,7 +58,7 @@ from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
 from cdm.normalise import Frame, bdm_frame
-from cdm.safe_io import load_npy, plain_name, read_bounded, read_json
+from cdm.safe_io import PLAIN_NAME, load_npy, plain_name, read_bounded, read_json
 
 __all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
 
@@ -179,7 +179,8 @@ class ShapeNetR2N2Dataset(CapturedDataset):
             source = self.root / _CLOUDS / synset / published
             if not source.is_dir():
                 raise ValueError(f"data.root: {source} is missing; PC15k has {{train,val,test}} folders per synset")
-            entries = [(npy.stem, published) for npy in sorted(source.glob("*.npy"))]
+            # Only plain names can be PC15k model ids (hex): "._x.npy" of a macOS archive is no model.
+            entries = [(npy.stem, published) for npy in sorted(source.glob("*.npy")) if PLAIN_NAME.fullmatch(npy.stem)]
         else:
             source = self.root / BDM_SPLIT_FILE
             models = members.get(synset, {})
