@@ -75,8 +75,8 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
                                  f"--kind text|image|depth --out {cfg.model.global_embeddings}"))
     if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps" and cfg.priors.depth_maps is not None:
         out.append(ExternalInput("priors.depth_maps", input_path(cfg.priors.depth_maps), "estimated depth maps", "folder",
-                                 f"{export}, then your depth estimator on the crops, writing "
-                                 f"{cfg.priors.depth_maps}/<object_id>/<position>.npy (docs/paper.md, 'External inputs')"))
+                                 f"{export}, then python -m cdm.tools.estimate_depth --views views/ --model "
+                                 f"<DPT or Depth Anything folder> --out {cfg.priors.depth_maps}"))
     d = cfg.data
     if d.condition_folder is not None and (d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")):
         out.append(ExternalInput("data.condition_folder", input_path(d.condition_folder), "generated condition images",
