@@ -24,6 +24,7 @@ MAX_LINE = 200  # characters of one printed line (issue 36)
 # Each command and the words its --help opens with after the usage lines: the purpose, in a sentence.
 PURPOSE = {
     "sweeps/run.py": "Run a sweep: train every trial of a spec on Ray",
+    "sweeps/inputs.py": "Make a data set's inputs for the paper profile on Ray",
     "sweeps/report.py": "Rebuild a finished sweep's comparison straight from MLflow",
     "cdm/__main__.py": "Train, evaluate and use a CDM model without a sweep",
     "cdm/tools/export_views.py": "Write the images a config's data set shows the model",

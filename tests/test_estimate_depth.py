@@ -36,13 +36,17 @@ def _save(model, folder: Path) -> str:
     return str(folder)
 
 
-@pytest.fixture(scope="module")
-def dpt(tmp_path_factory) -> str:
-    """DINOv2's DPT head, as ``facebook/dpt-dinov2-*`` build it, at toy size: it outputs depth."""
+def tiny_dpt(folder: Path) -> str:
+    """DINOv2's DPT head, as ``facebook/dpt-dinov2-*`` build it, at toy size (it outputs depth), saved into ``folder``."""
     torch.manual_seed(0)
     config = transformers.DPTConfig(backbone_config=_backbone(), hidden_size=32, neck_hidden_sizes=[16, 16, 16, 16],
                                     fusion_hidden_size=16, head_hidden_size=16, reassemble_factors=[4, 2, 1, 0.5])
-    return _save(transformers.DPTForDepthEstimation(config), tmp_path_factory.mktemp("dpt"))
+    return _save(transformers.DPTForDepthEstimation(config), folder)
+
+
+@pytest.fixture(scope="module")
+def dpt(tmp_path_factory) -> str:
+    return tiny_dpt(tmp_path_factory.mktemp("dpt"))
 
 
 @pytest.fixture(scope="module")
