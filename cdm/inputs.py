@@ -25,6 +25,7 @@ from cdm.config import Config
 from cdm.paths import input_path
 
 __all__ = [
+    "MSN_URL",
     "ExternalInput",
     "check_coverage",
     "check_inputs",
@@ -56,7 +57,8 @@ class ExternalInput(NamedTuple):
         return self.path.is_file() if self.kind == "file" else self.path.is_dir()
 
 
-_MSN_URL = "https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar"
+MSN_URL = "https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar"
+"""MSN's ViT-S/16 (PC²'s ``vit_small_patch16_224_msn``), which a user fetches once."""
 
 
 def required_inputs(cfg: Config) -> list[ExternalInput]:
@@ -67,7 +69,7 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
     if cfg.model.encoder == "vit_s16":
         path = input_path(cfg.model.encoder_weights)
         out.append(ExternalInput("model.encoder_weights", path, "MSN ViT-S/16 weights", "file",
-                                 f"curl -L --create-dirs -o {cfg.model.encoder_weights} {_MSN_URL}"))
+                                 f"curl -L --create-dirs -o {cfg.model.encoder_weights} {MSN_URL}"))
     if cfg.model.global_source == "embeddings":
         out.append(ExternalInput("model.global_embeddings", input_path(cfg.model.global_embeddings),
                                  "per-object global embeddings (.npz)", "file",
@@ -75,8 +77,8 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
                                  f"--kind text|image|depth --out {cfg.model.global_embeddings}"))
     if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps" and cfg.priors.depth_maps is not None:
         out.append(ExternalInput("priors.depth_maps", input_path(cfg.priors.depth_maps), "estimated depth maps", "folder",
-                                 f"{export}, then your depth estimator on the crops, writing "
-                                 f"{cfg.priors.depth_maps}/<object_id>/<position>.npy (docs/paper.md, 'External inputs')"))
+                                 f"{export}, then python -m cdm.tools.estimate_depth --views views/ --model "
+                                 f"<DPT or Depth Anything folder> --out {cfg.priors.depth_maps}"))
     d = cfg.data
     if d.condition_folder is not None and (d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")):
         out.append(ExternalInput("data.condition_folder", input_path(d.condition_folder), "generated condition images",

@@ -206,7 +206,7 @@ def _backward_arrows(graph: dict[str, set[str]]) -> list[str]:
     """Imports that point from a stage to a later one, or from a shared module into any stage."""
     bad = []
     for importer, imported in graph.items():
-        if not importer.startswith("sweeps.") or importer in ("sweeps.run", "sweeps.report"):
+        if not importer.startswith("sweeps.") or importer in ("sweeps.run", "sweeps.report", "sweeps.inputs"):
             continue
         for target in imported:
             if not target.startswith("sweeps."):

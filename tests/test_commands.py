@@ -24,9 +24,11 @@ MAX_LINE = 200  # characters of one printed line (issue 36)
 # Each command and the words its --help opens with after the usage lines: the purpose, in a sentence.
 PURPOSE = {
     "sweeps/run.py": "Run a sweep: train every trial of a spec on Ray",
+    "sweeps/inputs.py": "Make a data set's inputs for the paper profile on Ray",
     "sweeps/report.py": "Rebuild a finished sweep's comparison straight from MLflow",
     "cdm/__main__.py": "Train, evaluate and use a CDM model without a sweep",
     "cdm/tools/export_views.py": "Write the images a config's data set shows the model",
+    "cdm/tools/estimate_depth.py": "Estimate the paper's 2D depth prior on exported views",
     "cdm/tools/openclip_embeddings.py": "Write the per-object embeddings of supplementary Table 7",
     "benchmarks/run.py": "Run the benchmarks and print one Markdown table",
     "benchmarks/denoiser_step.py": "Time one training step of each denoiser on CPU",

@@ -22,6 +22,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
+import json
+
 import cv2
 import numpy as np
 import torch
@@ -30,9 +32,11 @@ from torch import Tensor
 from cdm.paths import input_path
 from cdm.safe_io import load_npy
 
-__all__ = ["DepthMaps"]
+__all__ = ["ESTIMATOR_FILE", "DepthMaps"]
 
 _FIELD = "priors.depth_maps"
+ESTIMATOR_FILE = "estimator.json"
+"""Written beside the maps by ``python -m cdm.tools.estimate_depth``: ``{"model": ..., "disparity": bool}``."""
 
 
 class DepthMaps:
@@ -48,6 +52,12 @@ class DepthMaps:
         self.disparity = disparity
         if not self.folder.is_dir():
             raise ValueError(f"{_FIELD}: {self.folder} is not a folder; write <object_id>/<position>.npy maps there")
+        record = self.folder / ESTIMATOR_FILE
+        if record.is_file():
+            written = json.loads(record.read_text()).get("disparity")
+            if written is not disparity:
+                raise ValueError(f"priors.depth_maps_disparity: {self.folder} holds {'disparity' if written else 'depth'} "
+                                 f"maps ({record}); set priors.depth_maps_disparity={str(bool(written)).lower()}")
 
     def require(self, object_ids: Iterable[str]) -> None:
         """``ValueError`` naming the first object id without a folder of maps."""

@@ -1,7 +1,9 @@
 """``python -m cdm prepare``: convert a published data set once into a prepared root of shards.
 
 The format is :mod:`cdm.data.cache`'s; this module reads both splits through the data set's own
-reader (:meth:`CapturedDataset.export`) and writes one shard per object, resumably.
+reader (:meth:`CapturedDataset.export`) and writes one shard per object, resumably: :func:`prepare` in
+this process, or :func:`start` once and :func:`write_object` per object wherever the objects are sent
+(``python sweeps/inputs.py prepare --ray``).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from cdm.data.captured import CapturedDataset
 from cdm.data.depth_maps import DepthMaps
 from cdm.safe_io import read_json
 
-__all__ = ["PrepareReport", "prepare"]
+__all__ = ["PrepareReport", "Preparation", "prepare", "shard_path", "start", "write_object"]
 
 
 class PrepareReport(NamedTuple):
@@ -56,21 +58,21 @@ def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, n
     return arrays
 
 
-def _shard_path(out: Path, published: str, object_id: str) -> Path:
-    """Where the shard of ``object_id`` goes: below ``out``, whatever the id says (ValueError otherwise).
+class Preparation(NamedTuple):
+    """A checked preparation (:func:`start`): both splits indexed, the manifest written into ``out``.
 
-    The data sets check every name they read; this is the last check, on the resolved path, before a
-    write."""
-    path = out / published / f"{object_id}.shard"
-    if not path.resolve().is_relative_to(out.resolve()):
-        raise ValueError(f"--out: object {object_id[:200]!r} would be written to {path.resolve()}, outside {out}; "
-                         "refused (its name comes from the data set's annotations)")
-    return path
+    It pickles (the splits are plain indexes), so a Ray task can write some of its objects
+    (:func:`write_object`) on another machine that sees the same ``out``.
+    """
+
+    out: Path
+    splits: list[CapturedDataset]
+    maps: DepthMaps | None
+    image_size: int
 
 
-def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bool = True,
-            depth_maps: Path | None = None) -> PrepareReport:
-    """Write the prepared form of the raw data set ``cfg.data`` (kind ``dataset``) into ``out``.
+def start(dataset: type[CapturedDataset], cfg: Config, out: Path, depth_maps: Path | None = None) -> Preparation:
+    """Index and check the raw data set ``cfg.data`` (kind ``dataset``) and write ``out``'s manifest.
 
     With ``depth_maps`` (a folder in :mod:`cdm.data.depth_maps`' layout; disparity with
     ``priors.depth_maps_disparity``) each shard also stores the estimated depth of its input views,
@@ -78,7 +80,7 @@ def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bo
 
     Reads the training split and ``data.eval_split`` of ``data.categories`` at ``data.image_size``.
     Both splits are indexed (and every path checked) before anything is written. Shards already in
-    ``out`` from an interrupted run of the same command are kept.
+    ``out`` from an interrupted run of the same command are kept; temporary files it left are removed.
 
     Raises:
         ValueError: bad root, annotation, category or image (named), or ``out`` prepared differently.
@@ -111,26 +113,59 @@ def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bo
     for stale in out.rglob(".*.tmp-*"):  # left by a killed run: never renamed, so never complete
         stale.unlink()
     atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
+    return Preparation(out, splits, maps, cfg.data.image_size)
+
+
+def shard_path(prep: Preparation, split: int, index: int) -> Path:
+    """Where object ``index`` of ``prep.splits[split]`` is stored: below ``prep.out``, whatever the id says
+    (ValueError otherwise). The data sets check every name they read; this is the last check, on the
+    resolved path, before a write."""
+    ds = prep.splits[split]
+    object_id = ds.objects[index].object_id
+    path = prep.out / ds.published / f"{object_id}.shard"
+    if not path.resolve().is_relative_to(prep.out.resolve()):
+        raise ValueError(f"--out: object {object_id[:200]!r} would be written to {path.resolve()}, outside {prep.out}; "
+                         "refused (its name comes from the data set's annotations)")
+    return path
+
+
+def write_object(prep: Preparation, split: int, index: int) -> bool:
+    """Write the shard of object ``index`` of ``prep.splits[split]`` unless it is complete already;
+    True when written now. The write is atomic: a killed run leaves no shard under its final name."""
+    path = shard_path(prep, split, index)
+    if path.is_file():
+        return False
+    ds, ref = prep.splits[split], prep.splits[split].objects[index]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record, views = ds.export(index)
+    arrays = _object_arrays(record, views)
+    if prep.maps is not None:
+        arrays[ESTIMATED_DEPTHS] = np.stack(
+            [prep.maps.read(ref.object_id, p, prep.image_size)[0].numpy() for p in record.views.tolist()])
+    write_shard(path, arrays, {"object_id": ref.object_id, "category": ref.category, "scale": record.scale,
+                               "image_size": prep.image_size})
+    return True
+
+
+def prepare(dataset: type[CapturedDataset], cfg: Config, out: Path, progress: bool = True,
+            depth_maps: Path | None = None) -> PrepareReport:
+    """Write the prepared form of the raw data set ``cfg.data`` (kind ``dataset``) into ``out``, one
+    object after another in this process (:func:`start`, then :func:`write_object` for each object).
+
+    Raises:
+        ValueError: as :func:`start`.
+    """
+    prep = start(dataset, cfg, out, depth_maps)
     from tqdm import tqdm
 
     written = skipped = 0
-    for ds in splits:
+    for split, ds in enumerate(prep.splits):
         # The context closes the bar on errors too, so an error message starts on its own line.
         with tqdm(total=len(ds), desc=f"{dataset.kind} {ds.published}", unit="object", disable=not progress) as bar:
-            for index, ref in enumerate(ds.objects):
-                path = _shard_path(out, ds.published, ref.object_id)
-                if path.is_file():
-                    skipped += 1
-                else:
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    record, views = ds.export(index)
-                    arrays = _object_arrays(record, views)
-                    if maps is not None:
-                        arrays[ESTIMATED_DEPTHS] = np.stack(
-                            [maps.read(ref.object_id, p, cfg.data.image_size)[0].numpy() for p in record.views.tolist()])
-                    write_shard(path, arrays,
-                                {"object_id": ref.object_id, "category": ref.category, "scale": record.scale,
-                                 "image_size": cfg.data.image_size})
+            for index in range(len(ds)):
+                if write_object(prep, split, index):
                     written += 1
+                else:
+                    skipped += 1
                 bar.update(1)
-    return PrepareReport(out, written, skipped)
+    return PrepareReport(prep.out, written, skipped)

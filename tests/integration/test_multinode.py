@@ -12,8 +12,6 @@ Where each actor ran is read from the GCS actor table (no dashboard needed).
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,6 +21,7 @@ import torch
 from mlflow import MlflowClient
 
 from sweeps import run
+from tests.integration.local_ray import two_node_cluster
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -30,31 +29,8 @@ pytestmark = [pytest.mark.ray, pytest.mark.slow]
 @pytest.fixture(scope="module")
 def two_nodes() -> Iterator[list[str]]:
     """Node ids of a head and a worker node, 1 CPU each; the driver is connected to the head."""
-    from ray.cluster_utils import Cluster
-
-    # Own temp dir (short: Ray's socket paths must fit ~107 characters): Cluster records its address
-    # there, so `address="auto"` elsewhere on this machine never finds this cluster.
-    temp_dir = tempfile.mkdtemp(prefix="cdm2n", dir="/tmp")
-    common = {"num_cpus": 1, "node_ip_address": "127.0.0.1", "temp_dir": temp_dir}
-    # Given node_ip_address 127.0.0.1 the GCS listens on loopback only, but ray.init(address=...)
-    # rewrites a loopback host to the machine's outward address (services.resolve_ip_for_localhost,
-    # ray#59110) and then cannot reach it. Ray keeps loopback where it thinks clusters are
-    # unsupported; say so, in this process only, for as long as the cluster lives.
-    patch = pytest.MonkeyPatch()
-    patch.setattr(ray._private.ray_constants, "ENABLE_RAY_CLUSTER", False)
-    cluster = Cluster(initialize_head=True, head_node_args={**common, "include_dashboard": False})
-    try:
-        cluster.add_node(**common)
-        cluster.wait_for_nodes()
-        ray.init(address=cluster.address, logging_level="WARNING")
-        nodes = [n["NodeID"] for n in ray.nodes() if n["Alive"]]
-        assert len(nodes) == 2 and ray.cluster_resources()["CPU"] == 2
-        yield nodes
-    finally:
-        ray.shutdown()
-        cluster.shutdown()  # stops exactly the processes of these two nodes
-        patch.undo()
-        shutil.rmtree(temp_dir, ignore_errors=True)
+    with two_node_cluster() as cluster:
+        yield cluster.nodes
 
 
 def _actor_nodes(class_name: str) -> list[str]:

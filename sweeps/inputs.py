@@ -1,0 +1,176 @@
+"""Make a data set's inputs for the paper profile on Ray: prepared shards, depth maps, MSN's weights checked.
+
+One subcommand per step, each resumable (what exists is kept), and ``all`` for every step of one
+published data set, which first prints what is done and what remains::
+
+    python sweeps/inputs.py prepare --data-kind co3d --root RAW --out PREPARED [--set data.categories=[teddybear]]
+    python sweeps/inputs.py depth --views VIEWS --model DIR_OR_HUB_ID --out $CDM_INPUTS/depth_maps
+    python sweeps/inputs.py all --data-kind co3d --root RAW --out PREPARED --inputs $CDM_INPUTS --model DIR_OR_HUB_ID
+
+Work goes out as Ray tasks (``sweeps/execute/fanout.py``) over the cluster at ``--address`` /
+``RAY_ADDRESS``, else a local cluster bound to 127.0.0.1; every node must see ``--out`` (a shared
+file system). ``python -m cdm prepare`` does the same shards in one process, byte for byte. Exit 0 when
+all is made, 1 with the list of items that failed (the others are made), 2 on bad input, or when
+``all`` finds MSN's weights missing (it says how to fetch them: nothing is downloaded here).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):  # `python sweeps/inputs.py` puts sweeps/ first on sys.path, not the repo root
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from cdm.config import load_config, parse_override
+from cdm.data import DATASETS
+from cdm.data.captured import CapturedDataset
+from cdm.data.prepare import start
+from cdm.inputs import MSN_URL
+from cdm.model.encoder import load_msn_state_dict, sha256_file
+from cdm.tools.estimate_depth import find_views
+from cdm.tools.export_views import export_views
+
+__all__ = ["main"]
+
+MSN_FILE = Path("msn") / "vits16_800ep.pth.tar"
+"""Where the paper profile reads MSN's ViT-S/16 under ``$CDM_INPUTS`` (sweeps/profiles.yaml)."""
+RECORD = "inputs.json"
+"""Under ``--inputs``: the sha256 of the weights file first checked, so a changed file is noticed."""
+
+
+def _config(args: argparse.Namespace):
+    preparable = [k for k, cls in DATASETS.items() if issubclass(cls, CapturedDataset)]
+    if args.data_kind not in preparable:
+        raise ValueError(f"--data-kind: {args.data_kind!r} cannot be prepared; choose one of {', '.join(preparable)}")
+    return load_config(None, {**dict(parse_override(s) for s in args.set), "data.kind": args.data_kind,
+                              "data.root": args.root, "data.image_size": args.image_size})
+
+
+def _connect(address: str | None) -> tuple[float, float]:
+    """Join or start the cluster (heavy: only once the input is checked); its CPUs and GPUs."""
+    import ray
+
+    from sweeps.execute.cluster import connect
+
+    connect(address)
+    resources = ray.cluster_resources()
+    return float(resources.get("CPU", 1.0)), float(resources.get("GPU", 0.0))
+
+
+def _shards(args: argparse.Namespace) -> list:
+    from sweeps.execute.fanout import prepare_shards
+
+    prep = start(DATASETS[args.data_kind], _config(args), Path(args.out))
+    cpus, _ = _connect(args.address)
+    written, before, failures = prepare_shards(prep, cpus)
+    print(f"prepared {prep.out}: {written} shards written, {before} already complete")
+    return failures
+
+
+def _depth(views: Path, args: argparse.Namespace) -> list:
+    from cdm.tools.estimate_depth import load_estimator, write_manifest
+    from sweeps.execute.fanout import estimate_depth
+
+    found = find_views(views)
+    probe = load_estimator(args.model, "cpu", args.output)  # the model loads, and what it outputs, before Ray starts
+    write_manifest(Path(args.depth_out), args.model, probe.disparity)
+    cpus, gpus = _connect(args.address)
+    written, before, failures = estimate_depth(args.model, args.output, found, Path(args.depth_out), args.batch_size,
+                                               cpus, gpus)
+    print(f"depth maps {args.depth_out}: {written} written, {before} already there; run with "
+          f"--set priors.depth_maps_disparity={str(probe.disparity).lower()}")
+    return failures
+
+
+def _msn(inputs: Path) -> str | None:
+    """Check MSN's weights under ``inputs``: None when present, loadable and unchanged; else why not."""
+    path = inputs / MSN_FILE
+    if not path.is_file():
+        return f"{path} is missing: curl -L --create-dirs -o {path} {MSN_URL}"
+    load_msn_state_dict(path)
+    digest, record = sha256_file(path), inputs / RECORD
+    seen = json.loads(record.read_text()) if record.is_file() else {}
+    if seen.setdefault("msn_sha256", digest) != digest:
+        return f"{path} changed since it was first checked (sha256 {seen['msn_sha256']}, now {digest})"
+    record.write_text(json.dumps(seen, indent=1))
+    print(f"MSN ViT-S/16 weights: {path}, sha256 {digest}")
+    return None
+
+
+def _status(args: argparse.Namespace, views: Path, prepared: Path) -> None:
+    """What is done and what remains, before anything runs."""
+    shards = sum(1 for _ in prepared.rglob("*.shard")) if prepared.is_dir() else 0
+    maps = sum(1 for _ in Path(args.depth_out).rglob("*.npy")) if Path(args.depth_out).is_dir() else 0
+    print(f"MSN weights: {'present' if (Path(args.inputs) / MSN_FILE).is_file() else 'missing'}; "
+          f"shards: {shards} in {prepared}; views: {'exported' if (views / 'objects.json').is_file() else 'to export'}; "
+          f"depth maps: {maps} in {args.depth_out}")
+
+
+def _all(args: argparse.Namespace) -> tuple[list, str | None]:
+    inputs = Path(args.inputs)
+    views = inputs / "views" / args.data_kind
+    args.depth_out = str(inputs / "depth_maps")
+    _status(args, views, Path(args.out))
+    missing = _msn(inputs)
+    failures = _shards(args)
+    if not (views / "objects.json").is_file():  # written last by export_views: the export is complete
+        cfg = load_config(None, {**dict(parse_override(s) for s in args.set), "data.kind": args.data_kind,
+                                 "data.root": args.out})
+        print(f"exported {export_views(cfg, views)} views into {views}")
+    return failures + _depth(views, args), missing
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python sweeps/inputs.py", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    data = argparse.ArgumentParser(add_help=False)
+    data.add_argument("--data-kind", required=True, help="data set kind of --root: shapenet_r2n2 or co3d")
+    data.add_argument("--root", required=True, help="the data set as published")
+    data.add_argument("--out", required=True, help="folder for the prepared shards; rerun to resume")
+    data.add_argument("--image-size", type=int, default=224, help="side of the stored crops in pixels (default 224)")
+    data.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]")
+    model = argparse.ArgumentParser(add_help=False)
+    model.add_argument("--model", required=True, help="depth model: a local folder, or a hub id where the hub is reachable")
+    model.add_argument("--output", choices=("depth", "disparity"), help="what the model outputs, where not known")
+    model.add_argument("--batch-size", type=int, default=8, help="crops per forward pass (default 8)")
+    ray_ = argparse.ArgumentParser(add_help=False)
+    ray_.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
+    sub.add_parser("prepare", parents=[data, ray_], help="python -m cdm prepare, as Ray tasks")
+    p = sub.add_parser("depth", parents=[model, ray_], help="python -m cdm.tools.estimate_depth, as Ray tasks")
+    p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")
+    p.add_argument("--out", dest="depth_out", required=True, help="folder of maps to write (priors.depth_maps)")
+    p = sub.add_parser("all", parents=[data, model, ray_], help="shards, views, depth maps and the weights check")
+    p.add_argument("--inputs", required=True, help="the $CDM_INPUTS folder: msn/, views/<kind>/, depth_maps/")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    missing = None
+    try:
+        if args.command != "prepare" and args.batch_size < 1:
+            raise ValueError("--batch-size must be >= 1")
+        if args.command == "prepare":
+            failures = _shards(args)
+        elif args.command == "depth":
+            failures = _depth(args.views, args)
+        else:
+            failures, missing = _all(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for failure in failures:
+        print(f"failed: {failure.item}: {failure.error}", file=sys.stderr)
+    if failures:
+        print(f"{len(failures)} failed; the rest is made. Fix them and rerun the same command.", file=sys.stderr)
+    if missing:
+        print(f"error: MSN's weights: {missing}", file=sys.stderr)
+        return 2
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
