@@ -30,6 +30,7 @@ from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import start
 from cdm.inputs import MSN_URL
 from cdm.model.encoder import load_msn_state_dict, sha256_file
+from cdm.safe_io import read_json
 from cdm.tools.estimate_depth import find_views
 from cdm.tools.export_views import export_views
 
@@ -92,7 +93,9 @@ def _msn(inputs: Path) -> str | None:
         return f"{path} is missing: curl -L --create-dirs -o {path} {MSN_URL}"
     load_msn_state_dict(path)
     digest, record = sha256_file(path), inputs / RECORD
-    seen = json.loads(record.read_text()) if record.is_file() else {}
+    seen = read_json(record, "--inputs") if record.is_file() else {}
+    if not isinstance(seen, dict):
+        raise ValueError(f"--inputs: {record} is not this tool's record (a JSON object); remove it to start over")
     if seen.setdefault("msn_sha256", digest) != digest:
         return f"{path} changed since it was first checked (sha256 {seen['msn_sha256']}, now {digest})"
     record.write_text(json.dumps(seen, indent=1))

@@ -22,15 +22,13 @@ from __future__ import annotations
 from collections.abc import Iterable
 from pathlib import Path
 
-import json
-
 import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
 from cdm.paths import input_path
-from cdm.safe_io import load_npy
+from cdm.safe_io import load_npy, read_json
 
 __all__ = ["ESTIMATOR_FILE", "DepthMaps"]
 
@@ -54,7 +52,8 @@ class DepthMaps:
             raise ValueError(f"{_FIELD}: {self.folder} is not a folder; write <object_id>/<position>.npy maps there")
         record = self.folder / ESTIMATOR_FILE
         if record.is_file():
-            written = json.loads(record.read_text()).get("disparity")
+            said = read_json(record, _FIELD)
+            written = said.get("disparity") if isinstance(said, dict) else None
             if written is not disparity:
                 raise ValueError(f"priors.depth_maps_disparity: {self.folder} holds {'disparity' if written else 'depth'} "
                                  f"maps ({record}); set priors.depth_maps_disparity={str(bool(written)).lower()}")

@@ -36,6 +36,8 @@ import numpy as np
 import torch
 
 from cdm.data.depth_maps import ESTIMATOR_FILE
+from cdm.data.images import read_image
+from cdm.safe_io import read_json
 
 __all__ = ["Estimator", "View", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"]
 
@@ -110,7 +112,10 @@ def find_views(views: Path) -> list[View]:
     if not index.is_file():
         raise ValueError(f"--views: {views} has no objects.json; write it with python -m cdm.tools.export_views")
     found = []
-    for object_id in sorted(json.loads(index.read_text())):
+    ids = read_json(index, "--views")
+    if not isinstance(ids, dict) or not all(isinstance(i, str) for i in ids):
+        raise ValueError(f"--views: {index} is not export_views' record (object id → category)")
+    for object_id in sorted(ids):
         folder = views / object_id
         if not folder.resolve().is_relative_to(views.resolve()):
             raise ValueError(f"--views: {index} names object {object_id!r}, a path outside {views}")
@@ -123,7 +128,7 @@ def find_views(views: Path) -> list[View]:
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    image = read_image(path, cv2.IMREAD_COLOR, "--views")
     if image is None:
         raise ValueError(f"--views: {path} is not a readable image")
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
@@ -157,8 +162,9 @@ def write_manifest(out: Path, name: str, disparity: bool) -> None:
     record = {"model": name, "disparity": disparity}
     path = out / ESTIMATOR_FILE
     if path.is_file():
-        earlier = json.loads(path.read_text())
+        earlier = read_json(path, "--out")
         if earlier != record:
+            earlier = earlier if isinstance(earlier, dict) else {}
             raise ValueError(f"--out: {out} holds maps of {earlier.get('model')!r} (disparity "
                              f"{earlier.get('disparity')}); choose another --out")
     out.mkdir(parents=True, exist_ok=True)
