@@ -53,10 +53,24 @@ class _Progress(Callback):
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    sets = _overrides(args.set)
+    pc2 = None
+    if args.init_from is not None:
+        from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
 
-    cfg = load_config(args.config, _overrides(args.set))
+        if not Path(args.init_from).is_file():
+            raise ValueError(f"--init-from: {args.init_from} does not exist; pass PC²'s checkpoint-latest.pth")
+        if not is_pc2_checkpoint(args.init_from):
+            raise ValueError(f"--init-from: {args.init_from} is not PC²'s checkpoint (no point_cloud_model.model.* "
+                             "weights); continue a CDM run with --resume")
+        pc2 = read_pc2_checkpoint(args.init_from, "--init-from")
+    cfg = load_config(args.config, {**(pc2.overrides if pc2 else {}), **sets})
     check_inputs(cfg)
     check_memory([cfg], concurrent=1)
+    if pc2 is not None:
+        print("\n".join(pc2.describe(cfg, sets)))
+        print("fine-tuning from its weights: the file's optimizer, scheduler and step are not loaded (a fresh AdamW, "
+              "warm-up and step 0)", flush=True)
     print(f"training {cfg.train.steps} steps on data.kind={cfg.data.kind}, output in {cfg.train.out_dir}", flush=True)
     result = fit(cfg, [_Progress(cfg.train.steps, 0)], resume_from=args.resume)
     print(f"done at step {result.step}: CD×1000 {result.metrics.get('eval/cd', float('nan')):.2f}, "
@@ -84,8 +98,15 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from cdm.checkpoint import load_network
     from cdm.data import build_dataset
     from cdm.evaluate import build_eval_set, run_evaluation
+    from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
 
-    cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
+    if is_pc2_checkpoint(args.checkpoint):
+        sets = _overrides(args.set)
+        pc2 = read_pc2_checkpoint(args.checkpoint)
+        cfg, network, diffusion, device = load_network(None, {**pc2.overrides, **sets})
+        print("\n".join(pc2.describe(cfg, sets)), flush=True)
+    else:
+        cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
     eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
     out = run_evaluation(network, diffusion, eval_set, cfg, device, Path(args.out) if args.out else None)
     names = sorted(k for k in out.metrics if k.endswith("/cd") or k.endswith("/f1"))
@@ -225,6 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="YAML config (groups data/model/diffusion/priors/train/eval); defaults if omitted")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. priors.lambda_3d=0.5")
     p.add_argument("--resume", help="checkpoint directory to continue from")
+    p.add_argument("--init-from", help="PC²'s checkpoint-latest.pth: fine-tune its network from its weights (not its optimizer)")
     p.set_defaults(func=cmd_train)
     p = sub.add_parser("train-prior", help="train an unconditional category prior for BDM blending (sampling.blend)")
     p.add_argument("--category", required=True, help="the one category the prior models, e.g. chair")
@@ -233,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for checkpoint.pt (default: <train.out_dir>/prior_<category>)")
     p.set_defaults(func=cmd_train_prior)
     p = sub.add_parser("evaluate", help="score a checkpoint on the held-out split")
-    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out", help="folder for PLY/PNG/CSV outputs")
     p.set_defaults(func=cmd_evaluate)
