@@ -13,7 +13,7 @@ import torch
 
 from cdm.__main__ import main
 from cdm.checkpoint import load_network
-from cdm.config import ConfigError, load_config
+from cdm.config import ConfigError, load_config, parse_override
 from cdm.diffusion import SamplerSettings
 from cdm.pc2_checkpoint import PC2_DEFAULTS, is_pc2_checkpoint, read_pc2_checkpoint
 from tests.pc2_files import PC2_CFG, write_pc2_checkpoint
@@ -149,3 +149,47 @@ def test_train_init_from_fine_tunes_from_the_weights_not_the_optimizer(pc2_file,
     stem = ckpt["model"]["denoiser.sa_layers.0.0.point_features.layers.0.weight"]
     start = model["point_cloud_model.model.sa_layers.0.0.point_features.layers.0.weight"]
     assert (stem - start).abs().max() < 1e-2  # … by a warm-up's few steps, from PC²'s weights, not a fresh init
+
+
+RELEASED = ("  - {label: PC² (released weights), set: {priors.prior_2d: none, priors.prior_3d: false, "
+            "eval.only: true, model.init_from: '$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth'}}\n")
+
+
+def test_a_sweep_cell_names_pc2s_released_weights_and_a_missing_file_stops_it_before_ray(tmp_path, monkeypatch, capsys):
+    """Table 3's spec with docs/paper.md's extra cell: PC²'s released weights, one file per category."""
+    from sweeps import run
+    from tests.input_fixtures import paper_inputs
+
+    text = (Path(run.__file__).parent / "co3d.yaml").read_text()
+    spec = tmp_path / "co3d_released.yaml"
+    spec.write_text(text.replace("cells:\n", "cells:\n" + RELEASED, 1).replace("name: co3d", "name: co3d_released", 1))
+    inputs = paper_inputs(tmp_path / "inputs")
+    monkeypatch.setenv("CDM_INPUTS", str(inputs))
+    monkeypatch.chdir(tmp_path)
+    assert run.main([str(spec), "--dry-run", "--no-estimate", "--profile", "paper"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: model.init_from: {inputs}/pc2/bottle/checkpoint-latest.pth does not "
+                                               "exist (a file of PC²'s checkpoint")
+    assert not (tmp_path / "ray_results").exists() and not (tmp_path / "mlruns").exists()
+    for category in ("bottle", "mug", "sofa"):  # the procedural stand-ins of hydrant, teddybear, toytruck
+        (inputs / "pc2" / category).mkdir(parents=True)
+        (inputs / "pc2" / category / "checkpoint-latest.pth").write_bytes(b"")  # a dry run reads none of it
+    assert run.main([str(spec), "--dry-run", "--no-estimate", "--profile", "paper"]) == 0
+    out = capsys.readouterr().out
+    assert "PC² (released weights)" in out and f"model.init_from={inputs}/pc2/sofa/checkpoint-latest.pth (ok)" in out
+    listed = " ".join(out.split())  # the plan folds its lines at 120 columns
+    assert ("1. PC² (released weights) · categories=bottle · seed 0 (priors.prior_2d=none, priors.prior_3d=False, eval.only=True, "
+            "model.init_from=$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth, data.categories=['bottle']) "
+            "[paper Table 3 · PC², hydrant (bottle stands in): eval/cd 92.32, eval/f1 0.485]") in listed
+
+
+def test_eval_only_scores_the_starting_weights_at_step_0(pc2_file, tmp_path):
+    from cdm.train import fit
+
+    path, _ = pc2_file
+    small = dict(parse_override(s) for s in SMALL)
+    cfg = load_config(None, {**read_pc2_checkpoint(path).overrides, **small, "eval.only": True,
+                             "train.out_dir": str(tmp_path / "run"), "priors.render_size": 32})
+    result = fit(cfg)
+    assert result.step == 0 and result.checkpoint_dir.name == "step_0000000"
+    assert {"eval/cd", "eval/f1", "baseline/retrieval/cd"} <= set(result.metrics)
