@@ -64,7 +64,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError(f"--init-from: {args.init_from} is not PC²'s checkpoint (no point_cloud_model.model.* "
                              "weights); continue a CDM run with --resume")
         pc2 = read_pc2_checkpoint(args.init_from, "--init-from")
-    cfg = load_config(args.config, {**(pc2.overrides if pc2 else {}), **sets})
+    cfg = pc2.config(sets, args.config) if pc2 else load_config(args.config, sets)
     check_inputs(cfg)
     check_memory([cfg], concurrent=1)
     if pc2 is not None:
@@ -103,7 +103,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if is_pc2_checkpoint(args.checkpoint):
         sets = _overrides(args.set)
         pc2 = read_pc2_checkpoint(args.checkpoint)
-        cfg, network, diffusion, device = load_network(None, {**pc2.overrides, **sets})
+        cfg, network, diffusion, device = load_network(None, pc2.config(sets).flat())
         print("\n".join(pc2.describe(cfg, sets)), flush=True)
     else:
         cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))

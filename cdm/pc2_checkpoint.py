@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from cdm.config import Config
+from cdm.config import Config, load_config
 from cdm.paths import input_path
 from cdm.torch_files import Pickled, load_inert
 
@@ -48,6 +48,7 @@ PC2_DEFAULTS: dict[str, Any] = {
     "model.point_cloud_model_embed_dim": 64,
     "run.diffusion_scheduler": "ddpm",
     "run.num_inference_steps": 1000,
+    "dataset.mask_images": True,
 }
 """PC²'s settings that shape the network and the sampler, as ``experiments/config/structured.py`` sets them."""
 
@@ -63,6 +64,9 @@ _REQUIRED = {
     "dataset.scale_factor": 1.0,
 }
 _MARKER = b"point_cloud_model.model.sa_layers.0.0.point_features.layers.0.weight"
+_PEEK_BYTES = 16 * 2**20
+"""How much of the archive's pickle recognition reads: PC²'s state dict names its ~150 ViT tensors, then
+PVCNN2's first weight, within the first ~40 kB; an archive's pickle can unpack to far more."""
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z0-9_.]+)\}$")
 
 
@@ -74,7 +78,10 @@ def is_pc2_checkpoint(path: str | Path) -> bool:
         return False
     with zipfile.ZipFile(path) as archive:
         pickles = [n for n in archive.namelist() if n.endswith("/data.pkl")]
-        return bool(pickles) and _MARKER in archive.read(pickles[0])
+        if not pickles:
+            return False
+        with archive.open(pickles[0]) as data:
+            return _MARKER in data.read(_PEEK_BYTES)
 
 
 def config_data(node: Any) -> Any:
@@ -113,10 +120,18 @@ class PC2File(NamedTuple):
 
     overrides: dict[str, Any]
     """Dotted :class:`cdm.config.Config` fields; ``--set`` goes on top."""
+    co3d: dict[str, Any]
+    """PC²'s Co3D loading (``experiments/dataset/__init__.py``), for a run that reads ``data.kind: co3d``."""
     step: int | None
     source: str
     """Where the settings came from: the file's ``cfg`` or PC²'s defaults."""
     trained_on: str
+
+    def config(self, sets: Mapping[str, Any], source: str | Path | None = None) -> Config:
+        """The run's config: PC²'s settings, then ``source`` (a YAML file) and ``sets`` on top; on Co3D
+        also PC²'s way of loading it, as the network saw its inputs in training."""
+        cfg = load_config(source, {**self.overrides, **sets})
+        return load_config(source, {**self.overrides, **self.co3d, **sets}) if cfg.data.kind == "co3d" else cfg
 
     def describe(self, cfg: Config, sets: Mapping[str, Any]) -> list[str]:
         """The reference settings this run took, and each one ``--set`` changed."""
@@ -129,7 +144,8 @@ class PC2File(NamedTuple):
             f"reference settings ({self.source}): PC²'s {sampler.upper()} sampler over {steps} steps, linear β "
             f"{o['diffusion.beta_start']:g} → {o['diffusion.beta_end']:g}, ε-prediction, x̂₀ unclipped, "
             f"{o['data.image_size']}² images, {o['data.num_points']} points, mask channels "
-            f"{'on' if o['model.mask_channels'] else 'off'}",
+            f"{'on' if o['model.mask_channels'] else 'off'}"
+            + (", Co3D loaded as PC² (" + ", ".join(f"{k}={v}" for k, v in self.co3d.items()) + ")" if cfg.data.kind == "co3d" else ""),
         ]
         changed = [f"{k}={v}" + (f" (PC²: {'null' if o[k] is None else o[k]})" if k in o else "")
                    for k, v in sets.items() if o.get(k, v) != v or k not in o]
@@ -178,5 +194,7 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     dataset = tree.get("dataset") if isinstance(tree.get("dataset"), Mapping) else {}
     trained_on = " ".join(str(dataset[k]) for k in ("type", "category") if k in dataset) or "a data set its file does not name"
     step = raw.get("step", raw.get("steps"))
-    return PC2File(overrides, step if isinstance(step, int) else None,
+    co3d = {"data.mask_rgb": bool(value["dataset.mask_images"]), "data.exclude_sequences": True,
+            "data.frames_per_sequence": 1, "data.drop_outliers": False}
+    return PC2File(overrides, co3d, step if isinstance(step, int) else None,
                    "the file's cfg" if tree else "PC²'s defaults: the file has no cfg", trained_on)

@@ -46,6 +46,10 @@ def test_the_cfg_is_read_as_data_and_gives_pc2s_settings(pc2_file, tmp_path):
     assert (o["model.time_embed_dim"], o["model.mask_channels"], o["priors.prior_2d"]) == (64, True, "none")
     assert pc2.step == 100_000 and pc2.trained_on == "co3dv2 hydrant" and pc2.source == "the file's cfg"
     assert "omegaconf" not in sys.modules  # no class the cfg names was imported
+    co3d = pc2.config({"data.kind": "co3d", "data.root": "/data/co3d", "data.categories": ["hydrant"]})
+    assert (co3d.data.mask_rgb, co3d.data.exclude_sequences, co3d.data.frames_per_sequence, co3d.data.drop_outliers) == (True, True, 1, False)
+    assert "Co3D loaded as PC² (data.mask_rgb=True" in pc2.describe(co3d, {})[1]
+    assert pc2.config({}).data.mask_rgb is False  # the embedded data set has no such option
     other = tmp_path / "other.pth"
     cfg = {**PC2_CFG, "dataset": {**PC2_CFG["dataset"], "image_size": 128, "max_points": 4096},
            "run": {**PC2_CFG["run"], "num_inference_steps": 100}}
