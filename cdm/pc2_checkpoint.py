@@ -157,7 +157,7 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     """The config fields that rebuild ``path``'s network and PC²'s sampler (:class:`PC2File`).
 
     Raises:
-        ValueError: the file would run code while loading, holds no PC² model, or its ``cfg`` asks for a
+        ValueError: the file could run code while loading, holds no PC² model, or its ``cfg`` asks for a
             network this one cannot be (another image model, global features, colour, a scale factor);
             the message starts with ``flag`` (the option that named the file) and the path.
     """

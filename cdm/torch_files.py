@@ -145,7 +145,7 @@ def load_inert(file: Path, label: str, kind: str) -> Any:
         # torch's tensor rebuilders and records.
         return torch.load(file, map_location="cpu", weights_only=False, pickle_module=_inert_pickle)
     except pickle.UnpicklingError as exc:
-        raise ValueError(f"{label} would run code while loading ({exc}); refused, and nothing of it was run. "
+        raise ValueError(f"{label} could run code from the file while loading ({exc}); refused, and nothing of it was run. "
                          f"Only tensors, plain data and a config ({', '.join(CONFIG_CALLS)}) are read") from None
     except (RuntimeError, EOFError, TypeError, AttributeError) as exc:
         raise ValueError(f"{label} is not a readable {kind} ({exc})") from None

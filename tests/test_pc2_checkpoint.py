@@ -96,7 +96,7 @@ def test_a_cfg_with_a_payload_exits_2_with_one_line_and_runs_nothing(tmp_path, c
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 2
     for line, flag in zip(lines, ("--checkpoint", "--init-from")):
-        assert line.startswith(f"error: {flag}: {path} would run code while loading (it calls posix.system); refused, "
+        assert line.startswith(f"error: {flag}: {path} could run code from the file while loading (it calls posix.system); refused, "
                                "and nothing of it was run")
     assert not marker.exists() and not (tmp_path / "runs").exists()
     assert main(["train", "--init-from", str(tmp_path / "missing.pth")]) == 2

@@ -506,7 +506,7 @@ def test_checkpoint_files_load_as_data_and_an_object_that_is_not_a_config_is_ref
     assert model.in_channels == 389
     with_cfg = tmp_path / "with_cfg.pth"
     torch.save({**_pc2_checkpoint(), "cfg": _Config()}, with_cfg)  # PC²'s OmegaConf cfg: tests/test_pc2_checkpoint.py
-    with pytest.raises(ValueError, match=r"with_cfg\.pth would run code while loading \(it calls (tests\.)?test_pvcnn2\._Config\)"):
+    with pytest.raises(ValueError, match=r"with_cfg\.pth could run code from the file while loading \(it calls (tests\.)?test_pvcnn2\._Config\)"):
         load_reference_checkpoint(with_cfg, "pc2")
 
 

@@ -78,7 +78,7 @@ def test_load_inert_refuses_a_reduce_payload_and_runs_nothing(tmp_path, call, ar
     filled = tuple([a.format(marker=str(marker)) for a in arg] if isinstance(arg, list) else arg.format(marker=str(marker))
                    for arg in args)
     torch.save({"model": {"w": torch.zeros(2)}, "cfg": {"run": _Payload(func, *filled)}}, tmp_path / "bad.pth")
-    with pytest.raises(ValueError, match=rf"^weights: .*bad\.pth would run code while loading \(it calls {names}\); "
+    with pytest.raises(ValueError, match=rf"^weights: .*bad\.pth could run code from the file while loading \(it calls {names}\); "
                                          "refused, and nothing of it was run"):
         load_inert(tmp_path / "bad.pth", f"weights: {tmp_path / 'bad.pth'}", "weights file")
     assert not marker.exists()
