@@ -133,6 +133,18 @@ def test_python_m_cdm_evaluate_scores_pc2s_checkpoint_and_says_what_it_took(pc2_
     names = ["eval/cd", "eval/f1"] + [f"baseline/{b}/{m}" for b in ("sphere", "gaussian", "category_mean", "retrieval") for m in ("cd", "f1")]
     assert set(names) <= set(scores) and all(scores[n] == scores[n] for n in names)  # every one a number, none NaN
     assert 0 <= scores["eval/f1"] <= 1 and scores["baseline/sphere/cd"] > 0
+    marker = tmp_path / "marker"
+
+    class Payload:
+        def __reduce__(self):
+            return os.system, (f"touch {marker}",)
+
+    evil = tmp_path / "evil.pth"
+    write_pc2_checkpoint(evil, width=0.25, payload=Payload())
+    out = subprocess.run([sys.executable, "-m", "cdm", "evaluate", "--checkpoint", str(evil), *_sets()], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and out.stdout == "" and not marker.exists()
+    assert out.stderr.count("\n") == 1 and out.stderr.startswith(f"error: --checkpoint: {evil} could run code from the file")
 
 
 @pytest.mark.slow
@@ -155,8 +167,8 @@ def test_train_init_from_fine_tunes_from_the_weights_not_the_optimizer(pc2_file,
     assert (stem - start).abs().max() < 1e-2  # … by a warm-up's few steps, from PC²'s weights, not a fresh init
 
 
-RELEASED = ("  - {label: PC² (released weights), set: {priors.prior_2d: none, priors.prior_3d: false, "
-            "eval.only: true, model.init_from: '$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth'}}\n")
+RELEASED = ("  - {label: PC² (released weights), set: {priors.prior_2d: none, priors.prior_3d: false, eval.only: true, "
+            "model.init_from: '$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth', model.encoder_weights: null}}\n")
 
 
 def test_a_sweep_cell_names_pc2s_released_weights_and_a_missing_file_stops_it_before_ray(tmp_path, monkeypatch, capsys):
@@ -180,10 +192,11 @@ def test_a_sweep_cell_names_pc2s_released_weights_and_a_missing_file_stops_it_be
         (inputs / "pc2" / category / "checkpoint-latest.pth").write_bytes(b"")  # a dry run reads none of it
     assert run.main([str(spec), "--dry-run", "--no-estimate", "--profile", "paper"]) == 0
     out = capsys.readouterr().out
-    assert "PC² (released weights)" in out and f"model.init_from={inputs}/pc2/sofa/checkpoint-latest.pth (ok)" in out
+    assert f"PC² (released weights) · categories=sofa · seed 0: inputs: model.init_from={inputs}/pc2/sofa/checkpoint-latest.pth (ok)\n" in out
+    # … its ViT-S/16 from the same file, not MSN's (the retrained cells read that one)
     listed = " ".join(out.split())  # the plan folds its lines at 120 columns
     assert ("1. PC² (released weights) · categories=bottle · seed 0 (priors.prior_2d=none, priors.prior_3d=False, eval.only=True, "
-            "model.init_from=$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth, data.categories=['bottle']) "
+            "model.init_from=$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth, model.encoder_weights=None, data.categories=['bottle']) "
             "[paper Table 3 · PC², hydrant (bottle stands in): eval/cd 92.32, eval/f1 0.485]") in listed
 
 
