@@ -94,19 +94,24 @@ def cmd_train_prior(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_evaluate(args: argparse.Namespace) -> int:
+def _network(checkpoint: str, sets: dict):
+    """The network of a CDM checkpoint, or of PC²'s ``checkpoint-latest.pth`` with the settings it took said."""
     from cdm.checkpoint import load_network
-    from cdm.data import build_dataset
-    from cdm.evaluate import build_eval_set, run_evaluation
     from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
 
-    if is_pc2_checkpoint(args.checkpoint):
-        sets = _overrides(args.set)
-        pc2 = read_pc2_checkpoint(args.checkpoint)
-        cfg, network, diffusion, device = load_network(None, pc2.config(sets).flat())
-        print("\n".join(pc2.describe(cfg, sets)), flush=True)
-    else:
-        cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
+    if not is_pc2_checkpoint(checkpoint):
+        return load_network(checkpoint, sets)
+    pc2 = read_pc2_checkpoint(checkpoint)
+    loaded = load_network(None, pc2.config(sets).flat())
+    print("\n".join(pc2.describe(loaded.config, sets)), flush=True)
+    return loaded
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from cdm.data import build_dataset
+    from cdm.evaluate import build_eval_set, run_evaluation
+
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
     eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
     out = run_evaluation(network, diffusion, eval_set, cfg, device, Path(args.out) if args.out else None)
     names = sorted(k for k in out.metrics if k.endswith("/cd") or k.endswith("/f1"))
@@ -163,13 +168,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cdm.cameras import look_at_cameras, orbit_cameras
-    from cdm.checkpoint import load_network
     from cdm.data.priors2d import prior_2d_channels
     from cdm.data.sample import Sample, collate
+    from cdm.diffusion import SamplerSettings
     from cdm.evaluate import reconstruct, write_ply
 
     out_folder = _output_folder(Path(args.out))
-    cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
     elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
     camera = look_at_cameras(elev, azim, dist, args.focal)
@@ -186,7 +191,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     )
     batch = collate([sample]).to(device)
     gen = torch.Generator(device=device).manual_seed(args.seed)
-    bar = tqdm(total=cfg.diffusion.sample_steps if cfg.diffusion.sampler == "ddim" else cfg.diffusion.num_steps, unit="step")
+    bar = tqdm(total=len(diffusion.timesteps(SamplerSettings.from_config(cfg.diffusion))), unit="step")
     cloud = reconstruct(network, diffusion, batch, cfg, gen, progress=lambda i, n: bar.update(1))
     bar.close()
     if out_folder is not None:
@@ -260,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for PLY/PNG/CSV outputs")
     p.set_defaults(func=cmd_evaluate)
     p = sub.add_parser("reconstruct", help="reconstruct a point cloud from one image")
-    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint or PC²'s checkpoint-latest.pth")
     p.add_argument("--image", required=True)
     p.add_argument("--out", required=True, help="output .ply")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")

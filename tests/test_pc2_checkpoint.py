@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import torch
 
@@ -119,7 +121,7 @@ def test_init_from_needs_pc2s_network_one_category_for_its_pattern_and_weights_t
 
 
 @pytest.mark.slow
-def test_python_m_cdm_evaluate_scores_pc2s_checkpoint_and_says_what_it_took(pc2_file, tmp_path):
+def test_python_m_cdm_evaluate_and_reconstruct_take_pc2s_checkpoint_and_refuse_a_payload(pc2_file, tmp_path):
     path, _ = pc2_file
     out = subprocess.run([sys.executable, "-m", "cdm", "evaluate", "--checkpoint", str(path), *_sets()], cwd=tmp_path,
                          capture_output=True, text=True, timeout=300)
@@ -133,6 +135,12 @@ def test_python_m_cdm_evaluate_scores_pc2s_checkpoint_and_says_what_it_took(pc2_
     names = ["eval/cd", "eval/f1"] + [f"baseline/{b}/{m}" for b in ("sphere", "gaussian", "category_mean", "retrieval") for m in ("cd", "f1")]
     assert set(names) <= set(scores) and all(scores[n] == scores[n] for n in names)  # every one a number, none NaN
     assert 0 <= scores["eval/f1"] <= 1 and scores["baseline/sphere/cd"] > 0
+    image = tmp_path / "input.png"
+    cv2.imwrite(str(image), np.full((32, 32, 3), 255, np.uint8) * (np.indices((32, 32)).sum(0) < 40)[..., None].astype(np.uint8))
+    out = subprocess.run([sys.executable, "-m", "cdm", "reconstruct", "--checkpoint", str(path), "--image", str(image),
+                          "--out", "cloud.ply", *_sets()], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"PC² checkpoint {path}") and "wrote 128 points to cloud.ply" in out.stdout
     marker = tmp_path / "marker"
 
     class Payload:
