@@ -219,7 +219,7 @@ class DiffusionConfig(_Group):
     prediction: Literal["eps", "x0", "v"] = "eps"
     """What the network predicts: ε as in the paper (Eq. 2–3), x₀, or v = √ᾱ ε − √(1−ᾱ) x₀."""
     sampler: Literal["ddim", "ddpm"] = "ddim"
-    """Evaluation sampler: DDIM (η=0) over ``sample_steps`` or full ancestral DDPM."""
+    """Evaluation sampler: DDIM (η=0) over ``sample_steps`` or ancestral DDPM (all T steps, or ``ddpm_steps``)."""
     sample_steps: int = Field(50, ge=1)
     """Steps of the DDIM sampler."""
     ddpm_steps: int | None = Field(None, ge=1)

@@ -101,6 +101,11 @@ def test_a_cfg_with_a_payload_exits_2_with_one_line_and_runs_nothing(tmp_path, c
         assert line.startswith(f"error: {flag}: {path} could run code from the file while loading (it calls posix.system); refused, "
                                "and nothing of it was run")
     assert not marker.exists() and not (tmp_path / "runs").exists()
+    network = {"model.denoiser": "pvcnn2", "model.encoder": "vit_s16", "model.feature_dim": 384, "priors.prior_2d": "none",
+               "model.init_from": str(path)}  # as a sweep cell names it: the network reads the file itself
+    with pytest.raises(ValueError, match=rf"^model.init_from: {path} could run code from the file while loading"):
+        load_network(None, network)
+    assert not marker.exists()
     assert main(["train", "--init-from", str(tmp_path / "missing.pth")]) == 2
     assert capsys.readouterr().err == f"error: --init-from: {tmp_path / 'missing.pth'} does not exist; pass PC²'s checkpoint-latest.pth\n"
 

@@ -195,7 +195,7 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def load_msn_state_dict(path: str | Path) -> dict[str, Tensor]:
+def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -> dict[str, Tensor]:
     """The ViT-S/16 state dict of a local weights file, validated against :class:`ViTS16`'s layout.
 
     Accepts MSN's published checkpoint (``{"target_encoder": {"module.<name>": tensor, ...}, ...}``,
@@ -205,10 +205,10 @@ def load_msn_state_dict(path: str | Path) -> dict[str, Tensor]:
 
     Raises:
         ValueError: missing file, unreadable file, missing/unexpected keys or wrong shapes; the
-            message names ``model.encoder_weights``.
+            message names the config field ``name`` that gave the file.
     """
     path = input_path(path)
-    field = f"model.encoder_weights: {path}"
+    field = f"{name}: {path}"
     if not path.is_file():
         raise ValueError(f"{field}: no such file; download MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
     raw = load_inert(path, field, "torch file")
@@ -253,11 +253,12 @@ class FrozenViT(nn.Module):
     Args:
         weights: local weights file (:func:`load_msn_state_dict`).
         cache_bytes: budget of the token cache; 0 disables it.
+        field: the config field that named ``weights``, for messages.
     """
 
-    def __init__(self, weights: str | Path, cache_bytes: int = 256 * 2**20):
+    def __init__(self, weights: str | Path, cache_bytes: int = 256 * 2**20, field: str = "model.encoder_weights"):
         super().__init__()
-        state = load_msn_state_dict(weights)
+        state = load_msn_state_dict(weights, field)
         backbone = ViTS16()
         backbone.load_state_dict(state)
         self._backbone = [backbone.requires_grad_(False).eval()]  # a list: not a registered submodule
@@ -304,8 +305,10 @@ class FrozenViT(nn.Module):
 
 def build_encoder(cfg: ModelConfig, prior_2d_channels: int) -> ImageEncoder | FrozenViT:
     """The encoder ``model.encoder`` names (``vit_s16`` reads ``model.encoder_weights``, else ``model.init_from``)."""
+    if cfg.encoder == "vit_s16" and cfg.encoder_weights is None:
+        return FrozenViT(cfg.init_from, field="model.init_from")
     if cfg.encoder == "vit_s16":
-        return FrozenViT(cfg.encoder_weights or cfg.init_from)
+        return FrozenViT(cfg.encoder_weights)
     return ImageEncoder(prior_2d_channels, cfg.feature_dim)
 
 
