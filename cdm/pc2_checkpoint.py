@@ -166,8 +166,15 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     raw = load_inert(file, label, "PC² checkpoint")
     if not isinstance(raw, Mapping) or not isinstance(raw.get("model", raw), Mapping):
         raise ValueError(f"{label} holds no model state dict")
-    tree = config_data(raw["cfg"]) if "cfg" in raw else {}
+    tree = config_data(raw.get("cfg")) or {}
+    if not isinstance(tree, Mapping):
+        raise ValueError(f"{label}: its cfg is a {type(tree).__name__}, not a config of groups (run, dataset, model, …)")
     value = {key: _lookup(tree, key) for key in PC2_DEFAULTS}
+    numbers = ("dataset.image_size", "dataset.max_points", "model.point_cloud_model_embed_dim", "run.num_inference_steps")
+    for key in (*numbers, "model.beta_start", "model.beta_end"):
+        kind = int if key in numbers else float
+        if isinstance(value[key], bool) or not isinstance(value[key], int | float) or kind is int and value[key] != int(value[key]):
+            raise ValueError(f"{label}: its cfg's {key} is {value[key]!r}, not {'an integer' if kind is int else 'a number'}")
     wrong = [f"{k}={value[k]!r}" for k, want in _REQUIRED.items() if value[k] != want]
     if value["model.use_mask"] != value["model.use_distance_transform"]:
         wrong.append("model.use_mask differs from model.use_distance_transform")

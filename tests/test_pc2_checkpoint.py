@@ -71,6 +71,13 @@ def test_a_model_only_file_takes_pc2s_defaults_and_a_foreign_cfg_is_refused(pc2_
     with pytest.raises(ValueError, match=r"^--checkpoint: .*colour\.pth: its cfg asks for what this network cannot be: "
                                          r"model\.use_global_features=True"):
         read_pc2_checkpoint(colour)
+    odd = tmp_path / "odd.pth"
+    write_pc2_checkpoint(odd, width=0.25, cfg={**PC2_CFG, "dataset": {**PC2_CFG["dataset"], "max_points": "many"}})
+    with pytest.raises(ValueError, match=r"^--checkpoint: .*odd\.pth: its cfg's dataset\.max_points is 'many', not an integer$"):
+        read_pc2_checkpoint(odd)
+    write_pc2_checkpoint(odd, width=0.25, payload=["not", "a", "config"])
+    with pytest.raises(ValueError, match=r"odd\.pth: its cfg is a list, not a config of groups"):
+        read_pc2_checkpoint(odd)
 
 
 def test_the_network_holds_the_files_weights_key_for_key(pc2_file):
