@@ -53,10 +53,24 @@ class _Progress(Callback):
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    sets = _overrides(args.set)
+    pc2 = None
+    if args.init_from is not None:
+        from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
 
-    cfg = load_config(args.config, _overrides(args.set))
+        if not Path(args.init_from).is_file():
+            raise ValueError(f"--init-from: {args.init_from} does not exist; pass PC²'s checkpoint-latest.pth")
+        if not is_pc2_checkpoint(args.init_from):
+            raise ValueError(f"--init-from: {args.init_from} is not PC²'s checkpoint (no point_cloud_model.model.* "
+                             "weights); continue a CDM run with --resume")
+        pc2 = read_pc2_checkpoint(args.init_from, "--init-from")
+    cfg = pc2.config(sets, args.config) if pc2 else load_config(args.config, sets)
     check_inputs(cfg)
     check_memory([cfg], concurrent=1)
+    if pc2 is not None:
+        print("\n".join(pc2.describe(cfg, sets)))
+        print("fine-tuning from its weights: the file's optimizer, scheduler and step are not loaded (a fresh AdamW, "
+              "warm-up and step 0)", flush=True)
     print(f"training {cfg.train.steps} steps on data.kind={cfg.data.kind}, output in {cfg.train.out_dir}", flush=True)
     progress = _Progress(cfg.train.steps, 0)
     try:
@@ -84,12 +98,24 @@ def cmd_train_prior(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_evaluate(args: argparse.Namespace) -> int:
+def _network(checkpoint: str, sets: dict):
+    """The network of a CDM checkpoint, or of PC²'s ``checkpoint-latest.pth`` with the settings it took said."""
     from cdm.checkpoint import load_network
+    from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
+
+    if not is_pc2_checkpoint(checkpoint):
+        return load_network(checkpoint, sets)
+    pc2 = read_pc2_checkpoint(checkpoint)
+    loaded = load_network(None, pc2.config(sets).flat())
+    print("\n".join(pc2.describe(loaded.config, sets)), flush=True)
+    return loaded
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
     from cdm.data import build_dataset
     from cdm.evaluate import build_eval_set, run_evaluation
 
-    cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
     eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
     out = run_evaluation(network, diffusion, eval_set, cfg, device, Path(args.out) if args.out else None)
     names = sorted(k for k in out.metrics if k.endswith("/cd") or k.endswith("/f1"))
@@ -146,13 +172,13 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from cdm.cameras import look_at_cameras, orbit_cameras
-    from cdm.checkpoint import load_network
     from cdm.data.priors2d import prior_2d_channels
     from cdm.data.sample import Sample, collate
+    from cdm.diffusion import SamplerSettings
     from cdm.evaluate import reconstruct, write_ply
 
     out_folder = _output_folder(Path(args.out))
-    cfg, network, diffusion, device = load_network(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
     elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
     camera = look_at_cameras(elev, azim, dist, args.focal)
@@ -169,7 +195,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     )
     batch = collate([sample]).to(device)
     gen = torch.Generator(device=device).manual_seed(args.seed)
-    bar = tqdm(total=cfg.diffusion.sample_steps if cfg.diffusion.sampler == "ddim" else cfg.diffusion.num_steps, unit="step")
+    bar = tqdm(total=len(diffusion.timesteps(SamplerSettings.from_config(cfg.diffusion))), unit="step")
     cloud = reconstruct(network, diffusion, batch, cfg, gen, progress=lambda i, n: bar.update(1))
     bar.close()
     if out_folder is not None:
@@ -229,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", help="YAML config (groups data/model/diffusion/priors/train/eval); defaults if omitted")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. priors.lambda_3d=0.5")
     p.add_argument("--resume", help="checkpoint directory to continue from")
+    p.add_argument("--init-from", help="PC²'s checkpoint-latest.pth: fine-tune its network from its weights (not its optimizer)")
     p.set_defaults(func=cmd_train)
     p = sub.add_parser("train-prior", help="train an unconditional category prior for BDM blending (sampling.blend)")
     p.add_argument("--category", required=True, help="the one category the prior models, e.g. chair")
@@ -237,12 +264,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="folder for checkpoint.pt (default: <train.out_dir>/prior_<category>)")
     p.set_defaults(func=cmd_train_prior)
     p = sub.add_parser("evaluate", help="score a checkpoint on the held-out split")
-    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out", help="folder for PLY/PNG/CSV outputs")
     p.set_defaults(func=cmd_evaluate)
     p = sub.add_parser("reconstruct", help="reconstruct a point cloud from one image")
-    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint or PC²'s checkpoint-latest.pth")
     p.add_argument("--image", required=True)
     p.add_argument("--out", required=True, help="output .ply")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")

@@ -109,17 +109,25 @@ class LoadedNetwork(NamedTuple):
     device: torch.device
 
 
-def load_network(path: str | Path, overrides: dict[str, Any] | None = None) -> LoadedNetwork:
+def load_network(path: str | Path | None, overrides: dict[str, Any] | None = None) -> LoadedNetwork:
     """The network of a CDM checkpoint (EMA weights when present) on ``train.device``.
 
     Args:
-        path: a checkpoint folder or its ``checkpoint.pt``.
+        path: a checkpoint folder or its ``checkpoint.pt``; None builds the network the default config
+            with ``overrides`` names, with the weights of its ``model.init_from`` (PC²'s checkpoint).
         overrides: dotted config fields applied to the saved config (e.g. ``eval.num_objects``,
             ``train.device``); the voxel back-end stays the trained one.
     Raises:
         ValueError: unreadable file, a category prior instead of a CDM checkpoint, a bad override, or
             frozen encoder weights other than those it was trained with (``model.encoder_weights``).
     """
+    if path is None:
+        cfg = load_config(None, overrides)
+        if cfg.model.init_from is None:
+            raise ValueError("model.init_from: a network without a checkpoint needs PC²'s weights to start from")
+        device = resolve_device(cfg.train.device)
+        network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device=device)
+        return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)
     checkpoint = load_checkpoint(path)
     if checkpoint.kind is not None:
         raise ValueError(f"checkpoint: {path} holds a {checkpoint.kind} ({checkpoint.category}), not a CDM network")

@@ -132,8 +132,15 @@ class ModelConfig(_Group):
     weights (needs ``encoder_weights``, ``feature_dim: 384`` and an image size that is a multiple of 16)."""
     encoder_weights: str | None = None
     """Local file of the ViT-S/16 weights for ``encoder: vit_s16``: MSN's published
-    ``vits16_800ep.pth.tar`` (https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar) or a state dict
-    with its key names. A checkpoint records its SHA-256 and refuses other weights."""
+    ``vits16_800ep.pth.tar`` (https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar), a state dict
+    with its key names, or PC²'s checkpoint (its ``feature_model.model.*``); null with ``init_from`` reads
+    ``init_from``. A checkpoint records its SHA-256 and refuses other weights."""
+    init_from: str | None = None
+    """PC²'s checkpoint, ``checkpoint-latest.pth`` as its ``experiments/main.py`` saves it (or its model
+    state dict): the network starts from its weights, PVCNN2 and the frozen ViT-S/16 alike (weights only:
+    no optimiser state). ``{category}`` becomes the run's one category (PC² trains one model per
+    category). Needs ``denoiser: pvcnn2`` and ``encoder: vit_s16`` (``python -m cdm train --init-from``
+    reads them from the file); the file is read as data, never run (:func:`cdm.torch_files.load_inert`)."""
     feature_dim: int = Field(32, ge=1)
     """Channels of the per-pixel image feature map projected onto points (PC² ViT-S: 384)."""
     raster_radius: float = Field(0.0075, gt=0.0, le=1.0)
@@ -182,7 +189,12 @@ class ModelConfig(_Group):
             )
         if min(self.widths) < 8 or min(self.voxel_resolutions) < 2:
             raise ValueError("model.widths must be >= 8 and model.voxel_resolutions >= 2")
-        if self.encoder == "vit_s16" and self.encoder_weights is None:
+        if self.init_from is not None and (self.denoiser, self.encoder) != ("pvcnn2", "vit_s16"):
+            raise ValueError(
+                f"model.init_from: PC²'s weights need model.denoiser=pvcnn2 and model.encoder=vit_s16 (got "
+                f"{self.denoiser}, {self.encoder}); `python -m cdm train --init-from FILE` sets PC²'s network"
+            )
+        if self.encoder == "vit_s16" and self.encoder_weights is None and self.init_from is None:
             raise ValueError(
                 "model.encoder_weights is required with model.encoder=vit_s16: download MSN's ViT-S/16 weights "
                 "(https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar) and pass the local path"
@@ -209,9 +221,13 @@ class DiffusionConfig(_Group):
     prediction: Literal["eps", "x0", "v"] = "eps"
     """What the network predicts: ε as in the paper (Eq. 2–3), x₀, or v = √ᾱ ε − √(1−ᾱ) x₀."""
     sampler: Literal["ddim", "ddpm"] = "ddim"
-    """Evaluation sampler: DDIM (η=0) over ``sample_steps`` or full ancestral DDPM."""
+    """Evaluation sampler: DDIM (η=0) over ``sample_steps`` or ancestral DDPM (all T steps, or ``ddpm_steps``)."""
     sample_steps: int = Field(50, ge=1)
     """Steps of the DDIM sampler."""
+    ddpm_steps: int | None = Field(None, ge=1)
+    """Steps of the DDPM sampler: null takes all T (PC²'s ``num_inference_steps`` 1,000); fewer take every
+    (T // n)-th timestep from 0, as diffusers' ``DDPMScheduler.set_timesteps``, each step drawn from the
+    posterior between its two timesteps (β = 1 − ᾱ_t / ᾱ_prev) — quicker, not PC²'s numbers."""
     timestep_spacing: Literal["linspace", "trailing"] = "linspace"
     """Where the DDIM steps sit: ``linspace`` ends with a prediction at t = 0, ``trailing`` at
     t = T/sample_steps − 1 (Lin et al., 2024; better for x₀-prediction, ``cdm.diffusion``); DDPM ignores it."""
@@ -224,8 +240,8 @@ class DiffusionConfig(_Group):
     def _check_schedule(self) -> DiffusionConfig:
         if self.beta_end <= self.beta_start:
             raise ValueError("diffusion.beta_end must be greater than diffusion.beta_start")
-        if self.sample_steps > self.num_steps:
-            raise ValueError("diffusion.sample_steps must be <= diffusion.num_steps")
+        if self.sample_steps > self.num_steps or (self.ddpm_steps or 0) > self.num_steps:
+            raise ValueError("diffusion.sample_steps and diffusion.ddpm_steps must be <= diffusion.num_steps")
         return self
 
 
@@ -330,6 +346,9 @@ class EvalConfig(_Group):
     panel and PLY clouds (prediction, ground truth, each baseline). Drawing never changes a score."""
     retrieval_bank: int = Field(64, ge=1)
     """Training images per category searched by the nearest-image retrieval baseline."""
+    only: bool = False
+    """Score the network as it starts, with ``model.init_from``'s weights, once at step 0 and stop
+    (``train.steps`` is not run): a table's PC² row from PC²'s released weights instead of a retrained PC²."""
 
 
 class BlendConfig(_Group):
@@ -413,6 +432,27 @@ class Config(_Group):
                 "priors.depth_source=maps needs a captured data set (data.kind shapenet_r2n2 or co3d): rendered "
                 f"kinds ({data.kind}) draw a fresh view every round, which no folder of maps can cover"
             )
+        return self
+
+    @model_validator(mode="before")
+    @classmethod
+    def _category_of_init_from(cls, tree: Any) -> Any:
+        """``{category}`` in ``model.init_from`` becomes the run's one category, before validation, so
+        every reader (inputs, network, protocol card) sees the file that is read."""
+        model = tree.get("model") if isinstance(tree, dict) else None
+        path = model.get("init_from") if isinstance(model, dict) else None
+        if not isinstance(path, str) or "{category}" not in path:
+            return tree
+        categories = (tree.get("data") or {}).get("categories") or ()
+        if isinstance(categories, str) or len(categories) != 1:
+            raise ValueError(f"model.init_from: {{category}} in {path!r} needs exactly one data.categories entry "
+                             f"(got {list(categories) if not isinstance(categories, str) else categories!r})")
+        return {**tree, "model": {**model, "init_from": path.replace("{category}", str(categories[0]))}}
+
+    @model_validator(mode="after")
+    def _check_init_only(self) -> Config:
+        if self.eval.only and self.model.init_from is None:
+            raise ValueError("eval.only scores the weights a run starts from: set model.init_from to PC²'s checkpoint")
         return self
 
     @model_validator(mode="after")

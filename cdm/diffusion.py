@@ -41,20 +41,22 @@ class SamplerSettings:
 
     Attributes:
         sampler: ``ddim`` (deterministic, η = 0, over ``steps`` evenly spaced timesteps) or ``ddpm``
-            (ancestral, all T steps; PC²'s sampler).
+            (ancestral, all T steps or ``ddpm_steps``; PC²'s sampler).
         steps: DDIM's number of steps; ignored by DDPM.
         clip_x0: clamp x̂₀ to ``[-clip_x0, clip_x0]`` at every step; ``None`` leaves it unclipped (PC²).
         spacing: where DDIM's steps sit (:meth:`GaussianDiffusion.timesteps`); ignored by DDPM.
+        ddpm_steps: DDPM's number of steps; ``None`` = all T.
     """
 
     sampler: Literal["ddim", "ddpm"] = _DEFAULT.sampler
     steps: int = _DEFAULT.sample_steps
     clip_x0: float | None = _DEFAULT.clip_x0
     spacing: Spacing = _DEFAULT.timestep_spacing
+    ddpm_steps: int | None = _DEFAULT.ddpm_steps
 
     @classmethod
     def from_config(cls, cfg: DiffusionConfig) -> SamplerSettings:
-        return cls(cfg.sampler, cfg.sample_steps, cfg.clip_x0, cfg.timestep_spacing)
+        return cls(cfg.sampler, cfg.sample_steps, cfg.clip_x0, cfg.timestep_spacing, cfg.ddpm_steps)
 
 
 class GaussianDiffusion:
@@ -159,11 +161,12 @@ class GaussianDiffusion:
             x0_hat = x0_hat.clamp(-settings.clip_x0, settings.clip_x0)
         if settings.sampler == "ddim":
             return self._ddim_step(x_t, t, x0_hat, timesteps[i + 1] if i + 1 < len(timesteps) else -1)
-        return self._ddpm_step(x_t, timesteps[i], x0_hat, generator)
+        return self._ddpm_step(x_t, timesteps[i], timesteps[i + 1] if i + 1 < len(timesteps) else -1, x0_hat, generator)
 
     def timesteps(self, settings: SamplerSettings) -> list[int]:
-        """The sampler's timesteps, noisiest first: all T for ``ddpm``; for ``ddim``, ``steps`` of them
-        evenly spaced by ``settings.spacing``:
+        """The sampler's timesteps, noisiest first. ``ddpm``: all T, or with ``ddpm_steps`` = n the
+        multiples of T // n below n · (T // n) (diffusers' ``DDPMScheduler.set_timesteps``). ``ddim``:
+        ``steps`` of them evenly spaced by ``settings.spacing``:
 
         - ``linspace``: from T−1 down to 0, both included, so the last x̂₀ is predicted at t = 0;
         - ``trailing``: T−1, T−1−T/steps, …, T/steps − 1 (Lin et al., 2024, "Common Diffusion Noise
@@ -174,7 +177,8 @@ class GaussianDiffusion:
           63.2 with ``linspace`` and 59.9 with t = 0 left out (``benchmarks/RESULTS.md``).
         """
         if settings.sampler == "ddpm":
-            return list(range(self.num_steps - 1, -1, -1))
+            n = settings.ddpm_steps or self.num_steps
+            return [i * (self.num_steps // n) for i in range(n)][::-1]
         if settings.spacing == "trailing":
             # T − i·T/n for i < n, not arange(T, 0, −T/n): its float step can add an n+1-th value ≈ 0 (t = −1).
             stride = self.num_steps / settings.steps
@@ -190,15 +194,16 @@ class GaussianDiffusion:
         a_prev = self.alphas_cumprod[t_prev].to(dtype=x_t.dtype, device=x_t.device)
         return a_prev.sqrt() * x0_hat + (1.0 - a_prev).sqrt() * eps
 
-    def _ddpm_step(self, x_t: Tensor, t: int, x0_hat: Tensor, generator: torch.Generator | None) -> Tensor:
-        """Ancestral step with the posterior q(x_{t−1} | x_t, x̂₀) (DDPM Eq. 6–7)."""
+    def _ddpm_step(self, x_t: Tensor, t: int, t_prev: int, x0_hat: Tensor, generator: torch.Generator | None) -> Tensor:
+        """Ancestral step with the posterior q(x_{t_prev} | x_t, x̂₀) (DDPM Eq. 6–7; ``t_prev`` = −1 ends at x₀).
+        Between consecutive timesteps β is the schedule's β_t; across a stride, 1 − ᾱ_t / ᾱ_prev."""
         a_t = self.alphas_cumprod[t]
-        a_prev = self.alphas_cumprod[t - 1] if t > 0 else torch.tensor(1.0, dtype=torch.float64)
-        beta = self.betas[t]
+        a_prev = self.alphas_cumprod[t_prev] if t_prev >= 0 else torch.tensor(1.0, dtype=torch.float64)
+        beta = self.betas[t] if t_prev == t - 1 else 1.0 - a_t / a_prev
         coef_x0 = (a_prev.sqrt() * beta / (1.0 - a_t)).item()
         coef_xt = ((1.0 - beta).sqrt() * (1.0 - a_prev) / (1.0 - a_t)).item()
         mean = coef_x0 * x0_hat + coef_xt * x_t
-        if t == 0:
+        if t_prev < 0:
             return mean
         var = (beta * (1.0 - a_prev) / (1.0 - a_t)).item()
         noise = torch.randn(x_t.shape, generator=generator, device=x_t.device, dtype=x_t.dtype)

@@ -9,6 +9,7 @@ file or folder covers every object of the data sets — all before anything is w
 field                          what                                            kind
 =============================  ==============================================  ======
 ``model.encoder_weights``      MSN ViT-S/16 weights (``encoder: vit_s16``)     file
+``model.init_from``            PC²'s checkpoint (PVCNN2 and its ViT-S/16)      file
 ``model.global_embeddings``    per-object embeddings ``.npz``                  file
 ``priors.depth_maps``          estimated depth maps ``<object_id>/<pos>.npy``  folder
 ``data.condition_folder``      generated condition images                      folder
@@ -66,7 +67,10 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
     out = []
     export = "python -m cdm.tools.export_views --out views/ " + " ".join(
         f"--set data.{k}={v}" for k, v in (("kind", cfg.data.kind), ("root", cfg.data.root)) if v is not None)
-    if cfg.model.encoder == "vit_s16":
+    if cfg.model.init_from is not None:
+        out.append(ExternalInput("model.init_from", input_path(cfg.model.init_from), "PC²'s checkpoint", "file",
+                                 "PC²'s released checkpoint-latest.pth, or one its experiments/main.py wrote"))
+    if cfg.model.encoder == "vit_s16" and cfg.model.encoder_weights is not None:
         path = input_path(cfg.model.encoder_weights)
         out.append(ExternalInput("model.encoder_weights", path, "MSN ViT-S/16 weights", "file",
                                  f"curl -L --create-dirs -o {cfg.model.encoder_weights} {MSN_URL}"))

@@ -244,6 +244,17 @@ def _ema_update(ema: torch.nn.Module, network: torch.nn.Module, decay: float) ->
         e.copy_(b)
 
 
+def _evaluate_and_save(trainer: Trainer, callbacks: Sequence[Callback]) -> tuple[dict[str, float], Path]:
+    """Evaluate, then checkpoint, telling the callbacks of each."""
+    metrics, files = trainer.evaluate()
+    for cb in callbacks:
+        cb.on_eval(trainer.step, metrics, files)
+    checkpoint = trainer.save_checkpoint()
+    for cb in callbacks:
+        cb.on_checkpoint(trainer.step, checkpoint)
+    return metrics, checkpoint
+
+
 def fit(
     config: Config,
     callbacks: Sequence[Callback] = (),
@@ -272,6 +283,8 @@ def fit(
     t_cfg = config.train
     metrics: dict[str, float] = {}
     checkpoint: Path | None = None
+    if config.eval.only:  # PC²'s released weights scored as they are (model.init_from)
+        return FitResult(trainer.step, *_evaluate_and_save(trainer, callbacks))
     sums = [0.0, 0.0, 0.0]
     window = 0
     start = time.perf_counter()
@@ -300,11 +313,6 @@ def fit(
         if stop:
             break
         if trainer.step % t_cfg.eval_every == 0 or trainer.step == t_cfg.steps:
-            metrics, files = trainer.evaluate()
-            for cb in callbacks:
-                cb.on_eval(trainer.step, metrics, files)
-            checkpoint = trainer.save_checkpoint()
-            for cb in callbacks:
-                cb.on_checkpoint(trainer.step, checkpoint)
+            metrics, checkpoint = _evaluate_and_save(trainer, callbacks)
             window_start, cpu_start = time.perf_counter(), time.process_time()  # steps/s measures training, not evaluation
     return FitResult(trainer.step, metrics, checkpoint)

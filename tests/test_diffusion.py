@@ -120,3 +120,28 @@ def test_defaults_are_the_configs():
     assert SamplerSettings() == SamplerSettings.from_config(cfg)
     plain, configured = GaussianDiffusion(), GaussianDiffusion.from_config(cfg)
     assert plain.prediction == configured.prediction and torch.equal(plain.betas, configured.betas)
+
+
+def test_ddpm_with_fewer_steps_strides_as_diffusers_and_still_recovers_the_data_point():
+    """``ddpm_steps`` = n takes diffusers' timesteps (multiples of T // n from 0) and the posterior across
+    each stride; n = T is the full sampler, draw for draw."""
+    d = GaussianDiffusion(1000, 1e-4, 2e-2, "eps")
+    assert d.timesteps(SamplerSettings("ddpm", ddpm_steps=4)) == [750, 500, 250, 0]
+    assert d.timesteps(SamplerSettings("ddpm", ddpm_steps=3)) == [666, 333, 0]
+    assert d.timesteps(SamplerSettings("ddpm", ddpm_steps=1000)) == d.timesteps(SamplerSettings("ddpm")) == list(range(999, -1, -1))
+    cloud = torch.rand(1, 32, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
+    model = analytic_model(d, cloud)
+
+    def draw(**settings):
+        return d.sample(model, (2, 32, 3), SamplerSettings("ddpm", clip_x0=None, **settings), generator=torch.Generator().manual_seed(4))
+
+    assert torch.equal(draw(ddpm_steps=1000), draw())
+    assert torch.allclose(draw(ddpm_steps=10), cloud.expand(2, -1, -1), atol=1e-4)
+    # Across a stride the step's variance is the posterior's of the pair, not β_t's: one noisy step from
+    # t = 500 to 0 with x̂₀ exact lands on x₀, the last step adds no noise.
+    assert torch.allclose(draw(ddpm_steps=2), cloud.expand(2, -1, -1), atol=1e-4)
+
+
+def test_ddpm_steps_past_the_schedule_are_refused():
+    with pytest.raises(ValueError, match="ddpm_steps must be <= diffusion.num_steps"):
+        DiffusionConfig(num_steps=100, ddpm_steps=101)

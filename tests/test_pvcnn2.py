@@ -496,17 +496,17 @@ def test_mismatches_are_refused_naming_the_first():
 
 
 class _Config:
-    """Stands for PC²'s pickled OmegaConf ``cfg``: not a tensor, so weights_only loading refuses it."""
+    """A pickled object of a class outside OmegaConf's: creating it would run this module's code."""
 
 
-def test_checkpoint_files_load_with_weights_only(tmp_path):
+def test_checkpoint_files_load_as_data_and_an_object_that_is_not_a_config_is_refused(tmp_path):
     path = tmp_path / "pc2.pth"
     torch.save(_pc2_checkpoint(), path)
     model = denoiser_from_reference(path, "pc2")
     assert model.in_channels == 389
     with_cfg = tmp_path / "with_cfg.pth"
-    torch.save({**_pc2_checkpoint(), "cfg": _Config()}, with_cfg)
-    with pytest.raises(ValueError, match="weights_only=False"):
+    torch.save({**_pc2_checkpoint(), "cfg": _Config()}, with_cfg)  # PC²'s OmegaConf cfg: tests/test_pc2_checkpoint.py
+    with pytest.raises(ValueError, match=r"with_cfg\.pth could run code from the file while loading \(it calls (tests\.)?test_pvcnn2\._Config\)"):
         load_reference_checkpoint(with_cfg, "pc2")
 
 

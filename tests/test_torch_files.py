@@ -1,4 +1,4 @@
-"""Torch files read as tensors and plain data only: what loads, and the three refusals in our words."""
+"""Torch files read as tensors and plain data only: what loads, the refusals in our words, and a config read as inert records."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import argparse
 import pytest
 import torch
 
-from cdm.torch_files import load_tensors
+from cdm.torch_files import Pickled, load_inert, load_tensors
 
 
 def _load(file):
@@ -34,3 +34,57 @@ def test_pickled_objects_garbage_and_a_truncated_archive_are_refused_apart(tmp_p
     (tmp_path / "cut.pt").write_bytes((tmp_path / "cut.pt").read_bytes()[:600])
     with pytest.raises(ValueError, match=r"^weights: .*cut\.pt is not a readable weights file \("):
         _load(tmp_path / "cut.pt")
+
+
+class _Payload:
+    def __init__(self, call, *args):
+        self.call, self.args = call, args
+
+    def __reduce__(self):
+        return self.call, self.args
+
+
+def test_load_inert_keeps_tensors_and_makes_a_config_a_record_without_importing_it(tmp_path):
+    import sys
+
+    from tests.pc2_files import fake_omegaconf
+
+    with fake_omegaconf() as modules:
+        node_type = type("IntegerNode", (), {"__module__": "omegaconf.nodes", "__qualname__": "IntegerNode"})
+        modules["omegaconf.nodes"].IntegerNode = node_type
+        node = node_type()
+        node.__dict__.update(_val=224, _parent=None)
+        torch.save({"w": torch.arange(3.0), "cfg": {"image_size": node}}, tmp_path / "pc2.pth")
+    loaded = load_inert(tmp_path / "pc2.pth", "x", "y")
+    assert torch.equal(loaded["w"], torch.arange(3.0))
+    record = loaded["cfg"]["image_size"]
+    assert isinstance(record, Pickled) and record.name == "omegaconf.nodes.IntegerNode"
+    assert record.state == {"_val": 224, "_parent": None} and "omegaconf.nodes" not in sys.modules
+
+
+@pytest.mark.parametrize("call,args,names", [
+    ("os.system", ("touch {marker}",), "posix.system"),
+    ("builtins.eval", ("open({marker!r}, 'w')",), "builtins.eval"),
+    ("builtins.exec", ("open({marker!r}, 'w')",), "builtins.exec"),
+    ("subprocess.call", (["touch", "{marker}"],), "subprocess.call"),
+])
+def test_load_inert_refuses_a_reduce_payload_and_runs_nothing(tmp_path, call, args, names):
+    import builtins
+    import importlib
+
+    marker = tmp_path / "marker"
+    module, name = call.rsplit(".", 1)
+    func = getattr(builtins if module == "builtins" else importlib.import_module(module), name)
+    filled = tuple([a.format(marker=str(marker)) for a in arg] if isinstance(arg, list) else arg.format(marker=str(marker))
+                   for arg in args)
+    torch.save({"model": {"w": torch.zeros(2)}, "cfg": {"run": _Payload(func, *filled)}}, tmp_path / "bad.pth")
+    with pytest.raises(ValueError, match=rf"^weights: .*bad\.pth could run code from the file while loading \(it calls {names}\); "
+                                         "refused, and nothing of it was run"):
+        load_inert(tmp_path / "bad.pth", f"weights: {tmp_path / 'bad.pth'}", "weights file")
+    assert not marker.exists()
+
+
+def test_load_inert_refuses_what_is_not_a_torch_archive(tmp_path):
+    (tmp_path / "garbage.pt").write_bytes(b"not a torch file")
+    with pytest.raises(ValueError, match=r"garbage\.pt is not a readable weights file: not in torch's file format$"):
+        load_inert(tmp_path / "garbage.pt", f"weights: {tmp_path / 'garbage.pt'}", "weights file")

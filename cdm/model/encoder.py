@@ -36,7 +36,7 @@ from cdm.data.lru import ByteLRU
 from cdm.paths import input_path
 from cdm.model.voxels import norm_groups
 from cdm.safe_io import open_regular
-from cdm.torch_files import load_tensors
+from cdm.torch_files import load_inert
 
 __all__ = [
     "MSN_WEIGHTS_URL",
@@ -55,6 +55,7 @@ MSN_WEIGHTS_URL = "https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar"
 VIT_S16_CHANNELS = 384
 """Channels of a ViT-S/16 token (PC²'s feature dimension)."""
 _PATCH, _DEPTH, _HEADS, _MLP = 16, 12, 6, 4
+_PC2_PREFIX = "feature_model.model."  # PC²'s FeatureModel holds timm's VisionTransformer as `model`
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
 _IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -195,25 +196,30 @@ def sha256_file(path: Path) -> str:
     return digest.hexdigest()
 
 
-def load_msn_state_dict(path: str | Path) -> dict[str, Tensor]:
+def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -> dict[str, Tensor]:
     """The ViT-S/16 state dict of a local weights file, validated against :class:`ViTS16`'s layout.
 
     Accepts MSN's published checkpoint (``{"target_encoder": {"module.<name>": tensor, ...}, ...}``,
-    the projection head ``fc.*`` dropped as PC² does) or a plain state dict with the same names.
+    the projection head ``fc.*`` dropped as PC² does), a plain state dict with the same names, or PC²'s
+    checkpoint, which saves the frozen ViT with the rest of its model under ``feature_model.model.``
+    (timm's names, which are MSN's; its pickled config is read as data, :func:`cdm.torch_files.load_inert`).
 
     Raises:
         ValueError: missing file, unreadable file, missing/unexpected keys or wrong shapes; the
-            message names ``model.encoder_weights``.
+            message names the config field ``name`` that gave the file.
     """
     path = input_path(path)
-    field = f"model.encoder_weights: {path}"
+    field = f"{name}: {path}"
     if not path.exists():
         raise ValueError(f"{field}: no such file; download MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
-    raw = load_tensors(path, field, "torch file", f"Use MSN's ViT-S/16 weights from {MSN_WEIGHTS_URL}")
-    state = raw.get("target_encoder", raw) if isinstance(raw, dict) else None
+    raw = load_inert(path, field, "torch file")
+    state = raw.get("target_encoder", raw.get("model", raw)) if isinstance(raw, dict) else None
     if not isinstance(state, dict):
-        raise ValueError(f"{field}: expected a state dict or MSN's checkpoint with 'target_encoder'")
-    state = {k.removeprefix("module."): v for k, v in state.items() if not k.removeprefix("module.").startswith("fc.")}
+        raise ValueError(f"{field}: expected a state dict, MSN's checkpoint with 'target_encoder' or PC²'s with 'model'")
+    state = {k.removeprefix("module."): v for k, v in state.items() if isinstance(k, str)}
+    if any(k.startswith(_PC2_PREFIX) for k in state):
+        state = {k.removeprefix(_PC2_PREFIX): v for k, v in state.items() if k.startswith(_PC2_PREFIX)}
+    state = {k: v for k, v in state.items() if not k.startswith("fc.")}
     expected = {k: v.shape for k, v in ViTS16().state_dict().items()}
     missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
     if missing or unexpected:
@@ -248,11 +254,12 @@ class FrozenViT(nn.Module):
     Args:
         weights: local weights file (:func:`load_msn_state_dict`).
         cache_bytes: budget of the token cache; 0 disables it.
+        field: the config field that named ``weights``, for messages.
     """
 
-    def __init__(self, weights: str | Path, cache_bytes: int = 256 * 2**20):
+    def __init__(self, weights: str | Path, cache_bytes: int = 256 * 2**20, field: str = "model.encoder_weights"):
         super().__init__()
-        state = load_msn_state_dict(weights)
+        state = load_msn_state_dict(weights, field)
         backbone = ViTS16()
         backbone.load_state_dict(state)
         self._backbone = [backbone.requires_grad_(False).eval()]  # a list: not a registered submodule
@@ -298,7 +305,9 @@ class FrozenViT(nn.Module):
 
 
 def build_encoder(cfg: ModelConfig, prior_2d_channels: int) -> ImageEncoder | FrozenViT:
-    """The encoder ``model.encoder`` names (``vit_s16`` reads ``model.encoder_weights``)."""
+    """The encoder ``model.encoder`` names (``vit_s16`` reads ``model.encoder_weights``, else ``model.init_from``)."""
+    if cfg.encoder == "vit_s16" and cfg.encoder_weights is None:
+        return FrozenViT(cfg.init_from, field="model.init_from")
     if cfg.encoder == "vit_s16":
         return FrozenViT(cfg.encoder_weights)
     return ImageEncoder(prior_2d_channels, cfg.feature_dim)

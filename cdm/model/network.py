@@ -29,7 +29,9 @@ from cdm.model.embeddings import load_embeddings
 from cdm.model.global_features import TOKEN_GRID, global_embedding, image_tokens
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.pvcnn2 import PVCNN2Denoiser
+from cdm.model.reference_weights import load_reference_checkpoint, load_reference_weights
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
+from cdm.paths import input_path
 
 __all__ = ["CDMNetwork", "ImageContext"]
 
@@ -107,6 +109,12 @@ class CDMNetwork(nn.Module):
             self.denoiser = PVCNN2Denoiser(
                 in_channels, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim, **tokens
             )
+            if cfg.init_from is not None:
+                path = input_path(cfg.init_from)
+                try:
+                    load_reference_weights(self.denoiser, load_reference_checkpoint(path, "pc2"))
+                except ValueError as exc:
+                    raise ValueError(f"model.init_from: {path}: {str(exc).removeprefix(f'{path} ')}") from None
             return
         self.denoiser = PVCNNDenoiser(
             in_channels=in_channels,

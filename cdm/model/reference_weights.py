@@ -16,9 +16,9 @@ Our module names equal PVCNN2's (``tests/test_pvcnn2.py`` holds PC²'s list), so
 stripping its prefix. Anything else — a missing or unexpected key, a different shape — is refused with
 an error naming the first offending key in the network's order.
 
-Files are read with ``torch.load(weights_only=True)``. PC²'s checkpoints also pickle their OmegaConf
-``cfg``, which that refuses; extract the state dict once where you trust the file (see
-:func:`load_reference_checkpoint`).
+Files are read with :func:`cdm.torch_files.load_inert`: PC²'s checkpoints also pickle their OmegaConf
+``cfg``, which is kept as inert data (never constructed), and a file whose pickle would call anything
+else is refused.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from typing import Any, Literal
 from torch import Tensor
 
 from cdm.model.pvcnn2 import PVCNN2Denoiser
-from cdm.torch_files import load_tensors
+from cdm.torch_files import load_inert
 
 __all__ = [
     "Reference",
@@ -110,13 +110,12 @@ def load_reference_checkpoint(path: str | Path, reference: Reference) -> dict[st
     """Read a reference checkpoint file on CPU and return its PVCNN2 weights under our names.
 
     Raises:
-        ValueError: the file pickles objects other than tensors and containers (PC²'s ``cfg``), or torch
-            cannot read it. Extract the model once in an environment you trust:
-            ``torch.save(torch.load(p, weights_only=False)["model"], "pc2_model.pth")``.
+        ValueError: the file's pickle would call something other than what tensors and a config need
+            (:func:`cdm.torch_files.load_inert`), torch cannot read it, or it holds no PVCNN2 weights.
     """
-    checkpoint = load_tensors(Path(path), str(path), "torch file", (
-        "PC²'s checkpoints pickle their config: where you trust the file, run: python -c \"import torch; "
-        f"torch.save(torch.load('{path}', weights_only=False)['model'], 'model_only.pth')\" and pass model_only.pth"))
+    checkpoint = load_inert(Path(path), str(path), "torch file")
+    if not isinstance(checkpoint, Mapping):
+        raise ValueError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict or state dict")
     return reference_state_dict(checkpoint, reference)
 
 

@@ -137,6 +137,12 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
     return _save(fig, path)
 
 
+def has_curve(history: Mapping[str, Sequence[tuple[int, float]]], metric: str) -> bool:
+    """Whether a trial's history draws a line in :func:`training_curves`: a logged training loss, or two
+    evaluations of ``metric`` (a trial that only scored its starting weights, ``eval.only``, has neither)."""
+    return bool(history.get("train/loss")) or len(history.get(metric, ())) >= 2
+
+
 def training_curves(
     curves: Mapping[str, Mapping[str, Sequence[tuple[int, float]]]], cells: Mapping[str, str], metric: str, title: str, path: Path
 ) -> Path:

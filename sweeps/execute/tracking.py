@@ -316,11 +316,11 @@ def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: 
 
     Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
     """
-    from sweeps.compare.plots import training_curves
+    from sweeps.compare.plots import has_curve, training_curves
 
     keys = ("train/loss", "train/loss_diffusion", metric)
     history = metric_histories(client, run_id, keys)
-    if not history["train/loss"] and len(history[metric]) < 2:
+    if not has_curve(history, metric):
         return None
     return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png")
 
@@ -345,7 +345,7 @@ class TrialRun(Callback):
     ):
         self.client = PatientClient(uri)
         self.run_name, self.metric = run_name, metric
-        self.last_step = config.train.steps
+        self.last_step = 0 if config.eval.only else config.train.steps
         found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
         # Last step already in the run, per kind: a crash between a step's log and its evaluation
         # must not make the re-run evaluation look logged.

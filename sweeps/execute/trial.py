@@ -261,7 +261,7 @@ class _TrialCloser(ray.tune.Callback):
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
         label = self._label(trial)
         step = trial.last_result.get("step", 0)
-        early = step < self.plan.profile.steps
+        early = step < self.plan.last_step(label)
         self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result)
         value = trial.last_result.get(self.plan.spec.metric.name)
         shown = "no evaluation" if value is None else f"{self.plan.spec.metric.name} {value:.4g}"
@@ -313,7 +313,7 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
     else:
         error = None
         step = (result.metrics or {}).get("step")
-        status = "pending" if step is None else ("stopped" if step < plan.profile.steps else "ok")
+        status = "pending" if step is None else ("stopped" if step < plan.last_step(label) else "ok")
     objects = tuple(sweep_run.trial_objects(trial_id)) if trial_id and status != "failed" else ()
     paper_label, paper = (cell.paper_label, cell.paper) if cell else (None, {})
     return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects)

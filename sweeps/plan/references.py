@@ -139,6 +139,8 @@ _COMMON: dict[str, Entry] = {
     "model.global_feature": Stated("none", "paper §3.3: global embeddings gave no gain; PC² use_global_features False"),
     "model.global_source": NotStated("read only with model.global_feature (Supp. Table 7 sweeps it)"),
     "model.global_embeddings": _PATH,
+    "model.init_from": Stated(None, "PC² experiments/main.py: each table's model trained from scratch by its recipe",
+                              {"eval.only": (False,)}),
     # diffusion
     "diffusion.num_steps": Stated(1000, "PC² experiments/model/model.py: diffusers' 1,000 training timesteps"),
     "diffusion.beta_start": Stated(1e-5, f"{_PC2}: beta_start"),
@@ -146,6 +148,7 @@ _COMMON: dict[str, Entry] = {
     "diffusion.prediction": Stated("eps", "paper Eq. 3 and 6: ε-prediction"),
     "diffusion.sampler": Stated("ddpm", f"{_PC2}: diffusion_scheduler ddpm"),
     "diffusion.sample_steps": Stated(1000, f"{_PC2}: num_inference_steps", {"diffusion.sampler": ("ddim",)}),
+    "diffusion.ddpm_steps": Stated(None, f"{_PC2}: num_inference_steps 1000, every timestep", {"diffusion.sampler": ("ddpm",)}),
     "diffusion.timestep_spacing": NotStated("DDIM's step placement; the references sample with DDPM", noted=True,
                                             when={"diffusion.sampler": ("ddim",)}),
     "diffusion.clip_x0": Stated(None, "PC² experiments/model/model.py: DDPMScheduler(clip_sample=False)"),
@@ -186,6 +189,8 @@ _COMMON: dict[str, Entry] = {
     "eval.seed": _DRAW,
     "eval.save_clouds": NoEffect("drawings; no score changes"),
     "eval.retrieval_bank": NoEffect("a baseline's search, not the model's score"),
+    "eval.only": NotStated("PC²'s released weights (model.init_from) scored instead of a retrained PC²", noted=True,
+                           when={"eval.only": (True,)}),
     # sampling.blend
     "sampling.blend.enabled": Stated(False, "paper Tables 1, 3–6: sampled without BDM (only Table 2's +BDM rows blend)"),
     "sampling.blend.prior_checkpoint": Stated("PVD's checkpoint from BDM's repository",

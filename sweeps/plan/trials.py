@@ -127,6 +127,12 @@ class SweepPlan:
         """The trials that run whatever the results: every trial of a fixed list, round 1 of a sequential sweep."""
         return tuple(c for c in self.cells if self.round_of(c) == 1)
 
+    def last_step(self, label: str) -> int:
+        """The step a trial of ``label`` ends at when it runs to the end: 0 for a cell that only scores its
+        starting weights (``eval.only``: PC²'s released weights), else the profile's budget."""
+        cell = self.grid_cell(label)
+        return 0 if cell is not None and cell.config.eval.only else self.profile.steps
+
     def grid_cell(self, label: str) -> Cell | None:
         """The grid cell of this trial label (its config built by :func:`expand`); None in an Optuna sweep."""
         return next((c for c in self.cells if c.label == label), None)

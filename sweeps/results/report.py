@@ -32,7 +32,7 @@ from mlflow.entities import Metric
 from cdm.evaluate import BASELINES
 from sweeps.compare.gallery import grid_png, viewer_html
 from sweeps.compare.paired import PairedDifference
-from sweeps.compare.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
+from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.compare.rules import PROTOCOL_NOTE, partner, rounded
 from sweeps.compare.table import ResultsTable
 from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri
@@ -76,7 +76,8 @@ def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) ->
     if points:
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
                                      spec.paper.table if spec.paper else "paper"))
-    curves = _histories(record, trials, ("train/loss", "train/loss_diffusion", metric))
+    curves = {label: history for label, history in _histories(record, trials, ("train/loss", "train/loss_diffusion", metric)).items()
+              if has_curve(history, metric)}
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
         paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
