@@ -254,12 +254,15 @@ def voxelize_coords(points: Tensor, resolution: int) -> VoxelizedCloud:
 
 
 def voxelize(features: Tensor, cloud: VoxelizedCloud) -> Tensor:
-    """Average point features per voxel: ``(B, C, N)`` → ``(B, C, r, r, r)`` (empty voxels 0).
+    """Average point features per voxel: ``(B, C, N)`` → ``(B, C, r, r, r)`` float32 (empty voxels 0).
 
     Axis order: ``[b, c, i, j, k]`` with ``i, j, k`` along coordinate axes 0, 1, 2 (PC²'s layout).
+    Summed in float32 at least, whatever the features' dtype: under fp16 autocast a voxel of hundreds
+    of points would lose the mean's low bits (and overflow past 65,504).
     """
     b, c, n = features.shape
     r = cloud.resolution
+    features = features.to(torch.promote_types(features.dtype, torch.float32))
     total = features.new_zeros(b, c, r**3).scatter_add_(2, cloud.voxel[:, None, :].expand(b, c, n), features)
     return (total / cloud.count.to(features.dtype)).view(b, c, r, r, r)
 
