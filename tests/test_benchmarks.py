@@ -94,6 +94,7 @@ def test_gpu_check_runs_at_toy_scale_on_cpu_and_writes_every_figure(tmp_path):
                                           "shapenet.yaml": "not measured in train.precision=fp16 (fp16 needs CUDA)"}
 
 
+@pytest.mark.slow  # a fresh interpreter importing torch and the library: ~6 s on a busy 2-CPU machine
 def test_gpu_check_on_a_machine_without_cuda_says_so_and_writes_nothing(tmp_path):
     import torch
 

@@ -45,9 +45,11 @@ def _cloud(b: int, n: int, seed: int) -> torch.Tensor:
 
 
 def _dyadic_cloud(b: int, n: int, seed: int) -> torch.Tensor:
-    """Coordinates k/16, |k| ≤ 16: every sum, mean and squared norm of them is exact in float32 in any order,
-    so the voxel a point falls in cannot depend on the device's summation order."""
-    return torch.randint(-16, 17, (b, 3, n), generator=torch.Generator().manual_seed(seed)).float() / 16.0
+    """``n / 2`` points of coordinates k/16 (|k| ≤ 16) and their mirror images: the mean is exactly 0 and
+    every squared norm exact in float32, whatever the summation order or the mean's formula (the CPU
+    divides the sum by N, CUDA multiplies by 1/N), so the voxel a point falls in cannot depend on the device."""
+    half = torch.randint(-16, 17, (b, 3, n // 2), generator=torch.Generator().manual_seed(seed)).float() / 16.0
+    return torch.cat([half, -half], dim=2)
 
 
 @pytest.mark.parametrize("n", [700, 3000])  # below and above the FPS kernel's 512 threads (its tie order)
@@ -125,7 +127,9 @@ def _pvcnn2_config(tmp_path, **overrides):
 
 def test_a_pvcnn2_training_step_matches_the_cpus(tmp_path):
     """One step of the real pieces (network, loss, optimiser) on both devices from the same weights, batch,
-    timesteps and noise. Dropout off (eval mode): its masks come from each device's own generator."""
+    timesteps and noise. Dropout off (eval mode): its masks come from each device's own generator. x_t is
+    made once, on the CPU: farthest-point sampling on coordinates an ulp apart could pick another centre
+    at a near-tie, and the outputs would differ by more than rounding."""
     cfg = _pvcnn2_config(tmp_path)
     diffusion = GaussianDiffusion.from_config(cfg.diffusion)
     torch.manual_seed(0)
@@ -137,15 +141,16 @@ def test_a_pvcnn2_training_step_matches_the_cpus(tmp_path):
     noise = torch.randn(batch.points.shape, generator=g)
     train = TrainConfig(lr=1e-3, warmup_steps=0, steps=10)
 
-    def step(network, b, t, noise):
-        x_t = diffusion.q_sample(b.points, t, noise)
+    x_t = diffusion.q_sample(batch.points, t, noise)
+
+    def step(network, b, x_t, t, noise):
         out = network(x_t, t, network.encode(b), b.camera)
         loss = diffusion.loss(out, b.points, noise, t)
         Optimiser(network.parameters(), train, "fp32", b.points.device.type).step(loss)
         return out.detach().cpu(), loss.item()
 
-    out, loss = step(net, batch, t, noise)
-    out_gpu, loss_gpu = step(net_gpu, batch.to(CUDA), t.to(CUDA), noise.to(CUDA))
+    out, loss = step(net, batch, x_t, t, noise)
+    out_gpu, loss_gpu = step(net_gpu, batch.to(CUDA), x_t.to(CUDA), t.to(CUDA), noise.to(CUDA))
     torch.testing.assert_close(out_gpu, out, rtol=1e-4, atol=1e-6)  # through ~20 layers: a few roundings each
     assert loss_gpu == pytest.approx(loss, rel=1e-4)
     for (name, p), p_gpu in zip(net.named_parameters(), net_gpu.parameters()):
@@ -162,34 +167,34 @@ def test_pvcnn2_trains_on_cuda_in_every_precision(tmp_path, precision):
     assert sum(not s.skipped for s in steps) >= (1 if precision == "fp16" else 6)
 
 
-def test_sampling_and_metrics_match_the_cpus(tmp_path):
-    """DDIM (no noise after x_T) from the same x_T on both devices; CD and F1 of the same clouds."""
+def test_sampling_steps_and_metrics_match_the_cpus(tmp_path):
+    """Each DDIM step (no noise) from the same x on both devices, the CPU's result carried on (a chain run
+    apart would let farthest-point sampling meet a near-tie); then CD and F1 of the same clouds."""
     cfg = _pvcnn2_config(tmp_path)
     diffusion = GaussianDiffusion.from_config(cfg.diffusion)
     torch.manual_seed(0)
     net = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device="cpu").eval()
-    with torch.no_grad():
-        for p in net.denoiser.parameters():  # PC²'s head starts at N(0, 1e-6): give the output some size
-            p.mul_(3.0)
+    with torch.no_grad():  # PC²'s head starts at N(0, 1e-6): an output of some size exercises the update
+        net.denoiser.classifier[-1].weight.normal_(0, 0.1)
     net_gpu = copy.deepcopy(net).to(CUDA)
     batch = tiny_batch(b=2, n=1024, s=cfg.data.image_size, prior_channels=PRIOR_2D_CHANNELS[cfg.priors.prior_2d])
+    batch_gpu = batch.to(CUDA)
     settings = SamplerSettings(sampler="ddim", steps=5, clip_x0=1.0)
     timesteps = diffusion.timesteps(settings)
-    x_T = torch.randn(batch.points.shape, generator=torch.Generator().manual_seed(2))
-
-    @torch.no_grad()
-    def sample(network, b, x):
-        context = network.encode(b)
+    x = torch.randn(batch.points.shape, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        context, context_gpu = net.encode(batch), net_gpu.encode(batch_gpu)
         for i, step in enumerate(timesteps):
-            t = torch.full((len(b),), step, dtype=torch.long, device=x.device)
-            x = diffusion.step(x, t, i, timesteps, diffusion.predict_x0(x, t, network(x, t, context, b.camera)), settings, None)
-        return x.cpu()
-
-    cloud = sample(net, batch, x_T)
-    cloud_gpu = sample(net_gpu, batch.to(CUDA), x_T.to(CUDA))
-    torch.testing.assert_close(cloud_gpu, cloud, rtol=1e-4, atol=1e-5)
-    cpu = chamfer_f1(cloud, batch.points)  # scipy's KD-tree on the CPU, the brute-force search on CUDA
-    gpu = chamfer_f1(cloud.to(CUDA), batch.points.to(CUDA))
+            t = torch.full((2,), step, dtype=torch.long)
+            nxt = diffusion.step(x, t, i, timesteps, diffusion.predict_x0(x, t, net(x, t, context, batch.camera)),
+                                 settings, None)
+            x_gpu, t_gpu = x.to(CUDA), t.to(CUDA)
+            out_gpu = net_gpu(x_gpu, t_gpu, context_gpu, batch_gpu.camera)
+            nxt_gpu = diffusion.step(x_gpu, t_gpu, i, timesteps, diffusion.predict_x0(x_gpu, t_gpu, out_gpu), settings, None)
+            torch.testing.assert_close(nxt_gpu.cpu(), nxt, rtol=1e-4, atol=1e-5, msg=f"step {i} (t = {step})")
+            x = nxt
+    cpu = chamfer_f1(x, batch.points)  # scipy's KD-tree on the CPU, the brute-force search on CUDA
+    gpu = chamfer_f1(x.to(CUDA), batch.points.to(CUDA))
     torch.testing.assert_close(gpu.cd.cpu(), cpu.cd, rtol=1e-4, atol=1e-7)
     # A point whose squared distance rounds across the threshold moves precision or recall by 1/1024.
     torch.testing.assert_close(gpu.f1.cpu(), cpu.f1, rtol=0, atol=2.0 / 1024)
