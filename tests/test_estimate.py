@@ -141,3 +141,18 @@ def test_the_shipped_figures_give_the_paper_profile_a_labelled_bound():
     assert "lower bound, not a measurement: ≥ " in line and "H100 SXM dense fp16 peak, 989.4 TFLOP/s" in line
     bound, _ = paper_trial_gpu_hours_bound(paper)
     assert f"({bound:.3f} per trial × {paper.num_trials})" in line
+
+
+def test_measured_figures_are_printed_with_what_gpu_check_measured_beside_them():
+    figures = _pvcnn2_figures()
+    figures["by_points"]["4096"].update(largest_batch=64)
+    figures["by_points"]["4096"]["by_precision"]["fp16"].update(
+        peak_memory_gib=21.04, sample_batch_s=51.2, sample_batch_note="extrapolated: 20 timed sampler steps × 1000/20",
+        flop_fraction=0.123)
+    paper = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper")
+    hours, _ = paper_trial_gpu_hours(paper, figures)
+    line = paper_gpu_line(paper, figures)
+    assert line == (f"{hours * paper.num_trials:.1f} GPU-hours with the paper profile ({hours:.2f} per trial × "
+                    f"{paper.num_trials} trials, measured on NVIDIA H100 80GB HBM3: training step 0.200 s in fp16 at "
+                    "batch 16; peak memory 21.0 GiB; largest batch that fits 64; a batch through 1,000 DDPM steps 51 s "
+                    "(extrapolated: 20 timed sampler steps × 1000/20); 12.3 % of the device's peak FLOP/s)")

@@ -192,6 +192,21 @@ def peak_flops(device_name: str, precision: str) -> float | None:
     return PEAK_FLOPS[gpu][precision] if gpu is not None else None
 
 
+def _measured(figures: dict, cfg: Config) -> tuple[dict, dict] | str:
+    """The measured size entry of ``figures`` for ``cfg`` and its step in ``train.precision``, or why none."""
+    if not figures.get("by_points"):
+        return "no GPU figures"
+    if cfg.model.denoiser != figures["denoiser"]:
+        return f"not measured for model.denoiser={cfg.model.denoiser} ({GPU_COSTS.name} holds {figures['denoiser']}'s)"
+    sizes = sorted(int(n) for n in figures["by_points"])
+    # The smallest measured cloud size that holds the config's (else the largest measured).
+    entry = figures["by_points"][str(next((n for n in sizes if n >= cfg.data.num_points), sizes[-1]))]
+    step = entry.get("by_precision", {}).get(cfg.train.precision, entry)
+    if "train_step_s" not in step:
+        return f"not measured in train.precision={cfg.train.precision} ({step.get('note', 'absent')})"
+    return entry, step
+
+
 def paper_trial_gpu_hours(paper: SweepPlan, figures: dict | None = None) -> tuple[float | None, str]:
     """GPU-hours of one trial of a spec expanded with the paper profile and the GPU they were measured
     on, or None and why not: no figures, or figures of another denoiser (never another network's time).
@@ -201,20 +216,30 @@ def paper_trial_gpu_hours(paper: SweepPlan, figures: dict | None = None) -> tupl
     ``train.precision`` taken) at ``batch_size`` objects, scaled linearly to the profile's batch.
     """
     figures = _figures() if figures is None else figures
-    if not figures.get("by_points"):
-        return None, "no GPU figures"
     cfg = _paper_config(paper)
-    if cfg.model.denoiser != figures["denoiser"]:
-        return None, f"not measured for model.denoiser={cfg.model.denoiser} ({GPU_COSTS.name} holds {figures['denoiser']}'s)"
-    sizes = sorted(int(n) for n in figures["by_points"])
-    # The smallest measured cloud size that holds the config's (else the largest measured).
-    entry = figures["by_points"][str(next((n for n in sizes if n >= cfg.data.num_points), sizes[-1]))]
-    step = entry.get("by_precision", {}).get(cfg.train.precision, entry)
-    if "train_step_s" not in step:
-        return None, f"not measured in train.precision={cfg.train.precision} ({step.get('note', 'absent')})"
+    measured = _measured(figures, cfg)
+    if isinstance(measured, str):
+        return None, measured
+    entry, step = measured
     scale = cfg.train.batch_size / entry.get("batch_size", cfg.train.batch_size)
     per_trial = _per_trial(paper, cfg, step["train_step_s"] * scale, step["sample_step_s"] * scale)
     return per_trial * _trial_gpus(paper) / 3600.0, figures["device"]
+
+
+def _measured_details(figures: dict, cfg: Config) -> str:
+    """What ``benchmarks/gpu_check.py`` measured beside the step time, for the GPU-hours line."""
+    entry, step = _measured(figures, cfg)
+    parts = [f"training step {step['train_step_s']:.3f} s in {cfg.train.precision} at batch "
+             f"{entry.get('batch_size', cfg.train.batch_size)}"]
+    if step.get("peak_memory_gib") is not None:
+        parts.append(f"peak memory {step['peak_memory_gib']:.1f} GiB")
+    if entry.get("largest_batch") is not None:
+        parts.append(f"largest batch that fits {entry['largest_batch']}")
+    if step.get("sample_batch_s") is not None:
+        parts.append(f"a batch through 1,000 DDPM steps {step['sample_batch_s']:.0f} s ({step.get('sample_batch_note', 'measured')})")
+    if step.get("flop_fraction") is not None:
+        parts.append(f"{100 * step['flop_fraction']:.1f} % of the device's peak FLOP/s")
+    return "; ".join(parts)
 
 
 def paper_trial_gpu_hours_bound(paper: SweepPlan, figures: dict | None = None) -> tuple[float | None, str]:
@@ -232,14 +257,17 @@ def paper_trial_gpu_hours_bound(paper: SweepPlan, figures: dict | None = None) -
     return flops / peak * _trial_gpus(paper) / 3600.0, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
 
 
-def paper_gpu_line(paper: SweepPlan) -> str:
-    """One line on the paper profile's GPU-hours for ``paper``'s trials: measured, else a labelled lower bound."""
-    hours, gpu = paper_trial_gpu_hours(paper)
+def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
+    """What the dry run and the estimate say of the paper profile's GPU-hours for ``paper``'s trials:
+    measured (with the step, memory, largest batch, sampling cost and FLOP/s share beside), else a
+    lower bound labelled as one. ``figures``: as :func:`paper_trial_gpu_hours`."""
+    figures = _figures() if figures is None else figures
+    hours, gpu = paper_trial_gpu_hours(paper, figures)
     if hours is not None:
         return (f"{hours * paper.num_trials:.1f} GPU-hours with the paper profile ({hours:.2f} per trial × "
-                f"{paper.num_trials} trials, measured on {gpu})")
+                f"{paper.num_trials} trials, measured on {gpu}: {_measured_details(figures, _paper_config(paper))})")
     line = f"paper-profile GPU-hours: {gpu} (on a GPU: python benchmarks/gpu_check.py)"
-    bound, basis = paper_trial_gpu_hours_bound(paper)
+    bound, basis = paper_trial_gpu_hours_bound(paper, figures)
     if bound is None:
         return f"{line}; no lower bound: {basis}"
     return (f"{line}; lower bound, not a measurement: ≥ {bound * paper.num_trials:.2f} GPU-hours ({bound:.3f} per trial "
