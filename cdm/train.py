@@ -172,10 +172,11 @@ class Trainer:
             self.ema.load_state_dict(state.weights)
         self.optimiser.optimizer.load_state_dict(state.optimizer)
         self.optimiser.scheduler.load_state_dict(state.scheduler)
-        if state.precision != self.precision:
+        trained = state.precision or "fp32"  # checkpoints before train.precision trained in fp32
+        if trained != self.precision:
             # Precision changes the rounding, not the function: continue, and say so (train.precision).
             log.warning("resume: the checkpoint trained in %s, this run continues in %s (train.precision)",
-                        state.precision or "fp32", self.precision)
+                        trained, self.precision)
         elif state.loss_scale is not None:
             self.optimiser.scaler.load_state_dict(state.loss_scale)
         self.generator.set_state(state.generator)

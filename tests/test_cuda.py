@@ -14,6 +14,7 @@ import copy
 import pytest
 import torch
 
+from cdm.checkpoint import load_checkpoint
 from cdm.config import TrainConfig
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion, SamplerSettings
@@ -213,3 +214,16 @@ def test_evaluation_runs_on_cuda_with_the_cpus_evaluation_set(tmp_path):
         {k: v for k, v in cpu.metrics.items() if k.startswith("baseline/")}
     assert all(torch.isfinite(torch.tensor(v)) for v in gpu.metrics.values())
     assert (tmp_path / "gpu" / "objects.csv").is_file()
+
+
+def test_fp16_loss_scale_travels_with_the_checkpoint(tmp_path):
+    cfg = _pvcnn2_config(tmp_path, **{"train.device": "cuda", "train.precision": "fp16", "train.steps": 3,
+                                      "train.eval_every": 3, "eval.num_objects": 1, "diffusion.sample_steps": 2})
+    trainer = Trainer(cfg)
+    for _ in range(3):
+        trainer.train_step(trainer.next_batch())
+    saved = load_checkpoint(trainer.save_checkpoint())
+    assert saved.precision == "fp16" and saved.loss_scale["scale"] == trainer.optimiser.scaler.get_scale()
+    resumed = Trainer(cfg.replace(**{"train.steps": 4}))
+    resumed.restore(saved)
+    assert resumed.optimiser.scaler.get_scale() == trainer.optimiser.scaler.get_scale() <= 2.0**16

@@ -270,3 +270,15 @@ def test_resume_in_another_precision_continues_and_says_so(tmp_path, caplog):
         resumed = fit(again, resume_from=result.checkpoint_dir)
     assert resumed.step == 3
     assert "the checkpoint trained in bf16, this run continues in fp32" in caplog.text
+
+
+def test_a_checkpoint_from_before_precision_was_recorded_resumes_in_fp32_silently(tmp_path, caplog):
+    from cdm.checkpoint import save_checkpoint
+
+    cfg = tiny_config(tmp_path, **{"train.steps": 1, "train.eval_every": 1})
+    trainer = Trainer(cfg)
+    old = trainer.state()
+    save_checkpoint(type(old)(**{**old.__dict__, "precision": None, "loss_scale": None}), tmp_path / "old")
+    with caplog.at_level("WARNING", logger="cdm.train"):
+        Trainer(cfg).restore(load_checkpoint(tmp_path / "old"))
+    assert "resume:" not in caplog.text

@@ -14,6 +14,7 @@ Eq. 8, F_I ⊕ F_I*).
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
 from typing import NamedTuple
 
 import torch
@@ -146,8 +147,8 @@ class CDMNetwork(nn.Module):
         views = views.unflatten(0, c.valid.shape)
         return context._replace(views=views, view_cameras=c.camera, view_valid=c.valid)
 
-    def _mixed_precision(self, device: torch.device) -> torch.autocast:
-        return torch.autocast(device.type, dtype=self.autocast or torch.float32, enabled=self.autocast is not None)
+    def _mixed_precision(self, device: torch.device) -> AbstractContextManager:
+        return nullcontext() if self.autocast is None else torch.autocast(device.type, dtype=self.autocast)
 
     def _encode(self, image: Tensor, mask: Tensor, prior_2d: Tensor) -> Tensor:
         with self._mixed_precision(image.device):
