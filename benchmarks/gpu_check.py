@@ -207,6 +207,10 @@ def check(device: str, quick: bool, deadline_s: float) -> dict:
             figures["by_points"][n] = entry
     figures["flops"] = {"counted_with": "torch.utils.flop_counter.FlopCounterMode", "by_points": flops}
     figures["trial_gpu_hours"] = {}
+    figures["trial_gpu_hours_note"] = (
+        "one trial of each spec's paper profile on its procedural stand-in (no data.root here): 100k steps and "
+        "every evaluation of eval.num_objects per category; ShapeNet's at the stand-in's batch 8 (BDM's 16 with "
+        "data.root). With data.root, sweeps/run.py --dry-run --profile paper counts the real evaluation split")
     for size, spec in SPECS.items():
         paper = expand(load_spec(ROOT / "sweeps" / spec), "paper")
         hours, why = paper_trial_gpu_hours(paper, figures)
