@@ -21,7 +21,7 @@ from cdm.config import Config, load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
 from cdm.model import CDMNetwork, check_encoder_record
-from cdm.runtime import resolve_device
+from cdm.runtime import AUTOCAST_DTYPES, resolve_device, resolve_precision
 from cdm.torch_files import load_tensors
 
 __all__ = ["CHECKPOINT_FILE", "Checkpoint", "LoadedNetwork", "load_checkpoint", "load_network", "network_config", "save_checkpoint"]
@@ -54,6 +54,11 @@ class Checkpoint:
     """``category_prior`` for a BDM prior (:mod:`cdm.prior_model`); None for a CDM run."""
     category: str | None = None
     """The one category a prior models."""
+    precision: str | None = None
+    """The ``train.precision`` the run computed in, as resolved on its device (``fp16`` asked on a CPU
+    trains in ``fp32``); None in checkpoints written before it was recorded (fp32)."""
+    loss_scale: dict[str, Any] | None = None
+    """fp16's dynamic loss scale (``torch.amp.GradScaler.state_dict()``: plain numbers), else None."""
     encoder: dict[str, Any] | None = None
     """The image encoder's record (``CDMNetwork.encoder.record``): ``{"encoder": "cnn"}``, or
     ``{"encoder": "vit_s16", "weights_sha256": ...}`` for the frozen ViT, whose weights are not in
@@ -110,7 +115,8 @@ class LoadedNetwork(NamedTuple):
 
 
 def load_network(path: str | Path | None, overrides: dict[str, Any] | None = None) -> LoadedNetwork:
-    """The network of a CDM checkpoint (EMA weights when present) on ``train.device``.
+    """The network of a CDM checkpoint (EMA weights when present) on ``train.device``, sampling in
+    ``train.precision`` (as the run trained, unless overridden).
 
     Args:
         path: a checkpoint folder or its ``checkpoint.pt``; None builds the network the default config
@@ -126,14 +132,16 @@ def load_network(path: str | Path | None, overrides: dict[str, Any] | None = Non
         if cfg.model.init_from is None:
             raise ValueError("model.init_from: a network without a checkpoint needs PC²'s weights to start from")
         device = resolve_device(cfg.train.device)
-        network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device=device)
+        autocast = AUTOCAST_DTYPES[resolve_precision(cfg.train.precision, device)]
+        network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device=device, autocast=autocast)
         return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)
     checkpoint = load_checkpoint(path)
     if checkpoint.kind is not None:
         raise ValueError(f"checkpoint: {path} holds a {checkpoint.kind} ({checkpoint.category}), not a CDM network")
     cfg = network_config(checkpoint, overrides)
     device = resolve_device(cfg.train.device)
-    network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d])
+    autocast = AUTOCAST_DTYPES[resolve_precision(cfg.train.precision, device)]
+    network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], autocast=autocast)
     check_encoder_record(checkpoint.encoder, network.encoder.record)
     network.load_state_dict(checkpoint.weights)
     return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)

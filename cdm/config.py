@@ -306,6 +306,23 @@ class TrainConfig(_Group):
     """Steps of linear warm-up before the cosine decay to zero at ``steps`` (PC²: 2,000)."""
     grad_clip: float = Field(50.0, gt=0.0)
     """Largest global L2 norm of the gradient; larger gradients are scaled down to it (PC²: 50)."""
+    precision: Literal["fp32", "fp16", "bf16"] = "fp32"
+    """Arithmetic of the network's forward and backward (PC²: ``fp16``, ``RunConfig.mixed_precision`` in
+    ``experiments/config/structured.py``, through Accelerate; the paper profile sets it). ``fp16``: torch
+    autocast to float16 with a dynamic loss scale (2¹⁶ at the start, halved on a step whose gradients hold
+    inf or NaN, doubled after 2,000 finite steps: ``torch.amp.GradScaler``'s defaults, as Accelerate uses
+    them); ``bf16``: autocast to bfloat16, no scale. Both skip the optimiser and schedule step whose
+    gradients are not finite (the batch is consumed, the step counter advances; ``train/skipped_steps``
+    counts them) and stop with ``TrainingDiverged`` after 32 skipped steps in a row; a non-finite loss
+    stops the run in every precision, as PC²'s loop does. Only the image encoder and the denoiser run under
+    autocast; these stay float32: the projection of x_t onto the input image (which point sees which
+    pixel), the voxel averaging (scatter-mean), the distances of farthest-point sampling, ball query and
+    the 3-NN search, the diffusion arithmetic, the losses, the weights, the optimiser and the metrics.
+    Evaluation samples in the same precision (PC² samples through the same autocast-wrapped forward).
+    ``fp16`` needs CUDA: on another device the run says so once and trains in ``fp32``. The checkpoint
+    records the precision the run trained in; a resume in another precision says so once and continues
+    (the loss scale restarts at 2¹⁶ when fp16 begins) rather than refusing, as precision changes the
+    rounding, not the function."""
     ema_decay: float | None = Field(None, ge=0.0, lt=1.0)
     """Exponential moving average of weights used for evaluation; null = off."""
     eval_every: int = Field(5000, ge=1)

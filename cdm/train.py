@@ -18,6 +18,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 import torch.distributed
@@ -34,12 +35,12 @@ from cdm.evaluate import BASELINES, EvalSet, build_eval_set, run_evaluation
 from cdm.inputs import check_coverage, check_inputs
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss
-from cdm.optim import Optimiser, TrainingDiverged
+from cdm.optim import MAX_SKIPPED_IN_A_ROW, Optimiser, TrainingDiverged
 from cdm.provenance import run_record
-from cdm.runtime import start_run
+from cdm.runtime import AUTOCAST_DTYPES, resolve_precision, start_run
 from cdm.shared import SharedStore, SharedViews
 
-__all__ = ["Callback", "FitResult", "Trainer", "TrainingDiverged", "fit", "metric_names"]
+__all__ = ["Callback", "FitResult", "StepLosses", "Trainer", "TrainingDiverged", "fit", "metric_names"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,15 @@ class Callback:
         return False
 
 
+class StepLosses(NamedTuple):
+    """One training step: the loss of Eq. 6, its two terms, and whether mixed precision skipped the step."""
+
+    total: float
+    diffusion: float
+    prior_3d: float
+    skipped: bool
+
+
 @dataclass
 class FitResult:
     """Where training ended: last step, last evaluation's metrics and the last checkpoint."""
@@ -75,7 +85,8 @@ class FitResult:
 
 def metric_names(config: Config, categories: Sequence[str] = ()) -> list[str]:
     """Every metric name :func:`fit` can report (per-category names for the given categories)."""
-    names = ["train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s"]
+    names = ["train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/skipped_steps",
+             "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s"]
     for prefix in ["eval"] + [f"baseline/{b}" for b in BASELINES]:
         names += [f"{prefix}/cd", f"{prefix}/f1"]
         names += [f"{prefix}/{m}/{c}" for c in categories for m in ("cd", "f1")]
@@ -112,7 +123,9 @@ class Trainer:
         check_coverage(config, (self.train_set, self.val_set))
         # Where a store holds this data's rendered rounds (a sweep's cells share them), batches read them.
         self._samples = self.train_set if shared is None else SharedViews(shared, config, self.train_set)
-        self.network = CDMNetwork(config.model, PRIOR_2D_CHANNELS[config.priors.prior_2d], device=self.device).to(self.device)
+        self.precision = resolve_precision(config.train.precision, self.device)
+        self.network = CDMNetwork(config.model, PRIOR_2D_CHANNELS[config.priors.prior_2d], device=self.device,
+                                  autocast=AUTOCAST_DTYPES[self.precision]).to(self.device)
         log.info(
             "voxel back-end: %s (model.voxel_backend=%s, device %s)",
             self.network.voxel_backend, config.model.voxel_backend, self.device,
@@ -120,7 +133,7 @@ class Trainer:
         self.ema = _ema_copy(self.network) if config.train.ema_decay is not None else None
         self.diffusion = GaussianDiffusion.from_config(config.diffusion)
         t = config.train
-        self.optimiser = Optimiser(self.network.parameters(), t)
+        self.optimiser = Optimiser(self.network.parameters(), t, self.precision, self.device.type)
         # Data-parallel when a process group exists (Ray Train's TorchTrainer sets one up): each rank
         # draws its own batch and noise, and gradients are averaged before the optimiser step.
         distributed = torch.distributed.is_available() and torch.distributed.is_initialized()
@@ -138,6 +151,8 @@ class Trainer:
             config=self.cfg.to_dict(),
             step=self.step,
             voxel_backend=self.network.voxel_backend,
+            precision=self.precision,
+            loss_scale=self.optimiser.scaler.state_dict() if self.optimiser.scaler.is_enabled() else None,
             encoder=self.network.encoder.record,
             model=self.network.state_dict(),
             ema=None if self.ema is None else self.ema.state_dict(),
@@ -157,6 +172,13 @@ class Trainer:
             self.ema.load_state_dict(state.weights)
         self.optimiser.optimizer.load_state_dict(state.optimizer)
         self.optimiser.scheduler.load_state_dict(state.scheduler)
+        trained = state.precision or "fp32"  # checkpoints before train.precision trained in fp32
+        if trained != self.precision:
+            # Precision changes the rounding, not the function: continue, and say so (train.precision).
+            log.warning("resume: the checkpoint trained in %s, this run continues in %s (train.precision)",
+                        trained, self.precision)
+        elif state.loss_scale is not None:
+            self.optimiser.scaler.load_state_dict(state.loss_scale)
         self.generator.set_state(state.generator)
         torch.set_rng_state(state.torch_rng)
         self.step = int(state.step)
@@ -188,15 +210,19 @@ class Trainer:
             f"or priors.lambda_3d (now {self.cfg.priors.lambda_3d})"
         )
 
-    def train_step(self, batch: Batch) -> tuple[float, float, float]:
+    def train_step(self, batch: Batch) -> StepLosses:
+        """One batch: loss, backward, optimiser step (skipped in mixed precision when a gradient is not
+        finite: the step counter still advances, the batch is spent, as in PC²'s Accelerate loop)."""
         loss, loss_diff, loss_prior = self.losses(batch)
         if not torch.isfinite(loss):
             raise self._diverged("the 3D prior loss")
-        self.optimiser.step(loss, self._average_gradients if self.world > 1 else None)
+        stepped = self.optimiser.step(loss, self._average_gradients if self.world > 1 else None)
+        if not stepped and self.optimiser.skipped_in_a_row >= MAX_SKIPPED_IN_A_ROW:
+            raise self._diverged(f"every gradient of the last {MAX_SKIPPED_IN_A_ROW} steps ({self.precision})")
         if self.ema is not None:
             _ema_update(self.ema, self.network, self.cfg.train.ema_decay)
         self.step += 1
-        return loss.item(), loss_diff.item(), loss_prior.item()
+        return StepLosses(loss.item(), loss_diff.item(), loss_prior.item(), not stepped)
 
     def _average_gradients(self) -> None:
         """Mean of every gradient over ranks: the same update everywhere, as DDP would make it."""
@@ -286,13 +312,14 @@ def fit(
     if config.eval.only:  # PC²'s released weights scored as they are (model.init_from)
         return FitResult(trainer.step, *_evaluate_and_save(trainer, callbacks))
     sums = [0.0, 0.0, 0.0]
-    window = 0
+    window = skipped = 0
     start = time.perf_counter()
     window_start, cpu_start = start, time.process_time()
     while trainer.step < t_cfg.steps:
         losses = trainer.train_step(trainer.next_batch())
-        sums = [s + v for s, v in zip(sums, losses)]
+        sums = [s + v for s, v in zip(sums, losses[:3])]
         window += 1
+        skipped += losses.skipped
         stop = any(cb.should_stop() for cb in callbacks)
         if trainer.step % t_cfg.log_every == 0 or trainer.step == t_cfg.steps:
             now, cpu_now = time.perf_counter(), time.process_time()
@@ -301,6 +328,7 @@ def fit(
                 "train/loss_diffusion": sums[1] / window,
                 "train/loss_prior_3d": sums[2] / window,
                 "train/lr": trainer.optimiser.lr,
+                "train/skipped_steps": float(skipped),  # in this window (train.precision fp16, bf16)
                 "train/steps_per_s": window / max(now - window_start, 1e-9),
                 # This process's CPU time (all its threads) per step: what a step costs inside a sweep,
                 # beside other trials, compared with benchmarks' isolated step (benchmarks/RESULTS.md).
@@ -309,7 +337,7 @@ def fit(
             }
             for cb in callbacks:
                 cb.on_step(trainer.step, logged)
-            sums, window, window_start, cpu_start = [0.0, 0.0, 0.0], 0, now, cpu_now
+            sums, window, skipped, window_start, cpu_start = [0.0, 0.0, 0.0], 0, 0, now, cpu_now
         if stop:
             break
         if trainer.step % t_cfg.eval_every == 0 or trainer.step == t_cfg.steps:

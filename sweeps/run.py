@@ -248,6 +248,10 @@ def main(argv: list[str] | None = None) -> int:
 
         cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
         print(describe(plan, cpus, gpus, _rule(plan, budget)), flush=True)
+        if plan.profile.name == "paper":  # measured GPU-hours, or a lower bound said as one; no calibration needed
+            from sweeps.plan.estimate import paper_gpu_line
+
+            print(wrapped(paper_gpu_line(plan)), flush=True)
         if args.no_estimate:
             return 0
         if plan.grid_trials is not None:

@@ -66,3 +66,42 @@ def test_median_s_reads_the_clock_it_is_given():
     ticks = iter(range(100))
     # Each timed call spans one tick of this clock (read before and after): the median is 1.
     assert median_s(lambda: None, repeats=4, clock=lambda: float(next(ticks))) == 1.0
+
+
+@pytest.mark.slow  # PC²'s PVCNN2 at toy scale, three sizes × precisions on one CPU: ~1-2 min
+def test_gpu_check_runs_at_toy_scale_on_cpu_and_writes_every_figure(tmp_path):
+    out = tmp_path / "gpu_costs.json"
+    run = subprocess.run([sys.executable, "benchmarks/gpu_check.py", "--device", "cpu", "--quick", "--out", str(out)],
+                         cwd=ROOT, capture_output=True, text=True, timeout=900)
+    assert run.returncode == 0, run.stderr
+    figures = json.loads(out.read_text())
+    assert figures["device"] == "CPU" and figures["denoiser"] == "pvcnn2" and figures["quick"] is True
+    assert set(figures["by_points"]) == {"256", "64"}  # Co3D's 16,384 and ShapeNet's 4,096 points, ÷ 64
+    for n, entry in figures["by_points"].items():
+        assert entry["size"] == {"256": "co3d", "64": "shapenet"}[n] and entry["batch_size"] == 2
+        assert entry["by_precision"]["fp16"] == {"note": "fp16 needs CUDA"}
+        for precision in ("fp32", "bf16"):
+            row = entry["by_precision"][precision]
+            assert 0 < row["sample_step_s"] and 0 < row["train_step_s"]
+            assert row["sample_batch_s"] > row["sample_step_s"]  # 1,000 steps, extrapolated from 2 timed ones
+            assert row["sample_batch_note"] == "extrapolated: 2 timed sampler steps × 1000/2"
+            assert row["peak_memory_gib"] is None and row["flop_fraction"] is None  # CUDA only; no CPU peak
+        assert entry["largest_batch"] is None and entry["largest_batch_note"] == "CUDA only"
+        counted = figures["flops"]["by_points"][n]
+        assert counted["train_step"] > 2 * counted["sample_step"] > 0  # forward and backward against forward
+    # the paper profile trains in fp16, which a CPU does not run: no GPU-hours, and why
+    assert figures["trial_gpu_hours"] == {"co3d.yaml": "not measured in train.precision=fp16 (fp16 needs CUDA)",
+                                          "shapenet.yaml": "not measured in train.precision=fp16 (fp16 needs CUDA)"}
+
+
+@pytest.mark.slow  # a fresh interpreter importing torch and the library: ~6 s on a busy 2-CPU machine
+def test_gpu_check_on_a_machine_without_cuda_says_so_and_writes_nothing(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: the default device runs")
+    out = tmp_path / "gpu_costs.json"
+    run = subprocess.run([sys.executable, "benchmarks/gpu_check.py", "--out", str(out)], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert run.returncode == 2 and run.stderr.startswith("error: --device cuda: no CUDA device here")
+    assert len(run.stderr.strip().splitlines()) == 1 and not out.exists()

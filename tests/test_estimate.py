@@ -16,7 +16,10 @@ from sweeps.plan.estimate import (
     _eval_signature,
     calibrate,
     estimate,
+    paper_gpu_line,
     paper_trial_gpu_hours,
+    paper_trial_gpu_hours_bound,
+    peak_flops,
 )
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
@@ -87,3 +90,69 @@ def test_a_cell_calibrated_without_evaluation_times_no_evaluation():
     plan = expand(load_spec(SWEEPS / "point_size.yaml"), "smoke")
     cost = calibrate(plan.cells[1].config, eval_set=False, evaluate=False)
     assert cost.eval_s == 0.0 and cost.eval_set_s == 0.0 and cost.step_s > 0
+
+
+def _pvcnn2_figures(**flops) -> dict:
+    """gpu_costs.json as benchmarks/gpu_check.py writes it: per size and precision, and counted FLOPs."""
+    sizes = {"4096": {"batch_size": 16, "by_precision": {
+        "fp32": {"train_step_s": 0.4, "sample_step_s": 0.1},
+        "fp16": {"train_step_s": 0.2, "sample_step_s": 0.05},
+        "bf16": {"note": "not measured"}}}}
+    return {"device": "NVIDIA H100 80GB HBM3", "denoiser": "pvcnn2", "by_points": sizes,
+            "flops": {"by_points": {"4096": {"train_step": 4e12, "sample_step": 1e12, "batch_size": 8}, **flops}}}
+
+
+def test_measured_pvcnn2_figures_are_read_in_the_profiles_precision_scaled_to_its_batch():
+    paper = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper")  # the procedural stand-in: PC²'s batch 8
+    cfg = paper.cells[0].config
+    assert (cfg.train.precision, cfg.train.batch_size, cfg.data.num_points) == ("fp16", 8, 4096)
+    hours, device = paper_trial_gpu_hours(paper, _pvcnn2_figures())
+    batches = math.ceil(cfg.eval.num_objects / 8)
+    # measured at batch 16: the profile's batch 8 is taken as half of it, linearly
+    assert hours == pytest.approx((100_000 * 0.1 + 20 * batches * 1000 * 0.025) / 3600) and device.startswith("NVIDIA H100")
+    fp32 = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper", {"train.precision": "fp32", "train.batch_size": 16})
+    hours, _ = paper_trial_gpu_hours(fp32, _pvcnn2_figures())
+    assert hours == pytest.approx((100_000 * 0.4 + 20 * math.ceil(cfg.eval.num_objects / 16) * 1000 * 0.1) / 3600)
+    bf16 = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper", {"train.precision": "bf16"})
+    assert paper_trial_gpu_hours(bf16, _pvcnn2_figures()) == (None, "not measured in train.precision=bf16 (not measured)")
+
+
+def test_without_a_measurement_the_bound_is_counted_flops_at_an_h100s_peak():
+    paper = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper", {"train.batch_size": 16})
+    cfg = paper.cells[0].config
+    bound, basis = paper_trial_gpu_hours_bound(paper, _pvcnn2_figures())
+    flops = 100_000 * 4e12 * 2 + 20 * math.ceil(cfg.eval.num_objects / 16) * 1000 * 1e12 * 2  # batch 16 = 2 × counted 8
+    assert bound == pytest.approx(flops / 989.4e12 / 3600)
+    assert basis == "H100 SXM dense fp16 peak, 989.4 TFLOP/s"
+    fp32, _ = paper_trial_gpu_hours_bound(expand(paper.spec, "paper", {"train.batch_size": 16, "train.precision": "fp32"}),
+                                          _pvcnn2_figures())
+    assert fp32 == pytest.approx(bound * 2)  # TF32's dense peak is half fp16's
+    assert peak_flops("NVIDIA H100 PCIe", "fp16") == 756e12 and peak_flops("NVIDIA A100-SXM4-80GB", "bf16") == 312e12
+    assert peak_flops("CPU", "fp32") is None
+    co3d = expand(load_spec(SWEEPS / "co3d.yaml"), "paper", {"data.num_points": 16384})
+    assert paper_trial_gpu_hours_bound(co3d, _pvcnn2_figures()) == (None, "no counted FLOPs for model.denoiser=pvcnn2 at 16384 points")
+
+
+def test_the_shipped_figures_give_the_paper_profile_a_labelled_bound():
+    """benchmarks/gpu_costs.json holds no pvcnn2 GPU step yet, only its counted FLOPs: the line says so."""
+    paper = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper")
+    line = paper_gpu_line(paper)
+    assert line.startswith("paper-profile GPU-hours: not measured for model.denoiser=pvcnn2")
+    assert "lower bound, not a measurement: ≥ " in line and "H100 SXM dense fp16 peak, 989.4 TFLOP/s" in line
+    bound, _ = paper_trial_gpu_hours_bound(paper)
+    assert f"({bound:.3f} per trial × {paper.num_trials})" in line
+
+
+def test_measured_figures_are_printed_with_what_gpu_check_measured_beside_them():
+    figures = _pvcnn2_figures()
+    figures["by_points"]["4096"].update(largest_batch=64)
+    figures["by_points"]["4096"]["by_precision"]["fp16"].update(
+        peak_memory_gib=21.04, sample_batch_s=51.2, sample_batch_note="extrapolated: 20 timed sampler steps × 1000/20",
+        flop_fraction=0.123)
+    paper = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper")
+    hours, _ = paper_trial_gpu_hours(paper, figures)
+    line = paper_gpu_line(paper, figures)
+    assert line == (f"{hours * paper.num_trials:.1f} GPU-hours with the paper profile ({hours:.2f} per trial × "
+                    f"{paper.num_trials} trials, measured on NVIDIA H100 80GB HBM3: training step 0.200 s in fp16 at "
+                    "batch 16; peak memory 21.0 GiB; largest batch that fits 64; a batch through 1,000 DDPM steps 51 s "
+                    "(extrapolated: 20 timed sampler steps × 1000/20); 12.3 % of the device's peak FLOP/s)")

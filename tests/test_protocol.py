@@ -85,6 +85,7 @@ PLANTS = [  # (spec, data set, group, field, value): one or more per config grou
     ("co3d", "co3d", "priors", "priors.point_size", 0.02),
     ("shapenet", "shapenet_r2n2", "train", "train.ema_decay", 0.999),
     ("co3d", "co3d", "train", "train.grad_clip", 5.0),
+    ("co3d", "co3d", "train", "train.precision", "bf16"),
     ("shapenet", "shapenet_r2n2", "eval", "eval.f1_threshold", 0.02),
     ("co3d", "co3d", "eval", "eval.protocol", "quick"),
     ("bdm_blend", "shapenet_r2n2", "sampling.blend", "sampling.blend.select_prob", 0.3),
@@ -211,6 +212,34 @@ def test_depth_renders_that_average_surfaces_are_a_deviation():
     averaged = protocol_card(cfg.replace(**{"priors.depth_layer": None}), ctx)
     assert "priors.depth_layer: null, not a front layer (PyTorch3D's z-buffer keeps the nearest point) (paper §4: " \
            "PyTorch3D renders the 3D prior images)" in averaged.deviations
+
+
+def test_the_paper_profile_trains_in_pcs_fp16_and_the_card_names_any_other_precision(co3d, shapenet, tmp_path,
+                                                                                     monkeypatch, capsys):
+    """Acceptance (issue 41): Table 5's paper card has no precision line; --set train.precision=fp32 adds
+    one naming PC²'s mixed_precision; on ShapeNet the source is BDM's, the same field."""
+    assert all(cell.config.train.precision == "fp16" for cell in expand(load_spec(SWEEPS / "frames.yaml"), "paper").cells)
+    assert "train.precision" not in _fields(_card("frames", **{"data.root": str(co3d.root)}))
+    pc2 = ("train.precision: fp32, not fp16 (PC² experiments/config/structured.py: RunConfig.mixed_precision 'fp16', "
+           "Accelerate's autocast and loss scale)")
+    assert pc2 in _card("frames", **{"data.root": str(co3d.root), "train.precision": "fp32"}).deviations
+    bdm = _card("shapenet", **{"data.root": str(shapenet.root), "train.precision": "fp32"}).deviations
+    assert any(d.startswith("train.precision: fp32, not fp16 (BDM experiments/config/structured.py: "
+                            "RunConfig.mixed_precision") for d in bdm)
+    (tmp_path / "msn").mkdir()
+    (tmp_path / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")
+    monkeypatch.setenv("CDM_INPUTS", str(tmp_path))
+    args = [str(SWEEPS / "frames.yaml"), "--dry-run", "--no-estimate", "--profile", "paper", "--set", f"data.root={co3d.root}",
+            "--set", "priors.depth_source=ground_truth"]
+    assert run.main(args) == 0
+    out = capsys.readouterr().out
+    assert "train.precision" not in out.split("protocol card:\n", 1)[1]
+    # no GPU has measured pvcnn2: the dry run's GPU-hours are a bound, and say so (sweeps/plan/estimate.py)
+    assert "paper-profile GPU-hours: not measured for model.denoiser=pvcnn2" in out
+    assert "lower bound, not a measurement: ≥ " in " ".join(out.split())
+    assert run.main([*args, "--set", "train.precision=fp32"]) == 0
+    card = capsys.readouterr().out.split("protocol card:\n", 1)[1]
+    assert f"deviation: {pc2}" in " ".join(card.split())  # the dry run folds lines at 120 columns
 
 
 def test_table_5_cells_are_the_papers_co3d_cdm():

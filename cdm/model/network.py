@@ -14,6 +14,7 @@ Eq. 8, F_I ⊕ F_I*).
 
 from __future__ import annotations
 
+from contextlib import AbstractContextManager, nullcontext
 from typing import NamedTuple
 
 import torch
@@ -70,6 +71,9 @@ class CDMNetwork(nn.Module):
             available). Move the module yourself.
         encoder: replaces the one ``cfg.encoder`` names (:func:`~cdm.model.encoder.build_encoder`);
             its ``out_channels`` must equal ``cfg.feature_dim``.
+        autocast: the dtype the image encoder and the denoiser compute in under torch autocast
+            (``train.precision``, :data:`cdm.runtime.AUTOCAST_DTYPES`); None: float32. Their outputs
+            are returned as float32; the projection of x_t onto the image stays float32.
 
     Attributes:
         voxel_backend: the resolved back-end, ``dense`` or ``sparse``. Record it with a checkpoint and
@@ -84,9 +88,11 @@ class CDMNetwork(nn.Module):
         *,
         device: torch.device | str | None = None,
         encoder: nn.Module | None = None,
+        autocast: torch.dtype | None = None,
     ):
         super().__init__()
         self.voxel_backend: VoxelBackend = resolve_voxel_backend(cfg.voxel_backend, device)
+        self.autocast = autocast
         self.prior_2d_channels = prior_2d_channels
         self.raster_radius = cfg.raster_radius
         self.global_feature = cfg.global_feature
@@ -133,7 +139,7 @@ class CDMNetwork(nn.Module):
                 f"batch.prior_2d has {batch.prior_2d.shape[1]} channels, the network expects "
                 f"{self.prior_2d_channels}; build it with the data's priors.prior_2d"
             )
-        features = self.encoder(batch.image, batch.mask, batch.prior_2d)
+        features = self._encode(batch.image, batch.mask, batch.prior_2d)
         pixel = self._arrange(conditioning_map(features, batch.prior_2d, batch.image, batch.mask, self.mask_channels))
         concat, attend = self.global_feature == "concat", self.global_feature == "cross_attention"
         if self.embeddings is not None:
@@ -145,9 +151,16 @@ class CDMNetwork(nn.Module):
         if c is None:
             return context
         image, mask, prior = (t.flatten(0, 1) for t in (c.image, c.mask, c.prior_2d))
-        views = self._arrange(conditioning_map(self.encoder(image, mask, prior), prior, image, mask, self.mask_channels))
+        views = self._arrange(conditioning_map(self._encode(image, mask, prior), prior, image, mask, self.mask_channels))
         views = views.unflatten(0, c.valid.shape)
         return context._replace(views=views, view_cameras=c.camera, view_valid=c.valid)
+
+    def _mixed_precision(self, device: torch.device) -> AbstractContextManager:
+        return nullcontext() if self.autocast is None else torch.autocast(device.type, dtype=self.autocast)
+
+    def _encode(self, image: Tensor, mask: Tensor, prior_2d: Tensor) -> Tensor:
+        with self._mixed_precision(image.device):
+            return self.encoder(image, mask, prior_2d).float()
 
     def _arrange(self, maps: Tensor) -> Tensor:
         """``(B, C, S, S)`` conditioning maps ``[features, 2D prior, RGB, rest]`` → PC²'s order for ``pvcnn2``:
@@ -187,4 +200,5 @@ class CDMNetwork(nn.Module):
             cond = project_views(maps, x_t, cameras, valid, self.raster_radius)
         if context.embedding is not None:
             cond = torch.cat([cond, context.embedding[:, None, :].expand(-1, x_t.shape[1], -1)], dim=-1)
-        return self.denoiser(x_t, cond, t, context.tokens)
+        with self._mixed_precision(x_t.device):
+            return self.denoiser(x_t, cond, t, context.tokens).float()

@@ -11,11 +11,14 @@ once before the trials, on every CPU, and the trials no longer pay them:
     wall  ≈ shared work + ⌈trials ÷ concurrent⌉ × trial       (concurrent ≤ CPUs: waves)
     wall  ≈ shared work + Σ trials ÷ CPUs                     (more trials than CPUs share the cores)
 
-The paper profile's GPU-hours use per-step GPU figures measured by ``benchmarks/run.py --device cuda``
-(``benchmarks/gpu_costs.json``; absent: not estimated); an evaluation samples with the profile's sampler
-(DDPM: all T steps) and scores every held-out object under ``eval.protocol: paper`` when ``data.root`` is
-given (counted), else ``eval.num_objects`` per category. Estimates assume every cell costs what the
-calibrated cells cost on average.
+The paper profile's GPU-hours use per-step GPU figures measured by ``benchmarks/gpu_check.py``
+(``benchmarks/gpu_costs.json``: the step in the profile's ``train.precision`` where the file has it per
+precision); an evaluation samples with the profile's sampler (DDPM: all T steps) and scores every
+held-out object under ``eval.protocol: paper`` when ``data.root`` is given (counted), else
+``eval.num_objects`` per category. Where no GPU has measured the profile's denoiser, a **lower bound**
+stands in: the FLOPs counted in one step (the file's ``flops``, ``torch.utils.flop_counter``) at a named
+GPU's dense peak (:data:`BOUND_GPU`, :data:`PEAK_FLOPS`), as if every counted FLOP ran at peak and nothing
+else cost time. Estimates assume every cell costs what the calibrated cells cost on average.
 """
 
 from __future__ import annotations
@@ -36,11 +39,26 @@ from cdm.evaluate import build_eval_set
 from cdm.train import Trainer
 from sweeps.plan.trials import SweepPlan, expand
 
-__all__ = ["GPU_COSTS", "Estimate", "TrialCost", "calibrate", "estimate", "paper_trial_gpu_hours"]
+__all__ = ["BOUND_GPU", "GPU_COSTS", "PEAK_FLOPS", "Estimate", "TrialCost", "calibrate", "estimate", "paper_gpu_line",
+           "paper_trial_gpu_hours", "paper_trial_gpu_hours_bound", "peak_flops"]
 
 GPU_COSTS = Path(__file__).resolve().parents[2] / "benchmarks" / "gpu_costs.json"
 STARTUP_S = 2.0
 """Seconds per trial outside training in local mode with reused actors (measured with ray 2.60 on 2 CPUs; benchmarks/RESULTS.md, sweep efficiency)."""
+PEAK_FLOPS: dict[str, dict[str, float]] = {
+    # Dense (no sparsity) tensor-core peaks, FLOP/s, from NVIDIA's datasheets: "NVIDIA H100 Tensor Core GPU"
+    # (SXM: FP16/BF16 1,979 and TF32 989 TFLOPS with sparsity; PCIe 1,513 and 756), "NVIDIA H200 Tensor
+    # Core GPU" (as H100 SXM), "NVIDIA A100 Tensor Core GPU" (FP16/BF16 312, TF32 156). fp32 is rated
+    # at TF32, which cuDNN's convolutions use by default: the most an fp32 step could reach.
+    "H100 PCIe": {"fp16": 756e12, "bf16": 756e12, "fp32": 378e12},
+    "H100": {"fp16": 989.4e12, "bf16": 989.4e12, "fp32": 494.7e12},
+    "H200": {"fp16": 989.4e12, "bf16": 989.4e12, "fp32": 494.7e12},
+    "A100": {"fp16": 312e12, "bf16": 312e12, "fp32": 156e12},
+}
+"""Dense peak FLOP/s per GPU (matched in the device name, first match, ``H100 PCIe`` before ``H100``) and
+``train.precision``."""
+BOUND_GPU = "H100"
+"""The GPU of the lower bound when no GPU measured: an H100 SXM (``NVIDIA H100 80GB HBM3``)."""
 CALIBRATED_CELLS = 8
 """At most this many distinct cells have their set-up and steps timed (evenly spread over the grid)."""
 EVALUATED_CELLS = 3
@@ -79,13 +97,13 @@ class Estimate:
     """The GPU of the figures, or why there are none."""
     worst_case: bool = False
     """The trials are a sequential sweep's most (every cell at ``max`` seeds); it may stop sooner."""
+    gpu_line: str = ""
+    """What :func:`paper_gpu_line` says: measured GPU-hours, or the counted-FLOP lower bound, labelled."""
 
     def text(self) -> str:
-        gpu = (f"{self.gpu_hours:.1f} GPU-hours with the paper profile ({self.gpu})" if self.gpu_hours is not None
-               else f"paper-profile GPU-hours: {self.gpu} (on a GPU: benchmarks/run.py --device cuda --only throughput)")
         return (f"estimate: {'worst case, ' if self.worst_case else ''}{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
                 f"{self.concurrent} at a time → "
-                f"~{self.wall_s / 60:.1f} min wall on this machine;\n  {gpu}")
+                f"~{self.wall_s / 60:.1f} min wall on this machine;\n  {self.gpu_line}")
 
 
 def calibrate(config: Config, steps: int = 3, eval_set: bool = True, evaluate: bool = True) -> TrialCost:
@@ -148,23 +166,112 @@ def _eval_objects(cfg: Config) -> int:
     return cfg.eval.num_objects * len(list_categories(cfg))
 
 
-def paper_trial_gpu_hours(paper: SweepPlan) -> tuple[float | None, str]:
-    """GPU-hours of one trial of a spec expanded with the paper profile and the GPU they were measured
-    on, or None and why not: no figures, or figures of another denoiser (never another network's time)."""
-    if not GPU_COSTS.is_file():
-        return None, "no GPU figures"
-    figures = json.loads(GPU_COSTS.read_text())
-    cfg = paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
+def _figures() -> dict:
+    return json.loads(GPU_COSTS.read_text()) if GPU_COSTS.is_file() else {}
+
+
+def _paper_config(paper: SweepPlan) -> Config:
+    return paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
+
+
+def _trial_gpus(paper: SweepPlan) -> float:
+    r = paper.profile.resources
+    return max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0)
+
+
+def _per_trial(paper: SweepPlan, cfg: Config, train_step: float, sample_step: float) -> float:
+    """``steps × train_step + evaluations × ⌈objects ÷ batch⌉ × sampling steps × sample_step`` (any unit)."""
+    evals = math.ceil(paper.profile.steps / paper.profile.eval_every)
+    batches = math.ceil(_eval_objects(cfg) / cfg.train.batch_size)
+    return paper.profile.steps * train_step + evals * batches * _sample_steps(cfg) * sample_step
+
+
+def peak_flops(device_name: str, precision: str) -> float | None:
+    """The dense peak FLOP/s of the GPU named ``device_name`` in ``precision`` (:data:`PEAK_FLOPS`); None if unknown."""
+    gpu = next((g for g in PEAK_FLOPS if g in device_name), None)
+    return PEAK_FLOPS[gpu][precision] if gpu is not None else None
+
+
+def _measured(figures: dict, cfg: Config) -> tuple[dict, dict] | str:
+    """The measured size entry of ``figures`` for ``cfg`` and its step in ``train.precision``, or why none."""
+    if not figures.get("by_points"):
+        return "no GPU figures"
     if cfg.model.denoiser != figures["denoiser"]:
-        return None, f"not measured for model.denoiser={cfg.model.denoiser} ({GPU_COSTS.name} holds {figures['denoiser']}'s)"
+        return f"not measured for model.denoiser={cfg.model.denoiser} ({GPU_COSTS.name} holds {figures['denoiser']}'s)"
     sizes = sorted(int(n) for n in figures["by_points"])
     # The smallest measured cloud size that holds the config's (else the largest measured).
-    step = figures["by_points"][str(next((n for n in sizes if n >= cfg.data.num_points), sizes[-1]))]
-    eval_s = math.ceil(_eval_objects(cfg) / cfg.train.batch_size) * _sample_steps(cfg) * step["sample_step_s"]
-    per_trial = paper.profile.steps * step["train_step_s"] + math.ceil(paper.profile.steps / paper.profile.eval_every) * eval_s
-    r = paper.profile.resources
-    gpus = max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0)
-    return per_trial * gpus / 3600.0, figures["device"]
+    entry = figures["by_points"][str(next((n for n in sizes if n >= cfg.data.num_points), sizes[-1]))]
+    step = entry.get("by_precision", {}).get(cfg.train.precision, entry)
+    if "train_step_s" not in step:
+        return f"not measured in train.precision={cfg.train.precision} ({step.get('note', 'absent')})"
+    return entry, step
+
+
+def paper_trial_gpu_hours(paper: SweepPlan, figures: dict | None = None) -> tuple[float | None, str]:
+    """GPU-hours of one trial of a spec expanded with the paper profile and the GPU they were measured
+    on, or None and why not: no figures, or figures of another denoiser (never another network's time).
+
+    ``figures``: ``benchmarks/gpu_costs.json``'s contents (default: read it). A size's figures hold
+    ``train_step_s`` and ``sample_step_s`` directly, or per precision (``by_precision``, the profile's
+    ``train.precision`` taken) at ``batch_size`` objects, scaled linearly to the profile's batch.
+    """
+    figures = _figures() if figures is None else figures
+    cfg = _paper_config(paper)
+    measured = _measured(figures, cfg)
+    if isinstance(measured, str):
+        return None, measured
+    entry, step = measured
+    scale = cfg.train.batch_size / entry.get("batch_size", cfg.train.batch_size)
+    per_trial = _per_trial(paper, cfg, step["train_step_s"] * scale, step["sample_step_s"] * scale)
+    return per_trial * _trial_gpus(paper) / 3600.0, figures["device"]
+
+
+def _measured_details(figures: dict, cfg: Config) -> str:
+    """What ``benchmarks/gpu_check.py`` measured beside the step time, for the GPU-hours line."""
+    entry, step = _measured(figures, cfg)
+    parts = [f"training step {step['train_step_s']:.3f} s in {cfg.train.precision} at batch "
+             f"{entry.get('batch_size', cfg.train.batch_size)}"]
+    if step.get("peak_memory_gib") is not None:
+        parts.append(f"peak memory {step['peak_memory_gib']:.1f} GiB")
+    if entry.get("largest_batch") is not None:
+        parts.append(f"largest batch that fits {entry['largest_batch']}")
+    if step.get("sample_batch_s") is not None:
+        parts.append(f"a batch through 1,000 DDPM steps {step['sample_batch_s']:.0f} s ({step.get('sample_batch_note', 'measured')})")
+    if step.get("flop_fraction") is not None:
+        parts.append(f"{100 * step['flop_fraction']:.1f} % of the device's peak FLOP/s")
+    return "; ".join(parts)
+
+
+def paper_trial_gpu_hours_bound(paper: SweepPlan, figures: dict | None = None) -> tuple[float | None, str]:
+    """A lower bound on one paper-profile trial's GPU-hours: the counted FLOPs of its training steps and
+    sampling steps (``figures["flops"]``, at the counted batch, scaled linearly to the profile's) at
+    :data:`BOUND_GPU`'s dense peak in the profile's precision; None and why where nothing is counted."""
+    figures = _figures() if figures is None else figures
+    cfg = _paper_config(paper)
+    counted = figures.get("flops", {}).get("by_points", {}).get(str(cfg.data.num_points))
+    if counted is None or cfg.model.denoiser != "pvcnn2":
+        return None, f"no counted FLOPs for model.denoiser={cfg.model.denoiser} at {cfg.data.num_points} points"
+    scale = cfg.train.batch_size / counted["batch_size"]
+    flops = _per_trial(paper, cfg, counted["train_step"] * scale, counted["sample_step"] * scale)
+    peak = PEAK_FLOPS[BOUND_GPU][cfg.train.precision]
+    return flops / peak * _trial_gpus(paper) / 3600.0, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
+
+
+def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
+    """What the dry run and the estimate say of the paper profile's GPU-hours for ``paper``'s trials:
+    measured (with the step, memory, largest batch, sampling cost and FLOP/s share beside), else a
+    lower bound labelled as one. ``figures``: as :func:`paper_trial_gpu_hours`."""
+    figures = _figures() if figures is None else figures
+    hours, gpu = paper_trial_gpu_hours(paper, figures)
+    if hours is not None:
+        return (f"{hours * paper.num_trials:.1f} GPU-hours with the paper profile ({hours:.2f} per trial × "
+                f"{paper.num_trials} trials, measured on {gpu}: {_measured_details(figures, _paper_config(paper))})")
+    line = f"paper-profile GPU-hours: {gpu} (on a GPU: python benchmarks/gpu_check.py)"
+    bound, basis = paper_trial_gpu_hours_bound(paper, figures)
+    if bound is None:
+        return f"{line}; no lower bound: {basis}"
+    return (f"{line}; lower bound, not a measurement: ≥ {bound * paper.num_trials:.2f} GPU-hours ({bound:.3f} per trial "
+            f"× {paper.num_trials}) if every counted FLOP ran at the {basis} and nothing else took time")
 
 
 def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False) -> Estimate:
@@ -216,4 +323,5 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
     paper = expand(plan.spec, "paper", plan.sets)
     trial_hours, gpu = paper_trial_gpu_hours(paper)
     gpu_hours = None if trial_hours is None else trial_hours * paper.num_trials
-    return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, gpu_hours, gpu, plan.sequential is not None)
+    return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, gpu_hours, gpu, plan.sequential is not None,
+                    paper_gpu_line(paper))

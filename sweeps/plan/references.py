@@ -175,6 +175,7 @@ _COMMON: dict[str, Entry] = {
     "train.warmup_steps": Stated(2000, f"{_PC2}: CosineSchedulerConfig num_warmup_steps"),
     "train.grad_clip": Stated(50.0, f"{_PC2}: clip_grad_norm"),
     "train.ema_decay": Stated(None, f"{_PC2}: use_ema False"),
+    "train.precision": Stated("fp16", f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"),
     "train.eval_every": NoEffect("when to score; the final score is at train.steps"),
     "train.log_every": NoEffect("logging"),
     "train.seed": _DRAW,
@@ -227,6 +228,7 @@ _SHAPENET: dict[str, Entry] = {
     "priors.prior_2d": Stated("contour", "paper §4.1 ShapeNet: contour as the 2D prior"),
     "priors.render_kind": Stated("planar", "paper §4.1 ShapeNet: planar point images in the 3D prior", _PRIOR_3D),
     "train.batch_size": Stated(16, f"{_BDM_TRAIN}: dataloader.batch_size; the paper states none"),
+    "train.precision": Stated("fp16", f"{_BDM}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"),
     "eval.num_points": Stated(4096, "BDM experiments/example_sample.sh: dataset.max_points"),
 }
 
