@@ -109,7 +109,7 @@ def annotation_cap() -> int:
     return int(text) * 2**20
 
 
-def read_gzip(path: Path, label: str, cap: int | None = None) -> bytes:
+def read_gzip(path: Path, label: str, cap: int | None = None) -> bytearray:
     """``path`` gunzipped, refused (naming the file and the cap) as soon as it passes ``cap`` bytes
     (default :func:`annotation_cap`): memory stays near the cap whatever the compression ratio."""
     cap = annotation_cap() if cap is None else cap
@@ -123,7 +123,7 @@ def read_gzip(path: Path, label: str, cap: int | None = None) -> bytes:
                                      f"{ANNOTATION_ENV} higher if the file is genuine")
     except (OSError, EOFError, zlib.error) as exc:  # gzip.BadGzipFile is an OSError
         raise ValueError(f"{label}: cannot read {path}: {exc}") from None
-    return bytes(out)
+    return out  # not bytes(out): a copy would double the peak for a file near the cap
 
 
 _STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')
@@ -131,18 +131,20 @@ _BRACKETS = bytes(range(256)).translate(None, b"[]{}")
 """Every byte but the four brackets: deleted from a JSON text, what remains is its nesting."""
 
 
-def bracket_depth(raw: bytes) -> int:
+def bracket_depth(raw: bytes | bytearray) -> int:
     """Deepest bracket nesting of the JSON (or YAML flow) text ``raw`` outside double-quoted strings; an
     upper bound where brackets sit in other quoting."""
     # Strings may hold brackets; dropping them first keeps the count honest for valid JSON.
-    brackets = _STRING.sub(b"", raw).translate(None, _BRACKETS)
-    if not brackets:
-        return 0
-    steps = np.frombuffer(brackets, np.uint8)
-    return int(np.cumsum(np.where((steps == ord("[")) | (steps == ord("{")), 1, -1), dtype=np.int64).max())
+    brackets = np.frombuffer(_STRING.sub(b"", raw).translate(None, _BRACKETS), np.uint8)
+    depth = deepest = 0
+    for start in range(0, len(brackets), 2**20):  # in steps: a 256 MiB annotation holds tens of millions
+        chunk = brackets[start : start + 2**20]
+        running = depth + np.cumsum(np.where((chunk == ord("[")) | (chunk == ord("{")), 1, -1), dtype=np.int64)
+        deepest, depth = max(deepest, int(running.max())), int(running[-1])
+    return deepest
 
 
-def parse_json(raw: bytes, label: str, path: Path) -> Any:
+def parse_json(raw: bytes | bytearray, label: str, path: Path) -> Any:
     """``raw`` (the contents of ``path``) as JSON, refused past :data:`MAX_JSON_DEPTH` levels of nesting
     before the parser sees it."""
     if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
