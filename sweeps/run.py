@@ -33,6 +33,7 @@ from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.precompute import check_space, shared_root
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
 from sweeps.plan.describe import describe, wrapped
+from sweeps.plan.preflight import check_inputs, dry_run, estimate_line
 from sweeps.plan.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.resources import plan_concurrency
@@ -80,20 +81,6 @@ def _rule(plan: SweepPlan, budget: SeedBudget | None) -> list[str]:
     return describe_rule(plan, budget) if plan.sequential is not None else []
 
 
-def _estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
-    """Print the cost estimate (:mod:`sweeps.plan.estimate`) and return it; None when calibration diverged."""
-    from cdm.train import TrainingDiverged
-    from sweeps.plan.estimate import estimate
-
-    try:
-        predicted = estimate(plan, cpus, concurrent, shared)
-    except TrainingDiverged as exc:
-        print(f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way", flush=True)
-        return None
-    print(wrapped(predicted.text()), flush=True)
-    return predicted
-
-
 def _settings(plan: SweepPlan) -> list[str]:
     """What produced the numbers, for the table's notes: budget, the cells' training target and λ, the card."""
 
@@ -115,29 +102,6 @@ def _ui_hint(uri: str, path: str) -> str:
 def _fail(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
-
-
-def _check_inputs(plan: SweepPlan, remote: bool) -> None:
-    """Print which external inputs (weights, maps, embeddings, images) each cell reads and whether they
-    exist; refuse absent ones (``ValueError`` naming the field) before Ray starts. On this machine each
-    distinct config's data sets are also indexed to check that every object has its entry; a cluster
-    driver may not see the data, so there the trials check it (``cdm.train.Trainer``)."""
-    from cdm.data import build_dataset
-    from cdm.inputs import check_coverage, check_inputs, describe_inputs, required_inputs
-
-    configs = [cell.config for cell in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    names = [c.label for c in plan.cells] or ["every trial"]
-    if not any(required_inputs(cfg) for cfg in configs):
-        print("external inputs: none (everything is generated or in data.root)", flush=True)
-        return
-    print("external inputs:\n" + "\n".join(f"  {n}: {describe_inputs(cfg)}" for n, cfg in zip(names, configs)), flush=True)
-    check_inputs(*configs)
-    covered = set()
-    for cfg in configs:
-        key = repr(required_inputs(cfg)) + repr(cfg.data)
-        if not remote and required_inputs(cfg) and key not in covered:
-            covered.add(key)
-            check_coverage(cfg, (build_dataset(cfg, "train"), build_dataset(cfg, "val")))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -211,10 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     except (SpecError, ConfigError, LimitError, StoreError) as exc:
         return _fail(str(exc))
     print(wrapped(f"spec {spec.name} ({args.spec}): {spec.description}"), flush=True)
+    missing = None
     try:
-        _check_inputs(plan, remote)
+        check_inputs(plan, remote)
     except ValueError as exc:
-        return _fail(str(exc))
+        if not args.dry_run:
+            return _fail(str(exc))
+        missing = str(exc)  # a dry run still plans: the card, the plan and the estimate, then this
     if not args.dry_run:
         from sweeps.execute.tracking import resolve_tracking_uri
 
@@ -244,30 +211,8 @@ def main(argv: list[str] | None = None) -> int:
                 held.release()
                 return _fail(str(exc))
     if args.dry_run:
-        import torch
-
-        cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
-        print(describe(plan, cpus, gpus, _rule(plan, budget)), flush=True)
-        if plan.profile.name == "paper":  # measured GPU-hours, or a lower bound said as one; no calibration needed
-            from sweeps.plan.estimate import paper_gpu_line
-
-            print(wrapped(paper_gpu_line(plan)), flush=True)
-        if args.no_estimate:
-            return 0
-        if plan.grid_trials is not None:
-            print(f"estimate: none for a dry-run of more than {LISTED_TRIALS} trials (it would build every cell again "
-                  "at the paper profile); calibrate on a smaller grid")
-            return 0
-        if cpus is None:
-            print("estimate: run --dry-run on the cluster's head (without --address) to size it")
-            return 0
-        try:
-            concurrent = plan_concurrency(plan.profile.resources, cpus, gpus, plan.num_trials).max_concurrent
-        except SpecError:
-            return 0  # describe() has said why this machine cannot run it
-        print("calibrating (a few training steps and one evaluation) ...", flush=True)
-        _estimate(plan, cpus, concurrent, shared_root(sweep_dir, remote) is not None and bool(plan.cells))
-        return 0
+        shared = shared_root(sweep_dir, remote) is not None and bool(plan.cells)
+        return dry_run(plan, remote, _rule(plan, budget), not args.no_estimate, shared, missing)
     print(describe(plan, None, None, _rule(plan, budget)), flush=True)
     try:
         return _run(plan, args, sweep_dir, state_file, state or {}, sets, remote, held)
@@ -373,7 +318,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                 print("estimate: none — no node up yet fits one trial; trials wait for the autoscaler to add one", flush=True)
             else:
                 try:
-                    predicted = _estimate(plan, cluster.get("CPU", 1.0), now.max_concurrent,
+                    predicted = estimate_line(plan, cluster.get("CPU", 1.0), now.max_concurrent,
                                           shared_root(sweep_dir, remote) is not None and bool(plan.cells))
                 except (ValueError, OSError) as exc:  # an input every trial would fail on (an unreadable mesh)
                     kill_running_children(sweep_run)
