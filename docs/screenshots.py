@@ -288,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     parent = parents[0].info.run_id
     children = [r.info.run_id for r in client.search_runs([exp.experiment_id], f"tags.mlflow.parentRunId = '{parent}'",
                                                           order_by=["attributes.start_time ASC"])
-                if "rerun_of" not in r.data.tags]
+                if "rerun_of" not in r.data.tags and r.data.tags.get("kind") != "baseline"]
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         with mlflow_server(args.tracking_uri, tmp / "server.log") as server:

@@ -104,11 +104,11 @@ def _settings(plan: SweepPlan) -> list[str]:
 
 def _ui_hint(uri: str, path: str) -> str:
     """Where to see ``path`` (``#/experiments/…``) of the MLflow UI: its address, or how to start it."""
-    from sweeps.execute.tracking import ui_command
+    from sweeps.execute.tracking import ui_command, ui_link
 
     if uri.startswith(("http://", "https://")):
-        return f"open {uri.rstrip('/')}/{path}"
-    return f"{ui_command(uri)}\n  (then open http://127.0.0.1:5000/{path})"
+        return f"open {uri.rstrip('/')}/{ui_link(path)}"
+    return f"{ui_command(uri)}\n  (then open http://127.0.0.1:5000/{ui_link(path)})"
 
 
 def _fail(message: str) -> int:

@@ -32,8 +32,8 @@ from sweeps.compare.rules import rounded
 from sweeps.compare.table import ResultsTable, TrialOutcome
 from sweeps.store_retry import PatientClient, wait_when_busy
 
-__all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "baselines_by_eval_set", "cell_means", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_histories", "metric_key", "parent_baselines",
-           "resolve_tracking_uri", "trial_metrics", "ui_command"]
+__all__ = ["EVAL_FOLDERS", "EXPERIMENT_KIND", "SYSTEM_METRICS", "WORKFLOW", "SweepRun", "baselines_by_eval_set", "cell_means", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_histories", "metric_key", "parent_baselines",
+           "resolve_tracking_uri", "trial_metrics", "ui_command", "ui_link"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
 wait_when_busy()  # every process that logs waits for a busy SQLite store instead of failing
@@ -62,15 +62,36 @@ def ui_command(uri: str) -> str:
     return f"open {uri} in a browser"
 
 
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+"""The experiment tag MLflow 3 keeps an experiment's kind in (its UI's kind selector writes it: "Machine
+learning", not "GenAI apps & agents"). MLflow 3.17's own UI chooses its workflow per browser instead
+(``localStorage`` ``mlflow.workflowType``, default GenAI; the URL's ``workflowType`` wins), so every link
+the runner prints also carries :data:`WORKFLOW`."""
+
+WORKFLOW = "workflowType=machine_learning"
+"""The URL parameter that opens MLflow 3's model-training workflow (Runs, Models) whatever the browser
+chose before: no Sessions, Judges, Prompts or AI Gateway, the runs under "Runs", not "Evaluation runs"."""
+
+
+def ui_link(path: str) -> str:
+    """``path`` of the MLflow UI (``#/experiments/…``) opening in the model-training workflow (:data:`WORKFLOW`)."""
+    return path + ("&" if "?" in path else "?") + WORKFLOW
+
+
 def _experiment(client: MlflowClient, name: str, uri: str) -> str:
+    """The experiment ``name``'s id, created if needed, tagged a model-training one (:data:`EXPERIMENT_KIND`),
+    also when an older sweep created it."""
     found = client.get_experiment_by_name(name)
     if found is not None:
-        return found.experiment_id
-    location = None
-    if uri.startswith("sqlite:///"):
-        # Keep artifacts beside the database rather than in whatever directory the driver ran from.
-        location = (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
-    return client.create_experiment(name, artifact_location=location)
+        experiment_id = found.experiment_id
+    else:
+        location = None
+        if uri.startswith("sqlite:///"):
+            # Keep artifacts beside the database rather than in whatever directory the driver ran from.
+            location = (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
+        experiment_id = client.create_experiment(name, artifact_location=location)
+    client.set_experiment_tag(experiment_id, *EXPERIMENT_KIND)
+    return experiment_id
 
 
 def _params(values: dict[str, Any]) -> list[Param]:
@@ -191,6 +212,7 @@ class SweepRun:
         """The parent run of an interrupted sweep, marked running again."""
         client = PatientClient(uri)
         run = client.get_run(run_id)
+        client.set_experiment_tag(run.info.experiment_id, *EXPERIMENT_KIND)  # a sweep begun before the tag
         client.update_run(run_id, status="RUNNING")
         return cls(uri, run.info.experiment_id, run_id)
 

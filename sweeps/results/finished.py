@@ -125,7 +125,8 @@ def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | Non
     children = client.search_runs([exp.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{run_id}'",
                                   order_by=["attributes.start_time ASC"], max_results=10000)
     # `run.py --rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
-    children = [r for r in children if "rerun_of" not in r.data.tags]
+    # The runs view's baseline rows (sweeps/results/view.py) are no trials either.
+    children = [r for r in children if "rerun_of" not in r.data.tags and r.data.tags.get("kind") != "baseline"]
     return SweepRecord(client, exp.name, exp.experiment_id, parent, spec, plan, children)
 
 
