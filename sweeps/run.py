@@ -292,7 +292,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     import ray
 
     from sweeps.compare.table import build_table
-    from sweeps.execute.tracking import baselines_by_eval_set, cell_means
+    from sweeps.execute.tracking import baselines_by_eval_set
     from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
     from sweeps.execute.tracking import SweepRun, resolve_tracking_uri
     from sweeps.execute.trial import run_sweep
@@ -398,7 +398,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                             compare_to=plan.spec.compare_to, settings=_settings(plan), settled=settled)
         md, csv = table.write(staging)
         sweep_run.log_artifacts([md, csv])
-        sweep_run.log_results(cell_means(table), baselines_by_eval_set(outcomes),
+        sweep_run.log_results(baselines_by_eval_set(outcomes),
                               describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table, plan_card(plan).lines()))
         view = publish(uri, sweep_run.run_id, staging / "plots")
         if is_uri(sweep_dir):

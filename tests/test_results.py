@@ -8,7 +8,7 @@ import statistics
 import pytest
 import torch
 
-from sweeps.compare.rules import settings_note
+from sweeps.compare.rules import metric_label, settings_note
 from sweeps.compare.table import TrialOutcome, build_table
 
 
@@ -258,3 +258,14 @@ def test_settled_cells_show_their_seeds_interval_and_verdict(tmp_path):
     assert float(trade["eval/f1 delta low"]) == 0.02
     assert "against ref: trade better, settled after 2 seeds (worse on cd, objects only); cd only open at 5 seeds " \
            "(worse on cd, objects only)" in table.summary
+
+
+def test_every_f1_label_names_its_threshold_in_world_units():
+    table = build_table(_main_job_outcomes(), "eval/f1", "max", "point_size — profile local")
+    for text in (table.text(), table.markdown()):
+        assert "F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units" in " ".join(text.split())
+    assert metric_label("eval/f1") == "eval/f1 (F1@0.01 sq. dist = 0.1 world)"
+    assert metric_label("eval/f1/chair").endswith("(F1@0.01 sq. dist = 0.1 world)") and metric_label("eval/cd") == "eval/cd (CD ×1000)"
+    assert metric_label("train/loss") == "train/loss"
+    no_f1 = build_table([_trial("a", 0, train__loss=0.5)], "train/loss", "min", "t")  # no F1 shown: no footnote
+    assert not any(n.startswith("F1 is") for n in no_f1.notes)

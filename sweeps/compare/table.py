@@ -26,7 +26,7 @@ from typing import Literal
 
 from cdm.evaluate import BASELINES
 from sweeps.compare.paired import PairedDifference, UnpairedError, compare, per_object_means
-from sweeps.compare.rules import Stat, number_text, object_column, partner, partner_mode, weighed
+from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode, weighed
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
@@ -348,6 +348,7 @@ def build_table(
         records.append(record)
 
     notes = list(settings)
+    notes += [F1_UNIT] if any(m.split("/")[1:2] == ["f1"] for m in shown) else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
     if any(f"{metric}/{c}" in o.paper for o in outcomes for c in categories):

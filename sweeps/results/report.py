@@ -29,7 +29,7 @@ from cdm.evaluate import BASELINES
 from sweeps.compare.gallery import grid_png, viewer_html
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
-from sweeps.compare.rules import PROTOCOL_NOTE, partner, rounded
+from sweeps.compare.rules import PROTOCOL_NOTE, metric_label, partner, rounded
 from sweeps.compare.table import ResultsTable
 from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri, ui_link
 from sweeps.plan.spec import Spec
@@ -61,16 +61,19 @@ def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, 
     return out
 
 
-def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) -> list[Path]:
-    """``metric_vs_value.png``, ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
+def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path, table: ResultsTable | None = None) -> list[Path]:
+    """``metric_vs_value.png`` (with ``table``: each cell's paired interval against the reference),
+    ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
     spec, folder = record.spec, Path(folder)
     metric = spec.metric.name
     done = [t for t in trials if t.outcome.finished]
     points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done]
+    intervals = {str(r["cell"]): (float(r[f"{metric} delta low"]), float(r[f"{metric} delta high"]))  # type: ignore[arg-type]
+                 for r in (table.records if table else []) if r.get(f"{metric} delta") is not None}
     paths = []
     if points:
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
-                                     spec.paper.table if spec.paper else "paper"))
+                                     spec.paper.table if spec.paper else "paper", intervals))
     curves = _histories(record, trials, ("train/loss", "train/loss_diffusion", metric))
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
@@ -218,7 +221,7 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
         out.append("It did not finish.")
     else:
         shown = [m for m in (spec.metric.name, partner(spec.metric.name)) if m and m in o.metrics]
-        out.append("At its last evaluation " + ", ".join(f"{m} {rounded(o.metrics[m])}" for m in shown) + ".")
+        out.append("At its last evaluation " + ", ".join(f"{metric_label(m)} {rounded(o.metrics[m])}" for m in shown) + ".")
         cell = next((r for r in table.records if r["cell"] == o.cell), {})
         delta = cell.get(f"{spec.metric.name} delta")
         if delta is None and f"{spec.metric.name} delta" in cell and not cell.get("verdict"):
@@ -236,22 +239,23 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
 def publish(uri: str, parent_run_id: str, folder: Path) -> str:
     """End of a sweep: plots and reconstructions into ``folder`` and onto the parent run (``plots/``,
     ``reconstructions/``), a description and the view's columns (:func:`sweeps.results.view.row_tags`)
-    on each child run, the headline as the parent's name, and the runs view; returns its path, opening
-    in MLflow's model-training workflow."""
+    on each child run, the headline as the parent's name, and the runs view; returns its path (``#/experiments/…``)."""
     record = open_sweep(uri, parent_run_id=parent_run_id)
     trials = trial_records(record)
     table = results_table(record, trials)
     for t in trials:
         if t.run_id is not None:
             tags = {"mlflow.note.content": describe_trial(record, t, table)} | row_tags(table, t.outcome.cell, record.spec.metric.name)
+            # The fields the sweep set, in full: of ~84 params, the ones that vary (priors.point_size, not model.raster_radius).
+            tags |= {"swept": ", ".join(f"{k}={v}" for k, v in t.values.items())} if t.values else {}
             for key, value in tags.items():
                 record.client.set_tag(t.run_id, key, value)
     record.client.update_run(parent_run_id, name=headline_name(record, table))
-    for path in write_plots(record, trials, folder):
+    for path in write_plots(record, trials, folder, table):
         record.client.log_artifact(parent_run_id, str(path), "plots")
     for path in reconstructions(record, trials, folder):
         record.client.log_artifact(parent_run_id, str(path), "reconstructions")
-    return ui_link(share_view(record, table))
+    return share_view(record, table)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -278,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
     trials = trial_records(record)
     table = results_table(record, trials)
     md, csv = table.write(out)
-    plots = write_plots(record, trials, out) + reconstructions(record, trials, out)
+    plots = write_plots(record, trials, out, table) + reconstructions(record, trials, out)
     print(table.text() + "\n")
     print(f"results: {md} and {csv}")
     print("plots: " + ", ".join(str(p) for p in plots))
