@@ -319,6 +319,16 @@ def test_panel_views_match_where_the_clouds_match_and_differ_where_they_differ(t
     for k in range(3):
         assert _overlap(moved[k], moved[3 + k]) < 0.4
         assert _overlap(moved[3 + k], same[3 + k]) > 0.95  # the GT half does not depend on the prediction
+    # The reconstructions grid takes the input image back from the panel: the object's own pixels, resized.
+    from PIL import Image
+
+    from sweeps.compare.gallery import panel_input
+
+    shown = panel_input(tmp_path / "same.png")
+    image = (batch.image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    assert shown is not None and shown.shape[0] > 4 * image.shape[0]
+    back = np.asarray(Image.fromarray(shown).resize(image.shape[1::-1], Image.NEAREST)).astype(int)
+    assert np.abs(back - image).mean() < 20
 
 
 def test_metric_vs_value_log_axis_baseline_lines_and_resolution(tmp_path):

@@ -140,8 +140,8 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
             if log_spaced(list(x.values())):
                 ax.set_xscale("log")
                 ax.set_xlabel(f"{xlabel} (log scale)", fontsize=FONT + 1)
-                ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
                 ax.minorticks_off()
+            ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
         ax.set_ylabel(metric_label(m) + (", lower is better" if m.endswith("cd") else ", higher is better"), fontsize=FONT + 1)
         ax.tick_params(labelsize=FONT)
         ax.grid(alpha=0.3)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from cdm.evaluate import BASELINES
-from sweeps.compare.gallery import grid_png, viewer_html
+from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.compare.rules import PROTOCOL_NOTE, metric_label, partner, rounded
@@ -188,10 +188,19 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
                     if file in folder_of:
                         local = record.client.download_artifacts(t.run_id, folder_of[file], str(Path(tmp) / t.run_id))
                         gallery.setdefault(name, {})[label] = read_ply(Path(local))
+        inputs = {}
+        first = next(iter(firsts.values()))
+        panels_of = {Path(f).name: f for f in files[first.outcome.cell] if f.endswith(".png")}
+        for name in names:  # the input image, from the first cell's panel of that object
+            if f"{name}.png" in panels_of:
+                found = panel_input(Path(record.client.download_artifacts(first.run_id, panels_of[f"{name}.png"], str(Path(tmp) / "in"))))
+                if found is not None:
+                    inputs[name] = found
     columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
     title = f"{record.title}: reconstructions at the last evaluation"
-    return [grid_png(gallery, columns, title, folder / "reconstructions.png"),
-            viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=_object_scores(record, firsts, best))]
+    scores = _object_scores(record, firsts, best)
+    return [grid_png(gallery, columns, title, folder / "reconstructions.png", scores, inputs),
+            viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=scores)]
 
 
 def _object_scores(record: SweepRecord, firsts: dict[str, TrialRecord], best: str | None) -> dict[str, dict[str, tuple[float, float]]]:
