@@ -38,6 +38,7 @@ def test_shared_view_lands_on_scores_verdicts_and_baselines(grid_store):
     assert view.row_tags(table, "point_size=0.02", "eval/f1") == {"vs reference": "reference", "vs baselines": "beats sphere"}
     assert view.row_tags(table, "point_size=0.04", "eval/f1") == {"vs reference": "better [+0.020, +0.020] Δf1 +0.020",
                                                                  "vs baselines": "beats sphere"}
+    assert view.row_tags(table, "point_size=0.08", "eval/f1")["vs reference"] == "no result"  # failed: not the reference
     view.share_view(record, table)  # published again (report --log): the baseline rows are not doubled
     assert len(client.search_runs([sweep.experiment_id], "tags.kind = 'baseline'")) == 1
     assert [t.outcome.label for t in finished.trial_records(finished.open_sweep(uri, "synth"), objects=False)] == [

@@ -57,10 +57,11 @@ def row_tags(table: ResultsTable, cell: str, metric: str) -> dict[str, str]:
     short = metric.removeprefix("eval/")
     delta, low, high = (record.get(f"{metric} delta{end}") for end in ("", " low", " high"))
     verdict = str(record.get("verdict") or "")
-    if delta is None and not verdict:
+    column = next(i for i, h in enumerate(table.header) if h.startswith(f"Δ{short} vs "))
+    if table.rows[table.records.index(record)][column] == "reference":
         versus = "reference"
     elif delta is None:
-        versus = VERDICT_WORDS.get(verdict, verdict)
+        versus = VERDICT_WORDS.get(verdict, verdict) or "no result"
     else:
         mean, interval = interval_text(float(delta), float(low), float(high)).split(" ", 1)
         versus = f"{VERDICT_WORDS.get(verdict, verdict)} {interval} Δ{short} {mean}"
