@@ -15,6 +15,7 @@ from sweeps.execute.tracking import (
     learning_curve_png,
     resolve_tracking_uri,
     ui_command,
+    ui_link,
 )
 
 
@@ -96,3 +97,20 @@ def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
     assert "curves" not in {a.path for a in client.list_artifacts(trial.run_id)}  # drawn at the last evaluation only
     curve = learning_curve_png(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
     assert curve.stat().st_size > 2000
+
+
+def test_the_experiment_is_a_model_training_one_and_every_link_opens_that_workflow(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    client = MlflowClient(uri)
+    old = client.create_experiment("older")  # made before the tag existed, e.g. by an earlier sweep
+    client.create_experiment("other")
+    sweep = SweepRun.start(uri, "older", "older · smoke", tags={}, params={})
+    assert sweep.experiment_id == old and client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+    client.delete_experiment_tag(old, "mlflow.experimentKind")
+    SweepRun.reopen(uri, sweep.run_id)  # --resume tags it again
+    assert client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+    new = SweepRun.start(uri, "new", "new · smoke", tags={}, params={}).experiment_id
+    assert client.get_experiment(new).tags["mlflow.experimentKind"] == "custom_model_development"
+    assert "mlflow.experimentKind" not in client.get_experiment_by_name("other").tags  # only the sweep's own
+    assert ui_link("#/experiments/1/runs/abc") == "#/experiments/1/runs/abc?workflowType=machine_learning"
+    assert ui_link("#/experiments/1/runs?viewStateShareKey=k") == "#/experiments/1/runs?viewStateShareKey=k&workflowType=machine_learning"
