@@ -344,7 +344,8 @@ def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: fl
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_aspect("equal")
-    fig.suptitle(f"{batch.object_id[j]}   CD×1000 {cd:.2f}   F1 {f1:.3f}", fontsize=12)
+    # F1's threshold is on the squared distance (cdm/metrics.py): 0.1 in world units.
+    fig.suptitle(f"{batch.object_id[j]}   CD×1000 {cd:.2f}   F1@0.01 (sq. dist; 0.1 world) {f1:.3f}", fontsize=12)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)

@@ -4,7 +4,7 @@
 
 Starts ``mlflow server`` on the store (127.0.0.1, a free port), opens the sweep's saved view, the
 comparison of its child runs, the parent run's page and its first child run's page (the first screen
-at 1,280 × 800, MLflow's assistant panel closed) and the 3D viewer artifact in Debian's ``chromium``,
+at 1,280 × 800 in a fresh profile: MLflow's default panels, its Assistant open) and the 3D viewer artifact in Debian's ``chromium``,
 and writes downscaled PNGs into ``--out``, together with the parent run's ``metric_vs_value.png`` and
 ``reconstructions.png``: every picture in ``docs/``. ``tests/integration/test_compare.py`` drives the
 same functions against its smoke sweep.
@@ -32,7 +32,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["chromium_page", "first_screen", "free_port", "main", "mlflow_server", "pages", "shrink", "wait_http"]
+__all__ = ["GENAI_ENTRIES", "PAGE_TEXT", "chromium_page", "first_screen", "free_port", "main", "mlflow_server", "pages", "shrink", "wait_http"]
 
 
 STARTUP_S = 240.0
@@ -104,6 +104,7 @@ def mlflow_server(uri: str, log: Path, artifacts: Path | None = None, grace_s: f
 
 def chromium_page(chromium: str, url: str, screenshot: Path, profile: Path, width: int = 1600, height: int = 800) -> str:
     """The DOM of ``url`` once the page has rendered (15 s of virtual time), and a screenshot of it."""
+    profile.mkdir(parents=True, exist_ok=True)
     cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
            "--disable-background-networking", "--disable-component-update", "--disable-sync", "--hide-scrollbars",
            f"--user-data-dir={profile}", "--virtual-time-budget=15000", f"--window-size={width},{height}",
@@ -126,6 +127,7 @@ class _Pipe:
     child's file descriptors 3 and 4): no WebSocket client, no extra package."""
 
     def __init__(self, chromium: str, profile: Path, width: int, height: int):
+        profile.mkdir(parents=True, exist_ok=True)
         to_child, self._to_child = os.pipe()
         self._from_child, from_child = os.pipe()
         # bash puts the pipes on the child's 3 (our commands) and 4 (its replies), then runs chromium. Both
@@ -195,32 +197,20 @@ _PLACE = """(texts => texts.map(text => {
 }))"""
 
 
-ASSISTANT_CLOSED = {"mlflow.assistant.fab.autoOpenedOnFirstLoad_v1": "true", "mlflow.assistant.panelOpen_v1": "false"}
-"""MLflow 3's UI state (its ``localStorage``) once a reader has closed the assistant panel, which opens
-by itself on a browser's first visit and takes a third of a 1,280-px window (the run page then stacks
-"About this run" above the description)."""
-
-
 def first_screen(chromium: str, url: str, texts: list[str], screenshot: Path, profile: Path, width: int = 1280,
-                 height: int = 800, timeout: float = 90, storage: dict[str, str] | None = None) -> dict[str, bool]:
+                 height: int = 800, timeout: float = 90, wait_for: list[str] | None = None) -> dict[str, bool]:
     """Whether each of ``texts`` is visible in the first screen (``width`` × ``height``, no scrolling) of
-    ``url``, once every one of them is in the page (or ``timeout`` seconds have passed); also a
-    screenshot of that screen. ``storage``: ``localStorage`` entries of ``url``'s origin set before
-    (e.g. :data:`ASSISTANT_CLOSED`)."""
+    ``url``, once every one of them (or of ``wait_for``: texts that must be absent are not waited for) is
+    in the page (or ``timeout`` seconds have passed); also a
+    screenshot of that screen. ``profile``: the browser's profile folder (a new one is a first visit)."""
     browser = _Pipe(chromium, profile, width, height)
     try:
         target = browser.call("Target.createTarget", {"url": "about:blank"})["targetId"]
         session = browser.call("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
         browser.call("Emulation.setDeviceMetricsOverride", {"width": width, "height": height, "deviceScaleFactor": 1,
                                                             "mobile": False}, session)
-        if storage:
-            origin = "/".join(url.split("/")[:3])
-            browser.call("Page.navigate", {"url": f"{origin}/health"}, session)
-            time.sleep(1)
-            browser.call("Runtime.evaluate", {"expression": f"Object.entries({json.dumps(storage)}).forEach(([k, v]) => "
-                                                            "localStorage.setItem(k, v))"}, session)
         browser.call("Page.navigate", {"url": url}, session)
-        probe = f"{json.dumps(texts)}.every(t => document.body && document.body.innerText.includes(t))"
+        probe = f"{json.dumps(texts if wait_for is None else wait_for)}.every(t => document.body && document.body.innerText.includes(t))"
         deadline = time.monotonic() + timeout
         while not browser.call("Runtime.evaluate", {"expression": probe, "returnByValue": True}, session)["result"].get("value"):
             if time.monotonic() > deadline:
@@ -236,22 +226,28 @@ def first_screen(chromium: str, url: str, texts: list[str], screenshot: Path, pr
 
 
 def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: list[str]) -> dict[str, str]:
-    """Screenshot name → URL on ``server``: the sweep's view, its children compared, the parent run,
-    the first child run."""
+    """Screenshot name → URL on ``server``, each opening MLflow's model-training workflow (the runner's
+    links do): the sweep's view, its children compared, the parent run, the first child run."""
+    from sweeps.execute.tracking import ui_link
+
     ids = json.dumps(child_run_ids, separators=(",", ":"))
     return {
-        "mlflow_sweep_view.png": f"{server}/#/experiments/{experiment_id}/runs?viewStateShareKey=sweep-{parent_run_id}",
-        "mlflow_compare.png": (f"{server}/#/compare-runs?runs={urllib.parse.quote(ids)}"
-                               f"&experiments={urllib.parse.quote(json.dumps([experiment_id]))}"),
-        "mlflow_parent_run.png": f"{server}/#/experiments/{experiment_id}/runs/{parent_run_id}",
-        "mlflow_child_run.png": f"{server}/#/experiments/{experiment_id}/runs/{child_run_ids[0]}",
+        "mlflow_sweep_view.png": f"{server}/{ui_link(f'#/experiments/{experiment_id}/runs?viewStateShareKey=sweep-{parent_run_id}')}",
+        "mlflow_compare.png": f"{server}/" + ui_link(f"#/compare-runs?runs={urllib.parse.quote(ids)}"
+                                                     f"&experiments={urllib.parse.quote(json.dumps([experiment_id]))}"),
+        "mlflow_parent_run.png": f"{server}/{ui_link(f'#/experiments/{experiment_id}/runs/{parent_run_id}')}",
+        "mlflow_child_run.png": f"{server}/{ui_link(f'#/experiments/{experiment_id}/runs/{child_run_ids[0]}')}",
     }
 
 
-PAGE_TEXT = {"mlflow_sweep_view.png": "final/f1", "mlflow_compare.png": "Comparing", "mlflow_parent_run.png": "Description",
-             "mlflow_child_run.png": "Description"}
+GENAI_ENTRIES = ("Sessions", "Judges", "Evaluation runs", "Prompts", "AI Gateway", "Agent versions")
+"""Entries of MLflow 3's GenAI navigation that its model-training navigation (Runs, Models, Traces) lacks."""
+
+PAGE_TEXT = {"mlflow_sweep_view.png": "vs reference", "mlflow_compare.png": "Comparing", "mlflow_parent_run.png": "About this run",
+             "mlflow_child_run.png": "About this run"}
 """The text each page of :func:`pages` shows once it has rendered its data; every page is shot as its
-first screen at 1,280 × 800 (:func:`first_screen`): what a reader sees unscrolled."""
+first screen at 1,280 × 800 (:func:`first_screen`) in a fresh profile, MLflow's default panels open
+(the Assistant too): what a reader sees unscrolled on a first visit."""
 
 
 def shrink(source: Path, target: Path, width: int = 1000) -> Path:
@@ -293,8 +289,8 @@ def main(argv: list[str] | None = None) -> int:
         tmp = Path(tmp)
         with mlflow_server(args.tracking_uri, tmp / "server.log") as server:
             for name, url in pages(server, exp.experiment_id, parent, children).items():
-                # Each page's first screen once the text a reader looks for is in it, the assistant closed.
-                first_screen(chromium, url, [PAGE_TEXT[name]], tmp / name, tmp, storage=ASSISTANT_CLOSED)
+                # Each page's first screen once the text a reader looks for is in it, in a fresh profile.
+                first_screen(chromium, url, [PAGE_TEXT[name]], tmp / name, Path(tempfile.mkdtemp(dir=tmp)))
                 print(shrink(tmp / name, args.out / name))
         for artifact, name in (("reconstructions/reconstructions.html", None), ("plots/metric_vs_value.png", "metric_vs_value.png"),
                                ("reconstructions/reconstructions.png", "reconstructions.png")):

@@ -92,11 +92,11 @@ def _settings(plan: SweepPlan) -> list[str]:
 
 def _ui_hint(uri: str, path: str) -> str:
     """Where to see ``path`` (``#/experiments/…``) of the MLflow UI: its address, or how to start it."""
-    from sweeps.execute.tracking import ui_command
+    from sweeps.execute.tracking import ui_command, ui_link
 
     if uri.startswith(("http://", "https://")):
-        return f"open {uri.rstrip('/')}/{path}"
-    return f"{ui_command(uri)}\n  (then open http://127.0.0.1:5000/{path})"
+        return f"open {uri.rstrip('/')}/{ui_link(path)}"
+    return f"{ui_command(uri)}\n  (then open http://127.0.0.1:5000/{ui_link(path)})"
 
 
 def _fail(message: str) -> int:
@@ -247,7 +247,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     import ray
 
     from sweeps.compare.table import build_table
-    from sweeps.execute.tracking import baselines_by_eval_set, cell_means
+    from sweeps.execute.tracking import baselines_by_eval_set
     from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
     from sweeps.execute.tracking import SweepRun, resolve_tracking_uri
     from sweeps.execute.trial import run_sweep
@@ -351,7 +351,7 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                             compare_to=plan.spec.compare_to, settings=_settings(plan), settled=settled)
         md, csv = table.write(staging)
         sweep_run.log_artifacts([md, csv])
-        sweep_run.log_results(cell_means(table), baselines_by_eval_set(outcomes),
+        sweep_run.log_results(baselines_by_eval_set(outcomes),
                               describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table, plan_card(plan).lines()))
         view = publish(uri, sweep_run.run_id, staging / "plots")
         if is_uri(sweep_dir):

@@ -98,7 +98,7 @@ def grid_store(tmp_path_factory):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     sweep, plan = _start(tmp_path, uri, GRID)
     labels = [c.label for c in plan.cells]
-    base = {"baseline/sphere/cd": 150.0, "baseline/sphere/f1": 0.2}
+    base = {"baseline/sphere/cd": 150.0, "baseline/sphere/f1": 0.2, "baseline/sphere/f1/chair": 0.21}
     _trial(tmp_path, sweep, "t0", labels[0], {"priors.point_size": 0.02},
            {10: {"eval/cd": 90.0, "eval/f1": 0.40, **base, "eval/cd/chair": 91.0, "eval/f1/chair": 0.41},
             20: {"eval/cd": 80.0, "eval/f1": 0.42, **base, "eval/cd/chair": 81.0, "eval/f1/chair": 0.43}},
@@ -112,7 +112,7 @@ def grid_store(tmp_path_factory):
     # The driver's verdict for a trial that raised before it opened its run (_TrialCloser.on_trial_error).
     sweep.close_trial("t2", labels[2], "FAILED", error="cdm.train.TrainingDiverged: loss became NaN at step 3")
     # The driver's end of the sweep: the baselines once for the evaluation set, on the parent.
-    sweep.log_results({"point_size=0.02": {"f1": 0.42}}, {"e1": base}, "synth: a grid")
+    sweep.log_results({"e1": base}, "synth: a grid")
     sweep.end()
     return uri, sweep
 
@@ -123,11 +123,15 @@ def test_final_metrics_are_the_last_evaluation_under_stable_names(grid_store):
     runs = {r.info.run_name: r for r in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")}
     first = runs["point_size=0.02 · seed 0"]
     assert first.data.metrics["final/cd"] == 80.0 and first.data.metrics["final/f1"] == 0.42
-    assert first.data.metrics["final/cd/chair"] == 81.0 and first.data.metrics["final/f1/chair"] == 0.43
+    assert first.data.params["final/cd/chair"] == "81.0" and first.data.params["final/f1/chair"] == "0.43"
     assert [m.step for m in client.get_metric_history(first.info.run_id, "final/cd")] == [20]
-    # Per category, one value each (final/…): no one-point series of eval/<metric>/<category> beside them.
-    assert sorted(k for k in first.data.metrics if k.count("/") >= 2) == ["final/cd/chair", "final/f1/chair"]
+    # Per category one value each, as params: no chart of one point, no eval/<metric>/<category> series either.
+    assert not [k for k in first.data.metrics if k.count("/") >= 2]
     assert not any(k.startswith("final/") for k in runs["point_size=0.08 · seed 0"].data.metrics)  # failed: no final
+    # The parent: the baselines' overall scores as metrics, per category as params; no metric per cell.
+    parent = client.get_run(sweep.run_id).data
+    assert parent.metrics == {"baseline/sphere/cd": 150.0, "baseline/sphere/f1": 0.2}
+    assert parent.params["baseline/sphere/f1/chair"] == "0.21"
 
 
 def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, tmp_path, capsys):
@@ -147,7 +151,8 @@ def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, t
     md_row = next(line for line in (out / "results.md").read_text().splitlines() if line.startswith("| point_size=0.04"))
     assert "-20.00 [-20.00, -20.00]" in md_row
     # The baseline comes from the parent run (logged once there, not on the children).
-    assert "baseline: sphere" in text and "best cell point_size=0.04: beats sphere" in text
+    assert "baseline: sphere" in text
+    assert "best cell point_size=0.04 (Δf1 +0.020 [+0.020, +0.020] against the next cell): beats sphere" in " ".join(text.split())
     assert "failed: point_size=0.08 · seed 0 — cdm.train.TrainingDiverged: loss became NaN at step 3" in text
     records = list(csv.DictReader((out / "results.csv").open()))
     assert [r["cell"] for r in records[:3]] == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
@@ -174,29 +179,6 @@ def test_unknown_experiment_exits_2_listing_the_known_ones(grid_store, capsys):
     assert capsys.readouterr().err.strip() == "error: no MLflow experiment named 'point_sise'; known: Default, synth"
 
 
-def test_shared_view_groups_the_sweeps_children_by_cell(grid_store):
-    uri, sweep = grid_store
-    record = finished.open_sweep(uri, "synth")
-    path = report.share_view(record)
-    assert path == f"#/experiments/{sweep.experiment_id}/runs?viewStateShareKey=sweep-{sweep.run_id}"
-    state = json.loads(MlflowClient(uri).get_experiment(sweep.experiment_id).tags[f"mlflow.sharedViewState.sweep-{sweep.run_id}"])
-    assert state["searchFilter"] == f"tags.mlflow.parentRunId = '{sweep.run_id}'"
-    # By the swept value alone ("0.04"), which fits the name column where "point_size=0.04" was cut.
-    assert state["groupBy"]["groupByKeys"] == [{"mode": "tag", "groupByData": "group"}]
-    # The sweep's metric and its partner, the swept value as a number; rows in its numeric order.
-    assert state["selectedColumns"] == ["metrics.`final/f1`", "metrics.`final/cd`", "metrics.`swept/priors.point_size`", "tags.`seed`"]
-    assert (state["orderByKey"], state["orderByAsc"]) == ("metrics.`swept/priors.point_size`", True)
-    children = MlflowClient(uri).search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")
-    assert sorted(c.data.metrics.get("swept/priors.point_size", -1) for c in children) == [-1, 0.02, 0.04]  # the failed one: no params
-
-
-def test_sort_key_orders_swept_values_as_numbers():
-    values = ["10", "2", "1e-3", "1", "0.5"]
-    assert sorted(values) == ["0.5", "1", "10", "1e-3", "2"]  # MLflow's order for params: text
-    assert sorted(values, key=report.sort_key) == ["1e-3", "0.5", "1", "2", "10"]
-    assert [report.sort_key(v) for v in ("depth", "True", "nan", "3")] == [None, None, None, 3.0]
-
-
 def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_store):
     uri, sweep = grid_store
     record = finished.open_sweep(uri, "synth")
@@ -205,33 +187,34 @@ def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_st
     raw = {t.outcome.cell: report.describe_trial(record, t, table) for t in trials}
     assert max(len(line) for d in raw.values() for line in d.splitlines()) <= report.DESCRIPTION_WIDTH
     text = {cell: " ".join(d.split()) for cell, d in raw.items()}  # Markdown joins the wrapped lines
-    link = f"(#/experiments/{sweep.experiment_id}/runs/{sweep.run_id})"
+    link = f"(#/experiments/{sweep.experiment_id}/runs/{sweep.run_id}?workflowType=machine_learning)"  # MLflow's model training
     assert text["point_size=0.04"] == (
         f"**point_size=0.04**, seed 0, a trial of the sweep [synth — profile smoke]{link}. At its last "
-        "evaluation eval/f1 0.48, eval/cd 60.0. Its cell against the reference cell: Δf1 +0.020 [+0.020, +0.020] "
+        "evaluation eval/f1 (F1@0.01 sq. dist = 0.1 world) 0.48, eval/cd (CD ×1000) 60.0. Its cell against the reference "
+        "cell: Δf1 +0.020 [+0.020, +0.020] "
         "(95% paired interval), better. Baselines it beats on eval/f1: sphere.")
     assert "It failed: cdm.train.TrainingDiverged: loss became NaN at step 3." in text["point_size=0.08"]
     assert "Its cell is the reference cell the others are paired with." in text["point_size=0.02"]
 
 
-def test_training_curves_split_the_loss_and_draw_no_single_evaluation_panel(tmp_path):
+def test_training_curves_split_the_loss_and_draw_the_evaluations(tmp_path):
     from PIL import Image
 
     from sweeps.compare.plots import training_curves
 
     loss = {"train/loss": [(5, 3.0), (10, 2.0)], "train/loss_diffusion": [(5, 1.0), (10, 0.5)]}
+    none = training_curves({"a": loss}, {"a": "a"}, "eval/f1", "t", tmp_path / "none.png")
     once = training_curves({"a": loss | {"eval/f1": [(10, 0.4)]}}, {"a": "a"}, "eval/f1", "t", tmp_path / "once.png")
-    twice = training_curves({"a": loss | {"eval/f1": [(5, 0.3), (10, 0.4)]}}, {"a": "a"}, "eval/f1", "t", tmp_path / "twice.png")
-    # Diffusion, λ × prior and total side by side; the evaluation panel only for two evaluations.
-    (w1, h1), (w2, h2) = Image.open(once).size, Image.open(twice).size
-    assert 2.5 < w1 / h1 < 3.5 and 3.4 < w2 / h2 < 4.6
+    # Diffusion, λ × prior and total side by side; the evaluations in a fourth panel, even a single one.
+    (w0, h0), (w1, h1) = Image.open(none).size, Image.open(once).size
+    assert 2.5 < w0 / h0 < 3.5 and 3.4 < w1 / h1 < 4.8
 
 
 def test_baselines_once_on_the_parent_and_no_per_trial_paths_in_params(grid_store):
     uri, sweep = grid_store
     client = MlflowClient(uri)
     parent = client.get_run(sweep.run_id)
-    assert parent.data.metrics["baseline/sphere/f1"] == 0.2 and parent.data.metrics["point_size 0.02/f1"] == 0.42
+    assert parent.data.metrics["baseline/sphere/f1"] == 0.2 and not [k for k in parent.data.metrics if "point_size" in k]
     assert parent.data.tags["mlflow.note.content"] == "synth: a grid"
     for child in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'"):
         assert not [k for k in child.data.metrics if k.startswith("baseline/")]
@@ -246,7 +229,8 @@ def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_stor
     card = finished.protocol_card_lines(record)
     text = report.describe_sweep(record.spec, "smoke", "tiny", table, card)
     blocks = text.split("\n\n")
-    assert blocks[0] == "**synth**, profile **smoke**, by eval/f1 (higher is better): best cell point_size=0.04: beats sphere."
+    assert blocks[0] == ("**synth**, profile **smoke**, by eval/f1 (higher is better): best cell point_size=0.04 "
+                         "(Δf1 +0.020 [+0.020, +0.020] against the next cell): beats sphere.")
     # The narrow table: cell, metric, partner, Δ with its interval, verdict; no paper or per-category column.
     assert blocks[1].splitlines()[0] == "| cell | eval/f1 | eval/cd | Δf1 vs point_size=0.02 [95% CI] | verdict |"
     assert "| point_size=0.04 ★ | 0.480 | 60.00 | +0.020 [+0.020, +0.020] | better |" in blocks[1]
@@ -335,6 +319,16 @@ def test_panel_views_match_where_the_clouds_match_and_differ_where_they_differ(t
     for k in range(3):
         assert _overlap(moved[k], moved[3 + k]) < 0.4
         assert _overlap(moved[3 + k], same[3 + k]) > 0.95  # the GT half does not depend on the prediction
+    # The reconstructions grid takes the input image back from the panel: the object's own pixels, resized.
+    from PIL import Image
+
+    from sweeps.compare.gallery import panel_input
+
+    shown = panel_input(tmp_path / "same.png")
+    image = (batch.image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    assert shown is not None and shown.shape[0] > 4 * image.shape[0]
+    back = np.asarray(Image.fromarray(shown).resize(image.shape[1::-1], Image.NEAREST)).astype(int)
+    assert np.abs(back - image).mean() < 20
 
 
 def test_metric_vs_value_log_axis_baseline_lines_and_resolution(tmp_path):
@@ -388,7 +382,7 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
                        tiny_config(tmp_path))
         run.on_eval(20, {"eval/f1": 0.4, "eval/cd": 50.0}, files)
         sweep.close_trial(f"t{i}", label, "FINISHED")
-    sweep.log_results({}, {"e1": base}, "grid")
+    sweep.log_results({"e1": base}, "grid")
     sweep.end()
     record = finished.open_sweep(uri, "synth")
     png, page = report.reconstructions(record, finished.trial_records(record, objects=False), tmp_path / "out")

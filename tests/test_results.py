@@ -8,7 +8,7 @@ import statistics
 import pytest
 import torch
 
-from sweeps.compare.rules import settings_note
+from sweeps.compare.rules import metric_label, settings_note
 from sweeps.compare.table import TrialOutcome, build_table
 
 
@@ -139,7 +139,8 @@ def test_terminal_table_fits_120_columns_at_the_main_jobs_size_and_says_where_th
     assert max(len(line) for line in table.markdown().splitlines()) > 200  # results.md keeps every column
     assert "eval/f1/chair" not in text and "eval/f1/chair" in table.markdown() and "eval/f1/<category>" in text
     assert "not shown here, in results.md and results.csv: " in text
-    assert "best cell point_size=0.04: beats sphere; below Gaussian, category mean, retrieval" in text
+    assert ("best cell point_size=0.04 (Δf1 +0.050 [+0.050, +0.050] against the next cell): beats sphere; below Gaussian, "
+            "category mean, retrieval") in " ".join(text.split())
     assert "cells point_size=0.0075, point_size=0.01, point_size=0.02, point_size=0.08: beat sphere; below Gaussian" in text
     # Footnotes only when they apply: one seed (no ±), no per-category paper numbers.
     assert "±" not in text and "ours (paper)" not in text
@@ -192,7 +193,8 @@ def test_the_verdict_weighs_the_partner_metric():
     text = table.text()
     assert "no clear difference" not in text and "level with" not in text
     # Against the Gaussian every cell scores better F1 and worse CD: that is what the sentence says.
-    assert "best cell trade: beats sphere; better on f1, worse on cd than Gaussian" in table.summary
+    assert ("best cell trade (Δf1 +0.050 [+0.043, +0.057] against the next cell): beats sphere; better on f1, worse on cd "
+            "than Gaussian") in table.summary
     assert "against ref: trade better on f1, worse on cd; cd only worse on cd" in table.summary
     assert [r["beats baselines"] for r in table.records[:3]] == ["sphere"] * 3
     assert "verdict and beats baselines by eval/f1 (max) and eval/cd (min)" in text
@@ -207,7 +209,19 @@ def test_the_star_needs_a_difference_the_table_prints():
     assert "no ★: b, a tied for best by eval/f1 (max) at the printed precision" in table.notes
     assert table.summary[0] == "no best cell: b, a tie at eval/f1 0.468"
     apart = build_table(close[:1] + [_trial("b", 0, eval__f1=0.469, eval__cd=51.0)], "eval/f1", "max", "t")
-    assert apart.best == "b" and apart.rows[1][0] == "b ★" and apart.notes[-1] == "★ best cell by eval/f1 (max)"
+    assert apart.best == "b" and apart.rows[1][0] == "b ★" and apart.notes[-1].startswith("★ highest mean eval/f1 (max), apart")
+    # Without per-object scores nothing tells the leader apart from the next cell: no "best".
+    assert apart.summary[0] == "no cell is resolvably best by eval/f1: the leader b (unpaired with the next cell): eval/f1 0.469"
+
+
+def test_best_only_where_the_leaders_interval_against_the_next_cell_excludes_0():
+    # `close` leads `ref` by 0.002 in F1 with a wobble of ±0.01 per object: starred, but not resolvably best.
+    close = [_scored("ref", REF_F1, REF_CD), _scored("close", [f + 0.002 + w / 100 for f, w in zip(REF_F1, WOBBLE)], REF_CD)]
+    table = build_table(close, "eval/f1", "max", "t")
+    assert table.best == "close" and table.rows[1][0] == "close ★"
+    assert table.summary[0].startswith("no cell is resolvably best by eval/f1: the leader close (Δf1 +0.002 [")
+    assert table.summary[0].endswith("against the next cell): beats sphere; better on f1, worse on cd than Gaussian")
+    assert not any(s.startswith("best cell") for s in table.summary)
 
 
 def test_the_notes_say_what_the_intervals_cover():
@@ -244,3 +258,14 @@ def test_settled_cells_show_their_seeds_interval_and_verdict(tmp_path):
     assert float(trade["eval/f1 delta low"]) == 0.02
     assert "against ref: trade better, settled after 2 seeds (worse on cd, objects only); cd only open at 5 seeds " \
            "(worse on cd, objects only)" in table.summary
+
+
+def test_every_f1_label_names_its_threshold_in_world_units():
+    table = build_table(_main_job_outcomes(), "eval/f1", "max", "point_size — profile local")
+    for text in (table.text(), table.markdown()):
+        assert "F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units" in " ".join(text.split())
+    assert metric_label("eval/f1") == "eval/f1 (F1@0.01 sq. dist = 0.1 world)"
+    assert metric_label("eval/f1/chair").endswith("(F1@0.01 sq. dist = 0.1 world)") and metric_label("eval/cd") == "eval/cd (CD ×1000)"
+    assert metric_label("train/loss") == "train/loss"
+    no_f1 = build_table([_trial("a", 0, train__loss=0.5)], "train/loss", "min", "t")  # no F1 shown: no footnote
+    assert not any(n.startswith("F1 is") for n in no_f1.notes)

@@ -15,6 +15,7 @@ from sweeps.execute.tracking import (
     learning_curve_png,
     resolve_tracking_uri,
     ui_command,
+    ui_link,
 )
 
 
@@ -83,7 +84,7 @@ def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
                              "train/lr": 1.234567e-4})
     trial.on_eval(10, {"eval/cd": 60.942297, "eval/f1": 0.42000000000000004}, [table, cloud])
     sweep.close_trial("t0", "a · seed 0", "FINISHED")
-    sweep.log_results({"a": {"f1": 0.123456}}, {"e1": {"baseline/sphere/cd": 150.0049}}, "a")
+    sweep.log_results({"e1": {"baseline/sphere/cd": 150.0049}}, "a")
     client = MlflowClient(uri)
     final = client.get_run(trial.run_id).data.metrics
     assert (final["final/cd"], final["final/f1"]) == (60.94, 0.42) and final["eval/cd"] == 60.94
@@ -91,8 +92,25 @@ def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
     assert final["system/steps_per_s"] == 2.0 and "train/steps_per_s" not in final
     assert final["train/lr"] == 1.235e-4  # 4 significant digits: a small learning rate keeps its value
     parent = client.get_run(sweep.run_id).data.metrics
-    assert (parent["a/f1"], parent["baseline/sphere/cd"]) == (0.123, 150.0)
+    assert parent == {"baseline/sphere/cd": 150.0}
     assert sorted(last_eval_files(client, trial.run_id)) == ["eval/step_0000010/clouds/o1.ply", "eval/step_0000010/objects.csv"]
     assert "curves" not in {a.path for a in client.list_artifacts(trial.run_id)}  # drawn at the last evaluation only
     curve = learning_curve_png(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
     assert curve.stat().st_size > 2000
+
+
+def test_the_experiment_is_a_model_training_one_and_every_link_opens_that_workflow(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    client = MlflowClient(uri)
+    old = client.create_experiment("older")  # made before the tag existed, e.g. by an earlier sweep
+    client.create_experiment("other")
+    sweep = SweepRun.start(uri, "older", "older · smoke", tags={}, params={})
+    assert sweep.experiment_id == old and client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+    client.delete_experiment_tag(old, "mlflow.experimentKind")
+    SweepRun.reopen(uri, sweep.run_id)  # --resume tags it again
+    assert client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+    new = SweepRun.start(uri, "new", "new · smoke", tags={}, params={}).experiment_id
+    assert client.get_experiment(new).tags["mlflow.experimentKind"] == "custom_model_development"
+    assert "mlflow.experimentKind" not in client.get_experiment_by_name("other").tags  # only the sweep's own
+    assert ui_link("#/experiments/1/runs/abc") == "#/experiments/1/runs/abc?workflowType=machine_learning"
+    assert ui_link("#/experiments/1/runs?viewStateShareKey=k") == "#/experiments/1/runs?viewStateShareKey=k&workflowType=machine_learning"

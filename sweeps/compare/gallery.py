@@ -18,7 +18,7 @@ import numpy as np
 
 from sweeps.storage import write_file
 
-__all__ = ["Gallery", "Scores", "grid_png", "viewer_html"]
+__all__ = ["Gallery", "Scores", "grid_png", "panel_input", "viewer_html"]
 
 Gallery = Mapping[str, Mapping[str, np.ndarray]]
 """Object id → column label (a cell, ``ground truth``, ``baseline: …``) → its ``(N, 3)`` cloud."""
@@ -40,18 +40,41 @@ def _view(points: np.ndarray, elevation: float = ELEVATION, azimuth: float = AZI
     return p[:, :2], p[:, 2]
 
 
-def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path) -> Path:
-    """One row per object, one column per label in ``columns`` (missing clouds: an empty square)."""
-    from sweeps.compare.plots import _pyplot, save_figure
+def panel_input(png: Path) -> np.ndarray | None:
+    """The input image of an evaluation panel (``cdm.evaluate.save_panel``: its top-left square, framed by
+    the axes' black border), as ``(H, W, 3)`` uint8; None when no such frame is found."""
+    from PIL import Image
+
+    rgb = np.asarray(Image.open(png).convert("RGB"))
+    h, w = rgb.shape[:2]
+    dark = rgb[: int(h * 0.6), : w // 4].mean(axis=2) < 80  # the input square: top row, first of four columns
+    rows = np.flatnonzero(dark.mean(axis=1) > 0.5)
+    if rows.size < 2:
+        return None
+    cols = np.flatnonzero(dark[rows[0]:rows[-1] + 1].mean(axis=0) > 0.9)
+    if cols.size < 2 or rows[-1] - rows[0] < 10 or cols[-1] - cols[0] < 10:
+        return None
+    return rgb[rows[0] + 1:rows[-1], cols[0] + 1:cols[-1]]
+
+
+def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, scores: Scores | None = None,
+             inputs: Mapping[str, np.ndarray] | None = None) -> Path:
+    """One row per object, one column per label in ``columns`` (missing clouds: an empty square), each
+    cloud titled with its ``scores`` (CD ×1000, F1@0.01); with ``inputs`` (object id → its input image),
+    the image the model saw first."""
+    from sweeps.compare.plots import FONT, _pyplot, save_figure
 
     plt = _pyplot()
     rows = list(gallery)
-    fig, axes = plt.subplots(len(rows), len(columns), figsize=(1.9 * len(columns), 1.9 * len(rows) + 0.4), squeeze=False)
+    shown = (["input"] if inputs else []) + list(columns)
+    fig, axes = plt.subplots(len(rows), len(shown), figsize=(2.2 * len(shown), 2.3 * len(rows) + 0.6), squeeze=False)
     for r, oid in enumerate(rows):
-        for c, label in enumerate(columns):
+        for c, label in enumerate(shown):
             ax = axes[r][c]
             cloud = gallery[oid].get(label)
-            if cloud is not None:
+            if label == "input" and inputs and oid in inputs:
+                ax.imshow(inputs[oid], extent=(-1, 1, -1, 1))
+            elif cloud is not None:
                 xy, depth = _view(cloud)
                 order = np.argsort(depth)  # far points first, near ones drawn over them
                 colour = "tab:green" if label == "ground truth" else "0.4" if label.startswith("baseline") else "tab:blue"
@@ -61,11 +84,15 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path) -
             ax.set_aspect("equal")
             ax.set_xticks([])
             ax.set_yticks([])
+            score = (scores or {}).get(oid, {}).get(label)
+            if score is not None:
+                ax.set_xlabel(f"CD {score[0]:.1f} · F1 {score[1]:.3f}", fontsize=FONT)
             if r == 0:
-                ax.set_title(label, fontsize=7)
+                ax.set_title(label, fontsize=FONT)
             if c == 0:
-                ax.set_ylabel(oid, fontsize=6)
-    fig.suptitle(title, fontsize=9)
+                ax.set_ylabel(oid, fontsize=FONT - 1)
+    fig.suptitle(f"{title}\nCD ×1000 (lower is better) · F1@0.01 on the squared distance, 0.1 world units (higher is better)",
+                 fontsize=FONT + 1)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     save_figure(fig, path)

@@ -17,14 +17,17 @@ from typing import Any, Literal
 
 import numpy as np
 
-from sweeps.compare.rules import partner
+from sweeps.compare.rules import metric_label, partner
 from sweeps.storage import write_file
 
 __all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "save_figure", "training_curves",
            "view_cloud"]
 
 DPI = 150
-"""Resolution of every saved figure: 7-point labels stay legible when the PNG is shown at full size."""
+"""Resolution of every saved figure."""
+
+FONT = 9
+"""Smallest text in a figure (points): legible when a paper prints the figure a column wide."""
 
 
 @dataclass(frozen=True)
@@ -81,58 +84,71 @@ def _baseline_label(name: str) -> str:
     return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
 
 
-def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: Path, paper_table: str = "paper") -> Path:
-    """``metric`` (and its CD/F1 partner) against the swept value: mean ± std over seeds per cell, one
-    line for all objects and one per category; the baselines (``baseline/<name>/…`` in the points'
-    metrics) as dashed horizontal lines; the paper's numbers as stars of the same colour, each labelled
-    with its ``paper_table`` row."""
+def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: Path, paper_table: str = "paper",
+                    intervals: Mapping[str, tuple[float, float]] | None = None) -> Path:
+    """``metric`` (and its CD/F1 partner) against the swept value: mean per cell, one line for all objects
+    and one per category; bars: the cell's 95 % paired interval against the reference cell
+    (``intervals``: cell → Δ interval ``(low, high)`` of ``metric``, drawn around the cell's mean by its
+    distance to Δ's bounds), else ± std over seeds; the baselines (``baseline/<name>/…`` in the points'
+    metrics) as dashed horizontal lines; the paper's numbers as stars, each labelled with its
+    ``paper_table`` row. Legends sit below the axes, outside the data; a log axis says so."""
     plt = _pyplot()
     shown = [m for m in (metric, partner(metric)) if m is not None]
     cells, x, xlabel = _axis(points)
     categories = sorted({k.rsplit("/", 1)[1] for p in points for k in p.metrics if k.startswith(metric + "/")})
     baselines = sorted({k.split("/")[1] for p in points for k in p.metrics if k.startswith("baseline/")})
-    fig, axes = plt.subplots(1, len(shown), figsize=(6.5 * len(shown), 4.5), squeeze=False)
+    fig, axes = plt.subplots(1, len(shown), figsize=(6.5 * len(shown), 5.5), squeeze=False)
     for ax, m in zip(axes[0], shown):
         for i, series in enumerate(["all", *categories]):
             key = m if series == "all" else f"{m}/{series}"
             colour = f"C{i}"
-            xs, means, stds = [], [], []
+            xs, means, bars = [], [], []
             for c in cells:
                 values = [p.metrics[key] for p in points if p.cell == c and key in p.metrics and math.isfinite(p.metrics[key])]
                 if values:
+                    mean = statistics.fmean(values)
                     xs.append(x[c])
-                    means.append(statistics.fmean(values))
-                    stds.append(statistics.stdev(values) if len(values) > 1 else 0.0)
+                    means.append(mean)
+                    spread = statistics.stdev(values) if len(values) > 1 else 0.0
+                    # The paired interval is Δ's; around the mean it keeps its width and its skew.
+                    low, high = (intervals or {}).get(c, (None, None)) if key == metric else (None, None)
+                    delta = (low + high) / 2 if low is not None else None
+                    bars.append((delta - low, high - delta) if delta is not None else (spread, spread))
             if xs:
-                ax.errorbar(xs, means, yerr=stds, fmt="o-", color=colour, capsize=3, lw=2 if series == "all" else 1,
-                            label=f"ours: {series}")
+                label = f"ours: {'all objects' if series == 'all' else series}"
+                if series == "all" and m == metric and intervals:
+                    label += " (bars: 95% paired interval vs the reference cell)"
+                ax.errorbar(xs, means, yerr=np.array(bars).T, fmt="o-", color=colour, capsize=4, lw=2 if series == "all" else 1,
+                            label=label)
             paper = {p.cell: (p.paper[key], p.paper_label) for p in points if key in p.paper}
             if paper:
                 ax.scatter([x[c] for c in paper], [v for v, _ in paper.values()], marker="*", s=160, color=colour,
-                           edgecolor="black", zorder=3, label=f"{paper_table}: {'all objects' if series == 'all' else series}")
+                           edgecolor="black", zorder=3, label=f"{paper_table} (the paper's data set, not ours)")
                 for c, (value, row) in paper.items():
-                    ax.annotate(row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=6, color=colour)
+                    ax.annotate(row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=FONT, color=colour)
         short = m.removeprefix("eval/")
         for i, b in enumerate(baselines):
             values = [p.metrics[f"baseline/{b}/{short}"] for p in points if f"baseline/{b}/{short}" in p.metrics]
             if values:
                 ax.axhline(statistics.fmean(values), color="0.45", lw=1, ls=(0, (4, 2 + 2 * i)), zorder=1)
                 # Labels staggered along the line: baselines often score alike (category mean, retrieval).
-                ax.annotate(f"baseline: {_baseline_label(b)}", (1.0 - 0.24 * i, statistics.fmean(values)),
+                ax.annotate(f"baseline: {_baseline_label(b)}", (1.0 - 0.3 * i, statistics.fmean(values)),
                             xycoords=("axes fraction", "data"),
-                            xytext=(-2, 2), textcoords="offset points", ha="right", va="bottom", fontsize=6, color="0.35")
+                            xytext=(-2, 2), textcoords="offset points", ha="right", va="bottom", fontsize=FONT, color="0.35")
         if xlabel is None:
-            ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=8)
+            ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=FONT)
         else:
-            ax.set_xlabel(xlabel)
+            ax.set_xlabel(xlabel, fontsize=FONT + 1)
             if log_spaced(list(x.values())):
                 ax.set_xscale("log")
-                ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
+                ax.set_xlabel(f"{xlabel} (log scale)", fontsize=FONT + 1)
                 ax.minorticks_off()
-        ax.set_ylabel(m + (" (×1000, lower is better)" if m.endswith("cd") else " (higher is better)"))
+            ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
+        ax.set_ylabel(metric_label(m) + (", lower is better" if m.endswith("cd") else ", higher is better"), fontsize=FONT + 1)
+        ax.tick_params(labelsize=FONT)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.suptitle(title, fontsize=10)
+        ax.legend(fontsize=FONT, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
+    fig.suptitle(title, fontsize=FONT + 2)
     fig.tight_layout()
     return _save(fig, path)
 
@@ -149,8 +165,8 @@ def training_curves(
     """The loss against the training step, its terms apart: the diffusion term, the λ × 3D-prior term
     (``train/loss − train/loss_diffusion``, Eq. 6) and their sum, one line per trial, one colour per cell
     (its seeds share it). The prior term grows with λ and the point size, so only the diffusion term
-    compares learning across such cells. ``metric`` gets a panel only when some trial evaluated twice:
-    a single evaluation per trial is a number (the results table, ``metric_vs_value.png``), not a curve.
+    compares learning across such cells. ``metric`` gets a panel of its evaluations (markers, joined when
+    a trial evaluated more than once).
 
     Args:
         curves: trial label → metric name (``train/loss``, ``train/loss_diffusion``, ``metric``) →
@@ -164,7 +180,7 @@ def training_curves(
         out = {"diffusion term": [(s, diffusion[s]) for s, _ in total if s in diffusion],
                "λ × 3D prior term": [(s, v - diffusion[s]) for s, v in total if s in diffusion],
                "total (Eq. 6)": total}
-        return out | ({metric: sorted(history[metric])} if len(history.get(metric, ())) >= 2 else {})
+        return out | ({metric: sorted(history[metric])} if history.get(metric) else {})
 
     panels = {label: series(history) for label, history in curves.items()}
     keys = [k for k in ("diffusion term", "λ × 3D prior term", "total (Eq. 6)", metric) if any(p.get(k) for p in panels.values())]
@@ -179,12 +195,15 @@ def training_curves(
                         label=None if cell in labelled else cell)
         labelled.add(cell)
     for ax, key in zip(axes[0], keys):
-        ax.set_xlabel("training step")
-        ax.set_title(key, fontsize=9)
+        ax.set_xlabel("training step", fontsize=FONT)
+        ax.set_ylabel(metric_label(key) + " at evaluations" if key == metric else "loss (Eq. 6)", fontsize=FONT)
+        ax.set_title(key, fontsize=FONT + 1)
+        ax.tick_params(labelsize=FONT)
         ax.grid(alpha=0.3)
     if 1 < len(colours) <= 12:  # one cell needs no legend; beyond 12 a legend hides the curves
-        axes[0][0].legend(fontsize=7)
-    fig.suptitle(title, fontsize=10)
+        fig.legend(*axes[0][0].get_legend_handles_labels(), fontsize=FONT, loc="upper center", ncol=min(len(colours), 6),
+                   bbox_to_anchor=(0.5, 0.0), frameon=False)
+    fig.suptitle(title, fontsize=FONT + 2)
     fig.tight_layout()
     return _save(fig, path)
 

@@ -14,7 +14,7 @@ from typing import Any, Literal
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import lambda_source
 
-__all__ = ["PROTOCOL_NOTE", "Stat", "number_text", "object_column", "partner", "partner_mode", "rounded", "settings_note", "settings_notes",
+__all__ = ["F1_UNIT", "PROTOCOL_NOTE", "Stat", "metric_label", "number_text", "object_column", "partner", "partner_mode", "rounded", "settings_note", "settings_notes",
            "weighed"]
 
 
@@ -46,6 +46,23 @@ def rounded(value: float) -> float:
     """``value`` at the precision the tables print it (3 decimals below 10, else 2): what MLflow
     shows a reader, so the UI's columns and the tables agree digit for digit."""
     return float(number_text(value)) if math.isfinite(value) else value
+
+
+F1_UNIT = ("F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units of the "
+           "other cloud (BDM's definition, cdm/metrics.py); CD is ×1000, in world units²")
+"""The unit every F1 in a table, description or plot is read in: a loose threshold (a blob of the right
+size scores high), so the baselines beside it matter."""
+
+
+def metric_label(metric: str) -> str:
+    """``metric`` with its unit, for axes and headings: ``eval/f1`` → ``eval/f1 (F1@0.01 sq. dist = 0.1 world)``,
+    ``eval/cd/chair`` → ``eval/cd/chair (CD ×1000)``; any other name as is."""
+    parts = metric.split("/")
+    if len(parts) >= 2 and parts[1] == "f1":
+        return f"{metric} (F1@0.01 sq. dist = 0.1 world)"
+    if len(parts) >= 2 and parts[1] == "cd":
+        return f"{metric} (CD ×1000)"
+    return metric
 
 
 def partner(metric: str) -> str | None:

@@ -26,14 +26,12 @@ from typing import Literal
 
 from cdm.evaluate import BASELINES
 from sweeps.compare.paired import PairedDifference, UnpairedError, compare, per_object_means
-from sweeps.compare.rules import Stat, number_text, object_column, partner, partner_mode, weighed
+from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode, weighed
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
 
-__all__ = [
-    "FINISHED", "ResultsTable", "TrialOutcome", "build_table", "sweep_order", "unstarted",
-]
+__all__ = ["FINISHED", "ResultsTable", "TrialOutcome", "build_table", "sweep_order", "unstarted"]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
 FINISHED: tuple[Status, ...] = ("ok", "stopped")
@@ -301,6 +299,7 @@ def build_table(
     leaders = [name for _, name in ranked if number_text(stats[name].mean) == number_text(stats[ranked[0][1]].mean)]  # type: ignore[union-attr]
     best = leaders[0] if len(leaders) == 1 else None
     mark = {best: " ★"} if best else {name: " (tied)" for name in leaders}
+    lead = _lead(cells, best, ranked[1][1], metric) if pairing and best and len(ranked) > 1 else None
 
     rows: list[list[str]] = []
     records: list[dict[str, object]] = []
@@ -349,13 +348,15 @@ def build_table(
         records.append(record)
 
     notes = list(settings)
+    notes += [F1_UNIT] if any(m.split("/")[1:2] == ["f1"] for m in shown) else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
     if any(f"{metric}/{c}" in o.paper for o in outcomes for c in categories):
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
     seeds = max((len(_finished(group)) for group in cells.values()), default=0)
     if ranked:
-        star = (f"★ best cell by {metric} ({mode})" if best else
+        star = (f"★ highest mean {metric} ({mode}), apart from the next at the printed precision; \"best\" only where "
+                f"its paired interval against the next cell excludes 0" if best else
                 f"no ★: {', '.join(leaders)} tied for best by {metric} ({mode}) at the printed precision")
         notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
@@ -373,8 +374,14 @@ def build_table(
     narrowing += ["paper setting"] + ([f"paper {second}", second] if second else [])
     answer = ("cell", *["seeds"] * seeds_column, *shown,
               *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
-    return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, leaders, metric, pairing),
+    return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, leaders, metric, pairing, lead, mode),
                         frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]), tuple(narrowing), answer)
+
+
+def _lead(cells: dict[str, list[TrialOutcome]], best: str, runner_up: str, metric: str) -> PairedDifference | None:
+    """The leader ``best`` against the next cell ``runner_up`` on ``metric``, paired per object; None if unpaired."""
+    ours, theirs = (_object_scores(cells[n], *object_column(metric)) for n in (best, runner_up))  # type: ignore[misc]
+    return compare(ours, theirs, (best, runner_up)) if ours and theirs and set(ours) == set(theirs) else None
 
 
 def _baseline_name(name: str) -> str:
@@ -382,10 +389,10 @@ def _baseline_name(name: str) -> str:
 
 
 def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, Stat | None], leaders: list[str], metric: str,
-             pairing: _Pairing | None) -> list[str]:
-    """One sentence per class of cells — the best cell (or the tied leaders), then cells that stand the
-    same against the baselines (weighed verdicts), then every cell's verdict against the reference
-    cell — and one for the cells with no finished trial."""
+             pairing: _Pairing | None, lead: PairedDifference | None = None, mode: Literal["min", "max"] = "max") -> list[str]:
+    """One sentence per class of cells — the best cell (only when ``lead``, its paired Δ to the next, excludes 0;
+    else the leader, said not resolvable), then cells that stand the same against the baselines (weighed
+    verdicts), then every cell's verdict against the reference cell — and one for those with no result."""
     if not leaders:
         return ["no cell finished a trial"] if cells else []
 
@@ -402,8 +409,11 @@ def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, Stat | None]
                          for v in ordered)
 
     best = leaders[0] if len(leaders) == 1 else None
-    if best:
-        out = [f"best cell {best}: {standing(best, False)}"]
+    lead_text = f"Δ{metric.removeprefix('eval/')} {lead.text()} against the next cell" if lead else "unpaired with the next cell"
+    if best and lead is not None and lead.verdict(mode) == "better":
+        out = [f"best cell {best} ({lead_text}): {standing(best, False)}"]
+    elif best:
+        out = [f"no cell is resolvably best by {metric}: the leader {best} ({lead_text}): {standing(best, False)}"]
     else:
         out = [f"no best cell: {', '.join(leaders)} tie at {metric} {number_text(stats[leaders[0]].mean)}"]  # type: ignore[union-attr]
     if pairing:

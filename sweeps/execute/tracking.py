@@ -15,7 +15,6 @@ from __future__ import annotations
 import csv
 import math
 import os
-import re
 import tempfile
 import time
 from collections.abc import Iterable, Mapping, Sequence
@@ -29,11 +28,11 @@ from mlflow.entities import Metric, Param, RunTag
 from cdm.config import Config
 from cdm.train import Callback
 from sweeps.compare.rules import rounded
-from sweeps.compare.table import ResultsTable, TrialOutcome
+from sweeps.compare.table import TrialOutcome
 from sweeps.store_retry import PatientClient, wait_when_busy
 
-__all__ = ["EVAL_FOLDERS", "SYSTEM_METRICS", "SweepRun", "baselines_by_eval_set", "cell_means", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_histories", "metric_key", "parent_baselines",
-           "resolve_tracking_uri", "trial_metrics", "ui_command"]
+__all__ = ["EVAL_FOLDERS", "EXPERIMENT_KIND", "SYSTEM_METRICS", "WORKFLOW", "SweepRun", "baselines_by_eval_set", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_histories", "parent_baselines",
+           "resolve_tracking_uri", "trial_metrics", "ui_command", "ui_link"]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
 wait_when_busy()  # every process that logs waits for a busy SQLite store instead of failing
@@ -62,15 +61,36 @@ def ui_command(uri: str) -> str:
     return f"open {uri} in a browser"
 
 
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+"""The experiment tag MLflow 3 keeps an experiment's kind in (its UI's kind selector writes it: "Machine
+learning", not "GenAI apps & agents"). MLflow 3.17's own UI chooses its workflow per browser instead
+(``localStorage`` ``mlflow.workflowType``, default GenAI; the URL's ``workflowType`` wins), so every link
+the runner prints also carries :data:`WORKFLOW`."""
+
+WORKFLOW = "workflowType=machine_learning"
+"""The URL parameter that opens MLflow 3's model-training workflow (Runs, Models) whatever the browser
+chose before: no Sessions, Judges, Prompts or AI Gateway, the runs under "Runs", not "Evaluation runs"."""
+
+
+def ui_link(path: str) -> str:
+    """``path`` of the MLflow UI (``#/experiments/…``) opening in the model-training workflow (:data:`WORKFLOW`)."""
+    return path + ("&" if "?" in path else "?") + WORKFLOW
+
+
 def _experiment(client: MlflowClient, name: str, uri: str) -> str:
+    """The experiment ``name``'s id, created if needed, tagged a model-training one (:data:`EXPERIMENT_KIND`),
+    also when an older sweep created it."""
     found = client.get_experiment_by_name(name)
     if found is not None:
-        return found.experiment_id
-    location = None
-    if uri.startswith("sqlite:///"):
-        # Keep artifacts beside the database rather than in whatever directory the driver ran from.
-        location = (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
-    return client.create_experiment(name, artifact_location=location)
+        experiment_id = found.experiment_id
+    else:
+        location = None
+        if uri.startswith("sqlite:///"):
+            # Keep artifacts beside the database rather than in whatever directory the driver ran from.
+            location = (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
+        experiment_id = client.create_experiment(name, artifact_location=location)
+    client.set_experiment_tag(experiment_id, *EXPERIMENT_KIND)
+    return experiment_id
 
 
 def _params(values: dict[str, Any]) -> list[Param]:
@@ -95,17 +115,14 @@ def _shown(key: str, value: float) -> float:
     return float(f"{value:.4g}") if math.isfinite(value) else value
 
 
-def metric_key(name: str) -> str:
-    """A cell name as an MLflow metric name (letters, digits, ``_ - . / : space``): ``point_size=0.04``
-    → ``point_size 0.04``."""
-    return re.sub(r"[^\w.\- :]", " ", name.replace("=", " ")).strip()
-
-
-def parent_baselines(parent_metrics: dict[str, float], eval_set: str | None) -> dict[str, float]:
-    """The ``baseline/…`` metrics the parent run holds for ``eval_set`` (see :meth:`SweepRun.log_results`)."""
+def parent_baselines(parent_metrics: Mapping[str, float], eval_set: str | None,
+                     parent_params: Mapping[str, str] | None = None) -> dict[str, float]:
+    """The ``baseline/…`` scores the parent run holds for ``eval_set`` (see :meth:`SweepRun.log_results`):
+    the overall ones as metrics, the per-category ones as params."""
+    held = {**{k: float(v) for k, v in (parent_params or {}).items() if "baseline/" in k}, **parent_metrics}
     prefix = f"eval_set {eval_set}/"
-    own = {k.removeprefix(prefix): v for k, v in parent_metrics.items() if k.startswith(prefix + "baseline/")}
-    return own or {k: v for k, v in parent_metrics.items() if k.startswith("baseline/")}
+    own = {k.removeprefix(prefix): v for k, v in held.items() if k.startswith(prefix + "baseline/")}
+    return own or {k: v for k, v in held.items() if k.startswith("baseline/")}
 
 
 def find_trial_run(client: MlflowClient, experiment_id: str, parent_run_id: str, trial_id: str) -> str | None:
@@ -133,27 +150,17 @@ def finished_trial_metrics(uri: str, experiment_id: str, parent_run_id: str, tri
     if run.info.status != "FINISHED" or not any(k.startswith("final/") for k in run.data.metrics):
         return None
     step = max((m.step for m in client.get_metric_history(run_id, "eval/cd")), default=0)
-    return {**trial_metrics(run.data.metrics), "step": step}
+    return {**trial_metrics(run.data.metrics, run.data.params), "step": step}
 
 
-def trial_metrics(logged: Mapping[str, float]) -> dict[str, float]:
+def trial_metrics(logged: Mapping[str, float], params: Mapping[str, str] | None = None) -> dict[str, float]:
     """A child run's metrics as its trial reported them: its series' last values, and the per-category
-    scores (``eval/f1/chair``) back from the ``final/…`` names the driver logged them under."""
-    per_category = {"eval/" + k.removeprefix("final/"): v for k, v in logged.items()
+    scores (``eval/f1/chair``) back from the ``final/…`` params the driver logged them as (metrics in
+    sweeps before the params)."""
+    finals = {**logged, **{k: float(v) for k, v in (params or {}).items() if k.startswith("final/")}}
+    per_category = {"eval/" + k.removeprefix("final/"): v for k, v in finals.items()
                     if k.startswith("final/") and _per_category("eval/" + k.removeprefix("final/"))}
     return {**per_category, **{k: v for k, v in logged.items() if not k.startswith("final/")}}
-
-
-def cell_means(table: ResultsTable) -> dict[str, dict[str, float]]:
-    """Cell → metric (``f1``, ``cd``, ``f1/chair``: ``eval/`` dropped) → mean over its finished seeds."""
-    out: dict[str, dict[str, float]] = {}
-    for record in table.records:
-        name = str(record["cell"])
-        if name.startswith("baseline: "):
-            continue
-        out[name] = {k.removesuffix(" mean").removeprefix("eval/"): float(v) for k, v in record.items()
-                     if k.endswith(" mean") and v is not None}
-    return out
 
 
 def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[str, float]]:
@@ -191,6 +198,7 @@ class SweepRun:
         """The parent run of an interrupted sweep, marked running again."""
         client = PatientClient(uri)
         run = client.get_run(run_id)
+        client.set_experiment_tag(run.info.experiment_id, *EXPERIMENT_KIND)  # a sweep begun before the tag
         client.update_run(run_id, status="RUNNING")
         return cls(uri, run.info.experiment_id, run_id)
 
@@ -228,7 +236,8 @@ class SweepRun:
         self.client.set_terminated(run_id, status=status)
 
     def _log_final(self, run_id: str, last: Mapping[str, object]) -> None:
-        """Log the last evaluation's ``eval/cd``, ``eval/f1`` and their per-category scores as ``final/…``.
+        """Log the last evaluation's ``eval/cd``, ``eval/f1`` as ``final/…`` metrics, their per-category
+        scores as ``final/…`` params.
 
         Stable names to sort, search and compare by in the UI (``metrics.`final/f1` > 0.4``), whatever
         step a trial ended at (ASHA stops some early), at the results table's precision (the runs view
@@ -243,32 +252,36 @@ class SweepRun:
         step = max(m.step for m in history)
         now = int(time.time() * 1000)
         scores = {**{k: v for k, v in last.items() if _per_category(k) and isinstance(v, (int, float))}, **latest}
-        final = [Metric("final/" + k.removeprefix("eval/"), rounded(float(v)), now, step) for k, v in scores.items()
-                 if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])]
-        self.client.log_batch(run_id, metrics=final)
+        final = {"final/" + k.removeprefix("eval/"): rounded(float(v)) for k, v in scores.items()
+                 if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])}
+        # Per category one number each, not a chart of one point: a param, where MLflow lists values.
+        self.client.log_batch(run_id, metrics=[Metric(k, v, now, step) for k, v in final.items() if k.count("/") == 1],
+                              params=[Param(k, str(v)) for k, v in final.items() if k.count("/") > 1])
 
     def trial_objects(self, trial_id: str) -> list[dict[str, object]]:
         """Per-object rows (``objects.csv``) of the trial's last logged evaluation; empty if none."""
         run_id = find_trial_run(self.client, self.experiment_id, self.run_id, trial_id)
         return [] if run_id is None else last_objects(self.client, run_id)
 
-    def log_results(self, cells: dict[str, dict[str, float]], baselines: dict[str, dict[str, float]], description: str) -> None:
-        """The sweep's results on the parent run: per cell ``<cell>/<metric>`` (``point_size 0.04/f1``),
-        the baselines once per evaluation set (``baseline/sphere/f1``; ``eval_set <id>/baseline/…``
-        when the cells were scored on several), and ``description`` as the run's description. Values
-        at the results table's precision: the run page lists them as logged.
+    def log_results(self, baselines: dict[str, dict[str, float]], description: str) -> None:
+        """The sweep's results on the parent run: the baselines once per evaluation set (``baseline/sphere/f1``;
+        ``eval_set <id>/baseline/…`` when the cells were scored on several) — the overall scores as
+        metrics, the per-category ones as params (a chart of one bar says nothing) — and ``description``
+        as the run's description. The cells' results are the run's ``results.md`` and its children.
+        Values at the results table's precision: the run page lists them as logged.
 
         Args:
-            cells: cell name → metric (``eval/`` dropped: ``f1``, ``cd/chair``) → mean over its seeds.
             baselines: evaluation-set fingerprint → ``baseline/<name>/<metric>`` → value.
         """
         now = int(time.time() * 1000)
-        metrics = [Metric(f"{metric_key(cell)}/{k}", rounded(v), now, 0) for cell, values in cells.items() for k, v in values.items()]
+        metrics, params = [], []
         for eval_set, values in baselines.items():
             prefix = "" if len(baselines) == 1 else f"eval_set {eval_set}/"
-            metrics += [Metric(prefix + k, rounded(v), now, 0) for k, v in values.items()]
-        for i in range(0, len(metrics), 1000):  # MLflow's limit of metrics per log_batch call
-            self.client.log_batch(self.run_id, metrics=metrics[i:i + 1000])
+            metrics += [Metric(prefix + k, rounded(v), now, 0) for k, v in values.items() if k.count("/") == 2]
+            params += [Param(prefix + k, str(rounded(v))) for k, v in values.items() if k.count("/") > 2]
+        self.client.log_batch(self.run_id, metrics=metrics)
+        for i in range(0, len(params), _BATCH):
+            self.client.log_batch(self.run_id, params=params[i:i + _BATCH])
         self.client.set_tag(self.run_id, "mlflow.note.content", description)
 
     def end(self, status: str = "FINISHED") -> None:

@@ -163,8 +163,8 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         cell = tags.get("cell") or split_label(label)[0]
         values = planned.get("values") or _sampled(run, record.spec.search.space)
         # Baselines live on the parent run, once per evaluation set (older sweeps: on every child).
-        metrics = parent_baselines(record.parent.data.metrics, tags.get("eval_set")) | {
-            k: v for k, v in trial_metrics(run.data.metrics).items() if "/" in k}
+        metrics = parent_baselines(record.parent.data.metrics, tags.get("eval_set"), record.parent.data.params) | {
+            k: v for k, v in trial_metrics(run.data.metrics, run.data.params).items() if "/" in k}
         rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in FINISHED else ()
         outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
                                tags.get("error") if status == "failed" else None, rows)

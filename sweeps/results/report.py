@@ -14,32 +14,29 @@ by :mod:`sweeps.results.finished`; ``notebooks/compare.ipynb`` is built on both 
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import os
 import re
 import statistics
 import sys
 import tempfile
-import time
 import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from mlflow.entities import Metric
 
 from cdm.evaluate import BASELINES
-from sweeps.compare.gallery import grid_png, viewer_html
+from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
-from sweeps.compare.rules import PROTOCOL_NOTE, partner, rounded
+from sweeps.compare.rules import PROTOCOL_NOTE, metric_label, partner, rounded
 from sweeps.compare.table import ResultsTable
-from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri
+from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri, ui_link
 from sweeps.plan.spec import Spec
 from sweeps.plan.search import optuna_distributions
 from sweeps.plan.trials import split_label
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
+from sweeps.results.view import headline_name, row_tags, share_view
 
 __all__ = [
     "DESCRIPTION_WIDTH",
@@ -49,8 +46,6 @@ __all__ = [
     "panels",
     "publish",
     "reconstructions",
-    "share_view",
-    "sort_key",
     "write_plots",
 ]
 
@@ -66,16 +61,19 @@ def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, 
     return out
 
 
-def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path) -> list[Path]:
-    """``metric_vs_value.png``, ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
+def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path, table: ResultsTable | None = None) -> list[Path]:
+    """``metric_vs_value.png`` (with ``table``: each cell's paired interval against the reference),
+    ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
     spec, folder = record.spec, Path(folder)
     metric = spec.metric.name
     done = [t for t in trials if t.outcome.finished]
     points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done]
+    intervals = {str(r["cell"]): (float(r[f"{metric} delta low"]), float(r[f"{metric} delta high"]))  # type: ignore[arg-type]
+                 for r in (table.records if table else []) if r.get(f"{metric} delta") is not None}
     paths = []
     if points:
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
-                                     spec.paper.table if spec.paper else "paper"))
+                                     spec.paper.table if spec.paper else "paper", intervals))
     curves = {label: history for label, history in _histories(record, trials, ("train/loss", "train/loss_diffusion", metric)).items()
               if has_curve(history, metric)}
     if curves:
@@ -191,10 +189,19 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
                     if file in folder_of:
                         local = record.client.download_artifacts(t.run_id, folder_of[file], str(Path(tmp) / t.run_id))
                         gallery.setdefault(name, {})[label] = read_ply(Path(local))
+        inputs = {}
+        first = next(iter(firsts.values()))
+        panels_of = {Path(f).name: f for f in files[first.outcome.cell] if f.endswith(".png")}
+        for name in names:  # the input image, from the first cell's panel of that object
+            if f"{name}.png" in panels_of:
+                found = panel_input(Path(record.client.download_artifacts(first.run_id, panels_of[f"{name}.png"], str(Path(tmp) / "in"))))
+                if found is not None:
+                    inputs[name] = found
     columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
     title = f"{record.title}: reconstructions at the last evaluation"
-    return [grid_png(gallery, columns, title, folder / "reconstructions.png"),
-            viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=_object_scores(record, firsts, best))]
+    scores = _object_scores(record, firsts, best)
+    return [grid_png(gallery, columns, title, folder / "reconstructions.png", scores, inputs),
+            viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=scores)]
 
 
 def _object_scores(record: SweepRecord, firsts: dict[str, TrialRecord], best: str | None) -> dict[str, dict[str, tuple[float, float]]]:
@@ -210,57 +217,12 @@ def _object_scores(record: SweepRecord, firsts: dict[str, TrialRecord], best: st
     return out
 
 
-def sort_key(text: str) -> float | None:
-    """A swept param's value as a number the runs view can sort by, or None when it is not one.
-
-    MLflow orders params as text (``10`` before ``2``, ``1e-3`` after ``0.5``) but metrics as numbers,
-    so :func:`share_view` logs this as the metric ``swept/<param>`` and orders the view by it."""
-    try:
-        value = float(text)
-    except ValueError:
-        return None
-    return value if math.isfinite(value) else None
-
-
-def share_view(record: SweepRecord) -> str:
-    """Save an MLflow UI view of this sweep and return its path on the UI server (``#/experiments/…``).
-
-    The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
-    reads) lists the sweep's child runs grouped by cell (the tag ``group``: its swept values, short
-    enough for the name column) — the group row averages the seeds — with
-    ``final/<metric>`` and its partner, the swept values and the seed as columns. A swept field whose
-    values are all numbers is shown as the metric ``swept/<field>`` (:func:`sort_key`, logged here
-    on each child) and, when it is the only one, the rows are sorted by it as numbers."""
-    metric = record.spec.metric.name
-    swept = list(dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])]))
-    numeric = [k for k in swept if all(sort_key(r.data.params[k]) is not None for r in record.children if k in r.data.params)]
-    now = int(time.time() * 1000)
-    for run in record.children:
-        keys = [k for k in numeric if k in run.data.params and f"swept/{k}" not in run.data.metrics]
-        if keys:
-            record.client.log_batch(run.info.run_id, metrics=[Metric(f"swept/{k}", sort_key(run.data.params[k]), now, 0) for k in keys])
-    finals = ["final/" + m.removeprefix("eval/") for m in (metric, partner(metric)) if m and m.startswith("eval/")]
-    # Grouped by the swept values alone (sweeps older than the `group` tag: by the full cell name).
-    group = "group" if any("group" in r.data.tags for r in record.children) else "cell"
-    state = {
-        "searchFilter": f"tags.mlflow.parentRunId = '{record.parent.info.run_id}'",
-        "groupBy": {"aggregateFunction": "average", "groupByKeys": [{"mode": "tag", "groupByData": group}]},
-        "selectedColumns": [f"metrics.`{m}`" for m in finals or [metric]] + [f"metrics.`swept/{k}`" for k in numeric]
-        + [f"params.`{k}`" for k in swept if k not in numeric] + ["tags.`seed`"],
-    }
-    if len(swept) == 1:
-        state |= {"orderByKey": f"metrics.`swept/{swept[0]}`" if numeric else f"params.`{swept[0]}`", "orderByAsc": True}
-    key = f"sweep-{record.parent.info.run_id}"
-    record.client.set_experiment_tag(record.experiment_id, f"mlflow.sharedViewState.{key}", json.dumps(state))
-    return f"#/experiments/{record.experiment_id}/runs?viewStateShareKey={key}"
-
-
 def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable) -> str:
     """A child run's description (Markdown, one paragraph): its cell and seed, its result, its cell
     against the reference cell and the baselines (from ``table``'s records), and a link to the sweep's
     parent run."""
     o, spec = trial.outcome, record.spec
-    parent = f"[{record.title}](#/experiments/{record.experiment_id}/runs/{record.parent.info.run_id})"
+    parent = f"[{record.title}]({ui_link(f'#/experiments/{record.experiment_id}/runs/{record.parent.info.run_id}')})"
     seed = split_label(o.label)[1] or "?"
     out = [f"**{o.cell}**, seed {seed}, a trial of the sweep {parent}."]
     if o.status == "failed":
@@ -269,7 +231,7 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
         out.append("It did not finish.")
     else:
         shown = [m for m in (spec.metric.name, partner(spec.metric.name)) if m and m in o.metrics]
-        out.append("At its last evaluation " + ", ".join(f"{m} {rounded(o.metrics[m])}" for m in shown) + ".")
+        out.append("At its last evaluation " + ", ".join(f"{metric_label(m)} {rounded(o.metrics[m])}" for m in shown) + ".")
         cell = next((r for r in table.records if r["cell"] == o.cell), {})
         delta = cell.get(f"{spec.metric.name} delta")
         if delta is None and f"{spec.metric.name} delta" in cell and not cell.get("verdict"):
@@ -286,18 +248,24 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
 
 def publish(uri: str, parent_run_id: str, folder: Path) -> str:
     """End of a sweep: plots and reconstructions into ``folder`` and onto the parent run (``plots/``,
-    ``reconstructions/``), a description on each child run, and the UI view; returns its path."""
+    ``reconstructions/``), a description and the view's columns (:func:`sweeps.results.view.row_tags`)
+    on each child run, the headline as the parent's name, and the runs view; returns its path (``#/experiments/…``)."""
     record = open_sweep(uri, parent_run_id=parent_run_id)
     trials = trial_records(record)
     table = results_table(record, trials)
     for t in trials:
         if t.run_id is not None:
-            record.client.set_tag(t.run_id, "mlflow.note.content", describe_trial(record, t, table))
-    for path in write_plots(record, trials, folder):
+            tags = {"mlflow.note.content": describe_trial(record, t, table)} | row_tags(table, t.outcome.cell, record.spec.metric.name)
+            # The fields the sweep set, in full: of ~84 params, the ones that vary (priors.point_size, not model.raster_radius).
+            tags |= {"swept": ", ".join(f"{k}={v}" for k, v in t.values.items())} if t.values else {}
+            for key, value in tags.items():
+                record.client.set_tag(t.run_id, key, value)
+    record.client.update_run(parent_run_id, name=headline_name(record, table))
+    for path in write_plots(record, trials, folder, table):
         record.client.log_artifact(parent_run_id, str(path), "plots")
     for path in reconstructions(record, trials, folder):
         record.client.log_artifact(parent_run_id, str(path), "reconstructions")
-    return share_view(record)
+    return share_view(record, table)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -324,12 +292,12 @@ def main(argv: list[str] | None = None) -> int:
     trials = trial_records(record)
     table = results_table(record, trials)
     md, csv = table.write(out)
-    plots = write_plots(record, trials, out) + reconstructions(record, trials, out)
+    plots = write_plots(record, trials, out, table) + reconstructions(record, trials, out)
     print(table.text() + "\n")
     print(f"results: {md} and {csv}")
     print("plots: " + ", ".join(str(p) for p in plots))
     if args.log:
         for path in plots:
             record.client.log_artifact(record.parent.info.run_id, str(path), "plots")
-        print(f"MLflow view of this sweep: <UI address>/{share_view(record)}")
+        print(f"MLflow view of this sweep: <UI address>/{ui_link(share_view(record, table))}")
     return 0
