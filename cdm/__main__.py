@@ -279,7 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--focal", type=float, default=2.0, help="focal length, NDC units")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_reconstruct)
-    p = sub.add_parser("prepare", help="convert a data set once into per-object shards that load fast")
+    p = sub.add_parser("prepare", help="convert a data set once into per-object shards that load fast "
+                       "(as Ray tasks over a cluster: python sweeps/inputs.py prepare)")
     p.add_argument("--data-kind", required=True, help="data set kind of --root: shapenet_r2n2 or co3d")
     p.add_argument("--root", required=True, help="the data set as published")
     p.add_argument("--out", required=True, help="folder for the shards; rerun the same command to resume")
