@@ -11,6 +11,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import torch
+
 __all__ = ["Paired", "median_s", "paired", "timed"]
 
 
@@ -49,6 +51,22 @@ def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, sync: Call
             sync()
         times.append(clock() - start)
     return statistics.median(times)
+
+
+def device_median_s(fn: Callable[[], object], device: torch.device, repeats: int, warmup: int = 1) -> float:
+    """:func:`median_s` of work on ``device``: on CUDA, queued kernels are waited for around each call."""
+    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else None
+    return median_s(fn, repeats, warmup, sync)
+
+
+@torch.no_grad()
+def denoiser_eval_s(net, batch, device: torch.device, repeats: int) -> float:
+    """Median seconds of one denoiser evaluation (a sampler step's network call) on ``batch``: its image
+    features encoded once, x_t Gaussian noise at t = 500."""
+    context = net.encode(batch)
+    x = torch.randn_like(batch.points)
+    t = torch.full((len(batch),), 500, device=device)
+    return device_median_s(lambda: net(x, t, context, batch.camera), device, repeats)
 
 
 def paired(a: Callable[[], object], b: Callable[[], object], repeats: int, warmup: int = 1) -> Paired:

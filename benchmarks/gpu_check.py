@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import sys
 import tempfile
 import time
@@ -44,6 +43,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.common import denoiser_eval_s, device_median_s  # noqa: E402
 from cdm.config import Config, load_config  # noqa: E402
 from cdm.evaluate import reconstruct  # noqa: E402
 from cdm.train import Trainer  # noqa: E402
@@ -87,19 +87,6 @@ def _sync(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _median_s(fn, device: torch.device, repeats: int, warmup: bool = True) -> float:
-    if warmup:  # kernels chosen, caches filled
-        fn()
-    times = []
-    for _ in range(repeats):
-        _sync(device)
-        start = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def _trainer(cfg: Config) -> Trainer:
     trainer = Trainer(cfg)
     trainer.network.encoder.cache_bytes = 0  # every step pays the frozen ViT, as on a data set larger than the cache
@@ -128,18 +115,14 @@ def _sampling(trainer: Trainer, quick: bool) -> dict[str, float]:
     device, cfg = trainer.device, trainer.cfg
     batch = trainer.next_batch()
     net = trainer.network
-    with torch.no_grad():
-        context = net.encode(batch)
-        x = torch.randn_like(batch.points)
-        t = torch.full((len(batch),), 500, device=device)
-        step_s = _median_s(lambda: net(x, t, context, batch.camera), device, 2 if quick else 10)
+    step_s = denoiser_eval_s(net, batch, device, 2 if quick else 10)
     k = SAMPLE_STEPS_TIMED[quick]
     # The real sampler loop (encode, k network evaluations and updates); DDIM with k steps costs per step
     # what DDPM does: one network evaluation and an update of x_t.
     timed = cfg.replace(**{"diffusion.sampler": "ddim", "diffusion.sample_steps": k})
     gen = torch.Generator(device=device).manual_seed(0)
-    loop_s = _median_s(lambda: reconstruct(net, trainer.diffusion, batch, timed, gen), device, 1 if quick else 2,
-                       warmup=not quick)
+    loop_s = device_median_s(lambda: reconstruct(net, trainer.diffusion, batch, timed, gen), device, 1 if quick else 2,
+                             warmup=int(not quick))
     net.train()
     return {"sample_step_s": step_s, "sample_batch_s": loop_s / k * cfg.diffusion.num_steps,
             "sample_steps_timed": k, "sample_batch_note": f"extrapolated: {k} timed sampler steps × {cfg.diffusion.num_steps}/{k}"}
@@ -194,8 +177,8 @@ def check(device: str, quick: bool, deadline_s: float) -> dict:
                 if precision == "fp32":
                     flops[n] = count_flops(trainer)
                 batch = trainer.next_batch()
-                step_s = _median_s(lambda: trainer.train_step(batch), trainer.device, 2 if quick else 8,
-                                   warmup=precision != "fp32")
+                step_s = device_median_s(lambda: trainer.train_step(batch), trainer.device, 2 if quick else 8,
+                                         warmup=int(precision != "fp32"))
                 peak = peak_flops(name, precision)
                 row = {"train_step_s": step_s,
                        "peak_memory_gib": torch.cuda.max_memory_allocated(dev) / 2**30 if dev.type == "cuda" else None,

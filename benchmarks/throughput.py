@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import median_s
+from benchmarks.common import denoiser_eval_s, device_median_s
 from cdm.config import load_config
 from cdm.train import Trainer
 
@@ -29,11 +29,6 @@ PAPER = {"model.denoiser": "pvcnn2", "data.image_size": 224, "priors.render_size
          "data.val_objects": 1}
 
 
-def _median_s(fn, device: torch.device, repeats: int) -> float:
-    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else None
-    return median_s(fn, repeats, sync=sync)
-
-
 def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:
     rows, by_points = [], {}
     dev = torch.device(device)
@@ -43,13 +38,8 @@ def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:
         batch = trainer.next_batch()
         if dev.type == "cuda":
             torch.cuda.reset_peak_memory_stats(dev)
-        step_s = _median_s(lambda: trainer.train_step(batch), dev, 3 if quick else 6)
-        net = trainer.network
-        with torch.no_grad():
-            context = net.encode(batch)
-            x = torch.randn_like(batch.points)
-            t = torch.full((len(batch),), 500, device=dev)
-            sample_s = _median_s(lambda: net(x, t, context, batch.camera), dev, 3 if quick else 10)
+        step_s = device_median_s(lambda: trainer.train_step(batch), dev, 3 if quick else 6)
+        sample_s = denoiser_eval_s(trainer.network, batch, dev, 3 if quick else 10)
         memory = (f"peak {torch.cuda.max_memory_allocated(dev) / 2**30:.2f} GiB GPU memory" if dev.type == "cuda"
                   else "one CPU thread")
         name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "CPU"
