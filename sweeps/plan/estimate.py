@@ -162,7 +162,9 @@ def _eval_objects(cfg: Config) -> int:
     """Objects one evaluation scores: every held-out one under ``eval.protocol: paper`` when the data set
     is on disk (counted), else ``eval.num_objects`` per category."""
     if cfg.eval.protocol == "paper" and cfg.data.root is not None:
-        return len(build_dataset(cfg, "val"))
+        # Counted on the data set alone: the external inputs (depth maps, weights) change no count, and a
+        # machine planning a cluster run need not hold them.
+        return len(build_dataset(cfg.replace(**{"priors.prior_2d": "none", "priors.depth_source": "ground_truth"}), "val"))
     return cfg.eval.num_objects * len(list_categories(cfg))
 
 
