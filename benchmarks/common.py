@@ -59,14 +59,19 @@ def device_median_s(fn: Callable[[], object], device: torch.device, repeats: int
     return median_s(fn, repeats, warmup, sync)
 
 
-@torch.no_grad()
-def denoiser_eval_s(net, batch, device: torch.device, repeats: int) -> float:
-    """Median seconds of one denoiser evaluation (a sampler step's network call) on ``batch``: its image
-    features encoded once, x_t Gaussian noise at t = 500."""
+def denoiser_call(net, batch) -> Callable[[], object]:
+    """One denoiser evaluation (a sampler step's network call) on ``batch``, ready to run: its image
+    features encoded once, x_t Gaussian noise at t = 500. Build and call it under ``torch.no_grad()``."""
     context = net.encode(batch)
     x = torch.randn_like(batch.points)
-    t = torch.full((len(batch),), 500, device=device)
-    return device_median_s(lambda: net(x, t, context, batch.camera), device, repeats)
+    t = torch.full((len(batch),), 500, device=batch.points.device)
+    return lambda: net(x, t, context, batch.camera)
+
+
+@torch.no_grad()
+def denoiser_eval_s(net, batch, device: torch.device, repeats: int) -> float:
+    """Median seconds of :func:`denoiser_call` on ``batch``."""
+    return device_median_s(denoiser_call(net, batch), device, repeats)
 
 
 def paired(a: Callable[[], object], b: Callable[[], object], repeats: int, warmup: int = 1) -> Paired:

@@ -43,7 +43,7 @@ from torch.utils.flop_counter import FlopCounterMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import denoiser_eval_s, device_median_s  # noqa: E402
+from benchmarks.common import denoiser_call, denoiser_eval_s, device_median_s  # noqa: E402
 from cdm.config import Config, load_config  # noqa: E402
 from cdm.evaluate import reconstruct  # noqa: E402
 from cdm.train import Trainer  # noqa: E402
@@ -101,11 +101,9 @@ def count_flops(trainer: Trainer) -> dict[str, float]:
         trainer.train_step(batch)
     net = trainer.network
     with torch.no_grad():
-        context = net.encode(batch)
-        x = torch.randn_like(batch.points)
-        t = torch.full((len(batch),), 500, device=batch.points.device)
+        call = denoiser_call(net, batch)
         with FlopCounterMode(display=False) as sample:
-            net(x, t, context, batch.camera)
+            call()
     return {"train_step": float(train.get_total_flops()), "sample_step": float(sample.get_total_flops()),
             "batch_size": trainer.cfg.train.batch_size}
 

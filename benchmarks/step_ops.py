@@ -28,9 +28,8 @@ from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.gpu_check import size_config  # noqa: E402
+from benchmarks.gpu_check import _trainer, size_config  # noqa: E402
 from cdm.model import pointops  # noqa: E402
-from cdm.train import Trainer  # noqa: E402
 from tests.test_encoder import write_msn_checkpoint  # noqa: E402
 
 __all__ = ["count_ops", "main"]
@@ -86,8 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         write_msn_checkpoint(weights)
         for size in ("shapenet", "co3d"):
             cfg = size_config(size, "fp32", "cpu", weights, tmp, args.quick).replace(**{"train.batch_size": 2})
-            trainer = Trainer(cfg)
-            trainer.network.encoder.cache_bytes = 0
+            trainer = _trainer(cfg)
             batch = trainer.next_batch()
             trainer.train_step(batch)  # warm-up
             ops, biggest = count_ops(lambda: trainer.train_step(batch))

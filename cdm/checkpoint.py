@@ -127,21 +127,20 @@ def load_network(path: str | Path | None, overrides: dict[str, Any] | None = Non
         ValueError: unreadable file, a category prior instead of a CDM checkpoint, a bad override, or
             frozen encoder weights other than those it was trained with (``model.encoder_weights``).
     """
+    checkpoint = None
     if path is None:
         cfg = load_config(None, overrides)
         if cfg.model.init_from is None:
             raise ValueError("model.init_from: a network without a checkpoint needs PC²'s weights to start from")
-        device = resolve_device(cfg.train.device)
-        autocast = AUTOCAST_DTYPES[resolve_precision(cfg.train.precision, device)]
-        network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device=device, autocast=autocast)
-        return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)
-    checkpoint = load_checkpoint(path)
-    if checkpoint.kind is not None:
-        raise ValueError(f"checkpoint: {path} holds a {checkpoint.kind} ({checkpoint.category}), not a CDM network")
-    cfg = network_config(checkpoint, overrides)
+    else:
+        checkpoint = load_checkpoint(path)
+        if checkpoint.kind is not None:
+            raise ValueError(f"checkpoint: {path} holds a {checkpoint.kind} ({checkpoint.category}), not a CDM network")
+        cfg = network_config(checkpoint, overrides)  # its voxel back-end pinned: the device picks none
     device = resolve_device(cfg.train.device)
     autocast = AUTOCAST_DTYPES[resolve_precision(cfg.train.precision, device)]
-    network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], autocast=autocast)
-    check_encoder_record(checkpoint.encoder, network.encoder.record)
-    network.load_state_dict(checkpoint.weights)
+    network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device=device, autocast=autocast)
+    if checkpoint is not None:
+        check_encoder_record(checkpoint.encoder, network.encoder.record)
+        network.load_state_dict(checkpoint.weights)
     return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)

@@ -53,16 +53,9 @@ PC2_DEFAULTS: dict[str, Any] = {
 """PC²'s settings that shape the network and the sampler, as ``experiments/config/structured.py`` sets them."""
 
 # What the network must be for PC²'s weights to mean what they meant there.
-_REQUIRED = {
-    "model.image_feature_model": "vit_small_patch16_224_msn",
-    "model.use_local_colors": True,
-    "model.use_local_features": True,
-    "model.use_global_features": False,
-    "model.predict_color": False,
-    "model.beta_schedule": "linear",
-    "model.point_cloud_model": "pvcnn",
-    "dataset.scale_factor": 1.0,
-}
+_REQUIRED = {k: PC2_DEFAULTS[k] for k in (
+    "model.image_feature_model", "model.use_local_colors", "model.use_local_features", "model.use_global_features",
+    "model.predict_color", "model.beta_schedule", "model.point_cloud_model", "dataset.scale_factor")}
 _MARKER = b"point_cloud_model.model.sa_layers.0.0.point_features.layers.0.weight"
 _PEEK_BYTES = 16 * 2**20
 """How much of the archive's pickle recognition reads: PC²'s state dict names its ~150 ViT tensors, then

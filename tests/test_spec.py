@@ -295,7 +295,7 @@ def test_a_dry_run_until_settled_says_the_rule_the_worst_case_and_its_time(tmp_p
     assert "point_size=0.04 · seed 4 (priors.point_size=0.04) [round 4, if still open]" in out
     assert list(tmp_path.iterdir()) == []
     # The estimate (calibrated in the slow tier's dry runs) times the worst case and says so.
-    assert Estimate(25, 60.0, 2, 780.0, None, "no GPU figures", worst_case=True).text().startswith(
+    assert Estimate(25, 60.0, 2, 780.0, worst_case=True).text().startswith(
         "estimate: worst case, 25 trials × ~1.0 min, 2 at a time → ~13.0 min wall on this machine")
 
 

@@ -162,7 +162,7 @@ def read_shard(path: Path) -> Shard:
             buffer = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
     except OSError as exc:
         raise ValueError(f"data.root: cannot read shard {path}: {exc.strerror}") from None
-    start = -(-(16 + int.from_bytes(head[8:], "little")) // _ALIGN) * _ALIGN
+    start = -(-(16 + length) // _ALIGN) * _ALIGN
     arrays = {}
     for name, spec in header["arrays"].items():
         dtype, shape = np.dtype(spec["dtype"]), tuple(spec["shape"])

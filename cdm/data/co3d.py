@@ -104,12 +104,6 @@ class Category(NamedTuple):
     set_lists: dict[str, list[tuple[str, int]]]
 
 
-def _read_json(path: Path, gzipped: bool):
-    if not path.exists():
-        raise ValueError(f"data.root: annotation file {path} is missing; Co3D v2 has it in every category folder")
-    return read_json(path, "data.root", gzipped)
-
-
 MIN_FOCAL, MAX_FOCAL = 0.05, 50.0
 """Accepted NDC focal lengths (Co3D v2's are about 1 to 5): outside, a crop or camera would be degenerate."""
 MAX_FRAME_SIDE = 4096
@@ -177,7 +171,7 @@ def _category(folder: Path, stamp: tuple[int, ...]) -> Category:
     """Parse one category's annotations (once per process and file version: ``stamp`` = mtimes)."""
     files = [folder / name for name in _ANNOTATIONS]
     frames: dict[str, list[Frame]] = defaultdict(list)
-    entries = _read_json(files[0], gzipped=True)
+    entries = read_json(files[0], "data.root", gzipped=True)
     if not isinstance(entries, list):
         raise ValueError(f"data.root: {files[0]} is not a JSON list of frame entries")
     for number, entry in enumerate(entries):
@@ -190,7 +184,7 @@ def _category(folder: Path, stamp: tuple[int, ...]) -> Category:
             raise ValueError(f"data.root: {files[0]} entry {number} is malformed ({type(exc).__name__}: {exc})") from None
     for seq in frames.values():
         seq.sort(key=lambda f: f.number)
-    sequences, set_lists = _read_json(files[1], gzipped=True), _read_json(files[2], gzipped=False)
+    sequences, set_lists = read_json(files[1], "data.root", gzipped=True), read_json(files[2], "data.root")
     where = f"data.root: {files[1]}, sequence"
     try:
         clouds = {plain_name(s["sequence_name"], f"{where} name"):

@@ -43,6 +43,7 @@ from torch import Tensor
 __all__ = [
     "Neighbours",
     "VoxelizedCloud",
+    "at_least_float32",
     "ball_query",
     "farthest_point_sample",
     "gather_points",
@@ -60,6 +61,12 @@ _FPS_THREADS = 512  # the FPS kernel's block size (``sampling.cu``), which sets 
 # and pays per launch: at Co3D's SA1 (B=8, 1,024 centres, 16,384 points) ball query took 32 chunks (878
 # ops) at the CPU's 2²² (benchmarks/RESULTS.md, "Ops per pvcnn2 step"), 4 at 2²⁵ (128 MB a buffer).
 _CHUNK_ELEMENTS = {"cpu": 1 << 22, "cuda": 1 << 25}
+
+
+def at_least_float32(features: Tensor) -> Tensor:
+    """Features to average per voxel, summed in float32 at least: under fp16 autocast a voxel of many
+    points would lose the mean's low bits (and overflow past 65,504)."""
+    return features.to(torch.promote_types(features.dtype, torch.float32))
 
 
 def _chunk(device: torch.device, pairs_per_row: int) -> int:
@@ -272,7 +279,7 @@ def voxelize(features: Tensor, cloud: VoxelizedCloud) -> Tensor:
     """
     b, c, n = features.shape
     r = cloud.resolution
-    features = features.to(torch.promote_types(features.dtype, torch.float32))
+    features = at_least_float32(features)
     total = features.new_zeros(b, c, r**3).scatter_add_(2, cloud.voxel[:, None, :].expand(b, c, n), features)
     return (total / cloud.count.to(features.dtype)).view(b, c, r, r, r)
 

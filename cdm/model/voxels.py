@@ -35,6 +35,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from cdm.model.pointops import at_least_float32
+
 __all__ = [
     "DenseGrid",
     "Devoxelize",
@@ -219,12 +221,6 @@ class _SubmanifoldConv(torch.autograd.Function):
         return grad_x, grad_w, None
 
 
-def _at_least_float32(features: Tensor) -> Tensor:
-    """Features to average per voxel, summed in float32 at least: under fp16 autocast a voxel of many
-    points would lose the mean's low bits."""
-    return features.to(torch.promote_types(features.dtype, torch.float32))
-
-
 class VoxelGrid(ABC):
     """Voxel structure of a batch of clouds at one resolution; operations on its voxel features.
 
@@ -305,7 +301,7 @@ class DenseGrid(VoxelGrid):
     def voxelize(self, features: Tensor) -> Tensor:
         b, n, c = features.shape
         r = self.resolution
-        features = _at_least_float32(features)
+        features = at_least_float32(features)
         total = features.new_zeros(b * r**3, c).index_add_(0, self.point_keys, features.reshape(b * n, c))
         mean = total / self._counts[:, None].to(features.dtype)
         return mean.view(b, r, r, r, c).permute(0, 4, 1, 2, 3).contiguous()
@@ -367,7 +363,7 @@ class SparseGrid(VoxelGrid):
 
     def voxelize(self, features: Tensor) -> Tensor:
         b, n, c = features.shape
-        features = _at_least_float32(features)
+        features = at_least_float32(features)
         total = features.new_zeros(self.keys.shape[0], c).index_add_(0, self.point_rows, features.reshape(b * n, c))
         return total / self._counts[:, None].to(features.dtype)
 

@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 import torch
 
+from cdm.data.cache import atomic_write
 from cdm.data.depth_maps import ESTIMATOR_FILE
 from cdm.data.images import read_image
 from cdm.safe_io import read_json
@@ -149,12 +150,9 @@ def estimate(estimator: Estimator, images: Sequence[np.ndarray]) -> list[np.ndar
 
 
 def _save(path: Path, array: np.ndarray) -> None:
-    """Write through a temporary name, so a killed run leaves no half-written map under the final name."""
+    """Write atomically, so a killed run leaves no half-written map under the final name."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        np.save(f, array.astype(np.float32))
-    tmp.replace(path)
+    atomic_write(path, lambda f: np.save(f, array.astype(np.float32)))
 
 
 def write_manifest(out: Path, name: str, disparity: bool) -> None:

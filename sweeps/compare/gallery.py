@@ -62,7 +62,7 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, s
     """One row per object, one column per label in ``columns`` (missing clouds: an empty square), each
     cloud titled with its ``scores`` (CD ×1000, F1@0.01); with ``inputs`` (object id → its input image),
     the image the model saw first."""
-    from sweeps.compare.plots import FONT, _pyplot, save_figure
+    from sweeps.compare.plots import FONT, _pyplot, _save
 
     plt = _pyplot()
     rows = list(gallery)
@@ -94,10 +94,7 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, s
     fig.suptitle(f"{title}\nCD ×1000 (lower is better) · F1@0.01 on the squared distance, 0.1 world units (higher is better)",
                  fontsize=FONT + 1)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save_figure(fig, path)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 _PAGE = """<!DOCTYPE html>

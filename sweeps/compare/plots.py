@@ -110,10 +110,9 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
                     xs.append(x[c])
                     means.append(mean)
                     spread = statistics.stdev(values) if len(values) > 1 else 0.0
-                    # The paired interval is Δ's; around the mean it keeps its width and its skew.
-                    low, high = (intervals or {}).get(c, (None, None)) if key == metric else (None, None)
-                    delta = (low + high) / 2 if low is not None else None
-                    bars.append((delta - low, high - delta) if delta is not None else (spread, spread))
+                    # The paired interval is Δ's: drawn around the mean as its half-width.
+                    paired = (intervals or {}).get(c) if key == metric else None
+                    bars.append(((paired[1] - paired[0]) / 2,) * 2 if paired else (spread, spread))
             if xs:
                 label = f"ours: {'all objects' if series == 'all' else series}"
                 if series == "all" and m == metric and intervals:

@@ -93,6 +93,12 @@ def _experiment(client: MlflowClient, name: str, uri: str) -> str:
     return experiment_id
 
 
+def _log_params(client: MlflowClient, run_id: str, params: list[Param]) -> None:
+    """``params`` in batches of MLflow's limit."""
+    for i in range(0, len(params), _BATCH):
+        client.log_batch(run_id, params=params[i:i + _BATCH])
+
+
 def _params(values: dict[str, Any]) -> list[Param]:
     return [Param(k, str(v)) for k, v in values.items()]
 
@@ -280,8 +286,7 @@ class SweepRun:
             metrics += [Metric(prefix + k, rounded(v), now, 0) for k, v in values.items() if k.count("/") == 2]
             params += [Param(prefix + k, str(rounded(v))) for k, v in values.items() if k.count("/") > 2]
         self.client.log_batch(self.run_id, metrics=metrics)
-        for i in range(0, len(params), _BATCH):
-            self.client.log_batch(self.run_id, params=params[i:i + _BATCH])
+        _log_params(self.client, self.run_id, params)
         self.client.set_tag(self.run_id, "mlflow.note.content", description)
 
     def end(self, status: str = "FINISHED") -> None:
@@ -369,9 +374,7 @@ class TrialRun(Callback):
                 experiment_id, run_name=run_name,
                 tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, **tags})
             self.run_id = run.info.run_id
-            params = _params({k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS})
-            for i in range(0, len(params), _BATCH):
-                self.client.log_batch(self.run_id, params=params[i:i + _BATCH])
+            _log_params(self.client, self.run_id, _params({k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}))
             self.client.log_text(self.run_id, yaml.safe_dump(config.to_dict(), sort_keys=False), "config.yaml")
         else:
             self.run_id = found

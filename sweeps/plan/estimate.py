@@ -91,10 +91,6 @@ class Estimate:
     trial_s: float
     concurrent: int
     wall_s: float
-    gpu_hours: float | None
-    """Paper profile on the GPU of ``benchmarks/gpu_costs.json``; None without figures."""
-    gpu: str
-    """The GPU of the figures, or why there are none."""
     worst_case: bool = False
     """The trials are a sequential sweep's most (every cell at ``max`` seeds); it may stop sooner."""
     gpu_line: str = ""
@@ -323,7 +319,5 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
         # loss, not the data): the batches of the longest run, spread over the CPUs.
         shared_s = (steps * world * cost + eval_set) / max(1.0, cpus)
     paper = expand(plan.spec, "paper", plan.sets)
-    trial_hours, gpu = paper_trial_gpu_hours(paper)
-    gpu_hours = None if trial_hours is None else trial_hours * paper.num_trials
-    return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, gpu_hours, gpu, plan.sequential is not None,
+    return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, plan.sequential is not None,
                     paper_gpu_line(paper))

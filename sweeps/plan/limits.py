@@ -100,10 +100,10 @@ def load_yaml(path: Path) -> Any:
         raw = read_bounded(path, str(path), MAX_YAML_BYTES, show_path=False)  # a FIFO or device is refused, not read
     except ValueError as exc:
         raise LimitError(f"{exc}; a spec may be at most {MAX_YAML_BYTES} bytes of YAML") from None
-    try:
-        text = raw.decode("utf-8")
     except OSError as exc:
         raise LimitError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise LimitError(f"{path}: not UTF-8 text (byte {exc.start}); give a YAML spec file") from None
     loader = yaml.SafeLoader(text)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import time
+from collections import Counter
 
 from mlflow.entities import Metric
 
@@ -135,9 +136,7 @@ def share_view(record: SweepRecord, table: ResultsTable | None = None) -> str:
         "selectedColumns": columns, "columnOrder": columns, "columnWidths": widths,
         "orderByKey": f"metrics.`{finals[0] if finals else metric}`", "orderByAsc": mode == "min",
     }
-    seeds: dict[str, int] = {}
-    for run in trials:
-        seeds[run.data.tags.get("cell", run.info.run_name)] = seeds.get(run.data.tags.get("cell", run.info.run_name), 0) + 1
+    seeds = Counter(run.data.tags.get("cell", run.info.run_name) for run in trials)
     if max(seeds.values(), default=1) > 1:
         # Grouped by the swept values alone (sweeps older than the `group` tag: by the full cell name).
         group = "group" if any("group" in r.data.tags for r in trials) else "cell"
