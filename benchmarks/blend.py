@@ -48,8 +48,12 @@ def _sampler(cfg: Config, network: CDMNetwork, batch):
 def blend_overhead(quick: bool, out_dir: str) -> list[dict]:
     # The prior trains on the CPU too: on a GPU machine it would resolve to the dense voxel back-end,
     # which it keeps when sampled, and dense is several times slower on a CPU thread than sparse.
-    base = load_config(QUICK, {"data.categories": ["chair"], "train.threads": 1, "train.device": "cpu", "train.out_dir": out_dir})
-    prior_dir = train_prior(prior_config(load_config(base.to_dict(), {"train.steps": 1}), "chair"), Path(out_dir) / "prior_chair").checkpoint
+    base = load_config(
+        QUICK, {"data.categories": ["chair"], "train.threads": 1, "train.device": "cpu", "train.out_dir": out_dir}
+    )
+    prior_dir = train_prior(
+        prior_config(load_config(base.to_dict(), {"train.steps": 1}), "chair"), Path(out_dir) / "prior_chair"
+    ).checkpoint
     batch = collate([build_dataset(base, "val")[i] for i in range(BATCH)])
     torch.manual_seed(0)
     network = CDMNetwork(base.model, PRIOR_2D_CHANNELS[base.priors.prior_2d], device="cpu").eval()
@@ -60,17 +64,33 @@ def blend_overhead(quick: bool, out_dir: str) -> list[dict]:
         batch.points, t, torch.randn(batch.points.shape, generator=torch.Generator().manual_seed(0)))
     with torch.no_grad():
         context = network.encode(batch)
-        calls = paired(lambda: network(x_t, t, context, batch.camera), lambda: prior.network(x_t, t), repeats=10 if quick else 30)
-    rows = [{"benchmark": "BDM blending: one prior call ÷ one CDM call", "case": f"same x_t (t=500), B={BATCH}, N={base.data.num_points}",
-             "without_s": calls.a_s, "with_s": calls.b_s, "ratio": calls.ratio, "target": "<= 1 (no image conditioning)"}]
+        calls = paired(
+            lambda: network(x_t, t, context, batch.camera), lambda: prior.network(x_t, t), repeats=10 if quick else 30
+        )
+    rows = [
+        {
+            "benchmark": "BDM blending: one prior call ÷ one CDM call",
+            "case": f"same x_t (t=500), B={BATCH}, N={base.data.num_points}",
+            "without_s": calls.a_s,
+            "with_s": calls.b_s,
+            "ratio": calls.ratio,
+            "target": "<= 1 (no image conditioning)",
+        }
+    ]
 
     ddim = {"diffusion.sampler": "ddim", "diffusion.sample_steps": 25}
     cases = [(ddim, 0.0, 6 if quick else 10), (ddim, 0.5, 6 if quick else 10)]
     cases += [] if quick else [({"diffusion.sampler": "ddpm"}, 0.5, 2)]
     for sets, select_prob, repeats in cases:
         plain = load_config(base.to_dict(), sets)
-        blended = load_config(plain.to_dict(), {"sampling.blend.enabled": True, "sampling.blend.prior_checkpoint": str(prior_dir),
-                                                "sampling.blend.select_prob": select_prob})
+        blended = load_config(
+            plain.to_dict(),
+            {
+                "sampling.blend.enabled": True,
+                "sampling.blend.prior_checkpoint": str(prior_dir),
+                "sampling.blend.select_prob": select_prob,
+            },
+        )
         d, b = plain.diffusion, blended.sampling.blend
         timesteps = GaussianDiffusion.from_config(d).timesteps(SamplerSettings.from_config(d))
         share = sum(len(w) for w in blend_windows(timesteps, b.milestones, b.window_steps)) / len(timesteps)

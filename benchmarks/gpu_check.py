@@ -122,8 +122,12 @@ def _sampling(trainer: Trainer, quick: bool) -> dict[str, float]:
     loop_s = device_median_s(lambda: reconstruct(net, trainer.diffusion, batch, timed, gen), device, 1 if quick else 2,
                              warmup=int(not quick))
     net.train()
-    return {"sample_step_s": step_s, "sample_batch_s": loop_s / k * cfg.diffusion.num_steps,
-            "sample_steps_timed": k, "sample_batch_note": f"extrapolated: {k} timed sampler steps × {cfg.diffusion.num_steps}/{k}"}
+    return {
+        "sample_step_s": step_s,
+        "sample_batch_s": loop_s / k * cfg.diffusion.num_steps,
+        "sample_steps_timed": k,
+        "sample_batch_note": f"extrapolated: {k} timed sampler steps × {cfg.diffusion.num_steps}/{k}",
+    }
 
 
 def _largest_batch(size: str, device: str, weights: Path, out_dir: str, deadline: float) -> dict[str, object]:
@@ -205,11 +209,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
     p.add_argument("--quick", action="store_true", help="toy sizes: a check that the script runs, not figures")
     p.add_argument("--out", default=str(GPU_COSTS), help="where the figures go (default: benchmarks/gpu_costs.json)")
-    p.add_argument("--count-flops", action="store_true", help="only count the paper-scale FLOPs into the file's flops section")
-    p.add_argument("--budget-s", type=float, default=420.0, help="stop searching the largest batch after this many seconds")
+    p.add_argument(
+        "--count-flops", action="store_true", help="only count the paper-scale FLOPs into the file's flops section"
+    )
+    p.add_argument(
+        "--budget-s", type=float, default=420.0, help="stop searching the largest batch after this many seconds"
+    )
     args = p.parse_args(argv)
     if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
-        print("error: --device cuda: no CUDA device here; pass --device cpu (with --quick for a toy run)", file=sys.stderr)
+        print(
+            "error: --device cuda: no CUDA device here; pass --device cpu (with --quick for a toy run)", file=sys.stderr
+        )
         return 2
     out = Path(args.out)
     if args.count_flops:
@@ -219,8 +229,11 @@ def main(argv: list[str] | None = None) -> int:
             configs = [size_config(s, "fp32", args.device, weights, tmp, args.quick) for s in SIZES]
             counted = {str(cfg.data.num_points): count_flops(_trainer(cfg)) for cfg in configs}
         figures = json.loads(out.read_text()) if out.is_file() else {}
-        figures["flops"] = {"counted_with": "torch.utils.flop_counter.FlopCounterMode", "date": time.strftime("%Y-%m-%d"),
-                            "by_points": counted}
+        figures["flops"] = {
+            "counted_with": "torch.utils.flop_counter.FlopCounterMode",
+            "date": time.strftime("%Y-%m-%d"),
+            "by_points": counted,
+        }
     else:
         figures = check(args.device, args.quick, args.budget_s)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,9 @@ __all__ = ["loader_speed"]
 
 
 def _epoch(kind: str, root: Path, overrides: dict):
-    cfg = load_config(None, {"data.kind": kind, "data.root": str(root), "data.image_size": 224, "priors.num_views": 10, **overrides})
+    cfg = load_config(
+        None, {"data.kind": kind, "data.root": str(root), "data.image_size": 224, "priors.num_views": 10, **overrides}
+    )
     dataset = build_dataset(cfg, "train")
 
     def run() -> None:
@@ -52,9 +54,14 @@ def loader_speed(quick: bool, out_dir: str) -> list[dict]:
         prepared, count = _epoch(kind, prepared_root, overrides)
         raw, _ = _epoch(kind, raw_root, overrides)
         result = paired(prepared, raw, repeats=3 if quick else 7)
-        rows.append({
-            "benchmark": "loader raw / prepared",
-            "case": f"{label}: raw {count / result.b_s:.0f} vs prepared {count / result.a_s:.0f} samples/s ({count} objects)",
-            "without_s": result.a_s / count, "with_s": result.b_s / count, "ratio": result.ratio, "target": ">= 5",
-        })
+        rows.append(
+            {
+                "benchmark": "loader raw / prepared",
+                "case": f"{label}: raw {count / result.b_s:.0f} vs prepared {count / result.a_s:.0f} samples/s ({count} objects)",
+                "without_s": result.a_s / count,
+                "with_s": result.b_s / count,
+                "ratio": result.ratio,
+                "target": ">= 5",
+            }
+        )
     return rows

@@ -35,9 +35,18 @@ def metrics_vs_scipy(quick: bool) -> list[dict]:
         ref = scipy_chamfer(pn, gn)
         for search in ("kdtree", "brute"):
             ours = chamfer_f1(pred, gt, search=search).cd.numpy()
-            timing = paired(lambda: chamfer_f1(pred, gt, search=search), lambda: scipy_chamfer(pn, gn), repeats=2 if quick else 3)
-            rows.append({"benchmark": f"chamfer_f1 ({search}) vs scipy cKDTree", "case": f"B=8, {n}x{n}",
-                         "without_s": timing.a_s, "with_s": timing.b_s, "ratio": timing.ratio,
-                         "target": ">= 1.0 (scipy/ours)" if search == "kdtree" else "report (the GPU path, timed on CPU)",
-                         "max_abs_cd_diff": float(np.abs(ours - ref).max())})
+            timing = paired(
+                lambda: chamfer_f1(pred, gt, search=search), lambda: scipy_chamfer(pn, gn), repeats=2 if quick else 3
+            )
+            rows.append(
+                {
+                    "benchmark": f"chamfer_f1 ({search}) vs scipy cKDTree",
+                    "case": f"B=8, {n}x{n}",
+                    "without_s": timing.a_s,
+                    "with_s": timing.b_s,
+                    "ratio": timing.ratio,
+                    "target": ">= 1.0 (scipy/ours)" if search == "kdtree" else "report (the GPU path, timed on CPU)",
+                    "max_abs_cd_diff": float(np.abs(ours - ref).max()),
+                }
+            )
     return rows

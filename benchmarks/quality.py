@@ -17,14 +17,23 @@ __all__ = ["quick_config_quality"]
 
 
 def quick_config_quality(quick: bool, out_dir: str) -> list[dict]:
-    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "quick.yaml", {"train.out_dir": f"{out_dir}/quality"})
+    cfg = load_config(
+        Path(__file__).resolve().parents[1] / "configs" / "quick.yaml", {"train.out_dir": f"{out_dir}/quality"}
+    )
     start = time.perf_counter()
     metrics = fit(cfg).metrics
     minutes = (time.perf_counter() - start) / 60
     rows = []
     for baseline in ("sphere", "gaussian", "category_mean"):
         ours, theirs = metrics["eval/cd"], metrics[f"baseline/{baseline}/cd"]
-        rows.append({"benchmark": f"quick config CD×1000 vs {baseline} ({minutes:.1f} min)", "case":
-                     f"{cfg.train.steps} steps, F1 {metrics['eval/f1']:.3f} vs {metrics[f'baseline/{baseline}/f1']:.3f}",
-                     "without_s": theirs, "with_s": ours, "ratio": ours / theirs, "target": "< 1 (model below baseline)"})
+        rows.append(
+            {
+                "benchmark": f"quick config CD×1000 vs {baseline} ({minutes:.1f} min)",
+                "case": f"{cfg.train.steps} steps, F1 {metrics['eval/f1']:.3f} vs {metrics[f'baseline/{baseline}/f1']:.3f}",
+                "without_s": theirs,
+                "with_s": ours,
+                "ratio": ours / theirs,
+                "target": "< 1 (model below baseline)",
+            }
+        )
     return rows

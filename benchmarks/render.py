@@ -34,7 +34,9 @@ def rendering(quick: bool, out_dir: str) -> list[dict]:
     rows, hard, soft = [], {}, {}
     counts = (1024, 4096, 16384)
     for h in (1, 10) if quick else (1, 4, 10):
-        cams = orbit_cameras(torch.tensor([20.0]), torch.tensor([0.0]), torch.tensor([2.5]), h, focal=torch.tensor([2.0]))[0]
+        cams = orbit_cameras(
+            torch.tensor([20.0]), torch.tensor([0.0]), torch.tensor([2.5]), h, focal=torch.tensor([2.0])
+        )[0]
         for n in counts:
             pts = torch.rand(h, n, 3, generator=torch.Generator().manual_seed(n)) - 0.5
             repeats = 2 if quick else 5

@@ -53,16 +53,27 @@ def to_markdown(rows: list[dict]) -> str:
     lines = ["| benchmark | case | a (s) | b (s) | ratio | target |", "|---|---|---|---|---|---|"]
     for r in rows:
         if r["benchmark"] != "paper scaling":
-            lines.append(f"| {r['benchmark']} | {r['case']} | {r['without_s']:.4f} | {r['with_s']:.4f} | {r['ratio']:.3f} | {r['target']} |")
+            lines.append(
+                f"| {r['benchmark']} | {r['case']} | {r['without_s']:.4f} | {r['with_s']:.4f} | {r['ratio']:.3f} | {r['target']} |"
+            )
     scaling = [r for r in rows if r["benchmark"] == "paper scaling"]
     if scaling:
-        lines += ["", f"Paper profile, GPU figures: {scaling[0]['device']} (benchmarks/scaling.py states the assumptions):", "",
-                  "| spec | trials | GPU-h per trial | wall h, 1 GPU | wall h, 8 GPUs | wall h, 64 GPUs |", "|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            f"Paper profile, GPU figures: {scaling[0]['device']} (benchmarks/scaling.py states the assumptions):",
+            "",
+            "| spec | trials | GPU-h per trial | wall h, 1 GPU | wall h, 8 GPUs | wall h, 64 GPUs |",
+            "|---|---|---|---|---|---|",
+        ]
+
         def hours(value: float | None, digits: int) -> str:
             return "not measured" if value is None else f"{value:.{digits}f}"
 
-        lines += [f"| {r['spec']} | {r['trials']} | {hours(r['trial_gpu_hours'], 2)} | {hours(r['wall_h_1_gpus'], 1)} | "
-                  f"{hours(r['wall_h_8_gpus'], 1)} | {hours(r['wall_h_64_gpus'], 1)} |" for r in scaling]
+        lines += [
+            f"| {r['spec']} | {r['trials']} | {hours(r['trial_gpu_hours'], 2)} | {hours(r['wall_h_1_gpus'], 1)} | "
+            f"{hours(r['wall_h_8_gpus'], 1)} | {hours(r['wall_h_64_gpus'], 1)} |"
+            for r in scaling
+        ]
     return "\n".join(lines)
 
 

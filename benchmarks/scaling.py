@@ -31,6 +31,14 @@ def paper_scaling(quick: bool, out_dir: str) -> list[dict]:
         plan = expand(load_spec(path), "paper")
         per_trial, device = paper_trial_gpu_hours(plan)  # None: not measured, and ``device`` says why
         hours = {g: None if per_trial is None else math.ceil(plan.num_trials / g) * per_trial for g in GPUS}
-        rows.append({"benchmark": "paper scaling", "spec": path.stem, "trials": plan.num_trials,
-                     "trial_gpu_hours": per_trial, "device": device, **{f"wall_h_{g}_gpus": h for g, h in hours.items()}})
+        rows.append(
+            {
+                "benchmark": "paper scaling",
+                "spec": path.stem,
+                "trials": plan.num_trials,
+                "trial_gpu_hours": per_trial,
+                "device": device,
+                **{f"wall_h_{g}_gpus": h for g, h in hours.items()},
+            }
+        )
     return rows

@@ -89,8 +89,14 @@ def main(argv: list[str] | None = None) -> int:
             batch = trainer.next_batch()
             trainer.train_step(batch)  # warm-up
             ops, biggest = count_ops(lambda: trainer.train_step(batch))
-            rows.append({"op": "training step", "shape": f"{size}: B=2, N={cfg.data.num_points}, {cfg.data.image_size}²",
-                         "ops": ops, "largest_bytes": biggest})
+            rows.append(
+                {
+                    "op": "training step",
+                    "shape": f"{size}: B=2, N={cfg.data.num_points}, {cfg.data.image_size}²",
+                    "ops": ops,
+                    "largest_bytes": biggest,
+                }
+            )
     b, n = (2, 1024) if args.quick else (8, 16384)
     rows += _pointops_rows(b, n, 1024 if not args.quick else 128, 32)
     print(json.dumps(rows, indent=2))

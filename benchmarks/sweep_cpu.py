@@ -89,10 +89,22 @@ def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = 
     per_step = cpus * wall / steps
     alone_s, trial_s = statistics.fmean(alone), statistics.fmean(in_trial)
     return rows + [
-        {"benchmark": "CPU per step in a sweep ÷ alone", "case": f"{spec_name}, {profile}: every cell, in-trial system/cpu_s_per_step ÷ the cell's first 40 batches alone",
-         "without_s": alone_s, "with_s": trial_s, "ratio": trial_s / alone_s, "target": "<= 1.15"},
-        {"benchmark": "CPU per step in a sweep ÷ alone", "case": f"{spec_name}, {profile}: {cpus:g} CPUs × trial-phase wall ÷ Σ steps",
-         "without_s": alone_s, "with_s": per_step, "ratio": per_step / alone_s, "target": "<= 1.15"},
+        {
+            "benchmark": "CPU per step in a sweep ÷ alone",
+            "case": f"{spec_name}, {profile}: every cell, in-trial system/cpu_s_per_step ÷ the cell's first 40 batches alone",
+            "without_s": alone_s,
+            "with_s": trial_s,
+            "ratio": trial_s / alone_s,
+            "target": "<= 1.15",
+        },
+        {
+            "benchmark": "CPU per step in a sweep ÷ alone",
+            "case": f"{spec_name}, {profile}: {cpus:g} CPUs × trial-phase wall ÷ Σ steps",
+            "without_s": alone_s,
+            "with_s": per_step,
+            "ratio": per_step / alone_s,
+            "target": "<= 1.15",
+        },
     ]
 
 
@@ -105,4 +117,6 @@ if __name__ == "__main__":
     parser.add_argument("--cpus", type=float, default=None)
     args = parser.parse_args()
     for row in sweep_cpu_per_step(args.tracking_uri, args.experiment, args.cpus):
-        print(f"| {row['benchmark']} | {row['case']} | {row['without_s']:.4f} | {row['with_s']:.4f} | {row['ratio']:.3f} | {row['target']} |")
+        print(
+            f"| {row['benchmark']} | {row['case']} | {row['without_s']:.4f} | {row['with_s']:.4f} | {row['ratio']:.3f} | {row['target']} |"
+        )

@@ -24,9 +24,18 @@ __all__ = ["throughput"]
 
 # The paper profile's network (sweeps/profiles.yaml): PC²'s PVCNN2. The encoder is the trainable CNN (the
 # frozen ViT's weights are a local file; it runs once per image, outside the denoiser's steps).
-PAPER = {"model.denoiser": "pvcnn2", "data.image_size": 224, "priors.render_size": 224, "diffusion.prediction": "eps", "train.batch_size": 8,
-         "priors.prior_3d": True, "priors.num_views": 10, "priors.point_size": 0.04, "data.train_objects": 8,
-         "data.val_objects": 1}
+PAPER = {
+    "model.denoiser": "pvcnn2",
+    "data.image_size": 224,
+    "priors.render_size": 224,
+    "diffusion.prediction": "eps",
+    "train.batch_size": 8,
+    "priors.prior_3d": True,
+    "priors.num_views": 10,
+    "priors.point_size": 0.04,
+    "data.train_objects": 8,
+    "data.val_objects": 1,
+}
 
 
 def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:

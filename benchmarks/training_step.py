@@ -31,7 +31,9 @@ def _step_fn(cfg: Config, out_dir: str):
 
 def prior_overhead(quick: bool, out_dir: str) -> list[dict]:
     rows = []
-    scales = [("quick config (64², N=512)", {})] + ([] if quick else [("paper scale (224², N=4096, widths 64/128/256, sparse)", PAPER_SCALE)])
+    scales = [("quick config (64², N=512)", {})] + (
+        [] if quick else [("paper scale (224², N=4096, widths 64/128/256, sparse)", PAPER_SCALE)]
+    )
     for label, extra in scales:
         on = load_config(QUICK, {**extra, "priors.prior_3d": True, "priors.num_views": 10, "priors.point_size": 0.04})
         off = load_config(QUICK, {**extra, "priors.prior_3d": False})

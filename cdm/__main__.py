@@ -164,7 +164,9 @@ def _output_folder(out: Path) -> Path | None:
     if folder.is_dir():
         return None
     if not folder.is_relative_to(Path.cwd().resolve()):
-        raise ValueError(f"--out: folder {folder} does not exist and lies outside the working directory; create it first")
+        raise ValueError(
+            f"--out: folder {folder} does not exist and lies outside the working directory; create it first"
+        )
     return folder
 
 
@@ -215,7 +217,9 @@ def cmd_prepare(args: argparse.Namespace) -> int:
         raise ValueError(f"--data-kind: {args.data_kind!r} cannot be prepared; choose one of {', '.join(preparable)}")
     cfg = load_config(None, {**_overrides(args.set), "data.kind": args.data_kind, "data.root": args.root,
                              "data.image_size": args.image_size})
-    report = prepare(DATASETS[args.data_kind], cfg, Path(args.out), depth_maps=args.depth_maps and Path(args.depth_maps))
+    report = prepare(
+        DATASETS[args.data_kind], cfg, Path(args.out), depth_maps=args.depth_maps and Path(args.depth_maps)
+    )
     print(f"prepared {report.out}: {report.written} shards written, {report.skipped} already complete; "
           f"train with --set data.kind={args.data_kind} --set data.root={report.out}")
     return 0
@@ -236,8 +240,10 @@ def cmd_check_data(args: argparse.Namespace) -> int:
                 failed += 1
                 bad = [f"view {v}: {f:.2f}" for v, f in enumerate(check.fractions.tolist()) if f < MIN_INSIDE]
                 print(f"FAIL {split} {check.object_id}: ground truth inside the mask on {', '.join(bad)}")
-    print(f"{total - failed}/{total} objects pass (every view with a mask holds >= {MIN_INSIDE:.0%} of the "
-          "projected ground truth)" + ("" if not failed else "; a cloud in the wrong frame or a wrong camera does this"))
+    print(
+        f"{total - failed}/{total} objects pass (every view with a mask holds >= {MIN_INSIDE:.0%} of the "
+        "projected ground truth)" + ("" if not failed else "; a cloud in the wrong frame or a wrong camera does this")
+    )
     return 1 if failed else 0
 
 
@@ -253,18 +259,29 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("train", help="train a model from a config file")
     p.add_argument("--config", help="YAML config (groups data/model/diffusion/priors/train/eval); defaults if omitted")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. priors.lambda_3d=0.5")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. priors.lambda_3d=0.5"
+    )
     p.add_argument("--resume", help="checkpoint directory to continue from")
-    p.add_argument("--init-from", help="PC²'s checkpoint-latest.pth: fine-tune its network from its weights (not its optimizer)")
+    p.add_argument(
+        "--init-from", help="PC²'s checkpoint-latest.pth: fine-tune its network from its weights (not its optimizer)"
+    )
     p.set_defaults(func=cmd_train)
     p = sub.add_parser("train-prior", help="train an unconditional category prior for BDM blending (sampling.blend)")
     p.add_argument("--category", required=True, help="the one category the prior models, e.g. chair")
-    p.add_argument("--config", help="YAML config (data/model/diffusion/train); BDM's prior schedule unless it sets diffusion.beta_*")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. train.steps=2000")
+    p.add_argument(
+        "--config",
+        help="YAML config (data/model/diffusion/train); BDM's prior schedule unless it sets diffusion.beta_*",
+    )
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. train.steps=2000"
+    )
     p.add_argument("--out", help="folder for checkpoint.pt (default: <train.out_dir>/prior_<category>)")
     p.set_defaults(func=cmd_train_prior)
     p = sub.add_parser("evaluate", help="score a checkpoint on the held-out split")
-    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
+    p.add_argument(
+        "--checkpoint", required=True, help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth"
+    )
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out", help="folder for PLY/PNG/CSV outputs")
     p.set_defaults(func=cmd_evaluate)
@@ -289,7 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "for priors.depth_source=maps")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]")
     p.set_defaults(func=cmd_prepare)
-    p = sub.add_parser("check-data", help="check that every ground-truth cloud projects into its own masks (exit 1 if not)")
+    p = sub.add_parser(
+        "check-data", help="check that every ground-truth cloud projects into its own masks (exit 1 if not)"
+    )
     p.add_argument("--config", help="YAML config; data.kind and data.root name the data set")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.kind=co3d")
     p.set_defaults(func=cmd_check_data)
@@ -311,8 +330,11 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except MemoryError:
         # The readers' caps (cdm/safe_io.py) come first; what still runs out names the command's inputs.
-        inputs = ", ".join(f"--{k.replace('_', '-')} {v}" for k in ("root", "config", "checkpoint", "image", "depth_maps")
-                           if (v := getattr(args, k, None)))
+        inputs = ", ".join(
+            f"--{k.replace('_', '-')} {v}"
+            for k in ("root", "config", "checkpoint", "image", "depth_maps")
+            if (v := getattr(args, k, None))
+        )
         print(f"error: out of memory in `python -m cdm {args.command}` ({inputs or 'no input files'}); "
               "check those inputs' sizes, or free memory", file=sys.stderr)
         return 2

@@ -46,7 +46,14 @@ from cdm.data.sample import Batch
 from cdm.diffusion import GaussianDiffusion, ModelFn, SamplerSettings
 from cdm.prior_model import CategoryPrior, load_prior, prior_path
 
-__all__ = ["BlendResult", "blend_windows", "blended_reconstruction", "blended_sample", "matched_timesteps", "prior_timesteps"]
+__all__ = [
+    "BlendResult",
+    "blend_windows",
+    "blended_reconstruction",
+    "blended_sample",
+    "matched_timesteps",
+    "prior_timesteps",
+]
 
 PriorX0Fn = Callable[[Tensor, Tensor], Tensor]
 """``prior_x0(x_t (B, N, 3), t (B,) long, reconstruction timesteps) -> the prior's x̂₀ (B, N, 3)``."""
@@ -92,7 +99,9 @@ def matched_timesteps(alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor) -> T
     return (log_snr(alphas_cumprod)[:, None] - log_snr(prior_alphas_cumprod)[None, :]).abs().argmin(dim=1)
 
 
-def prior_timesteps(alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor, mode: Literal["same_index", "log_snr"]) -> Tensor:
+def prior_timesteps(
+    alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor, mode: Literal["same_index", "log_snr"]
+) -> Tensor:
     """``(T,)`` long: the prior's timestep for each reconstruction timestep (``sampling.blend.prior_timestep``).
 
     Args:
@@ -103,8 +112,10 @@ def prior_timesteps(alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor, mode: 
     if mode == "log_snr":
         return matched_timesteps(alphas_cumprod, prior_alphas_cumprod)
     if len(prior_alphas_cumprod) != len(alphas_cumprod):
-        raise ValueError(f"sampling.blend.prior_timestep: same_index needs a prior of {len(alphas_cumprod)} timesteps, "
-                         f"this one has {len(prior_alphas_cumprod)}; use log_snr or train the prior on diffusion.num_steps")
+        raise ValueError(
+            f"sampling.blend.prior_timestep: same_index needs a prior of {len(alphas_cumprod)} timesteps, "
+            f"this one has {len(prior_alphas_cumprod)}; use log_snr or train the prior on diffusion.num_steps"
+        )
     return torch.arange(len(alphas_cumprod))
 
 

@@ -154,7 +154,9 @@ def look_at_cameras(elev_deg: Tensor, azim_deg: Tensor, dist: Tensor, focal: flo
     return Cameras(R, T, focal_t, principal)
 
 
-def orbit_cameras(elev_deg: Tensor, azim_deg: Tensor, dist: Tensor, num_views: int, focal: float | Tensor = 2.0) -> Cameras:
+def orbit_cameras(
+    elev_deg: Tensor, azim_deg: Tensor, dist: Tensor, num_views: int, focal: float | Tensor = 2.0
+) -> Cameras:
     """H prior-view cameras evenly spaced in azimuth, starting at the input view (the H views of Eq. 6).
 
     The stand-in for "evenly spaced frames of the object's sequence" on data without a sequence.

@@ -24,7 +24,15 @@ from cdm.model import CDMNetwork, check_encoder_record
 from cdm.runtime import AUTOCAST_DTYPES, resolve_device, resolve_precision
 from cdm.torch_files import load_tensors
 
-__all__ = ["CHECKPOINT_FILE", "Checkpoint", "LoadedNetwork", "load_checkpoint", "load_network", "network_config", "save_checkpoint"]
+__all__ = [
+    "CHECKPOINT_FILE",
+    "Checkpoint",
+    "LoadedNetwork",
+    "load_checkpoint",
+    "load_network",
+    "network_config",
+    "save_checkpoint",
+]
 
 CHECKPOINT_FILE = "checkpoint.pt"
 _REQUIRED = ("config", "step", "voxel_backend", "model")

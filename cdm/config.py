@@ -113,14 +113,20 @@ class DataConfig(_Group):
 
     @model_validator(mode="after")
     def _check_protocol(self) -> DataConfig:
-        co3d_only = {"data.mask_rgb": self.mask_rgb, "data.drop_outliers": not self.drop_outliers,
-                     "data.exclude_sequences": self.exclude_sequences, "data.frames_per_sequence": self.frames_per_sequence is not None}
+        co3d_only = {
+            "data.mask_rgb": self.mask_rgb,
+            "data.drop_outliers": not self.drop_outliers,
+            "data.exclude_sequences": self.exclude_sequences,
+            "data.frames_per_sequence": self.frames_per_sequence is not None,
+        }
         wrong = [name for name, changed in co3d_only.items() if changed and self.kind != "co3d"]
         if self.train_view is not None and self.kind != "shapenet_r2n2":
             wrong.insert(0, "data.train_view")
         if wrong:
             only = "shapenet_r2n2" if wrong[0] == "data.train_view" else "co3d"
-            raise ValueError(f"{wrong[0]}: only data.kind={only} reads it (got data.kind={self.kind}); leave it at its default")
+            raise ValueError(
+                f"{wrong[0]}: only data.kind={only} reads it (got data.kind={self.kind}); leave it at its default"
+            )
         return self
 
 
@@ -441,9 +447,13 @@ class Config(_Group):
         data = self.data
         uses_folder = "folder" in (data.input_source, data.condition_source if data.condition_views else "gt")
         if uses_folder and data.condition_folder is None:
-            raise ValueError("data.condition_folder is required when data.input_source or data.condition_source is folder")
+            raise ValueError(
+                "data.condition_folder is required when data.input_source or data.condition_source is folder"
+            )
         if self.model.encoder == "vit_s16" and data.image_size % 16:
-            raise ValueError(f"data.image_size must be a multiple of 16 with model.encoder=vit_s16 (got {data.image_size})")
+            raise ValueError(
+                f"data.image_size must be a multiple of 16 with model.encoder=vit_s16 (got {data.image_size})"
+            )
         if self.priors.depth_source == "maps" and data.kind not in ("shapenet_r2n2", "co3d"):
             raise ValueError(
                 "priors.depth_source=maps needs a captured data set (data.kind shapenet_r2n2 or co3d): rendered "

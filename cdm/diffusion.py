@@ -182,7 +182,9 @@ class GaussianDiffusion:
         if settings.spacing == "trailing":
             # T − i·T/n for i < n, not arange(T, 0, −T/n): its float step can add an n+1-th value ≈ 0 (t = −1).
             stride = self.num_steps / settings.steps
-            grid = ((self.num_steps - torch.arange(settings.steps, dtype=torch.float64) * stride).round().long() - 1).tolist()
+            grid = (
+                (self.num_steps - torch.arange(settings.steps, dtype=torch.float64) * stride).round().long() - 1
+            ).tolist()
         else:
             grid = torch.linspace(self.num_steps - 1, 0, settings.steps).round().long().tolist()
         return sorted(set(grid), reverse=True)

@@ -116,7 +116,9 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
             m = _score(clouds[name], batch.points, cfg, gen)
             scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
             for oid, cd, f1 in zip(batch.object_id, m.cd.tolist(), m.f1.tolist()):
-                eval_set.baseline_rows.setdefault(oid, {}).update({f"baseline/{name}/cd": cd, f"baseline/{name}/f1": f1})
+                eval_set.baseline_rows.setdefault(oid, {}).update(
+                    {f"baseline/{name}/cd": cd, f"baseline/{name}/f1": f1}
+                )
     for name, rows in scores.items():
         eval_set.baseline_metrics.update(_summarise(rows, f"baseline/{name}"))
     return eval_set
@@ -154,7 +156,9 @@ def _silhouette(masks: Tensor) -> Tensor:
     return torch.nn.functional.adaptive_avg_pool2d(masks.float(), RETRIEVAL_SIZE).flatten(1)
 
 
-def baseline_clouds(gt: Tensor, categories: Sequence[str], category_means: dict[str, Tensor], gen: torch.Generator) -> dict[str, Tensor]:
+def baseline_clouds(
+    gt: Tensor, categories: Sequence[str], category_means: dict[str, Tensor], gen: torch.Generator
+) -> dict[str, Tensor]:
     """Baseline predictions for a batch of GT clouds ``(B, N, 3)``; each value ``(B, N, 3)``."""
     b, n, _ = gt.shape
     centred = gt - gt.mean(1, keepdim=True)
@@ -166,7 +170,9 @@ def baseline_clouds(gt: Tensor, categories: Sequence[str], category_means: dict[
     return {"sphere": directions * radius[:, None, None], "gaussian": gaussian, "category_mean": mean_shape}
 
 
-def _category_medoids(train: ObjectDataset, categories: set[str], num_points: int, per_category: int = 16) -> dict[str, Tensor]:
+def _category_medoids(
+    train: ObjectDataset, categories: set[str], num_points: int, per_category: int = 16
+) -> dict[str, Tensor]:
     clouds: dict[str, list[Tensor]] = {c: [] for c in categories}
     for i, ref in enumerate(train.objects):
         if all(len(v) >= per_category for v in clouds.values()):
@@ -187,7 +193,11 @@ def _category_medoids(train: ObjectDataset, categories: set[str], num_points: in
 
 
 def _resize(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
-    idx = torch.randint(cloud.shape[0], (n,), generator=gen) if cloud.shape[0] < n else torch.randperm(cloud.shape[0], generator=gen)[:n]
+    idx = (
+        torch.randint(cloud.shape[0], (n,), generator=gen)
+        if cloud.shape[0] < n
+        else torch.randperm(cloud.shape[0], generator=gen)[:n]
+    )
     return cloud[idx]
 
 
@@ -202,7 +212,9 @@ def _subsample(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
 def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator) -> ChamferF1:
     """BDM's protocol: ``eval.num_points`` from each cloud ``(B, N, 3)`` (the data set's frame, as given),
     then CD and F1 at ``eval.f1_threshold``."""
-    return chamfer_f1(_subsample(pred, cfg.eval.num_points, gen), _subsample(gt, cfg.eval.num_points, gen), cfg.eval.f1_threshold)
+    return chamfer_f1(
+        _subsample(pred, cfg.eval.num_points, gen), _subsample(gt, cfg.eval.num_points, gen), cfg.eval.f1_threshold
+    )
 
 
 def _summarise(rows: list[tuple[str, float, float]], prefix: str) -> dict[str, float]:
@@ -336,7 +348,16 @@ def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: fl
             xyz = project_points((cloud.cpu() - centre)[None].float(), views[v : v + 1])[0]
             order = torch.argsort(xyz[:, 2], descending=True)
             xyz = xyz[order].numpy()
-            ax.scatter(-xyz[:, 0], xyz[:, 1], s=min(12.0, max(1.5, 3000 / len(xyz))), c=xyz[:, 2], cmap="viridis", vmin=near, vmax=far, linewidths=0)
+            ax.scatter(
+                -xyz[:, 0],
+                xyz[:, 1],
+                s=min(12.0, max(1.5, 3000 / len(xyz))),
+                c=xyz[:, 2],
+                cmap="viridis",
+                vmin=near,
+                vmax=far,
+                linewidths=0,
+            )
             ax.set_xlim(-1, 1)
             ax.set_ylim(-1, 1)
             ax.set_title(f"{label}, view {v}")

@@ -80,14 +80,30 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
                                  f"{export}, then python -m cdm.tools.openclip_embeddings --views views/ "
                                  f"--kind text|image|depth --out {cfg.model.global_embeddings}"))
     if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps" and cfg.priors.depth_maps is not None:
-        out.append(ExternalInput("priors.depth_maps", input_path(cfg.priors.depth_maps), "estimated depth maps", "folder",
-                                 f"{export}, then python -m cdm.tools.estimate_depth --views views/ --model "
-                                 f"<DPT or Depth Anything folder> --out {cfg.priors.depth_maps}"))
+        out.append(
+            ExternalInput(
+                "priors.depth_maps",
+                input_path(cfg.priors.depth_maps),
+                "estimated depth maps",
+                "folder",
+                f"{export}, then python -m cdm.tools.estimate_depth --views views/ --model "
+                f"<DPT or Depth Anything folder> --out {cfg.priors.depth_maps}",
+            )
+        )
     d = cfg.data
-    if d.condition_folder is not None and (d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")):
-        out.append(ExternalInput("data.condition_folder", input_path(d.condition_folder), "generated condition images",
-                                 "folder", f"{export} --rounds R, then your generator on the point renderings, writing "
-                                 f"{d.condition_folder}/<object_id>/<round>/<view>.png (docs/paper.md, 'External inputs')"))
+    if d.condition_folder is not None and (
+        d.input_source == "folder" or (d.condition_views and d.condition_source == "folder")
+    ):
+        out.append(
+            ExternalInput(
+                "data.condition_folder",
+                input_path(d.condition_folder),
+                "generated condition images",
+                "folder",
+                f"{export} --rounds R, then your generator on the point renderings, writing "
+                f"{d.condition_folder}/<object_id>/<round>/<view>.png (docs/paper.md, 'External inputs')",
+            )
+        )
     return out
 
 
@@ -133,4 +149,6 @@ def check_coverage(cfg: Config, datasets: Iterable) -> None:
         elif item.field == "priors.depth_maps":
             DepthMaps(item.path, cfg.priors.depth_maps_disparity).require(ids)
         elif item.field == "data.condition_folder":
-            ConditionImages(item.path, cfg.data.condition_grey, by_position=any(ds.captured for ds in datasets)).require(ids)
+            ConditionImages(
+                item.path, cfg.data.condition_grey, by_position=any(ds.captured for ds in datasets)
+            ).require(ids)

@@ -74,7 +74,9 @@ def _kdtree_sq_dist(src: Tensor, dst: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def chamfer_f1(pred: Tensor, gt: Tensor, threshold: float = 0.01, chunk: int = 2048, search: Search = "auto") -> ChamferF1:
+def chamfer_f1(
+    pred: Tensor, gt: Tensor, threshold: float = 0.01, chunk: int = 2048, search: Search = "auto"
+) -> ChamferF1:
     """Chamfer distance (×1000) and F1 per shape, BDM's definitions (module docstring).
 
     Args:
@@ -83,7 +85,9 @@ def chamfer_f1(pred: Tensor, gt: Tensor, threshold: float = 0.01, chunk: int = 2
         chunk, search: see :func:`nearest_sq_dist`.
     """
     if pred.ndim != 3 or gt.ndim != 3 or pred.shape[-1] != 3 or gt.shape[-1] != 3 or pred.shape[0] != gt.shape[0]:
-        raise ValueError(f"chamfer_f1 expects (B, N, 3) and (B, M, 3) tensors, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+        raise ValueError(
+            f"chamfer_f1 expects (B, N, 3) and (B, M, 3) tensors, got {tuple(pred.shape)} and {tuple(gt.shape)}"
+        )
     pred = pred - pred.mean(dim=1, keepdim=True)
     gt = gt - gt.mean(dim=1, keepdim=True)
     d_pred = nearest_sq_dist(pred, gt, chunk, search)

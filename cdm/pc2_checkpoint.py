@@ -130,7 +130,11 @@ class PC2File(NamedTuple):
         """The reference settings this run took, and each one ``--set`` changed."""
         o = self.overrides
         sampler = o["diffusion.sampler"]
-        steps = o.get("diffusion.sample_steps") if sampler == "ddim" else o.get("diffusion.ddpm_steps") or o["diffusion.num_steps"]
+        steps = (
+            o.get("diffusion.sample_steps")
+            if sampler == "ddim"
+            else o.get("diffusion.ddpm_steps") or o["diffusion.num_steps"]
+        )
         lines = [
             f"PC² checkpoint {cfg.model.init_from} (step {self.step}), trained on {self.trained_on}: PVCNN2 and its "
             "frozen ViT-S/16 from the same file, weights only",
@@ -138,7 +142,11 @@ class PC2File(NamedTuple):
             f"{o['diffusion.beta_start']:g} → {o['diffusion.beta_end']:g}, ε-prediction, x̂₀ unclipped, "
             f"{o['data.image_size']}² images, {o['data.num_points']} points, mask channels "
             f"{'on' if o['model.mask_channels'] else 'off'}"
-            + (", Co3D loaded as PC² (" + ", ".join(f"{k}={v}" for k, v in self.co3d.items()) + ")" if cfg.data.kind == "co3d" else ""),
+            + (
+                ", Co3D loaded as PC² (" + ", ".join(f"{k}={v}" for k, v in self.co3d.items()) + ")"
+                if cfg.data.kind == "co3d"
+                else ""
+            ),
         ]
         changed = [f"{k}={v}" + (f" (PC²: {'null' if o[k] is None else o[k]})" if k in o else "")
                    for k, v in sets.items() if o.get(k, v) != v or k not in o]
@@ -161,13 +169,27 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
         raise ValueError(f"{label} holds no model state dict")
     tree = config_data(raw.get("cfg")) or {}
     if not isinstance(tree, Mapping):
-        raise ValueError(f"{label}: its cfg is a {type(tree).__name__}, not a config of groups (run, dataset, model, …)")
+        raise ValueError(
+            f"{label}: its cfg is a {type(tree).__name__}, not a config of groups (run, dataset, model, …)"
+        )
     value = {key: _lookup(tree, key) for key in PC2_DEFAULTS}
-    numbers = ("dataset.image_size", "dataset.max_points", "model.point_cloud_model_embed_dim", "run.num_inference_steps")
+    numbers = (
+        "dataset.image_size",
+        "dataset.max_points",
+        "model.point_cloud_model_embed_dim",
+        "run.num_inference_steps",
+    )
     for key in (*numbers, "model.beta_start", "model.beta_end"):
         kind = int if key in numbers else float
-        if isinstance(value[key], bool) or not isinstance(value[key], int | float) or kind is int and value[key] != int(value[key]):
-            raise ValueError(f"{label}: its cfg's {key} is {value[key]!r}, not {'an integer' if kind is int else 'a number'}")
+        if (
+            isinstance(value[key], bool)
+            or not isinstance(value[key], int | float)
+            or kind is int
+            and value[key] != int(value[key])
+        ):
+            raise ValueError(
+                f"{label}: its cfg's {key} is {value[key]!r}, not {'an integer' if kind is int else 'a number'}"
+            )
     wrong = [f"{k}={value[k]!r}" for k, want in _REQUIRED.items() if value[k] != want]
     if value["model.use_mask"] != value["model.use_distance_transform"]:
         wrong.append("model.use_mask differs from model.use_distance_transform")
@@ -180,19 +202,34 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     steps = min(int(value["run.num_inference_steps"]), 1000)
     points = int(value["dataset.max_points"])
     overrides = {
-        "model.denoiser": "pvcnn2", "model.encoder": "vit_s16", "model.encoder_weights": None,
-        "model.init_from": str(path), "model.feature_dim": 384, "model.width_multiplier": 1.0,
-        "model.voxel_resolution_multiplier": 1.0, "model.time_embed_dim": int(value["model.point_cloud_model_embed_dim"]),
-        "model.mask_channels": bool(value["model.use_mask"]), "model.raster_radius": 0.0075, "model.global_feature": "none",
-        "priors.prior_2d": "none", "priors.prior_3d": False,
-        "diffusion.num_steps": 1000, "diffusion.beta_start": float(value["model.beta_start"]),
-        "diffusion.beta_end": float(value["model.beta_end"]), "diffusion.prediction": "eps",
-        "diffusion.sampler": "ddim" if ddim else "ddpm", "diffusion.clip_x0": None,
+        "model.denoiser": "pvcnn2",
+        "model.encoder": "vit_s16",
+        "model.encoder_weights": None,
+        "model.init_from": str(path),
+        "model.feature_dim": 384,
+        "model.width_multiplier": 1.0,
+        "model.voxel_resolution_multiplier": 1.0,
+        "model.time_embed_dim": int(value["model.point_cloud_model_embed_dim"]),
+        "model.mask_channels": bool(value["model.use_mask"]),
+        "model.raster_radius": 0.0075,
+        "model.global_feature": "none",
+        "priors.prior_2d": "none",
+        "priors.prior_3d": False,
+        "diffusion.num_steps": 1000,
+        "diffusion.beta_start": float(value["model.beta_start"]),
+        "diffusion.beta_end": float(value["model.beta_end"]),
+        "diffusion.prediction": "eps",
+        "diffusion.sampler": "ddim" if ddim else "ddpm",
+        "diffusion.clip_x0": None,
         "diffusion.sample_steps" if ddim else "diffusion.ddpm_steps": None if steps >= 1000 and not ddim else steps,
-        "data.image_size": int(value["dataset.image_size"]), "data.num_points": points, "eval.num_points": points,
+        "data.image_size": int(value["dataset.image_size"]),
+        "data.num_points": points,
+        "eval.num_points": points,
     }
     dataset = tree.get("dataset") if isinstance(tree.get("dataset"), Mapping) else {}
-    trained_on = " ".join(str(dataset[k]) for k in ("type", "category") if k in dataset) or "a data set its file does not name"
+    trained_on = (
+        " ".join(str(dataset[k]) for k in ("type", "category") if k in dataset) or "a data set its file does not name"
+    )
     step = raw.get("step", raw.get("steps"))
     co3d = {"data.mask_rgb": bool(value["dataset.mask_images"]), "data.exclude_sequences": True,
             "data.frames_per_sequence": 1, "data.drop_outliers": False}

@@ -81,9 +81,13 @@ class PriorNetwork(nn.Module):
         self.voxel_backend: VoxelBackend = resolve_voxel_backend(cfg.voxel_backend, device)
         self.denoiser: nn.Module
         if cfg.denoiser == "pvcnn2":
-            self.denoiser = PVCNN2Denoiser(0, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim)
+            self.denoiser = PVCNN2Denoiser(
+                0, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim
+            )
         else:
-            self.denoiser = PVCNNDenoiser(0, cfg.widths, cfg.voxel_resolutions, cfg.time_embed_dim, self.voxel_backend, cfg.devoxelize)
+            self.denoiser = PVCNNDenoiser(
+                0, cfg.widths, cfg.voxel_resolutions, cfg.time_embed_dim, self.voxel_backend, cfg.devoxelize
+            )
 
     def forward(self, x_t: Tensor, t: Tensor) -> Tensor:
         """``x_t (B, N, 3)`` world frame of the normalised object, ``t (B,)`` long → raw output ``(B, N, 3)``."""
@@ -117,11 +121,15 @@ def prior_config(config: Config, category: str) -> Config:
     (where every field is written) gives the same prior.
     """
     default = DiffusionConfig()
-    schedule = {f"diffusion.{k}": v for k, v in PRIOR_SCHEDULE.items() if getattr(config.diffusion, k) == getattr(default, k)}
+    schedule = {
+        f"diffusion.{k}": v for k, v in PRIOR_SCHEDULE.items() if getattr(config.diffusion, k) == getattr(default, k)
+    }
     return config.replace(**schedule, **{"data.categories": [category], "sampling.blend.enabled": False})
 
 
-def train_prior(config: Config, out_dir: str | Path, progress: Callable[[int, float], None] | None = None) -> PriorResult:
+def train_prior(
+    config: Config, out_dir: str | Path, progress: Callable[[int, float], None] | None = None
+) -> PriorResult:
     """Train a category prior on the ground-truth clouds of ``config``'s one category (from :func:`prior_config`).
 
     Uses ``train`` (steps, batch size, AdamW, warm-up + cosine, grad clip, seed, device, threads) and
@@ -151,7 +159,9 @@ def train_prior(config: Config, out_dir: str | Path, progress: Callable[[int, fl
         noise = torch.randn(x0.shape, generator=generator, device=device)
         loss = diffusion.loss(network(diffusion.q_sample(x0, steps_t, noise), steps_t), x0, noise, steps_t)
         if not torch.isfinite(loss):
-            raise TrainingDiverged(f"the category prior's loss became NaN or infinite at step {step}; lower train.lr (now {t.lr})")
+            raise TrainingDiverged(
+                f"the category prior's loss became NaN or infinite at step {step}; lower train.lr (now {t.lr})"
+            )
         optimiser.step(loss)
         window = (window + [loss.item()])[-t.log_every :]
         if progress is not None and ((step + 1) % t.log_every == 0 or step + 1 == t.steps):
@@ -212,7 +222,12 @@ def load_prior(path: str | Path, device: torch.device | str = "cpu", category: s
 
 # What shapes a prior's weights: every group but those of evaluation, sampling and the 3D/2D priors
 # (which change the images, not the clouds), and train fields that only say where and how it logs.
-_NOT_IN_KEY = {"eval": None, "sampling": None, "priors": None, "train": ("out_dir", "threads", "device", "eval_every", "log_every")}
+_NOT_IN_KEY = {
+    "eval": None,
+    "sampling": None,
+    "priors": None,
+    "train": ("out_dir", "threads", "device", "eval_every", "log_every"),
+}
 
 
 def _prior_key(config: Config) -> str:

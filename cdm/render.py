@@ -222,12 +222,16 @@ def _filter_and_crop(canvas: Tensor, footprint: _Footprint) -> Tensor:
     r = taps.shape[0]
     rows = torch.arange(out_size, device=canvas.device)[:, None]
     cols = (rows + torch.arange(width, device=canvas.device)[None, :]).expand(r, out_size, width)
-    bands = canvas.new_zeros(r, out_size, side).scatter_(2, cols, taps[:, None, :].expand(r, out_size, width).contiguous())
+    bands = canvas.new_zeros(r, out_size, side).scatter_(
+        2, cols, taps[:, None, :].expand(r, out_size, width).contiguous()
+    )
     left = bands @ canvas.unsqueeze(2)  # (M, C, R, S, S+2h)
     return ((left @ bands.transpose(1, 2)) * lam.view(r, 1, 1)).sum(dim=2)
 
 
-def _front_layer(z: Tensor, col: Tensor, row: Tensor, front: Tensor, side: int, half: int, depth_layer: float) -> Tensor:
+def _front_layer(
+    z: Tensor, col: Tensor, row: Tensor, front: Tensor, side: int, half: int, depth_layer: float
+) -> Tensor:
     """``(B, N)`` 1.0 for the points within ``depth_layer`` of their pixel's nearest surface, else 0.0.
 
     A pixel's nearest surface is the smallest depth among the in-front points whose footprint reaches
@@ -241,7 +245,9 @@ def _front_layer(z: Tensor, col: Tensor, row: Tensor, front: Tensor, side: int, 
     b = z.shape[0]
     inside = (col >= 0) & (col < side) & (row >= 0) & (row < side) & (front > 0)
     pixel = (row.clamp(0, side - 1).long() * side + col.clamp(0, side - 1).long())
-    zbuf = z.new_full((b, side * side), math.inf).scatter_reduce(1, pixel, torch.where(inside, z, math.inf), reduce="amin")
+    zbuf = z.new_full((b, side * side), math.inf).scatter_reduce(
+        1, pixel, torch.where(inside, z, math.inf), reduce="amin"
+    )
     window = 2 * half + 1
     nearest = -F.max_pool2d(-zbuf.view(b, 1, side, side), window, stride=1, padding=window // 2).view(b, -1)
     return (z <= nearest.gather(1, pixel) + depth_layer).to(z.dtype)
@@ -293,7 +299,9 @@ def splat_points(
     if kind not in ("depth", "planar"):
         raise ValueError(f"kind must be 'depth' or 'planar', got {kind!r}")
     if depth_layer is not None and (kind != "depth" or not depth_layer > 0.0):
-        raise ValueError(f"depth_layer must be None or > 0 and only with kind='depth', got {depth_layer!r} with {kind!r}")
+        raise ValueError(
+            f"depth_layer must be None or > 0 and only with kind='depth', got {depth_layer!r} with {kind!r}"
+        )
     b, n, _ = points.shape
     s = image_size
     proj = project_points(points, cameras, eps=Z_NEAR)

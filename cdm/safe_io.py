@@ -216,8 +216,10 @@ def _array_header(f: IO[bytes], label: str, path: Path, cap: int) -> tuple[tuple
         raise ValueError(f"{label}: {path} holds Python objects, refused (reading them would unpickle the file)")
     nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
     if nbytes > cap:
-        raise ValueError(f"{label}: {path} declares a {dtype} array of shape {tuple(shape)} ({nbytes / 2**30:.1f} GiB); "
-                         f"an array read here may hold at most {cap // 2**20} MiB")
+        raise ValueError(
+            f"{label}: {path} declares a {dtype} array of shape {tuple(shape)} ({nbytes / 2**30:.1f} GiB); "
+            f"an array read here may hold at most {cap // 2**20} MiB"
+        )
     return tuple(shape), dtype, nbytes
 
 

@@ -87,9 +87,18 @@ def _conditions(d: dict | None) -> ConditionViews | None:
 
 
 def _batch(d: dict) -> Batch:
-    return Batch(image=d["image"], mask=d["mask"], depth=d["depth"], prior_2d=d["prior_2d"],
-                 camera=Cameras(**d["camera"]), view_cameras=Cameras(**d["view_cameras"]), points=d["points"],
-                 category=tuple(d["category"]), object_id=tuple(d["object_id"]), conditions=_conditions(d["conditions"]))
+    return Batch(
+        image=d["image"],
+        mask=d["mask"],
+        depth=d["depth"],
+        prior_2d=d["prior_2d"],
+        camera=Cameras(**d["camera"]),
+        view_cameras=Cameras(**d["view_cameras"]),
+        points=d["points"],
+        category=tuple(d["category"]),
+        object_id=tuple(d["object_id"]),
+        conditions=_conditions(d["conditions"]),
+    )
 
 
 def _save(obj: object, path: Path) -> None:

@@ -113,7 +113,9 @@ class Pickled:
 
 
 def _may_call(name: str) -> bool:
-    return any(name == allowed or (allowed.endswith(".*") and name.startswith(allowed[:-1])) for allowed in CONFIG_CALLS)
+    return any(
+        name == allowed or (allowed.endswith(".*") and name.startswith(allowed[:-1])) for allowed in CONFIG_CALLS
+    )
 
 
 class _InertUnpickler(pickle.Unpickler):
@@ -162,7 +164,9 @@ def _load_inert(f, label: str, kind: str) -> Any:
         # torch's tensor rebuilders and records.
         return torch.load(f, map_location="cpu", weights_only=False, pickle_module=_inert_pickle)
     except pickle.UnpicklingError as exc:
-        raise ValueError(f"{label} could run code from the file while loading ({exc}); refused, and nothing of it was run. "
-                         f"Only tensors, plain data and a config ({', '.join(CONFIG_CALLS)}) are read") from None
+        raise ValueError(
+            f"{label} could run code from the file while loading ({exc}); refused, and nothing of it was run. "
+            f"Only tensors, plain data and a config ({', '.join(CONFIG_CALLS)}) are read"
+        ) from None
     except (RuntimeError, EOFError, TypeError, AttributeError) as exc:
         raise ValueError(f"{label} is not a readable {kind} ({exc})") from None

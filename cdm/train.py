@@ -106,7 +106,9 @@ def _check_compatible(state: Checkpoint, config: Config, network: CDMNetwork) ->
     differ += [f"diffusion.{k}" for k in now["diffusion"] if saved["diffusion"].get(k) != now["diffusion"][k]]
     differ += [f"data.{k}" for k in ("num_points", "image_size") if saved["data"].get(k) != now["data"][k]]
     if differ:
-        raise ValueError(f"resume: this run's {', '.join(differ)} differ from the checkpoint's; resume with the same settings")
+        raise ValueError(
+            f"resume: this run's {', '.join(differ)} differ from the checkpoint's; resume with the same settings"
+        )
 
 
 class Trainer:
@@ -185,7 +187,9 @@ class Trainer:
 
     def next_batch(self) -> Batch:
         if self.cfg.data.num_workers == 0:
-            idx = batch_indices(self.step * self.world + self.rank, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed)
+            idx = batch_indices(
+                self.step * self.world + self.rank, self.cfg.train.batch_size, len(self.train_set), self.cfg.train.seed
+            )
             return collate([self._samples.sample(i, epoch) for epoch, i in idx]).to(self.device)
         # Workers decode the coming steps' batches while this one trains. The batches are the same
         # function of the step as above, so results do not depend on data.num_workers; a loader is
@@ -237,10 +241,20 @@ class Trainer:
 
     def evaluate(self) -> tuple[dict[str, float], list[Path]]:
         if self._eval_set is None:
-            self._eval_set = (build_eval_set(self.cfg, self.val_set, self.train_set, self.cfg.eval.seed) if self.shared is None
-                              else self.shared.eval_set(self.cfg, self.val_set, self.train_set))
+            self._eval_set = (
+                build_eval_set(self.cfg, self.val_set, self.train_set, self.cfg.eval.seed)
+                if self.shared is None
+                else self.shared.eval_set(self.cfg, self.val_set, self.train_set)
+            )
         network = self.ema if self.ema is not None else self.network
-        out = run_evaluation(network, self.diffusion, self._eval_set, self.cfg, self.device, self.out_dir / "eval" / f"step_{self.step:07d}")
+        out = run_evaluation(
+            network,
+            self.diffusion,
+            self._eval_set,
+            self.cfg,
+            self.device,
+            self.out_dir / "eval" / f"step_{self.step:07d}",
+        )
         return out.metrics, out.files
 
     def save_checkpoint(self, keep: int = 2) -> Path:
@@ -342,5 +356,8 @@ def fit(
             break
         if trainer.step % t_cfg.eval_every == 0 or trainer.step == t_cfg.steps:
             metrics, checkpoint = _evaluate_and_save(trainer, callbacks)
-            window_start, cpu_start = time.perf_counter(), time.process_time()  # steps/s measures training, not evaluation
+            window_start, cpu_start = (
+                time.perf_counter(),
+                time.process_time(),
+            )  # steps/s measures training, not evaluation
     return FitResult(trainer.step, metrics, checkpoint)

@@ -32,7 +32,18 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["GENAI_ENTRIES", "PAGE_TEXT", "chromium_page", "first_screen", "free_port", "main", "mlflow_server", "pages", "shrink", "wait_http"]
+__all__ = [
+    "GENAI_ENTRIES",
+    "PAGE_TEXT",
+    "chromium_page",
+    "first_screen",
+    "free_port",
+    "main",
+    "mlflow_server",
+    "pages",
+    "shrink",
+    "wait_http",
+]
 
 
 STARTUP_S = 240.0
@@ -69,7 +80,9 @@ def wait_http(url: str, proc: subprocess.Popen, log: Path, headers: dict[str, st
         except (urllib.error.URLError, ConnectionError, TimeoutError) as exc:
             last = repr(exc)  # not listening yet, or busy starting
         time.sleep(0.5)
-    raise RuntimeError(f"{url} did not answer within {timeout_s:.0f} s (last: {last}); server log:\n{log.read_text()[-3000:]}")
+    raise RuntimeError(
+        f"{url} did not answer within {timeout_s:.0f} s (last: {last}); server log:\n{log.read_text()[-3000:]}"
+    )
 
 
 @contextmanager
@@ -102,7 +115,9 @@ def mlflow_server(uri: str, log: Path, artifacts: Path | None = None, grace_s: f
             server.wait()
 
 
-def chromium_page(chromium: str, url: str, screenshot: Path, profile: Path, width: int = 1600, height: int = 800) -> str:
+def chromium_page(
+    chromium: str, url: str, screenshot: Path, profile: Path, width: int = 1600, height: int = 800
+) -> str:
     """The DOM of ``url`` once the page has rendered (15 s of virtual time), and a screenshot of it."""
     profile.mkdir(parents=True, exist_ok=True)
     cmd = [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -147,7 +162,9 @@ class _Pipe:
     def call(self, method: str, params: dict | None = None, session: str | None = None, timeout: float = 60) -> dict:
         """Send one command and return its ``result`` (events in between are skipped)."""
         self._id += 1
-        message = {"id": self._id, "method": method, "params": params or {}} | ({"sessionId": session} if session else {})
+        message = {"id": self._id, "method": method, "params": params or {}} | (
+            {"sessionId": session} if session else {}
+        )
         os.write(self._to_child, json.dumps(message).encode() + b"\0")
         deadline = time.monotonic() + timeout
         while True:
@@ -212,12 +229,16 @@ def first_screen(chromium: str, url: str, texts: list[str], screenshot: Path, pr
         browser.call("Page.navigate", {"url": url}, session)
         probe = f"{json.dumps(texts if wait_for is None else wait_for)}.every(t => document.body && document.body.innerText.includes(t))"
         deadline = time.monotonic() + timeout
-        while not browser.call("Runtime.evaluate", {"expression": probe, "returnByValue": True}, session)["result"].get("value"):
+        while not browser.call("Runtime.evaluate", {"expression": probe, "returnByValue": True}, session)["result"].get(
+            "value"
+        ):
             if time.monotonic() > deadline:
                 break
             time.sleep(1)
         time.sleep(2)  # let the last layout pass settle (fonts, the table's column widths)
-        found = browser.call("Runtime.evaluate", {"expression": f"{_PLACE}({json.dumps(texts)})", "returnByValue": True}, session)
+        found = browser.call(
+            "Runtime.evaluate", {"expression": f"{_PLACE}({json.dumps(texts)})", "returnByValue": True}, session
+        )
         shot = browser.call("Page.captureScreenshot", {"format": "png"}, session)
         screenshot.write_bytes(base64.b64decode(shot["data"]))
         return dict(zip(texts, found["result"]["value"]))
@@ -233,8 +254,11 @@ def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: li
     ids = json.dumps(child_run_ids, separators=(",", ":"))
     return {
         "mlflow_sweep_view.png": f"{server}/{ui_link(f'#/experiments/{experiment_id}/runs?viewStateShareKey=sweep-{parent_run_id}')}",
-        "mlflow_compare.png": f"{server}/" + ui_link(f"#/compare-runs?runs={urllib.parse.quote(ids)}"
-                                                     f"&experiments={urllib.parse.quote(json.dumps([experiment_id]))}"),
+        "mlflow_compare.png": f"{server}/"
+        + ui_link(
+            f"#/compare-runs?runs={urllib.parse.quote(ids)}"
+            f"&experiments={urllib.parse.quote(json.dumps([experiment_id]))}"
+        ),
         "mlflow_parent_run.png": f"{server}/{ui_link(f'#/experiments/{experiment_id}/runs/{parent_run_id}')}",
         "mlflow_child_run.png": f"{server}/{ui_link(f'#/experiments/{experiment_id}/runs/{child_run_ids[0]}')}",
     }
@@ -243,8 +267,12 @@ def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: li
 GENAI_ENTRIES = ("Sessions", "Judges", "Evaluation runs", "Prompts", "AI Gateway", "Agent versions")
 """Entries of MLflow 3's GenAI navigation that its model-training navigation (Runs, Models, Traces) lacks."""
 
-PAGE_TEXT = {"mlflow_sweep_view.png": "vs reference", "mlflow_compare.png": "Comparing", "mlflow_parent_run.png": "About this run",
-             "mlflow_child_run.png": "About this run"}
+PAGE_TEXT = {
+    "mlflow_sweep_view.png": "vs reference",
+    "mlflow_compare.png": "Comparing",
+    "mlflow_parent_run.png": "About this run",
+    "mlflow_child_run.png": "About this run",
+}
 """The text each page of :func:`pages` shows once it has rendered its data; every page is shot as its
 first screen at 1,280 × 800 (:func:`first_screen`) in a fresh profile, MLflow's default panels open
 (the Assistant too): what a reader sees unscrolled on a first visit."""
@@ -265,7 +293,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="docs/screenshots.py", description=__doc__.split("\n\n")[0])
     p.add_argument("--tracking-uri", required=True, help="the sweep's MLflow store, e.g. sqlite:////abs/mlflow.db")
     p.add_argument("--experiment", default="point_size", help="the sweep's experiment (= its spec's name)")
-    p.add_argument("--out", type=Path, default=Path(__file__).resolve().parent, help="folder for the PNGs (default: docs/)")
+    p.add_argument(
+        "--out", type=Path, default=Path(__file__).resolve().parent, help="folder for the PNGs (default: docs/)"
+    )
     args = p.parse_args(argv)
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     from mlflow import MlflowClient
@@ -292,8 +322,11 @@ def main(argv: list[str] | None = None) -> int:
                 # Each page's first screen once the text a reader looks for is in it, in a fresh profile.
                 first_screen(chromium, url, [PAGE_TEXT[name]], tmp / name, Path(tempfile.mkdtemp(dir=tmp)))
                 print(shrink(tmp / name, args.out / name))
-        for artifact, name in (("reconstructions/reconstructions.html", None), ("plots/metric_vs_value.png", "metric_vs_value.png"),
-                               ("reconstructions/reconstructions.png", "reconstructions.png")):
+        for artifact, name in (
+            ("reconstructions/reconstructions.html", None),
+            ("plots/metric_vs_value.png", "metric_vs_value.png"),
+            ("reconstructions/reconstructions.png", "reconstructions.png"),
+        ):
             local = Path(client.download_artifacts(parent, artifact, str(tmp)))
             if name is None:
                 chromium_page(chromium, local.as_uri(), tmp / "viewer.png", tmp, 1600, 700)

@@ -108,9 +108,11 @@ def _status(args: argparse.Namespace, views: Path, prepared: Path) -> None:
     """What is done and what remains, before anything runs."""
     shards = sum(1 for _ in prepared.rglob("*.shard")) if prepared.is_dir() else 0
     maps = sum(1 for _ in Path(args.depth_out).rglob("*.npy")) if Path(args.depth_out).is_dir() else 0
-    print(f"MSN weights: {'present' if (Path(args.inputs) / MSN_FILE).is_file() else 'missing'}; "
-          f"shards: {shards} in {prepared}; views: {'exported' if (views / 'objects.json').is_file() else 'to export'}; "
-          f"depth maps: {maps} in {args.depth_out}")
+    print(
+        f"MSN weights: {'present' if (Path(args.inputs) / MSN_FILE).is_file() else 'missing'}; "
+        f"shards: {shards} in {prepared}; views: {'exported' if (views / 'objects.json').is_file() else 'to export'}; "
+        f"depth maps: {maps} in {args.depth_out}"
+    )
 
 
 def _all(args: argparse.Namespace) -> tuple[list, str | None]:
@@ -135,13 +137,19 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--root", required=True, help="the data set as published")
     data.add_argument("--out", required=True, help="folder for the prepared shards; rerun to resume")
     data.add_argument("--image-size", type=int, default=224, help="side of the stored crops in pixels (default 224)")
-    data.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]")
+    data.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]"
+    )
     model = argparse.ArgumentParser(add_help=False)
-    model.add_argument("--model", required=True, help="depth model: a local folder, or a hub id where the hub is reachable")
+    model.add_argument(
+        "--model", required=True, help="depth model: a local folder, or a hub id where the hub is reachable"
+    )
     model.add_argument("--output", choices=("depth", "disparity"), help="what the model outputs, where not known")
     model.add_argument("--batch-size", type=int, default=8, help="crops per forward pass (default 8)")
     ray_ = argparse.ArgumentParser(add_help=False)
-    ray_.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
+    ray_.add_argument(
+        "--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)"
+    )
     sub.add_parser("prepare", parents=[data, ray_], help="python -m cdm prepare, as Ray tasks")
     p = sub.add_parser("depth", parents=[model, ray_], help="python -m cdm.tools.estimate_depth, as Ray tasks")
     p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")

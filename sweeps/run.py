@@ -34,14 +34,36 @@ from sweeps.execute.precompute import check_space, shared_root
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.preflight import check_inputs, dry_run, estimate_line
-from sweeps.plan.limits import LISTED_TRIALS, MAX_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
+from sweeps.plan.limits import (
+    LISTED_TRIALS,
+    MAX_TRIALS,
+    LimitError,
+    check_progress,
+    check_set_text,
+    check_trials,
+    count_trials,
+)
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.resources import plan_concurrency
 from sweeps.plan.budget import SeedBudget, budget_option
 from sweeps.plan.spec import Spec, SpecError, load_spec
 from sweeps.plan.trials import SweepPlan, expand
-from sweeps.storage import (TRUST_FLAG, StoreError, check_no_links, check_parent_run, check_resume_trust, check_storage, check_tracking_uri,
-                            exists, is_uri, parse_state, publish_files, read_text, record_digest, sweep_location)
+from sweeps.storage import (
+    TRUST_FLAG,
+    StoreError,
+    check_no_links,
+    check_parent_run,
+    check_resume_trust,
+    check_storage,
+    check_tracking_uri,
+    exists,
+    is_uri,
+    parse_state,
+    publish_files,
+    read_text,
+    record_digest,
+    sweep_location,
+)
 
 __all__ = ["main"]
 
@@ -53,26 +75,49 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("spec", type=Path, nargs="?", help="sweep spec, e.g. sweeps/point_size.yaml")
     p.add_argument("--profile", default=None, help="profile in sweeps/profiles.yaml or the spec (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
-    p.add_argument("--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials")
-    p.add_argument(TRUST_FLAG, action="store_true",
-                   help="with --resume: unpickle Tune's state even where others could have written it (docs/security.md)")
-    p.add_argument("--until-settled", action="store_true",
-                   help="run seeds until each cell's comparison settles: a list of seeds becomes {min: 2, max: 5} (docs/sweeps.md, Seeds until settled)")
+    p.add_argument(
+        "--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials"
+    )
+    p.add_argument(
+        TRUST_FLAG,
+        action="store_true",
+        help="with --resume: unpickle Tune's state even where others could have written it (docs/security.md)",
+    )
+    p.add_argument(
+        "--until-settled",
+        action="store_true",
+        help="run seeds until each cell's comparison settles: a list of seeds becomes {min: 2, max: 5} (docs/sweeps.md, Seeds until settled)",
+    )
     p.add_argument("--budget", default=None, metavar="2h|45m|30s|N",
                    help="with seeds until settled: no seed starts past this wall time, or past N trials")
-    p.add_argument("--dry-run", action="store_true", help="print the trials, the resource plan and the protocol card; start nothing")
-    p.add_argument("--no-estimate", action="store_true", help="with --dry-run: skip the cost estimate's calibration steps")
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the trials, the resource plan and the protocol card; start nothing",
+    )
+    p.add_argument(
+        "--no-estimate", action="store_true", help="with --dry-run: skip the cost estimate's calibration steps"
+    )
     p.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every trial")
     p.add_argument("--storage", default="results",
                    help="parent folder of sweep folders: a path (shared by every node on a cluster) or a URI "
                         "(s3://, gs://, file://) (default: ./results)")
     p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
-    p.add_argument("--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record")
-    p.add_argument("--force", action="store_true", help="with --rerun: run even if the code or config differs from the record")
+    p.add_argument(
+        "--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record"
+    )
+    p.add_argument(
+        "--force", action="store_true", help="with --rerun: run even if the code or config differs from the record"
+    )
     p.add_argument("--max-cells", type=int, default=MAX_TRIALS, metavar="N",
                    help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; docs/security.md)")
-    p.add_argument("--report", metavar="EXPERIMENT", default=None, help="rebuild the results table and plots of this finished sweep from MLflow")
+    p.add_argument(
+        "--report",
+        metavar="EXPERIMENT",
+        default=None,
+        help="rebuild the results table and plots of this finished sweep from MLflow",
+    )
     return p
 
 
@@ -124,9 +169,16 @@ def main(argv: list[str] | None = None) -> int:
         from sweeps.results.rerun import RerunError, rerun
 
         if is_uri(args.storage):
-            return _fail(f"--rerun trains in this process and writes its files here: give --storage a local folder, not {args.storage}")
+            return _fail(
+                f"--rerun trains in this process and writes its files here: give --storage a local folder, not {args.storage}"
+            )
         try:
-            return rerun(args.rerun, resolve_tracking_uri(args.tracking_uri), (Path(args.storage) / "reruns").resolve(), args.force)
+            return rerun(
+                args.rerun,
+                resolve_tracking_uri(args.tracking_uri),
+                (Path(args.storage) / "reruns").resolve(),
+                args.force,
+            )
         except RerunError as exc:
             return _fail(str(exc))
     if args.smoke and args.profile not in (None, "smoke"):
@@ -152,13 +204,17 @@ def main(argv: list[str] | None = None) -> int:
             if sets:
                 return _fail("--resume continues a sweep with the spec and --set values it started with; drop --set")
             if args.until_settled or args.budget is not None:
-                return _fail("--resume continues a sweep with the seeds and budget it started with; drop --until-settled and --budget")
+                return _fail(
+                    "--resume continues a sweep with the seeds and budget it started with; drop --until-settled and --budget"
+                )
             # The spec as it started, even if the file was edited since: trials must stay the same.
             state = parse_state(read_text(state_file), state_file)
             try:
                 spec, sets = Spec.model_validate(state["spec"]), state["sets"]
             except ValidationError as exc:
-                return _fail(f"--resume: {state_file} is damaged ({' '.join(str(exc).split())}); remove the folder to start over")
+                return _fail(
+                    f"--resume: {state_file} is damaged ({' '.join(str(exc).split())}); remove the folder to start over"
+                )
         if args.until_settled:
             spec = spec.until_settled()
         budget = budget_option((state or {}).get("budget") if args.resume else args.budget)
@@ -198,7 +254,9 @@ def main(argv: list[str] | None = None) -> int:
             return _fail(str(exc))
         if not args.resume and exists(sweep_dir):
             held.release()
-            return _fail(f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over")
+            return _fail(
+                f"{sweep_dir} already holds a sweep: pass --resume to continue it, or remove the folder to start over"
+            )
         if args.resume:
             try:  # under the claim: no other copy of this runner rewrites Tune's state meanwhile
                 if not args.trust_storage:
@@ -236,8 +294,16 @@ def _local_concurrency(plan: SweepPlan) -> int:
         return 1
 
 
-def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: str, stored: dict, sets: dict, remote: bool,
-         held: SweepClaim) -> int:
+def _run(
+    plan: SweepPlan,
+    args: argparse.Namespace,
+    sweep_dir: str,
+    state_file: str,
+    stored: dict,
+    sets: dict,
+    remote: bool,
+    held: SweepClaim,
+) -> int:
     # The results table downloads each trial's per-object scores: no progress bar per small file.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
@@ -270,9 +336,11 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     try:
         machines = cluster_machines(remote)
         if uri.startswith("sqlite:") and machines > 1:
-            return _fail(f"MLflow store {uri}: this cluster spans (or may grow to) {machines} machines and trials on the others "
-                         "cannot write a SQLite file here; start an MLflow server every node reaches (`mlflow server "
-                         "--host <private ip> --port 5000 …`, cluster/README.md) and pass --tracking-uri http://<private ip>:5000")
+            return _fail(
+                f"MLflow store {uri}: this cluster spans (or may grow to) {machines} machines and trials on the others "
+                "cannot write a SQLite file here; start an MLflow server every node reaches (`mlflow server "
+                "--host <private ip> --port 5000 …`, cluster/README.md) and pass --tracking-uri http://<private ip>:5000"
+            )
         capacity = cluster_capacity(remote)
         try:
             conc = plan_concurrency(plan.profile.resources, capacity["CPU"], capacity["GPU"], plan.num_trials, remote)
@@ -290,8 +358,14 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                         **({"budget": args.budget} if args.budget else {})},
             )
             staging.mkdir(parents=True, exist_ok=True)
-            state = {"spec": plan.spec.model_dump(mode="json"), "sets": sets, "profile": plan.profile.name, "budget": args.budget,
-                     "tracking_uri": uri, "parent_run_id": sweep_run.run_id}
+            state = {
+                "spec": plan.spec.model_dump(mode="json"),
+                "sets": sets,
+                "profile": plan.profile.name,
+                "budget": args.budget,
+                "tracking_uri": uri,
+                "parent_run_id": sweep_run.run_id,
+            }
             _write_new(staging / STATE_FILE, json.dumps(state, indent=2))
             plan_file = staging / "plan.json"
             _write_new(plan_file, json.dumps(
@@ -311,11 +385,16 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             now = conc
             if remote:  # sized above by the most the cluster could offer; the estimate wants the nodes up now
                 try:
-                    now = plan_concurrency(plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials)
+                    now = plan_concurrency(
+                        plan.profile.resources, cluster.get("CPU", 0.0), cluster.get("GPU", 0.0), plan.num_trials
+                    )
                 except SpecError:  # no node up fits a trial before the autoscaler adds one
                     now = None
             if now is None:
-                print("estimate: none — no node up yet fits one trial; trials wait for the autoscaler to add one", flush=True)
+                print(
+                    "estimate: none — no node up yet fits one trial; trials wait for the autoscaler to add one",
+                    flush=True,
+                )
             else:
                 try:
                     predicted = estimate_line(plan, cluster.get("CPU", 1.0), now.max_concurrent,
@@ -333,8 +412,16 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             round_of=(lambda t: plan.round_of(plan.grid_cell(t.config["cell"]))) if plan.sequential else None)
         budget = budget_option(stored.get("budget") if args.resume else args.budget)
         try:
-            outcomes = run_sweep(plan, conc, sweep_dir, sweep_run, args.resume, remote, callbacks=[progress] if progress else [],
-                                 budget=budget)
+            outcomes = run_sweep(
+                plan,
+                conc,
+                sweep_dir,
+                sweep_run,
+                args.resume,
+                remote,
+                callbacks=[progress] if progress else [],
+                budget=budget,
+            )
         finally:
             if progress is not None:
                 progress.close()
@@ -351,8 +438,10 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
                             compare_to=plan.spec.compare_to, settings=_settings(plan), settled=settled)
         md, csv = table.write(staging)
         sweep_run.log_artifacts([md, csv])
-        sweep_run.log_results(baselines_by_eval_set(outcomes),
-                              describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table, plan_card(plan).lines()))
+        sweep_run.log_results(
+            baselines_by_eval_set(outcomes),
+            describe_sweep(plan.spec, plan.profile.name, plan.profile.description, table, plan_card(plan).lines()),
+        )
         view = publish(uri, sweep_run.run_id, staging / "plots")
         if is_uri(sweep_dir):
             publish_files(staging, sweep_dir)
@@ -369,9 +458,12 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
             shared = shared_root(sweep_dir, remote)
             if shared is not None:
                 shutil.rmtree(shared, ignore_errors=True)
-            return _fail(f"no space left on the device of {sweep_dir}" + (f" (removed the shared cache {shared})" if shared else "")
-                         + f": {one_line(exc)[:200]}; free space, then resume with: "
-                         + resume_command(args.spec, plan.profile.name, args.storage))
+            return _fail(
+                f"no space left on the device of {sweep_dir}"
+                + (f" (removed the shared cache {shared})" if shared else "")
+                + f": {one_line(exc)[:200]}; free space, then resume with: "
+                + resume_command(args.spec, plan.profile.name, args.storage)
+            )
         raise
     finally:
         signal.signal(signal.SIGTERM, previous_sigterm)
@@ -380,7 +472,11 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
         if is_uri(sweep_dir):
             shutil.rmtree(staging)
     # The card was printed before the trials: the terminal's table leaves it to results.md.
-    shown = replace(table, notes=[n for n in table.notes if not n.startswith(PROTOCOL_NOTE)] + ["protocol card: printed above, and in results.md"])
+    shown = replace(
+        table,
+        notes=[n for n in table.notes if not n.startswith(PROTOCOL_NOTE)]
+        + ["protocol card: printed above, and in results.md"],
+    )
     print("\n" + shown.text() + "\n")
     if predicted is not None:
         print(f"time: estimated ~{predicted.wall_s / 60:.1f} min, took {took / 60:.1f} min "
@@ -388,7 +484,9 @@ def _run(plan: SweepPlan, args: argparse.Namespace, sweep_dir: str, state_file: 
     print(f"results: {sweep_dir}/{md.name} and {sweep_dir}/{csv.name}")
     print(f"MLflow: {_ui_hint(uri, view)}")
     if unfinished:
-        print(f"some trials did not finish; continue with: {resume_command(args.spec, plan.profile.name, args.storage)}")
+        print(
+            f"some trials did not finish; continue with: {resume_command(args.spec, plan.profile.name, args.storage)}"
+        )
     return 0 if any(o.finished for o in outcomes) else 1
 
 

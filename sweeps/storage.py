@@ -38,8 +38,27 @@ from typing import Any
 
 from sweeps.store_retry import StoreBusy, check_not_locked
 
-__all__ = ["MAX_NAME", "TRACKING_SCHEMES", "StoreError", "check_name", "check_no_links", "check_parent_run", "check_storage", "check_tracking_uri", "exists",
-           "check_resume_trust", "is_uri", "parse_state", "private_folder", "record_digest", "write_file", "write_private", "publish_files", "read_text", "sweep_location"]
+__all__ = [
+    "MAX_NAME",
+    "TRACKING_SCHEMES",
+    "StoreError",
+    "check_name",
+    "check_no_links",
+    "check_parent_run",
+    "check_storage",
+    "check_tracking_uri",
+    "exists",
+    "check_resume_trust",
+    "is_uri",
+    "parse_state",
+    "private_folder",
+    "record_digest",
+    "write_file",
+    "write_private",
+    "publish_files",
+    "read_text",
+    "sweep_location",
+]
 
 MAX_NAME = 100
 """Longest spec, profile or data set name: one path component, well under the 255 bytes of a file name."""
@@ -69,7 +88,9 @@ def _writable_folder(path: Path, what: str) -> None:
     try:
         fd, name = tempfile.mkstemp(prefix=".cdm-write-probe-", dir=probe)
     except OSError as exc:
-        raise StoreError(f"{what} {path}: cannot write in {probe} ({exc.strerror}); choose a folder you can write") from None
+        raise StoreError(
+            f"{what} {path}: cannot write in {probe} ({exc.strerror}); choose a folder you can write"
+        ) from None
     os.close(fd)
     os.unlink(name)
 
@@ -125,7 +146,9 @@ def check_parent_run(uri: str, run_id: str) -> None:
     """Refuse ``--resume`` when the store ``uri`` lacks the sweep's parent run ``run_id``; a SQLite file or
     store folder that does not exist is not created to find out."""
     split = urllib.parse.urlsplit(uri)
-    local = uri.removeprefix("sqlite:///") if split.scheme == "sqlite" else split.path if split.scheme == "file" else None
+    local = (
+        uri.removeprefix("sqlite:///") if split.scheme == "sqlite" else split.path if split.scheme == "file" else None
+    )
     if local is not None and not Path(local).exists():
         raise StoreError(f"--resume: the MLflow store {uri} does not exist, so it lacks the sweep's parent run "
                          f"{run_id}; pass the --tracking-uri the sweep started with")
@@ -272,12 +295,16 @@ def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, mode)
     except OSError as exc:
         if exc.errno == errno.ELOOP:
-            raise StoreError(f"{path}: a symbolic link where this sweep writes a file; remove it (a write never follows one)") from None
+            raise StoreError(
+                f"{path}: a symbolic link where this sweep writes a file; remove it (a write never follows one)"
+            ) from None
         raise
     with os.fdopen(fd, "wb" if isinstance(text, bytes) else "w") as out:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
-            raise StoreError(f"{path}: not a plain file with one name ({info.st_nlink} links) where this sweep writes a file; remove it")
+            raise StoreError(
+                f"{path}: not a plain file with one name ({info.st_nlink} links) where this sweep writes a file; remove it"
+            )
         os.ftruncate(fd, 0)
         out.write(text)
 
@@ -308,7 +335,9 @@ def read_text(location: str) -> str:
         with filesystem.open_input_stream(path) as stream:
             raw = stream.read(size + 1)
     if size is None or size > MAX_STATE_BYTES or len(raw) > MAX_STATE_BYTES:
-        raise StoreError(f"--resume: {location} is over {MAX_STATE_BYTES} bytes, not a sweep's record; remove the folder to start over")
+        raise StoreError(
+            f"--resume: {location} is over {MAX_STATE_BYTES} bytes, not a sweep's record; remove the folder to start over"
+        )
     return raw.decode(errors="replace")  # a damaged file fails as JSON, with its name
 
 

@@ -221,7 +221,9 @@ def make_co3d(root: Path, categories=("teddybear", "hydrant"), frames: int = 6, 
         frame_entries, seq_entries, set_lists = [], [], {"train": [], "val": [], "test": []}
         tree.sequences[category] = {}
         for split, count in (splits or CO3D_SPLITS).items():
-            names = [f"{rng.integers(100, 999)}_{rng.integers(10000, 99999)}_{k}" for k in range(count + (split == "train"))]
+            names = [
+                f"{rng.integers(100, 999)}_{rng.integers(10000, 99999)}_{k}" for k in range(count + (split == "train"))
+            ]
             given = (sequence_names or {}).get(split, [])
             names[: len(given)] = given
             tree.sequences[category][split] = names[:count]
@@ -230,12 +232,25 @@ def make_co3d(root: Path, categories=("teddybear", "hydrant"), frames: int = 6, 
                 if not has_cloud:
                     tree.no_cloud[category] = seq
                 size = (72, 96) if index % 2 == 0 else (88, 64)
-                entries = _co3d_sequence(folder, category, seq, rng, frames, size, upscale, tree.scale_adjustment, has_cloud)
+                entries = _co3d_sequence(
+                    folder, category, seq, rng, frames, size, upscale, tree.scale_adjustment, has_cloud
+                )
                 frame_entries += entries
                 set_lists[split] += [[seq, e["frame_number"], e["image"]["path"]] for e in entries]
-                cloud = {"path": f"{category}/{seq}/pointcloud.ply", "quality_score": 1.0, "n_points": 6010} if has_cloud else None
-                seq_entries.append({"sequence_name": seq, "category": category, "video": {"path": f"{category}/{seq}/video.mp4", "length": frames},
-                                    "point_cloud": cloud, "viewpoint_quality_score": 1.0})
+                cloud = (
+                    {"path": f"{category}/{seq}/pointcloud.ply", "quality_score": 1.0, "n_points": 6010}
+                    if has_cloud
+                    else None
+                )
+                seq_entries.append(
+                    {
+                        "sequence_name": seq,
+                        "category": category,
+                        "video": {"path": f"{category}/{seq}/video.mp4", "length": frames},
+                        "point_cloud": cloud,
+                        "viewpoint_quality_score": 1.0,
+                    }
+                )
         (folder / "frame_annotations.jgz").write_bytes(gzip.compress(json.dumps(frame_entries).encode()))
         (folder / "sequence_annotations.jgz").write_bytes(gzip.compress(json.dumps(seq_entries).encode()))
         (folder / "set_lists").mkdir()
@@ -254,7 +269,11 @@ def _co3d_sequence(folder: Path, category: str, seq: str, rng: np.random.Generat
         (seq_dir / sub).mkdir(parents=True, exist_ok=True)
     if has_cloud:
         outliers = centre + rng.normal(0, 40, (10, 3))  # Co3D clouds carry a few stray points
-        write_ply(seq_dir / "pointcloud.ply", np.concatenate([world, outliers]), np.concatenate([colour, np.zeros((10, 3), np.uint8)]))
+        write_ply(
+            seq_dir / "pointcloud.ply",
+            np.concatenate([world, outliers]),
+            np.concatenate([colour, np.zeros((10, 3), np.uint8)]),
+        )
     h, w = size
     focal = [2.2, 2.2 * 1.04]
     principal = [0.04, -0.03]
@@ -272,7 +291,10 @@ def _co3d_sequence(folder: Path, category: str, seq: str, rng: np.random.Generat
         stored = (depth / scale_adjustment).astype(np.float16).view(np.uint16)
         if upscale > 1:
             big = (w * upscale, h * upscale)
-            image, mask = cv2.resize(image, big, interpolation=cv2.INTER_LINEAR), cv2.resize(mask, big, interpolation=cv2.INTER_NEAREST)
+            image, mask = (
+                cv2.resize(image, big, interpolation=cv2.INTER_LINEAR),
+                cv2.resize(mask, big, interpolation=cv2.INTER_NEAREST),
+            )
             stored = cv2.resize(stored, big, interpolation=cv2.INTER_NEAREST)
         number = k + 1
         name = f"frame{number:06d}"

@@ -42,8 +42,15 @@ def run_command(args: list[str], cwd: Path, timeout: float = 120, env: dict[str,
     """``python *args`` (e.g. ``["-m", "cdm", "prepare", ...]``) from ``cwd`` with this checkout first on the path."""
     rss_file = cwd / f".rss-{os.getpid()}"
     environ = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {})}
-    proc = subprocess.Popen([sys.executable, "-c", _MEASURE, str(rss_file), sys.executable, *args], cwd=cwd, env=environ,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _MEASURE, str(rss_file), sys.executable, *args],
+        cwd=cwd,
+        env=environ,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:

@@ -20,7 +20,9 @@ def object_ids(cfg: Config) -> list[str]:
     return [ref.object_id for split in ("train", "val") for ref in build_dataset(cfg, split).objects]
 
 
-def write_embeddings(path: Path, ids: list[str], shape: tuple[int, ...] = (12,), seed: int = 0) -> dict[str, np.ndarray]:
+def write_embeddings(
+    path: Path, ids: list[str], shape: tuple[int, ...] = (12,), seed: int = 0
+) -> dict[str, np.ndarray]:
     """One random float32 array of ``shape`` per id, as ``numpy.savez`` keyed by object id."""
     rng = np.random.default_rng(seed)
     arrays = {o: rng.standard_normal(shape).astype(np.float32) for o in ids}
@@ -29,7 +31,9 @@ def write_embeddings(path: Path, ids: list[str], shape: tuple[int, ...] = (12,),
     return arrays
 
 
-def write_condition_images(folder: Path, ids: list[str], views: int, size: int = 32, rounds: int = 1, seed: int = 0) -> None:
+def write_condition_images(
+    folder: Path, ids: list[str], views: int, size: int = 32, rounds: int = 1, seed: int = 0
+) -> None:
     """``<id>/<round>/<view>.png`` for views ``0 … views``: a plain colour per image (view index in red)."""
     rng = np.random.default_rng(seed)
     for o in ids:
@@ -38,7 +42,9 @@ def write_condition_images(folder: Path, ids: list[str], views: int, size: int =
             for v in range(views + 1):
                 colour = np.array([40 * v, *rng.integers(0, 256, 2)], dtype=np.uint8)  # RGB
                 image = np.broadcast_to(colour, (size, size, 3))
-                cv2.imwrite(str(folder / o / str(r) / f"{v}.png"), cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
+                cv2.imwrite(
+                    str(folder / o / str(r) / f"{v}.png"), cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
+                )
 
 
 def paper_inputs(folder: Path, depth_cfg: Config | None = None) -> Path:

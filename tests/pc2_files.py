@@ -22,19 +22,55 @@ import torch
 from cdm.model import PVCNN2Denoiser, ViTS16
 
 PC2_CFG: dict[str, dict[str, Any]] = {  # PC²'s experiments/config/structured.py, the groups a checkpoint's cfg holds
-    "run": {"name": "hydrant", "job": "train", "mixed_precision": "fp16", "seed": 42, "max_steps": 100_000,
-            "num_inference_steps": 1000, "diffusion_scheduler": "ddpm", "sample_from_ema": False,
-            "limit_train_batches": None},
-    "dataset": {"type": "co3dv2", "root": "/data/co3d", "category": "hydrant", "subset_name": "fewview_dev",
-                "eval_split": "val", "max_points": 16_384, "image_size": 224, "scale_factor": 1.0,
-                "mask_images": "${model.use_mask}"},
-    "model": {"image_size": "${dataset.image_size}", "image_feature_model": "vit_small_patch16_224_msn",
-              "use_local_colors": True, "use_local_features": True, "use_global_features": False, "use_mask": True,
-              "use_distance_transform": True, "scale_factor": "${dataset.scale_factor}", "colors_mean": 0.5,
-              "colors_std": 0.5, "color_channels": 3, "predict_shape": True, "predict_color": False,
-              "beta_start": 1e-5, "beta_end": 8e-3, "beta_schedule": "linear", "point_cloud_model": "pvcnn",
-              "point_cloud_model_embed_dim": 64},
-    "optimizer": {"type": "torch", "name": "AdamW", "lr": 1e-3, "weight_decay": 1e-6, "kwargs": {"betas": [0.95, 0.999]}},
+    "run": {
+        "name": "hydrant",
+        "job": "train",
+        "mixed_precision": "fp16",
+        "seed": 42,
+        "max_steps": 100_000,
+        "num_inference_steps": 1000,
+        "diffusion_scheduler": "ddpm",
+        "sample_from_ema": False,
+        "limit_train_batches": None,
+    },
+    "dataset": {
+        "type": "co3dv2",
+        "root": "/data/co3d",
+        "category": "hydrant",
+        "subset_name": "fewview_dev",
+        "eval_split": "val",
+        "max_points": 16_384,
+        "image_size": 224,
+        "scale_factor": 1.0,
+        "mask_images": "${model.use_mask}",
+    },
+    "model": {
+        "image_size": "${dataset.image_size}",
+        "image_feature_model": "vit_small_patch16_224_msn",
+        "use_local_colors": True,
+        "use_local_features": True,
+        "use_global_features": False,
+        "use_mask": True,
+        "use_distance_transform": True,
+        "scale_factor": "${dataset.scale_factor}",
+        "colors_mean": 0.5,
+        "colors_std": 0.5,
+        "color_channels": 3,
+        "predict_shape": True,
+        "predict_color": False,
+        "beta_start": 1e-5,
+        "beta_end": 8e-3,
+        "beta_schedule": "linear",
+        "point_cloud_model": "pvcnn",
+        "point_cloud_model_embed_dim": 64,
+    },
+    "optimizer": {
+        "type": "torch",
+        "name": "AdamW",
+        "lr": 1e-3,
+        "weight_decay": 1e-6,
+        "kwargs": {"betas": [0.95, 0.999]},
+    },
 }
 
 
@@ -95,10 +131,14 @@ def write_pc2_checkpoint(path: Path, *, width: float = 1.0, cfg: dict | None = N
     ``cfg`` when given. Returns the model state dict written."""
     g = torch.Generator().manual_seed(seed)
     pvcnn2 = PVCNN2Denoiser(389, width, width)  # S = RGB 3 + ViT 384 + mask 1 + distance 1
-    model = {f"point_cloud_model.model.{k}": torch.randn(v.shape, generator=g) * 0.05 for k, v in pvcnn2.state_dict().items()}
+    model = {
+        f"point_cloud_model.model.{k}": torch.randn(v.shape, generator=g) * 0.05 for k, v in pvcnn2.state_dict().items()
+    }
     for k, v in ViTS16().state_dict().items():
         weight = torch.randn(v.shape, generator=g) * 0.05
-        model[f"feature_model.model.{k}"] = weight + 1.0 if k.endswith(("norm1.weight", "norm2.weight", "norm.weight")) else weight
+        model[f"feature_model.model.{k}"] = (
+            weight + 1.0 if k.endswith(("norm1.weight", "norm2.weight", "norm.weight")) else weight
+        )
     checkpoint = {"model": model, "optimizer": {"state": {}, "param_groups": [{"lr": 1e-3, "params": [0, 1]}]},
                   "scheduler": {"last_epoch": 100_000, "_last_lr": [0.0]}, "epoch": 12, "step": 100_000,
                   "best_val": None, "model_ema": {}}

@@ -99,7 +99,11 @@ def test_the_import_reader_sees_lazy_relative_and_type_checking_imports(tmp_path
         "def f():\n    from .c import thing\n    import cdm.d.e\n"
     )
     monkeypatch.setattr(f"{__name__}.ROOT", tmp_path)
-    assert _imported(package / "a.py", "cdm.a", {"cdm", "cdm.a", "cdm.b", "cdm.c", "cdm.d", "cdm.d.e"}) == {"cdm.b", "cdm.c", "cdm.d.e"}
+    assert _imported(package / "a.py", "cdm.a", {"cdm", "cdm.a", "cdm.b", "cdm.c", "cdm.d", "cdm.d.e"}) == {
+        "cdm.b",
+        "cdm.c",
+        "cdm.d.e",
+    }
 
 
 def test_no_import_cycle_in_cdm_or_sweeps():
@@ -188,7 +192,9 @@ def test_every_arrow_of_the_architecture_doc_is_an_import():
         sources, targets = _doc_modules(importer, modules), _doc_modules(imported, modules)
         if not sources or not targets or not any(graph[s] & (targets - sources) for s in sources):
             false.append(f"line {number}: {importer or '?'} {ARROW} {imported or '?'}")
-    assert not false, "arrows of docs/ARCHITECTURE.md with no import behind them (A ─► B: A imports B):\n" + "\n".join(false)
+    assert not false, "arrows of docs/ARCHITECTURE.md with no import behind them (A ─► B: A imports B):\n" + "\n".join(
+        false
+    )
 
 
 STAGES = ("plan", "compare", "execute", "results")
@@ -218,9 +224,16 @@ def _backward_arrows(graph: dict[str, set[str]]) -> list[str]:
 
 
 def test_the_stage_check_catches_an_import_from_a_later_stage():
-    graph = {"sweeps.plan.spec": {"sweeps.execute.trial"}, "sweeps.execute.trial": {"sweeps.plan.spec", "sweeps.storage"},
-             "sweeps.storage": {"sweeps.compare.table"}, "sweeps.run": {"sweeps.results.report"}}
-    assert _backward_arrows(graph) == ["sweeps.plan.spec ─► sweeps.execute.trial", "sweeps.storage ─► sweeps.compare.table"]
+    graph = {
+        "sweeps.plan.spec": {"sweeps.execute.trial"},
+        "sweeps.execute.trial": {"sweeps.plan.spec", "sweeps.storage"},
+        "sweeps.storage": {"sweeps.compare.table"},
+        "sweeps.run": {"sweeps.results.report"},
+    }
+    assert _backward_arrows(graph) == [
+        "sweeps.plan.spec ─► sweeps.execute.trial",
+        "sweeps.storage ─► sweeps.compare.table",
+    ]
 
 
 def test_sweeps_stages_import_only_earlier_stages():

@@ -20,7 +20,10 @@ def test_metrics_benchmark_runs_and_agrees_with_scipy(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     rows = json.loads((tmp_path / "results.json").read_text())
-    assert {r["benchmark"] for r in rows} == {"chamfer_f1 (kdtree) vs scipy cKDTree", "chamfer_f1 (brute) vs scipy cKDTree"}
+    assert {r["benchmark"] for r in rows} == {
+        "chamfer_f1 (kdtree) vs scipy cKDTree",
+        "chamfer_f1 (brute) vs scipy cKDTree",
+    }
     assert all(r["max_abs_cd_diff"] < 1e-3 for r in rows)  # CD×1000 ~ 20: float32 rounding only
     assert "| chamfer_f1 (kdtree) vs scipy cKDTree | B=8, 4096x4096 |" in out.stdout
 

@@ -48,7 +48,9 @@ def _prior_x0(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return -0.3 * x + 0.1
 
 
-def _blend(diffusion, model_fn, prior_x0, sampler, steps, select_prob, milestones=BDM_MILESTONES, window=16, shape=(2, 64, 3)):
+def _blend(
+    diffusion, model_fn, prior_x0, sampler, steps, select_prob, milestones=BDM_MILESTONES, window=16, shape=(2, 64, 3)
+):
     return blended_sample(
         diffusion, model_fn, prior_x0, shape, generator=_gen(0), blend_generator=_gen(1), milestones=milestones,
         window_steps=window, select_prob=select_prob, settings=SamplerSettings(sampler, steps),
@@ -84,7 +86,9 @@ def test_select_prob_one_follows_the_prior_trajectory_inside_windows():
     blended = _blend(diffusion, recon_x0, _prior_x0, "ddim", 50, select_prob=1.0)
     assert torch.equal(blended.points, reference)
     assert all(m.all() for m in blended.from_prior)
-    assert not torch.equal(reference, diffusion.sample(recon_x0, (2, 64, 3), SamplerSettings("ddim", 50), generator=_gen(0)))
+    assert not torch.equal(
+        reference, diffusion.sample(recon_x0, (2, 64, 3), SamplerSettings("ddim", 50), generator=_gen(0))
+    )
 
 
 @pytest.mark.parametrize("sampler,steps", [("ddim", 50), ("ddpm", 1000)])
@@ -148,7 +152,9 @@ def test_the_prior_sees_bdms_timestep_index_by_default():
     assert torch.equal(prior_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod, "same_index"), torch.arange(1000))
     assert torch.equal(prior_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod, "log_snr"),
                        matched_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod))
-    with pytest.raises(ValueError, match="sampling.blend.prior_timestep: same_index needs a prior of 1000 timesteps, this one has 500"):
+    with pytest.raises(
+        ValueError, match="sampling.blend.prior_timestep: same_index needs a prior of 1000 timesteps, this one has 500"
+    ):
         prior_timesteps(pc2.alphas_cumprod, GaussianDiffusion(500).alphas_cumprod, "same_index")
     seen = []
 
@@ -157,7 +163,10 @@ def test_the_prior_sees_bdms_timestep_index_by_default():
         return torch.zeros_like(x)
 
     t = torch.tensor([500, 64, 500])
-    for mode, want in (("same_index", [[500, 500], [64]]), ("log_snr", [[312, 312], [matched_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod)[64].item()]])):
+    for mode, want in (
+        ("same_index", [[500, 500], [64]]),
+        ("log_snr", [[312, 312], [matched_timesteps(pc2.alphas_cumprod, bdm.alphas_cumprod)[64].item()]]),
+    ):
         seen.clear()
         priors = {"chair": CategoryPrior(network, bdm, "chair"), "lamp": CategoryPrior(network, bdm, "lamp")}
         _prior_x0_fn(priors, ["chair", "lamp", "chair"], pc2, mode)(torch.randn(3, 8, 3), t)

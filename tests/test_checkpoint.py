@@ -17,7 +17,9 @@ from cdm.model import CDMNetwork
 def _saved(tiny, folder, **fields) -> tuple[CDMNetwork, Checkpoint]:
     torch.manual_seed(0)
     network = CDMNetwork(tiny.model, PRIOR_2D_CHANNELS[tiny.priors.prior_2d], device="cpu")
-    state = Checkpoint(config=tiny.to_dict(), step=3, voxel_backend=network.voxel_backend, model=network.state_dict(), **fields)
+    state = Checkpoint(
+        config=tiny.to_dict(), step=3, voxel_backend=network.voxel_backend, model=network.state_dict(), **fields
+    )
     save_checkpoint(state, folder)
     return network, state
 

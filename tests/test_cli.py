@@ -58,13 +58,23 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, groups, extra, needle):
 def test_empty_and_corrupt_mesh_folders(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
-    out = run_cli("train", "--config", str(write_config(tmp_path, data={"kind": "meshes", "root": str(empty), "categories": []})), cwd=tmp_path)
+    out = run_cli(
+        "train",
+        "--config",
+        str(write_config(tmp_path, data={"kind": "meshes", "root": str(empty), "categories": []})),
+        cwd=tmp_path,
+    )
     assert out.returncode == 2 and "data.root" in out.stderr
     corrupt = tmp_path / "corrupt" / "chair"
     corrupt.mkdir(parents=True)
     for i in range(4):
         (corrupt / f"m{i}.obj").write_text("this is not a mesh\n")
-    out = run_cli("train", "--config", str(write_config(tmp_path, data={"kind": "meshes", "root": str(corrupt.parent), "categories": []})), cwd=tmp_path)
+    out = run_cli(
+        "train",
+        "--config",
+        str(write_config(tmp_path, data={"kind": "meshes", "root": str(corrupt.parent), "categories": []})),
+        cwd=tmp_path,
+    )
     assert out.returncode == 2 and "m0.obj" in out.stderr, out.stderr
     assert not (tmp_path / "out").exists()
 

@@ -178,7 +178,9 @@ def _operator_rules(spec: dict, path: str) -> list[str]:
     for group in spec.get("workerGroupSpecs", []):
         lo, hi, n = group["minReplicas"], group["maxReplicas"], group.get("replicas", group["minReplicas"])
         if not 0 <= lo <= n <= hi:
-            errors.append(f"{path}.workerGroupSpecs[{group['groupName']}]: need 0 <= minReplicas <= replicas <= maxReplicas")
+            errors.append(
+                f"{path}.workerGroupSpecs[{group['groupName']}]: need 0 <= minReplicas <= replicas <= maxReplicas"
+            )
     mode = spec.get("authOptions", {}).get("mode", "token" if "authOptions" in spec else "disabled")
     if mode not in ("disabled", "token"):
         errors.append(f"{path}.authOptions.mode: disabled or token")
@@ -204,7 +206,10 @@ def test_kuberay_manifests_match_the_crd_fields_we_use():
         errors += _operator_rules(spec, where)
         # RayCluster names are DNS-1035 labels of <= 53 characters; RayJob names 6 fewer.
         limit = 53 if doc["kind"] == "RayCluster" else 47
-        if not re.fullmatch(r"[a-z]([-a-z0-9]*[a-z0-9])?", doc["metadata"]["name"]) or len(doc["metadata"]["name"]) > limit:
+        if (
+            not re.fullmatch(r"[a-z]([-a-z0-9]*[a-z0-9])?", doc["metadata"]["name"])
+            or len(doc["metadata"]["name"]) > limit
+        ):
             errors.append(f"{where}: metadata.name must be a DNS-1035 label of <= {limit} characters")
         assert not errors, "\n".join(errors)
 
@@ -229,7 +234,9 @@ def test_kuberay_pods_use_token_auth_shared_storage_and_reach_mlflow():
     pod = mlflow["Deployment"]["spec"]["template"]["spec"]
     args = pod["containers"][0]["command"]
     mount = pod["containers"][0]["volumeMounts"][0]
-    assert pod["volumes"][0]["persistentVolumeClaim"]["claimName"] == mlflow["PersistentVolumeClaim"]["metadata"]["name"]
+    assert (
+        pod["volumes"][0]["persistentVolumeClaim"]["claimName"] == mlflow["PersistentVolumeClaim"]["metadata"]["name"]
+    )
     # Both stores on the volume.
     assert f"--backend-store-uri=sqlite:///{mount['mountPath']}/mlflow.db" in args
     assert f"--artifacts-destination={mount['mountPath']}/artifacts" in args
@@ -244,7 +251,9 @@ def test_kuberay_pods_use_token_auth_shared_storage_and_reach_mlflow():
             assert group["template"]["metadata"]["labels"].items() >= client_label.items(), where
             vols = {v["name"]: v for v in group["template"]["spec"]["volumes"]}
             assert vols["shared"]["persistentVolumeClaim"]["claimName"] == shared["metadata"]["name"], where
-            assert {"name": "shared", "mountPath": "/mnt/shared"} in group["template"]["spec"]["containers"][0]["volumeMounts"]
+            assert {"name": "shared", "mountPath": "/mnt/shared"} in group["template"]["spec"]["containers"][0][
+                "volumeMounts"
+            ]
         gpu = spec["workerGroupSpecs"][0]["template"]["spec"]["containers"][0]["resources"]["limits"]
         assert gpu["nvidia.com/gpu"] == "1", where
 
@@ -259,7 +268,9 @@ def test_rayjob_entrypoint_is_a_valid_paper_sweep(capsys, tmp_path, monkeypatch)
     args = run._parser().parse_args(argv[2:])
     assert (args.profile, args.address) == ("paper", "auto")
     assert str(args.storage).startswith("/mnt/shared/") and args.tracking_uri == "http://cdm-mlflow:5000"
-    assert yaml.safe_load(job["runtimeEnvYAML"]) == {"env_vars": {"PYTHONUNBUFFERED": "1", "CDM_INPUTS": "/mnt/shared/cdm_inputs"}}
+    assert yaml.safe_load(job["runtimeEnvYAML"]) == {
+        "env_vars": {"PYTHONUNBUFFERED": "1", "CDM_INPUTS": "/mnt/shared/cdm_inputs"}
+    }
     # The image holds the repository at /home/ray/cdm-lab (cluster/Dockerfile): map the spec path
     # back here and let the runner expand it with the paper profile, as it will in the job.
     spec = ROOT / Path(args.spec).relative_to("/home/ray/cdm-lab")
@@ -279,7 +290,10 @@ def test_runtime_env_excludes_local_state_and_ray_accepts_it():
     assert env["working_dir"] == "."
     assert {"/.venv", "/mlflow.db", "/mlruns", "/results", "/data", "/.git"} <= set(env["excludes"])
     parsed = RuntimeEnv(**env)  # Ray's own validation of the fields and their types
-    assert parsed.working_dir() == "." and parsed.env_vars() == {"PYTHONUNBUFFERED": "1", "CDM_INPUTS": "/mnt/shared/cdm_inputs"}
+    assert parsed.working_dir() == "." and parsed.env_vars() == {
+        "PYTHONUNBUFFERED": "1",
+        "CDM_INPUTS": "/mnt/shared/cdm_inputs",
+    }
 
 
 def test_runtime_env_excludes_match_what_ray_would_upload(tmp_path):

@@ -59,7 +59,9 @@ def test_gt_condition_views_are_renderings_from_turned_cameras(tmp_path):
     # Camera centres (-T R^T) turn by 90° about +Y, at the input's distance.
     centres = [(-cam.T @ cam.R.T) for cam in [sample.camera, *[c.camera[j] for j in range(3)]]]
     for j in range(1, 4):
-        cos = torch.dot(centres[0][[0, 2]], centres[j][[0, 2]]) / (centres[0][[0, 2]].norm() * centres[j][[0, 2]].norm())
+        cos = torch.dot(centres[0][[0, 2]], centres[j][[0, 2]]) / (
+            centres[0][[0, 2]].norm() * centres[j][[0, 2]].norm()
+        )
         assert cos == pytest.approx(np.cos(np.radians(90.0 * j)), abs=1e-4)
     assert build_dataset(cfg, "val").sample(0).conditions is None  # sampling sees the input only
     plain = build_dataset(tiny_config(tmp_path, **PC2), "train").sample(1, view_round=2)
@@ -80,13 +82,24 @@ def test_random_count_and_folder_images(tmp_path):
 
     for v in range(1, 4):
         bgr = cv2.imread(str(tmp_path / "gen" / ids[0] / "1" / f"{v}.png"))
-        assert torch.allclose(s.conditions.image[v - 1][:, 5, 5], torch.from_numpy(bgr[5, 5, ::-1].copy()).float() / 255)
+        assert torch.allclose(
+            s.conditions.image[v - 1][:, 5, 5], torch.from_numpy(bgr[5, 5, ::-1].copy()).float() / 255
+        )
     grey_in = build_dataset(tiny_config(tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_grey": True,
                                                            "data.condition_folder": str(tmp_path / "gen")}), "val")
     image = grey_in.sample(0).image
-    rgb = torch.from_numpy(cv2.imread(str(tmp_path / "gen" / grey_in.objects[0].object_id / "0" / "0.png"))[5, 5, ::-1].copy()).float() / 255
-    assert torch.allclose(image[:, 5, 5], torch.full((3,), float(0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2])), atol=1e-6)
-    assert torch.allclose(grey(torch.tensor([1.0, 0.0, 0.0]).view(3, 1, 1).expand(3, 2, 2))[:, 0, 0], torch.full((3,), 0.299))
+    rgb = (
+        torch.from_numpy(
+            cv2.imread(str(tmp_path / "gen" / grey_in.objects[0].object_id / "0" / "0.png"))[5, 5, ::-1].copy()
+        ).float()
+        / 255
+    )
+    assert torch.allclose(
+        image[:, 5, 5], torch.full((3,), float(0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2])), atol=1e-6
+    )
+    assert torch.allclose(
+        grey(torch.tensor([1.0, 0.0, 0.0]).view(3, 1, 1).expand(3, 2, 2))[:, 0, 0], torch.full((3,), 0.299)
+    )
 
 
 def test_network_projects_condition_views_in_training_only(tmp_path):
@@ -109,9 +122,18 @@ def test_without_mask_channels_no_mask_reaches_the_points(tmp_path):
     g = torch.Generator().manual_seed(0)
     features, prior, image = (torch.rand(2, c, 8, 8, generator=g) for c in (4, 1, 3))
     mask = (torch.rand(2, 1, 8, 8, generator=g) > 0.5).float()
-    full, bare = conditioning_map(features, prior, image, mask, True), conditioning_map(features, prior, image, mask, False)
-    assert (conditioning_channels(4, 1, True), conditioning_channels(4, 1, False)) == (full.shape[1], bare.shape[1]) == (10, 8)
-    assert torch.equal(bare, full[:, :8]) and torch.equal(bare, conditioning_map(features, prior, image, 1 - mask, False))
+    full, bare = (
+        conditioning_map(features, prior, image, mask, True),
+        conditioning_map(features, prior, image, mask, False),
+    )
+    assert (
+        (conditioning_channels(4, 1, True), conditioning_channels(4, 1, False))
+        == (full.shape[1], bare.shape[1])
+        == (10, 8)
+    )
+    assert torch.equal(bare, full[:, :8]) and torch.equal(
+        bare, conditioning_map(features, prior, image, 1 - mask, False)
+    )
     cfg = tiny_config(tmp_path, **PC2, **{"model.mask_channels": False})
     net = CDMNetwork(cfg.model, 0)
     batch = collate([build_dataset(cfg, "train").sample(i) for i in range(2)])
@@ -123,10 +145,14 @@ def test_bad_condition_inputs_name_the_field(tmp_path):
     base = tiny_config(tmp_path, **PC2)
     ids = object_ids(base)
     write_condition_images(tmp_path / "gen", ids[1:], views=3)
-    cfg = tiny_config(tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_folder": str(tmp_path / "gen")})
+    cfg = tiny_config(
+        tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_folder": str(tmp_path / "gen")}
+    )
     with pytest.raises(ValueError, match=rf"data.condition_folder: no images for object id '{ids[0]}' \(1 of"):
         check_coverage(cfg, (build_dataset(cfg, "train"), build_dataset(cfg, "val")))
-    missing = tiny_config(tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_folder": str(tmp_path / "no")})
+    missing = tiny_config(
+        tmp_path, **PC2, **{"data.input_source": "folder", "data.condition_folder": str(tmp_path / "no")}
+    )
     with pytest.raises(ValueError, match="data.condition_folder: .*no does not exist"):
         check_inputs(missing)
     with pytest.raises(ConfigError, match="data.condition_folder is required"):
@@ -135,7 +161,9 @@ def test_bad_condition_inputs_name_the_field(tmp_path):
     folder = tiny_config(tmp_path, **PC2, **{"data.condition_views": 3, "data.condition_source": "folder",
                                              "data.condition_folder": str(tmp_path / "gen")})
     with pytest.raises(ValueError, match=r"data.condition_folder: cannot read .*2.png as an image"):
-        build_dataset(folder, "train").sample(next(i for i, o in enumerate(build_dataset(folder, "train").objects) if o.object_id == ids[1]))
+        build_dataset(folder, "train").sample(
+            next(i for i, o in enumerate(build_dataset(folder, "train").objects) if o.object_id == ids[1])
+        )
 
 
 def test_captured_condition_views_are_other_input_views_and_folder_images_go_by_position(tmp_path):
@@ -162,7 +190,10 @@ def test_captured_condition_views_are_other_input_views_and_folder_images_go_by_
         for i, ref in enumerate(ds.objects):
             (folder / ref.object_id).mkdir(parents=True, exist_ok=True)
             for position in ds.surface(i).views.tolist():
-                cv2.imwrite(str(folder / ref.object_id / f"{position}.png"), np.full((20, 20, 3), (position * 9) % 256, np.uint8))
+                cv2.imwrite(
+                    str(folder / ref.object_id / f"{position}.png"),
+                    np.full((20, 20, 3), (position * 9) % 256, np.uint8),
+                )
     cfg = tiny_config(tmp_path, **common, **{"data.input_source": "folder", "data.condition_folder": str(folder)})
     check_coverage(cfg, (build_dataset(cfg, "train"), build_dataset(cfg, "val")))
     val = build_dataset(cfg, "val")
@@ -180,7 +211,9 @@ def test_export_views_writes_what_the_model_sees_under_the_input_names(tmp_path)
 
     sets = ["data.categories=[mug]", "data.train_objects=1", "data.val_objects=1", "data.image_size=32",
             "data.condition_views=1", "data.num_points=128", "priors.prior_3d=false", "priors.prior_2d=none"]
-    assert export_main(["--out", str(tmp_path / "views"), "--rounds", "2", *(a for s in sets for a in ("--set", s))]) == 0
+    assert (
+        export_main(["--out", str(tmp_path / "views"), "--rounds", "2", *(a for s in sets for a in ("--set", s))]) == 0
+    )
     cfg = tiny_config(tmp_path, **{"data.categories": ["mug"], "data.train_objects": 1, "data.val_objects": 1,
                                    "data.condition_views": 1, **PC2})
     ds = build_dataset(cfg, "train")
@@ -188,11 +221,19 @@ def test_export_views_writes_what_the_model_sees_under_the_input_names(tmp_path)
     assert json.loads((tmp_path / "views" / "objects.json").read_text())[ds.objects[0].object_id] == "mug"
     for r in (0, 1):
         sample = ds.sample(0, r)
-        png = torch.from_numpy(cv2.imread(str(folder / str(r) / "0.png"))[..., ::-1].copy()).permute(2, 0, 1).float() / 255
+        png = (
+            torch.from_numpy(cv2.imread(str(folder / str(r) / "0.png"))[..., ::-1].copy()).permute(2, 0, 1).float()
+            / 255
+        )
         assert (png - sample.image).abs().max() <= 0.5 / 255 + 1e-6  # the input image, 8-bit
-        extra = torch.from_numpy(cv2.imread(str(folder / str(r) / "1.png"))[..., ::-1].copy()).permute(2, 0, 1).float() / 255
+        extra = (
+            torch.from_numpy(cv2.imread(str(folder / str(r) / "1.png"))[..., ::-1].copy()).permute(2, 0, 1).float()
+            / 255
+        )
         assert (extra - sample.conditions.image[0]).abs().max() <= 0.5 / 255 + 1e-6  # condition view 1
-        assert np.load(folder / str(r) / "1.depth.npy").shape == (32, 32) and (folder / str(r) / "1.points.png").is_file()
+        assert (
+            np.load(folder / str(r) / "1.depth.npy").shape == (32, 32) and (folder / str(r) / "1.points.png").is_file()
+        )
     assert not (folder / "2").exists()
     root = make_co3d(tmp_path / "co3d", categories=("teddybear",)).root
     co3d = ["data.kind=co3d", f"data.root={root}", "data.categories=[teddybear]", "data.image_size=32"]

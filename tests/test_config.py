@@ -16,7 +16,9 @@ def test_defaults_are_the_papers():
 def test_yaml_file_and_overrides(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("priors:\n  lambda_3d: 0.5\nmodel:\n  widths: [16, 32]\n  voxel_resolutions: [8, 4]\n")
-    c = load_config(path, overrides=dict([parse_override("priors.num_views=4"), parse_override("data.categories=[chair, mug]")]))
+    c = load_config(
+        path, overrides=dict([parse_override("priors.num_views=4"), parse_override("data.categories=[chair, mug]")])
+    )
     assert c.priors.lambda_3d == 0.5 and c.priors.num_views == 4
     assert c.model.widths == (16, 32) and c.data.categories == ("chair", "mug")
     assert load_config(c.to_dict()) == c
@@ -87,8 +89,14 @@ def test_a_set_value_nested_deep_or_of_5001_digits_is_one_config_error(text, sai
     assert "\n" not in str(refused.value)
 
 
-@pytest.mark.parametrize(("kind", "said"), [("fifo", "is a FIFO; expected a regular file"), ("deep", "nested 100000 deep; at most 64"),
-                                            ("latin1", "not UTF-8 text")])
+@pytest.mark.parametrize(
+    ("kind", "said"),
+    [
+        ("fifo", "is a FIFO; expected a regular file"),
+        ("deep", "nested 100000 deep; at most 64"),
+        ("latin1", "not UTF-8 text"),
+    ],
+)
 def test_a_config_file_that_is_a_fifo_nested_deep_or_not_utf8_is_refused(tmp_path, kind, said):
     import os
 

@@ -26,8 +26,10 @@ from cdm.train import Trainer
 from tests.conftest import tiny_config
 from tests.test_model import tiny_batch
 
-pytestmark = pytest.mark.skipif(not torch.cuda.is_available(),
-                                reason="no CUDA device here: the CUDA paths are compared with the CPU where one is present")
+pytestmark = pytest.mark.skipif(
+    not torch.cuda.is_available(),
+    reason="no CUDA device here: the CUDA paths are compared with the CPU where one is present",
+)
 CUDA = torch.device("cuda")
 RTOL, ATOL = 1e-5, 1e-6  # float32 rounding of sums of a few hundred terms of order 1
 
@@ -191,7 +193,9 @@ def test_sampling_steps_and_metrics_match_the_cpus(tmp_path):
                                  settings, None)
             x_gpu, t_gpu = x.to(CUDA), t.to(CUDA)
             out_gpu = net_gpu(x_gpu, t_gpu, context_gpu, batch_gpu.camera)
-            nxt_gpu = diffusion.step(x_gpu, t_gpu, i, timesteps, diffusion.predict_x0(x_gpu, t_gpu, out_gpu), settings, None)
+            nxt_gpu = diffusion.step(
+                x_gpu, t_gpu, i, timesteps, diffusion.predict_x0(x_gpu, t_gpu, out_gpu), settings, None
+            )
             torch.testing.assert_close(nxt_gpu.cpu(), nxt, rtol=1e-4, atol=1e-5, msg=f"step {i} (t = {step})")
             x = nxt
     cpu = chamfer_f1(x, batch.points)  # scipy's KD-tree on the CPU, the brute-force search on CUDA
@@ -208,7 +212,9 @@ def test_evaluation_runs_on_cuda_with_the_cpus_evaluation_set(tmp_path):
     trainer = Trainer(cfg)
     eval_set = build_eval_set(cfg, trainer.val_set, trainer.train_set, cfg.eval.seed)
     gpu = run_evaluation(trainer.network, trainer.diffusion, eval_set, cfg, CUDA, tmp_path / "gpu")
-    cpu = run_evaluation(copy.deepcopy(trainer.network).cpu(), trainer.diffusion, eval_set, cfg, torch.device("cpu"), None)
+    cpu = run_evaluation(
+        copy.deepcopy(trainer.network).cpu(), trainer.diffusion, eval_set, cfg, torch.device("cpu"), None
+    )
     assert [r["object_id"] for r in gpu.rows] == [r["object_id"] for r in cpu.rows]
     assert {k: v for k, v in gpu.metrics.items() if k.startswith("baseline/")} == \
         {k: v for k, v in cpu.metrics.items() if k.startswith("baseline/")}

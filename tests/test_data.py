@@ -203,7 +203,9 @@ def test_sample_surface_maps_the_mesh_by_the_given_frame():
     box.apply_translation((5.0, -3.0, 1.0))
     palette = draw_palette(np.random.default_rng(0))
     frame = Frame((4.0, -3.0, 1.0), 0.25)  # not the box's own: its centre lands at x = 0.25
-    surface = sample_surface(Shape(box, np.zeros(12, dtype=np.int64)), frame, 2000, 500, np.random.default_rng(0), palette)
+    surface = sample_surface(
+        Shape(box, np.zeros(12, dtype=np.int64)), frame, 2000, 500, np.random.default_rng(0), palette
+    )
     lo, hi = surface.cloud.min(0).values, surface.cloud.max(0).values
     assert torch.allclose(lo, torch.tensor([0.0, -0.5, -0.75]), atol=1e-5)
     assert torch.allclose(hi, torch.tensor([0.5, 0.5, 0.75]), atol=1e-5)

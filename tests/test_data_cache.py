@@ -24,8 +24,17 @@ def trees(tmp_path_factory):
 
 
 def _cfg(kind, root, size=48, **overrides):
-    return load_config(None, {"data.kind": kind, "data.root": str(root), "data.image_size": size, "data.num_points": 512,
-                              "priors.num_views": 3, **overrides})
+    return load_config(
+        None,
+        {
+            "data.kind": kind,
+            "data.root": str(root),
+            "data.image_size": size,
+            "data.num_points": 512,
+            "priors.num_views": 3,
+            **overrides,
+        },
+    )
 
 
 def _prepare(kind, root, out, size=48):
@@ -34,7 +43,15 @@ def _prepare(kind, root, out, size=48):
 
 def _tensors(s):
     depth = [] if s.depth is None else [s.depth]
-    cams = [s.camera.R, s.camera.T, s.camera.focal, s.camera.principal, s.view_cameras.R, s.view_cameras.T, s.view_cameras.focal]
+    cams = [
+        s.camera.R,
+        s.camera.T,
+        s.camera.focal,
+        s.camera.principal,
+        s.view_cameras.R,
+        s.view_cameras.T,
+        s.view_cameras.focal,
+    ]
     return [s.image, s.mask, s.prior_2d, s.points, *depth, *cams]
 
 
@@ -49,7 +66,10 @@ def test_prepared_root_gives_the_same_samples_as_the_raw_files(trees, tmp_path, 
         for i in range(len(raw)):
             for round_ in range(2):
                 a, b = raw.sample(i, round_), prepared.sample(i, round_)
-                assert all(torch.equal(x, y) for x, y in zip(_tensors(a), _tensors(b), strict=True)), (a.object_id, round_)
+                assert all(torch.equal(x, y) for x, y in zip(_tensors(a), _tensors(b), strict=True)), (
+                    a.object_id,
+                    round_,
+                )
 
 
 def test_prepared_root_serves_a_smaller_image_size_with_the_same_cameras(trees, tmp_path):
@@ -58,7 +78,11 @@ def test_prepared_root_serves_a_smaller_image_size_with_the_same_cameras(trees, 
     raw, prepared = build_dataset(_cfg("co3d", trees["co3d"], 24), "val"), build_dataset(_cfg("co3d", out, 24), "val")
     for i in range(len(raw)):
         a, b = raw[i], prepared[i]
-        assert b.image.shape == (3, 24, 24) and torch.equal(a.camera.R, b.camera.R) and torch.equal(a.camera.focal, b.camera.focal)
+        assert (
+            b.image.shape == (3, 24, 24)
+            and torch.equal(a.camera.R, b.camera.R)
+            and torch.equal(a.camera.focal, b.camera.focal)
+        )
         iou = (a.mask * b.mask).sum() / ((a.mask + b.mask) > 0).sum()
         assert iou > 0.85 and (a.image - b.image).abs().mean() < 0.08
 
@@ -173,5 +197,7 @@ def test_a_prepared_root_naming_an_object_outside_it_is_refused(tmp_path):
     (tmp_path / MANIFEST).write_text(json.dumps({"format": FORMAT, "kind": "co3d", "categories": ["teddybear"],
                                                  "splits": {"train": [["teddybear", escape]]}}))
     root = PreparedRoot.open(tmp_path, "co3d")
-    with pytest.raises(ValueError, match=r"cdm_prepared.json, split 'train', category 'teddybear' names object 'co3d/teddybear/\.\./"):
+    with pytest.raises(
+        ValueError, match=r"cdm_prepared.json, split 'train', category 'teddybear' names object 'co3d/teddybear/\.\./"
+    ):
         root.objects("train", ("teddybear",))

@@ -43,8 +43,17 @@ def tree(tmp_path_factory):
 
 
 def _cfg(root, **overrides):
-    return load_config(None, {"data.kind": "co3d", "data.root": str(root), "data.image_size": 64, "data.num_points": 2048,
-                              "priors.num_views": 4, **overrides})
+    return load_config(
+        None,
+        {
+            "data.kind": "co3d",
+            "data.root": str(root),
+            "data.image_size": 64,
+            "data.num_points": 2048,
+            "priors.num_views": 4,
+            **overrides,
+        },
+    )
 
 
 def test_samples_have_the_right_shapes_and_scales(tree):
@@ -59,7 +68,9 @@ def test_samples_have_the_right_shapes_and_scales(tree):
         assert s.points.shape == (2048, 3)
         cloud = ds.record(i).cloud
         # PC²'s frame: the PLY's own world units, nothing fitted; its stray points (40 units away) dropped.
-        published = np.asarray(trimesh.load(tree.root / f"{ds.objects[i].object_id.split('/', 1)[1]}/pointcloud.ply").vertices)
+        published = np.asarray(
+            trimesh.load(tree.root / f"{ds.objects[i].object_id.split('/', 1)[1]}/pointcloud.ply").vertices
+        )
         assert len(cloud) == 6000 and torch.equal(cloud, torch.from_numpy(published[:6000]).float())
         assert s.view_cameras.batch_shape == (4,)
 
@@ -125,7 +136,11 @@ def test_split_filtering_follows_the_fewview_dev_set_list(tree):
     def sequences(split, **overrides):
         return {ref.object_id for ref in build_dataset(_cfg(tree.root, **overrides), split).objects}
 
-    for published, ours, overrides in (("train", "train", {}), ("val", "val", {}), ("test", "val", {"data.eval_split": "test"})):
+    for published, ours, overrides in (
+        ("train", "train", {}),
+        ("val", "val", {}),
+        ("test", "val", {"data.eval_split": "test"}),
+    ):
         expected = {f"co3d/{c}/{s}" for c in tree.sequences for s in tree.sequences[c][published]}
         assert sequences(ours, **overrides) == expected
     assert not {f"co3d/{c}/{s}" for c, s in tree.no_cloud.items()} & sequences("train")  # no point cloud: skipped
@@ -139,7 +154,9 @@ def test_categories(tree):
 
 
 def _prepare(root, out, *extra):
-    return main(["prepare", "--data-kind", "co3d", "--root", str(root), "--out", str(out), "--image-size", "32", *extra])
+    return main(
+        ["prepare", "--data-kind", "co3d", "--root", str(root), "--out", str(out), "--image-size", "32", *extra]
+    )
 
 
 @pytest.mark.parametrize("damage,needle", [
@@ -187,11 +204,19 @@ def test_corrupt_jpeg_exits_2_naming_it(tree, tmp_path, capsys):
 
 def test_pc2_lists_are_copied_whole():
     # Sizes and the first and last entries of each list in PC²'s experiments/dataset/exclude_sequence.py.
-    assert (len(EXCLUDE_SEQUENCE["hydrant"]), len(LOW_QUALITY_SEQUENCE["hydrant"]), len(LOW_QUALITY_SEQUENCE["teddybear"])) == (31, 42, 295)
+    assert (
+        len(EXCLUDE_SEQUENCE["hydrant"]),
+        len(LOW_QUALITY_SEQUENCE["hydrant"]),
+        len(LOW_QUALITY_SEQUENCE["teddybear"]),
+    ) == (31, 42, 295)
     assert {"250_26810_55497", "613_98242_196036"} <= EXCLUDE_SEQUENCE["hydrant"]
     assert {"469_66175_130221", "590_88831_175196"} <= LOW_QUALITY_SEQUENCE["hydrant"]
     assert {"393_48310_95677", "341_35504_65289"} <= LOW_QUALITY_SEQUENCE["teddybear"]
-    assert (len(excluded_sequences("hydrant")), len(excluded_sequences("teddybear")), excluded_sequences("toytruck")) == (73, 295, frozenset())
+    assert (
+        len(excluded_sequences("hydrant")),
+        len(excluded_sequences("teddybear")),
+        excluded_sequences("toytruck"),
+    ) == (73, 295, frozenset())
 
 
 def test_listed_sequences_leave_every_split_of_their_category_only(tmp_path):
@@ -200,7 +225,9 @@ def test_listed_sequences_leave_every_split_of_their_category_only(tmp_path):
                      sequence_names={"train": [hydrant_bad], "val": [teddybear_bad]})  # both names in both categories
     for split, listed in (("train", f"co3d/hydrant/{hydrant_bad}"), ("val", f"co3d/teddybear/{teddybear_bad}")):
         every = {ref.object_id for ref in build_dataset(_cfg(tree.root), split).objects}
-        kept = {ref.object_id for ref in build_dataset(_cfg(tree.root, **{"data.exclude_sequences": True}), split).objects}
+        kept = {
+            ref.object_id for ref in build_dataset(_cfg(tree.root, **{"data.exclude_sequences": True}), split).objects
+        }
         assert len(every) == 4 and listed in every and kept == every - {listed}
 
 
@@ -280,7 +307,9 @@ def test_masked_rgb_blacks_out_the_background_and_keeps_the_object(tree):
         outside = torch.from_numpy(cv2.dilate(fg, kernel) == 0)
         assert inside.any() and outside.any()
         assert torch.equal(b.image[:, inside], a.image[:, inside])
-        assert torch.all(b.image[:, outside] == 0) and a.image[:, outside].mean() > 0.3  # the fixture's background is noise
+        assert (
+            torch.all(b.image[:, outside] == 0) and a.image[:, outside].mean() > 0.3
+        )  # the fixture's background is noise
 
 
 def test_drop_outliers_off_keeps_every_published_point(tree):
@@ -290,20 +319,32 @@ def test_drop_outliers_off_keeps_every_published_point(tree):
         assert len(kept.record(i).cloud) == 6010 and len(dropped.record(i).cloud) == 6000  # the PLY's 10 stray points
 
 
-PC2_PROTOCOL = {"data.exclude_sequences": True, "data.frames_per_sequence": 1, "data.mask_rgb": True, "data.drop_outliers": False}
+PC2_PROTOCOL = {
+    "data.exclude_sequences": True,
+    "data.frames_per_sequence": 1,
+    "data.mask_rgb": True,
+    "data.drop_outliers": False,
+}
 
 
 def test_a_prepared_root_is_read_only_with_the_protocol_it_was_prepared_with(tree, tmp_path):
-    assert _prepare(tree.root, tmp_path / "pc2", *[a for k, v in PC2_PROTOCOL.items() for a in ("--set", f"{k}={v}")]) == 0
+    assert (
+        _prepare(tree.root, tmp_path / "pc2", *[a for k, v in PC2_PROTOCOL.items() for a in ("--set", f"{k}={v}")]) == 0
+    )
     for split in ("train", "val"):
         raw = build_dataset(_cfg(tree.root, **{"data.image_size": 32}, **PC2_PROTOCOL), split)
         prepared = build_dataset(_cfg(tmp_path / "pc2", **{"data.image_size": 32}, **PC2_PROTOCOL), split)
         assert raw.objects == prepared.objects and prepared.prepared is not None
         for i in range(len(raw)):
             a, b = raw.sample(i, 1), prepared.sample(i, 1)
-            assert torch.equal(a.image, b.image) and torch.equal(a.points, b.points) and len(prepared.record(i).views) == 1
-    with pytest.raises(ValueError, match=r"data.mask_rgb: False, but .+ was prepared with True; prepare the published data "
-                                         r"set again with --set data.mask_rgb=False"):
+            assert (
+                torch.equal(a.image, b.image) and torch.equal(a.points, b.points) and len(prepared.record(i).views) == 1
+            )
+    with pytest.raises(
+        ValueError,
+        match=r"data.mask_rgb: False, but .+ was prepared with True; prepare the published data "
+        r"set again with --set data.mask_rgb=False",
+    ):
         build_dataset(_cfg(tmp_path / "pc2", **{**PC2_PROTOCOL, "data.mask_rgb": False}), "val")
     assert _prepare(tree.root, tmp_path / "plain") == 0  # a root prepared with the defaults refuses PC²'s frames
     with pytest.raises(ValueError, match=r"data.exclude_sequences: True, but .+ was prepared with False"):
@@ -334,7 +375,16 @@ def test_table_6_dry_runs_on_co3d_with_pc2s_protocol(tmp_path, monkeypatch, caps
     for cell in plan.cells:
         d = cell.config.data
         assert cell.label in out
-        assert (d.exclude_sequences, d.frames_per_sequence, d.mask_rgb, d.drop_outliers, cell.config.model.mask_channels) == (
-            True, 1, True, False, True)
-        assert (d.num_points, cell.config.priors.render_kind, cell.config.priors.depth_source) == (16384, "depth", "maps")
+        assert (
+            d.exclude_sequences,
+            d.frames_per_sequence,
+            d.mask_rgb,
+            d.drop_outliers,
+            cell.config.model.mask_channels,
+        ) == (True, 1, True, False, True)
+        assert (d.num_points, cell.config.priors.render_kind, cell.config.priors.depth_source) == (
+            16384,
+            "depth",
+            "maps",
+        )
     assert f"priors.depth_maps={tmp_path / 'inputs' / 'depth_maps'} (ok)" in out

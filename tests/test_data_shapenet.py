@@ -136,7 +136,11 @@ def test_check_data_command_passes_the_published_frames_and_fails_clouds_left_un
 
 def test_ground_truth_in_mask_at_the_training_size(tree):
     ds = build_dataset(_cfg(tree.root), "train")
-    fractions = [inside_mask(ds.sample(i, r).points, ds.sample(i, r).camera, ds.sample(i, r).mask) for i in range(len(ds)) for r in range(2)]
+    fractions = [
+        inside_mask(ds.sample(i, r).points, ds.sample(i, r).camera, ds.sample(i, r).mask)
+        for i in range(len(ds))
+        for r in range(2)
+    ]
     assert min(fractions) >= 0.95 and np.mean(fractions) > 0.98
 
 
@@ -158,7 +162,11 @@ def test_split_filtering_follows_pc15k_folders_and_skips_unrendered_models(tree)
     def models(split, **overrides):
         return {ref.object_id.split("/")[-1] for ref in build_dataset(_cfg(tree.root, **overrides), split).objects}
 
-    for published, ours, overrides in (("train", "train", {}), ("val", "val", {}), ("test", "val", {"data.eval_split": "test"})):
+    for published, ours, overrides in (
+        ("train", "train", {}),
+        ("val", "val", {}),
+        ("test", "val", {"data.eval_split": "test"}),
+    ):
         expected = {m for name in SHAPENET_SYNSETS for m in tree.splits[name][published]}
         assert models(ours, **overrides) == expected
     assert not set(tree.unrendered) & models("train")
@@ -192,14 +200,29 @@ def test_category_mapping_names_and_synsets(tree):
 def test_held_out_view_is_00_and_training_rounds_vary_the_view(tree):
     ds = build_dataset(_cfg(tree.root, **{"data.image_size": 137}), "val")
     synset, model = SHAPENET_SYNSETS[ds.objects[0].category], ds.objects[0].object_id.split("/")[-1]
-    alpha = cv2.imread(str(tree.root / "ShapeNetRendering" / synset / model / "rendering" / "00.png"), cv2.IMREAD_UNCHANGED)[..., 3]
+    alpha = cv2.imread(
+        str(tree.root / "ShapeNetRendering" / synset / model / "rendering" / "00.png"), cv2.IMREAD_UNCHANGED
+    )[..., 3]
     assert torch.equal(ds[0].mask[0], torch.from_numpy(alpha > 127).float())
     train = build_dataset(_cfg(tree.root), "train")
     assert len({tuple(train.sample(0, r).camera.T.tolist()) for r in range(6)}) >= 3
 
 
 def _prepare(root, out, *extra):
-    return main(["prepare", "--data-kind", "shapenet_r2n2", "--root", str(root), "--out", str(out), "--image-size", "32", *extra])
+    return main(
+        [
+            "prepare",
+            "--data-kind",
+            "shapenet_r2n2",
+            "--root",
+            str(root),
+            "--out",
+            str(out),
+            "--image-size",
+            "32",
+            *extra,
+        ]
+    )
 
 
 def test_cli_errors_name_the_path(tree, tmp_path, capsys):
@@ -212,8 +235,22 @@ def test_cli_errors_name_the_path(tree, tmp_path, capsys):
     assert _prepare(tree.root, tmp_path / "out", "--set", "data.categories=[sofa]") == 2
     err = capsys.readouterr().err
     assert err.startswith("error: data.categories: ['sofa'] not in") and "airplane, chair" in err
-    assert main(["train", "--set", "data.kind=shapenet_r2n2", "--set", f"data.root={tree.root}", "--set", "priors.prior_2d=depth",
-                 "--set", f"train.out_dir={tmp_path / 'run'}"]) == 2
+    assert (
+        main(
+            [
+                "train",
+                "--set",
+                "data.kind=shapenet_r2n2",
+                "--set",
+                f"data.root={tree.root}",
+                "--set",
+                "priors.prior_2d=depth",
+                "--set",
+                f"train.out_dir={tmp_path / 'run'}",
+            ]
+        )
+        == 2
+    )
     assert "priors.prior_2d" in capsys.readouterr().err and not (tmp_path / "run").exists()
     assert not (tmp_path / "out").exists()  # nothing written before the input is known good
 
@@ -243,8 +280,13 @@ def test_train_view_shows_that_rendering_in_every_round(tree, tmp_path):
             want = ds.view(i, view)  # rendering <view>.png
             for r in range(4):
                 s = ds.sample(i, r)
-                assert torch.equal(s.camera.T, want.camera.T) and torch.equal(s.mask[0], torch.from_numpy(want.mask > 127).float())
-    assert torch.equal(build_dataset(_cfg(tree.root, **{"data.train_view": 5}), "val")[0].mask, build_dataset(_cfg(tree.root), "val")[0].mask)
+                assert torch.equal(s.camera.T, want.camera.T) and torch.equal(
+                    s.mask[0], torch.from_numpy(want.mask > 127).float()
+                )
+    assert torch.equal(
+        build_dataset(_cfg(tree.root, **{"data.train_view": 5}), "val")[0].mask,
+        build_dataset(_cfg(tree.root), "val")[0].mask,
+    )
     two = make_shapenet(tmp_path / "two", per_split={"train": 1, "test": 1}, views=2)
     with pytest.raises(ValueError, match=r"data.train_view: 2, but shapenet/\w+/\w+ has 2 input views"):
         build_dataset(_cfg(two.root, **{"data.train_view": 2}), "train").sample(0)
@@ -267,7 +309,9 @@ def test_depth_prior_reads_the_estimated_map_of_the_view_shown(tree, tmp_path):
 
 def test_table_6_dry_runs_on_shapenet_with_estimated_depth_and_bdms_protocol(tmp_path, monkeypatch, capsys):
     tree = make_shapenet(tmp_path / "shapenet", per_split={"train": 2, "val": 0, "test": 1}, views=2, bdm_split=True)
-    monkeypatch.setenv("CDM_INPUTS", str(paper_inputs(tmp_path / "inputs", _cfg(tree.root, **{"data.eval_split": "test"}))))
+    monkeypatch.setenv(
+        "CDM_INPUTS", str(paper_inputs(tmp_path / "inputs", _cfg(tree.root, **{"data.eval_split": "test"})))
+    )
     monkeypatch.chdir(tmp_path)
     spec = Path(__file__).resolve().parent.parent / "sweeps" / "prior_type.yaml"
     sets = {"data.kind": "shapenet_r2n2", "data.root": str(tree.root)}
@@ -275,11 +319,21 @@ def test_table_6_dry_runs_on_shapenet_with_estimated_depth_and_bdms_protocol(tmp
                      *[a for k, v in sets.items() for a in ("--set", f"{k}={v}")]]) == 0
     out = capsys.readouterr().out
     plan = expand(load_spec(spec), "paper", sets)
-    assert sorted(c.paper_label for c in plan.cells) == ["contour, airplane", "contour, chair", "depth, airplane", "depth, chair"]
+    assert sorted(c.paper_label for c in plan.cells) == [
+        "contour, airplane",
+        "contour, chair",
+        "depth, airplane",
+        "depth, chair",
+    ]
     for cell in plan.cells:  # one model per class, BDM's view 00 and conditioning channels
         cfg = cell.config
         assert cell.label in out and len(cfg.data.categories) == 1
-        assert (cfg.data.train_view, cfg.model.mask_channels, cfg.priors.render_kind, cfg.data.eval_split) == (0, False, "planar", "test")
+        assert (cfg.data.train_view, cfg.model.mask_channels, cfg.priors.render_kind, cfg.data.eval_split) == (
+            0,
+            False,
+            "planar",
+            "test",
+        )
     depth = [c.config for c in plan.cells if c.config.priors.prior_2d == "depth"]
     assert {(cfg.priors.depth_source, cfg.priors.depth_maps) for cfg in depth} == {("maps", "$CDM_INPUTS/depth_maps")}
     assert f"priors.depth_maps={tmp_path / 'inputs' / 'depth_maps'} (ok)" in out

@@ -20,8 +20,18 @@ def tree(tmp_path_factory):
 
 
 def _cfg(root, **overrides):
-    return load_config(None, {"data.kind": "co3d", "data.root": str(root), "data.image_size": 32, "data.num_points": 256,
-                              "priors.num_views": 2, "priors.prior_2d": "depth", **overrides})
+    return load_config(
+        None,
+        {
+            "data.kind": "co3d",
+            "data.root": str(root),
+            "data.image_size": 32,
+            "data.num_points": 256,
+            "priors.num_views": 2,
+            "priors.prior_2d": "depth",
+            **overrides,
+        },
+    )
 
 
 def _write_maps(folder, cfg, transform):
@@ -34,7 +44,10 @@ def _write_maps(folder, cfg, transform):
             for v, position in enumerate(record.views.tolist()):
                 view = ds.view(index, v)
                 depth = view.depth.astype(np.float32) * view.depth_scale
-                np.save(folder / ref.object_id / f"{position}.npy", np.where(depth > 0, transform(np.maximum(depth, 1e-6)), 0.0))
+                np.save(
+                    folder / ref.object_id / f"{position}.npy",
+                    np.where(depth > 0, transform(np.maximum(depth, 1e-6)), 0.0),
+                )
 
 
 @pytest.mark.parametrize(("transform", "disparity"), [(lambda d: 2.5 * d + 7.0, False), (lambda d: 3.0 / d, True)])
@@ -83,7 +96,9 @@ def test_bad_maps_name_the_field(tree, tmp_path):
     with pytest.raises(ValueError, match=rf"priors.depth_maps: no maps for object id '{obj}'"):
         check_coverage(cfg, (ds,))
     with pytest.raises(ValueError, match="priors.depth_maps: .*elsewhere does not exist"):
-        check_inputs(_cfg(tree.root, **{"priors.depth_source": "maps", "priors.depth_maps": str(tmp_path / "elsewhere")}))
+        check_inputs(
+            _cfg(tree.root, **{"priors.depth_source": "maps", "priors.depth_maps": str(tmp_path / "elsewhere")})
+        )
     with pytest.raises(ConfigError, match="priors.depth_source=maps needs a captured data set"):
         load_config(None, {"priors.prior_2d": "depth", "priors.depth_source": "maps", "priors.depth_maps": "x"})
     with pytest.raises(ValueError, match="priors.depth_maps: not set and data.root .* holds no estimated depth maps"):
@@ -103,7 +118,9 @@ def test_protocol_card_names_encoder_and_depth_unless_weights_and_maps_are_given
 
     paper = listed(plan_card(expand(spec, "paper", {"data.root": str(root)})))  # the profile's: ViT, estimated maps
     assert not {"model.encoder", "priors.depth_source"} & paper
-    stand_ins = expand(spec, "paper", {"data.root": str(root), "model.encoder": "cnn", "priors.depth_source": "ground_truth"})
+    stand_ins = expand(
+        spec, "paper", {"data.root": str(root), "model.encoder": "cnn", "priors.depth_source": "ground_truth"}
+    )
     assert listed(plan_card(stand_ins)) - paper == {"model.encoder", "priors.depth_source"}
 
 
@@ -112,7 +129,17 @@ def test_prepare_stores_the_maps_in_the_shards(tree, tmp_path, capsys):
 
     gt_cfg = _cfg(tree.root)
     _write_maps(tmp_path / "maps", gt_cfg, lambda d: 4.0 * d + 1.0)
-    args = ["prepare", "--data-kind", "co3d", "--root", str(tree.root), "--image-size", "32", "--set", "data.categories=[teddybear]"]
+    args = [
+        "prepare",
+        "--data-kind",
+        "co3d",
+        "--root",
+        str(tree.root),
+        "--image-size",
+        "32",
+        "--set",
+        "data.categories=[teddybear]",
+    ]
     assert main([*args, "--out", str(tmp_path / "prepared"), "--depth-maps", str(tmp_path / "maps")]) == 0
     sets = {"priors.depth_source": "maps"}
     from_shards = _cfg(tmp_path / "prepared", **sets)

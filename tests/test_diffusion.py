@@ -45,7 +45,9 @@ def analytic_model(d: GaussianDiffusion, target_cloud: torch.Tensor):
 
 
 @pytest.mark.parametrize("prediction", ["eps", "x0", "v"])
-@pytest.mark.parametrize("sampler,steps,spacing", [("ddim", 20, "linspace"), ("ddim", 20, "trailing"), ("ddpm", 1000, "linspace")])
+@pytest.mark.parametrize(
+    "sampler,steps,spacing", [("ddim", 20, "linspace"), ("ddim", 20, "trailing"), ("ddpm", 1000, "linspace")]
+)
 def test_samplers_recover_the_single_data_point(prediction, sampler, steps, spacing):
     d = GaussianDiffusion(1000, 1e-4, 2e-2, prediction)
     cloud = torch.rand(1, 32, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
@@ -128,12 +130,21 @@ def test_ddpm_with_fewer_steps_strides_as_diffusers_and_still_recovers_the_data_
     d = GaussianDiffusion(1000, 1e-4, 2e-2, "eps")
     assert d.timesteps(SamplerSettings("ddpm", ddpm_steps=4)) == [750, 500, 250, 0]
     assert d.timesteps(SamplerSettings("ddpm", ddpm_steps=3)) == [666, 333, 0]
-    assert d.timesteps(SamplerSettings("ddpm", ddpm_steps=1000)) == d.timesteps(SamplerSettings("ddpm")) == list(range(999, -1, -1))
+    assert (
+        d.timesteps(SamplerSettings("ddpm", ddpm_steps=1000))
+        == d.timesteps(SamplerSettings("ddpm"))
+        == list(range(999, -1, -1))
+    )
     cloud = torch.rand(1, 32, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8
     model = analytic_model(d, cloud)
 
     def draw(**settings):
-        return d.sample(model, (2, 32, 3), SamplerSettings("ddpm", clip_x0=None, **settings), generator=torch.Generator().manual_seed(4))
+        return d.sample(
+            model,
+            (2, 32, 3),
+            SamplerSettings("ddpm", clip_x0=None, **settings),
+            generator=torch.Generator().manual_seed(4),
+        )
 
     assert torch.equal(draw(ddpm_steps=1000), draw())
     assert torch.allclose(draw(ddpm_steps=10), cloud.expand(2, -1, -1), atol=1e-4)

@@ -184,8 +184,19 @@ def test_config_requires_weights_and_384_channels(tmp_path):
 def test_cli_without_weights_file_exits_2_naming_the_field(tmp_path, capsys):
     from cdm.__main__ import main
 
-    code = main(["train", "--set", "model.encoder=vit_s16", "--set", "model.feature_dim=384",
-                 "--set", f"model.encoder_weights={tmp_path / 'none.pth'}", "--set", f"train.out_dir={tmp_path / 'run'}"])
+    code = main(
+        [
+            "train",
+            "--set",
+            "model.encoder=vit_s16",
+            "--set",
+            "model.feature_dim=384",
+            "--set",
+            f"model.encoder_weights={tmp_path / 'none.pth'}",
+            "--set",
+            f"train.out_dir={tmp_path / 'run'}",
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and err[-1].startswith("error: model.encoder_weights:") and MSN_WEIGHTS_URL in err[-1]
     assert not (tmp_path / "run").exists()

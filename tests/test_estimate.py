@@ -49,7 +49,10 @@ def test_paper_gpu_hours_follow_the_measured_figures():
     figures = json.loads(GPU_COSTS.read_text())
     plan = expand(load_spec(SWEEPS / "shapenet.yaml"), "local")
     hours, why = paper_trial_gpu_hours(expand(plan.spec, "paper"))  # PC²'s PVCNN2: no GPU figures yet
-    assert hours is None and why == f"not measured for model.denoiser=pvcnn2 (gpu_costs.json holds {figures['denoiser']}'s)"
+    assert (
+        hours is None
+        and why == f"not measured for model.denoiser=pvcnn2 (gpu_costs.json holds {figures['denoiser']}'s)"
+    )
     measured = {"model.denoiser": figures["denoiser"]}
     hours, device = paper_trial_gpu_hours(expand(plan.spec, "paper", measured))
     cfg = expand(plan.spec, "paper", measured).cells[0].config
@@ -75,15 +78,21 @@ def test_every_cell_of_a_small_grid_is_calibrated_and_evaluations_are_timed_once
     """A grid's cells can differ in step cost (the priors sweep: depth renders or none), so every distinct
     cell's steps are timed; evaluation costs depend on the sampler and model, not the loss."""
     point_size = expand(load_spec(SWEEPS / "point_size.yaml"), "local")
-    assert [c.priors.point_size for c in _calibration_configs(point_size)] == [c.config.priors.point_size for c in point_size.cells]
+    assert [c.priors.point_size for c in _calibration_configs(point_size)] == [
+        c.config.priors.point_size for c in point_size.cells
+    ]
     assert len({_eval_signature(c.config) for c in point_size.cells}) == 1  # point size is the loss's
     priors = expand(load_spec(SWEEPS / "priors_2d_3d.yaml"), "local")
     assert len({_eval_signature(c.config) for c in priors.cells}) == 1
     prediction = expand(load_spec(SWEEPS / "prediction.yaml"), "local")
-    assert len({_eval_signature(c.config) for c in prediction.cells}) == len(prediction.cells)  # the target is the model's
+    assert len({_eval_signature(c.config) for c in prediction.cells}) == len(
+        prediction.cells
+    )  # the target is the model's
     bigger = point_size.cells[0].config.replace(**{"train.batch_size": 8})  # also the sampling batch
     assert _eval_signature(bigger) != _eval_signature(point_size.cells[0].config)
-    assert _eval_signature(point_size.cells[0].config.replace(**{"train.lr": 3e-3})) == _eval_signature(point_size.cells[0].config)
+    assert _eval_signature(point_size.cells[0].config.replace(**{"train.lr": 3e-3})) == _eval_signature(
+        point_size.cells[0].config
+    )
 
 
 def test_a_cell_calibrated_without_evaluation_times_no_evaluation():
@@ -109,12 +118,17 @@ def test_measured_pvcnn2_figures_are_read_in_the_profiles_precision_scaled_to_it
     hours, device = paper_trial_gpu_hours(paper, _pvcnn2_figures())
     batches = math.ceil(cfg.eval.num_objects / 8)
     # measured at batch 16: the profile's batch 8 is taken as half of it, linearly
-    assert hours == pytest.approx((100_000 * 0.1 + 20 * batches * 1000 * 0.025) / 3600) and device.startswith("NVIDIA H100")
+    assert hours == pytest.approx((100_000 * 0.1 + 20 * batches * 1000 * 0.025) / 3600) and device.startswith(
+        "NVIDIA H100"
+    )
     fp32 = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper", {"train.precision": "fp32", "train.batch_size": 16})
     hours, _ = paper_trial_gpu_hours(fp32, _pvcnn2_figures())
     assert hours == pytest.approx((100_000 * 0.4 + 20 * math.ceil(cfg.eval.num_objects / 16) * 1000 * 0.1) / 3600)
     bf16 = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper", {"train.precision": "bf16"})
-    assert paper_trial_gpu_hours(bf16, _pvcnn2_figures()) == (None, "not measured in train.precision=bf16 (not measured)")
+    assert paper_trial_gpu_hours(bf16, _pvcnn2_figures()) == (
+        None,
+        "not measured in train.precision=bf16 (not measured)",
+    )
 
 
 def test_without_a_measurement_the_bound_is_counted_flops_at_an_h100s_peak():
@@ -124,13 +138,17 @@ def test_without_a_measurement_the_bound_is_counted_flops_at_an_h100s_peak():
     flops = 100_000 * 4e12 * 2 + 20 * math.ceil(cfg.eval.num_objects / 16) * 1000 * 1e12 * 2  # batch 16 = 2 × counted 8
     assert bound == pytest.approx(flops / 989.4e12 / 3600)
     assert basis == "H100 SXM dense fp16 peak, 989.4 TFLOP/s"
-    fp32, _ = paper_trial_gpu_hours_bound(expand(paper.spec, "paper", {"train.batch_size": 16, "train.precision": "fp32"}),
-                                          _pvcnn2_figures())
+    fp32, _ = paper_trial_gpu_hours_bound(
+        expand(paper.spec, "paper", {"train.batch_size": 16, "train.precision": "fp32"}), _pvcnn2_figures()
+    )
     assert fp32 == pytest.approx(bound * 2)  # TF32's dense peak is half fp16's
     assert peak_flops("NVIDIA H100 PCIe", "fp16") == 756e12 and peak_flops("NVIDIA A100-SXM4-80GB", "bf16") == 312e12
     assert peak_flops("CPU", "fp32") is None
     co3d = expand(load_spec(SWEEPS / "co3d.yaml"), "paper", {"data.num_points": 16384})
-    assert paper_trial_gpu_hours_bound(co3d, _pvcnn2_figures()) == (None, "no counted FLOPs for model.denoiser=pvcnn2 at 16384 points")
+    assert paper_trial_gpu_hours_bound(co3d, _pvcnn2_figures()) == (
+        None,
+        "no counted FLOPs for model.denoiser=pvcnn2 at 16384 points",
+    )
 
 
 def test_the_shipped_figures_give_the_paper_profile_a_labelled_bound():

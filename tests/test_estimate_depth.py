@@ -24,9 +24,16 @@ transformers = pytest.importorskip("transformers", reason="the depth tool's opti
 
 
 def _backbone():
-    return transformers.Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
-                                     image_size=56, patch_size=14, out_features=["stage1", "stage2", "stage3", "stage4"],
-                                     reshape_hidden_states=False)
+    return transformers.Dinov2Config(
+        hidden_size=32,
+        num_hidden_layers=4,
+        num_attention_heads=2,
+        intermediate_size=64,
+        image_size=56,
+        patch_size=14,
+        out_features=["stage1", "stage2", "stage3", "stage4"],
+        reshape_hidden_states=False,
+    )
 
 
 def _save(model, folder: Path) -> str:
@@ -53,8 +60,14 @@ def dpt(tmp_path_factory) -> str:
 def depth_anything(tmp_path_factory) -> str:
     """Depth Anything's relative model at toy size: it outputs disparity."""
     torch.manual_seed(0)
-    config = transformers.DepthAnythingConfig(backbone_config=_backbone(), reassemble_hidden_size=32, neck_hidden_sizes=[16, 16, 16, 16],
-                                              fusion_hidden_size=16, head_hidden_size=16, reassemble_factors=[4, 2, 1, 0.5])
+    config = transformers.DepthAnythingConfig(
+        backbone_config=_backbone(),
+        reassemble_hidden_size=32,
+        neck_hidden_sizes=[16, 16, 16, 16],
+        fusion_hidden_size=16,
+        head_hidden_size=16,
+        reassemble_factors=[4, 2, 1, 0.5],
+    )
     return _save(transformers.DepthAnythingForDepthEstimation(config), tmp_path_factory.mktemp("depth_anything"))
 
 
@@ -91,9 +104,20 @@ def test_maps_match_each_crop_row_for_row_and_train_a_smoke_cell(co3d, dpt, tmp_
         reference = cv2.resize(raw, (32, 32), interpolation=cv2.INTER_CUBIC)
         assert np.corrcoef(depth.ravel(), reference.ravel())[0, 1] > 0.98
 
-    cfg = tiny_config(tmp_path, **{k: v for k, v in sets.items() if k != "data.num_points"},
-                      **{"data.categories": [], "priors.prior_2d": "depth", "priors.depth_source": "maps", "priors.depth_maps": str(out),
-                         "diffusion.clip_x0": None, "train.steps": 2, "train.eval_every": 2, "eval.save_clouds": 0})
+    cfg = tiny_config(
+        tmp_path,
+        **{k: v for k, v in sets.items() if k != "data.num_points"},
+        **{
+            "data.categories": [],
+            "priors.prior_2d": "depth",
+            "priors.depth_source": "maps",
+            "priors.depth_maps": str(out),
+            "diffusion.clip_x0": None,
+            "train.steps": 2,
+            "train.eval_every": 2,
+            "eval.save_clouds": 0,
+        },
+    )
     from cdm.data import build_dataset
     from cdm.train import fit
 
@@ -108,13 +132,17 @@ def test_a_map_keeps_a_non_square_crops_rows_and_columns(dpt, tmp_path):
     assert maps.shape == (24, 40)
 
 
-def test_disparity_models_set_the_flag_and_a_reader_with_the_wrong_flag_is_refused(co3d, depth_anything, tmp_path, capsys):
+def test_disparity_models_set_the_flag_and_a_reader_with_the_wrong_flag_is_refused(
+    co3d, depth_anything, tmp_path, capsys
+):
     _, views, _ = co3d
     out = tmp_path / "maps"
     assert estimate_main(["--views", str(views), "--model", depth_anything, "--out", str(out)]) == 0
     assert "--set priors.depth_maps_disparity=true" in capsys.readouterr().out
     assert DepthMaps(out, disparity=True).folder == out
-    with pytest.raises(ValueError, match="priors.depth_maps_disparity: .* holds disparity maps .*set priors.depth_maps_disparity=true"):
+    with pytest.raises(
+        ValueError, match="priors.depth_maps_disparity: .* holds disparity maps .*set priors.depth_maps_disparity=true"
+    ):
         DepthMaps(out, disparity=False)
 
 

@@ -109,6 +109,8 @@ def test_one_drawn_object_per_category_and_drawing_changes_no_score(tmp_path):
     for oid in firsts.values():
         stem = tmp_path / "eval" / oid.replace("/", "_")
         gt = next(b for b in eval_set.batches if oid in b.object_id)
-        assert torch.allclose(torch.from_numpy(read_ply(stem.with_suffix(".gt.ply"))), gt.points[gt.object_id.index(oid)], atol=1e-6)
+        assert torch.allclose(
+            torch.from_numpy(read_ply(stem.with_suffix(".gt.ply"))), gt.points[gt.object_id.index(oid)], atol=1e-6
+        )
         for name in BASELINES:
             assert read_ply(stem.parent / f"{stem.name}.{name}.ply").shape[1] == 3

@@ -95,9 +95,25 @@ def test_missing_object_ids_and_paths_are_refused_before_training(tmp_path, caps
         tiny_config(tmp_path, **{"model.global_source": "embeddings", "model.global_feature": "concat"})
     from cdm.__main__ import main
 
-    code = main(["train", "--set", "model.global_feature=concat", "--set", "model.global_source=embeddings",
-                 "--set", f"model.global_embeddings={tmp_path / 'part.npz'}", "--set", f"train.out_dir={tmp_path / 'run'}",
-                 "--set", "data.train_objects=6", "--set", "data.val_objects=2", "--set", "data.categories=[chair,mug]"])
+    code = main(
+        [
+            "train",
+            "--set",
+            "model.global_feature=concat",
+            "--set",
+            "model.global_source=embeddings",
+            "--set",
+            f"model.global_embeddings={tmp_path / 'part.npz'}",
+            "--set",
+            f"train.out_dir={tmp_path / 'run'}",
+            "--set",
+            "data.train_objects=6",
+            "--set",
+            "data.val_objects=2",
+            "--set",
+            "data.categories=[chair,mug]",
+        ]
+    )
     err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert code == 2 and len(err) == 1 and "model.global_embeddings" in err[0]
     assert not (tmp_path / "run").exists()

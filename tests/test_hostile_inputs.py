@@ -78,7 +78,9 @@ def test_a_co3d_sequence_named_to_climb_out_of_out_writes_nothing(tmp_path):
 @pytest.mark.slow
 def test_a_shapenet_model_named_to_climb_out_of_out_writes_nothing(tmp_path):
     root = tmp_path / "shapenet"
-    tree = make_shapenet(root, per_split={"train": 2, "test": 1}, views=2, bdm_split=True, synsets={"chair": "03001627"})
+    tree = make_shapenet(
+        root, per_split={"train": 2, "test": 1}, views=2, bdm_split=True, synsets={"chair": "03001627"}
+    )
     model = tree.bdm_split["test"]["chair"][0]
 
     def rename(table):
@@ -96,9 +98,15 @@ def test_a_co3d_image_path_outside_the_root_is_not_read(tmp_path):
     (tmp_path / "outside").mkdir()
     first = json.loads(gzip.decompress((root / "teddybear" / "frame_annotations.jgz").read_bytes()))[0]
     shutil.copy(root / first["image"]["path"], tmp_path / "outside" / "x.jpg")  # a readable image, were it read
-    _edit(root / "teddybear" / "frame_annotations.jgz", _first_frame("image", {**first["image"], "path": "../outside/x.jpg"}))
+    _edit(
+        root / "teddybear" / "frame_annotations.jgz",
+        _first_frame("image", {**first["image"], "path": "../outside/x.jpg"}),
+    )
     outcome, out = _prepare(root, tmp_path)
-    assert_refused(outcome, "frame_annotations.jgz entry 0: image.path gives the path '../outside/x.jpg', which leaves the data root")
+    assert_refused(
+        outcome,
+        "frame_annotations.jgz entry 0: image.path gives the path '../outside/x.jpg', which leaves the data root",
+    )
     assert not out.exists()
 
 
@@ -128,14 +136,26 @@ def test_an_npz_bomb_of_embeddings_is_refused_within_1_gib(tmp_path):
     from cdm.config import load_config
     from tests.input_fixtures import object_ids
 
-    sets = {"data.train_objects": 1, "data.val_objects": 1, "data.categories": "[chair]", "model.global_feature": "concat",
-            "model.global_source": "embeddings", "model.global_embeddings": str(tmp_path / "emb.npz"),
-            "train.out_dir": str(tmp_path / "run")}
+    sets = {
+        "data.train_objects": 1,
+        "data.val_objects": 1,
+        "data.categories": "[chair]",
+        "model.global_feature": "concat",
+        "model.global_source": "embeddings",
+        "model.global_embeddings": str(tmp_path / "emb.npz"),
+        "train.out_dir": str(tmp_path / "run"),
+    }
     ids = object_ids(load_config(None, {k: (["chair"] if k == "data.categories" else v) for k, v in sets.items()}))
-    size = write_npz(tmp_path / "emb.npz", {o: np.zeros(12, np.float32) for o in ids[1:]}, bomb=ids[0], bomb_gigabytes=1.7)
+    size = write_npz(
+        tmp_path / "emb.npz", {o: np.zeros(12, np.float32) for o in ids[1:]}, bomb=ids[0], bomb_gigabytes=1.7
+    )
     assert size < 2e6
-    outcome = run_command(["-m", "cdm", "train", *[a for k, v in sets.items() for a in ("--set", f"{k}={v}")]], tmp_path)
-    assert_refused(outcome, "model.global_embeddings", "emb.npz", "(1.6 GiB); an array read here may hold at most 512 MiB")
+    outcome = run_command(
+        ["-m", "cdm", "train", *[a for k, v in sets.items() for a in ("--set", f"{k}={v}")]], tmp_path
+    )
+    assert_refused(
+        outcome, "model.global_embeddings", "emb.npz", "(1.6 GiB); an array read here may hold at most 512 MiB"
+    )
     assert outcome.peak_rss < GIB, outcome.peak_rss
 
 
@@ -154,8 +174,15 @@ def test_a_depth_map_whose_header_promises_37_gib_is_refused(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("focal,said", [([2.2e5, 2.2e5], "must lie in [0.05, 50.0] (NDC)"), ([0, 0], "must lie in [0.05, 50.0]"),
-                                        ([2.0, 0.5], "gives pixels 2.0× wider than high"), (["nan", 1], "must be 2 finite numbers")])
+@pytest.mark.parametrize(
+    "focal,said",
+    [
+        ([2.2e5, 2.2e5], "must lie in [0.05, 50.0] (NDC)"),
+        ([0, 0], "must lie in [0.05, 50.0]"),
+        ([2.0, 0.5], "gives pixels 2.0× wider than high"),
+        (["nan", 1], "must be 2 finite numbers"),
+    ],
+)
 def test_co3d_intrinsics_out_of_range_are_refused_naming_the_entry(tmp_path, focal, said):
     root, _ = _co3d(tmp_path)
     focal = [float(f) for f in focal]
@@ -172,13 +199,20 @@ def test_co3d_intrinsics_out_of_range_are_refused_naming_the_entry(tmp_path, foc
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("key,value,said", [
-    ("mask", [], "image, mask, depth and viewpoint must be objects"),
-    ("mask", {"path": "teddybear/x.png", "mass": -1}, "mask.mass -1 must be a finite number ≥ 0"),
-    ("depth", {"path": "teddybear/d.png", "scale_adjustment": 0}, "depth.scale_adjustment"),
-    ("depth", {"path": "/etc/passwd"}, "depth.path gives the path '/etc/passwd', which leaves the data root"),
-    ("image", {"path": "teddybear/x.jpg", "size": [10**6, 10]}, "image.size [1000000, 10] must be two sides of 1 to 4096"),
-])
+@pytest.mark.parametrize(
+    "key,value,said",
+    [
+        ("mask", [], "image, mask, depth and viewpoint must be objects"),
+        ("mask", {"path": "teddybear/x.png", "mass": -1}, "mask.mass -1 must be a finite number ≥ 0"),
+        ("depth", {"path": "teddybear/d.png", "scale_adjustment": 0}, "depth.scale_adjustment"),
+        ("depth", {"path": "/etc/passwd"}, "depth.path gives the path '/etc/passwd', which leaves the data root"),
+        (
+            "image",
+            {"path": "teddybear/x.jpg", "size": [10**6, 10]},
+            "image.size [1000000, 10] must be two sides of 1 to 4096",
+        ),
+    ],
+)
 def test_co3d_mask_depth_and_image_entries_are_checked(tmp_path, key, value, said):
     root, _ = _co3d(tmp_path)
     _edit(root / "teddybear" / "frame_annotations.jgz", _first_frame(key, value))
@@ -246,7 +280,9 @@ def test_an_image_that_is_a_fifo_or_dev_zero_is_refused_not_read(tmp_path, kind,
         read_image(path, cv2.IMREAD_COLOR, "data.root")
 
 
-@pytest.mark.parametrize("kind,said", [("folder", "is a folder"), ("fifo", "is a FIFO"), ("dev_zero", "is a character device")])
+@pytest.mark.parametrize(
+    "kind,said", [("folder", "is a folder"), ("fifo", "is a FIFO"), ("dev_zero", "is a character device")]
+)
 def test_a_reference_checkpoint_that_is_not_a_regular_file_is_refused_in_our_words(tmp_path, kind, said):
     from cdm.model import load_reference_checkpoint
 

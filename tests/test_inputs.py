@@ -71,7 +71,12 @@ def test_a_checkpoint_holding_objects_is_refused_in_our_words(tmp_path):
 
 
 def test_train_refuses_sizes_past_the_machines_memory_before_allocating(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "cdm", "train", "--set", "data.train_objects=100000000000"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "cdm", "train", "--set", "data.train_objects=100000000000"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert out.returncode == 2 and "data.train_objects=100000000000" in out.stderr and "GiB" in out.stderr, out.stderr
     assert len(out.stderr.strip().splitlines()) == 1 and not list(tmp_path.iterdir())

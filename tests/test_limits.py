@@ -112,11 +112,15 @@ def test_a_dry_run_past_the_listed_trials_checks_each_cell_in_small_memory(tmp_p
         f"  checked {i}/1000 trials …" for i in (250, 500, 750, 1000)]  # a line per 250 cells of work
     listed = [line for line in out if line.startswith("   ") and ". " in line[:8]]
     assert len(listed) == 20 and listed[-1].startswith("   20. ")
-    assert any(line.startswith("  … and 980 more trials, each checked") for line in out) and out[-1].startswith("estimate: none for a dry-run")
+    assert any(line.startswith("  … and 980 more trials, each checked") for line in out) and out[-1].startswith(
+        "estimate: none for a dry-run"
+    )
     assert whole > 5 * 2**20 and streamed < whole / 10, (whole, streamed)
     text = _grid(10, keys=3)
     (tmp_path / "bad.yaml").write_text(text[:text.rindex("0.010")] + "-1]\n")  # the 10th cell, past the one kept
-    with pytest.raises(SpecError, match="cell point_size=0.001 · λ=0.001 · lr=-1: train.lr: Input should be greater than 0"):
+    with pytest.raises(
+        SpecError, match="cell point_size=0.001 · λ=0.001 · lr=-1: train.lr: Input should be greater than 0"
+    ):
         expand(load_spec(tmp_path / "bad.yaml"), "smoke", keep=1)
 
 
@@ -139,7 +143,9 @@ def test_every_float_field_must_be_finite():
     with pytest.raises(ConfigError, match="train.betas.1: Input should be a finite number"):
         load_config(None, {"train.betas": [0.9, math.nan]})
     with pytest.raises(ValueError, match="finite number"):
-        Spec.model_validate({"name": "s", "grid": {"priors.point_size": [0.01]}, "resources": {"cpus_per_worker": math.inf}})
+        Spec.model_validate(
+            {"name": "s", "grid": {"priors.point_size": [0.01]}, "resources": {"cpus_per_worker": math.inf}}
+        )
 
 
 def test_set_value_may_not_use_aliases():
@@ -160,13 +166,18 @@ def test_memory_estimate_grows_with_each_size_and_refuses_past_the_machine():
     assert estimate_train_bytes(double, 2) - b0 == b0 - fixed
     check_memory([base], concurrent=2)  # the smoke profile fits any machine
     huge = load_config(None, {**base.flat(), "data.train_objects": 10**11})
-    with pytest.raises(ConfigError, match=r"data.train_objects=100000000000.*need at least .* GiB but this machine has 16.0 GiB"):
+    with pytest.raises(
+        ConfigError, match=r"data.train_objects=100000000000.*need at least .* GiB but this machine has 16.0 GiB"
+    ):
         check_memory([huge], concurrent=1, total=16 * 2**30)
 
 
 def test_state_file_tracking_uri_and_storage_checks(tmp_path):
-    for text, needle in [("[]", "a JSON list, not an object"), ("\ufffd\x00", "not JSON"),
-                         ('{"spec": {}, "sets": {}, "profile": "smoke", "tracking_uri": "sqlite:///x"}', "parent_run_id")]:
+    for text, needle in [
+        ("[]", "a JSON list, not an object"),
+        ("\ufffd\x00", "not JSON"),
+        ('{"spec": {}, "sets": {}, "profile": "smoke", "tracking_uri": "sqlite:///x"}', "parent_run_id"),
+    ]:
         with pytest.raises(StoreError, match=needle):
             parse_state(text, "sweep.json")
     with pytest.raises(StoreError, match="unsupported scheme 'ftp'"):
@@ -225,10 +236,26 @@ BAD_SPECS = {
     "binary": (b"\x89PNG\r\n\x1a\n\x00\x00", [], "not UTF-8 text"),
     "bomb": (BOMB.encode(), [], "expand to more than"),
     "grid": (_grid(100).encode(), ["--dry-run"], "1000000 trials"),
-    "inf": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--set", "priors.lambda_3d=.inf"], "priors.lambda_3d: Input should be a finite"),
-    "objects": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--set", "data.train_objects=100000000000", "--dry-run"], "data.train_objects=100000000000"),
-    "ftp": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--tracking-uri", "ftp://nope"], "--tracking-uri ftp://nope"),
-    "storage": (b"name: s\ngrid: {priors.point_size: [0.04]}\n", ["--storage", "/proc/cdm-results"], "--storage /proc/cdm-results"),
+    "inf": (
+        b"name: s\ngrid: {priors.point_size: [0.04]}\n",
+        ["--set", "priors.lambda_3d=.inf"],
+        "priors.lambda_3d: Input should be a finite",
+    ),
+    "objects": (
+        b"name: s\ngrid: {priors.point_size: [0.04]}\n",
+        ["--set", "data.train_objects=100000000000", "--dry-run"],
+        "data.train_objects=100000000000",
+    ),
+    "ftp": (
+        b"name: s\ngrid: {priors.point_size: [0.04]}\n",
+        ["--tracking-uri", "ftp://nope"],
+        "--tracking-uri ftp://nope",
+    ),
+    "storage": (
+        b"name: s\ngrid: {priors.point_size: [0.04]}\n",
+        ["--storage", "/proc/cdm-results"],
+        "--storage /proc/cdm-results",
+    ),
 }
 
 
@@ -264,7 +291,10 @@ def test_a_claimed_folder_is_refused_naming_the_running_parent_run(tmp_path, cap
     (tmp_path / "spec.yaml").write_text("name: s\ngrid: {priors.point_size: [0.04]}\n")
     holder = _hold(str(tmp_path / "results" / "s" / "smoke"))
     try:
-        assert run.main(["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp_path}/m.db"]) == 2
+        assert (
+            run.main(["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp_path}/m.db"])
+            == 2
+        )
     finally:
         holder.kill()
         holder.wait()

@@ -80,13 +80,19 @@ def test_shapenet_inputs_ignore_the_held_out_ground_truth(tmp_path):
     model = before.objects[0].object_id.rsplit("/", 1)[1]
     npy = tmp_path / "b" / "ShapeNetCore.v2.PC15k" / "03001627" / "val" / f"{model}.npy"
     np.save(npy, _perturb(np.load(npy).astype(np.float64), np.array([0.2, -0.1, 0.15])).astype(np.float32))
-    after = build_dataset(cfg.model_copy(update={"data": cfg.data.model_copy(update={"root": str(tmp_path / "b")})}), "val")
+    after = build_dataset(
+        cfg.model_copy(update={"data": cfg.data.model_copy(update={"root": str(tmp_path / "b")})}), "val"
+    )
     _check_held_out(before, after, 0)
     # Control: a *training* cloud legitimately moves BDM's frame (μ, σ of the training split), and the
     # same comparison sees every held-out input camera move, as the per-object box moved them before.
-    train_npy = tmp_path / "b" / "ShapeNetCore.v2.PC15k" / "03001627" / "train" / f"{tree.splits['chair']['train'][0]}.npy"
+    train_npy = (
+        tmp_path / "b" / "ShapeNetCore.v2.PC15k" / "03001627" / "train" / f"{tree.splits['chair']['train'][0]}.npy"
+    )
     np.save(train_npy, _perturb(np.load(train_npy).astype(np.float64), np.array([0.2, -0.1, 0.15])).astype(np.float32))
-    moved = build_dataset(cfg.model_copy(update={"data": cfg.data.model_copy(update={"root": str(tmp_path / "b")})}), "val")
+    moved = build_dataset(
+        cfg.model_copy(update={"data": cfg.data.model_copy(update={"root": str(tmp_path / "b")})}), "val"
+    )
     assert not any(_same_inputs(before[i], moved[i]) for i in range(len(before)))
 
 
@@ -100,7 +106,9 @@ def test_co3d_inputs_ignore_the_held_out_ground_truth(tmp_path):
     loaded = trimesh.load(ply)
     points = np.asarray(loaded.vertices, dtype=np.float64)
     write_ply(ply, _perturb(points, np.array([0.5, -0.3, 0.2])), np.asarray(loaded.colors)[:, :3])
-    after = build_dataset(cfg.model_copy(update={"data": cfg.data.model_copy(update={"root": str(tmp_path / "b")})}), "val")
+    after = build_dataset(
+        cfg.model_copy(update={"data": cfg.data.model_copy(update={"root": str(tmp_path / "b")})}), "val"
+    )
     _check_held_out(before, after, 0)
     # Control, computed inline: the old per-object box frame of each cloud would have moved the input
     # camera's translation by far more than rounding (the issue measured up to 1.5 units).

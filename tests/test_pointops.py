@@ -150,7 +150,12 @@ def test_three_nn_matches_the_kernel_including_ties_and_few_centres():
     # Centres on a grid: many exact distance ties for points placed on it.
     grid = torch.tensor([[x, y, 0.0] for x in (0.0, 1.0, 2.0) for y in (0.0, 1.0)]).T[None]
     on_grid = torch.tensor([[0.5, 0.5, 0.0], [1.0, 0.5, 0.0], [1.5, 1.0, 0.0]]).T[None]
-    cases = [(points, torch.randn(1, 3, 9, generator=g)), (on_grid, grid), (points, points[:, :, :2]), (points, points[:, :, :1])]
+    cases = [
+        (points, torch.randn(1, 3, 9, generator=g)),
+        (on_grid, grid),
+        (points, points[:, :, :2]),
+        (points, points[:, :, :1]),
+    ]
     for pts, ctr in cases:
         nn3 = pointops.three_nn(pts, ctr)
         idx, wts = _naive_three_nn(pts[0], ctr[0])

@@ -43,7 +43,9 @@ def test_depth_prior_normalises_the_foreground_near_to_one():
     # Foreground depths {2, 3, 4, 2.5, 3.5}: near 2 → 1, far 4 → 0; masked-out 9 and depth holes → 0.
     expected = torch.tensor([[[0.0, 1.0, 0.5], [0.0, 0.75, 0.0], [0.0, 0.25, 0.0]]])
     torch.testing.assert_close(prior, expected)
-    torch.testing.assert_close(depth_prior_from_map(torch.full((1, 2, 2), 3.0), torch.ones(1, 2, 2)), torch.ones(1, 2, 2))
+    torch.testing.assert_close(
+        depth_prior_from_map(torch.full((1, 2, 2), 3.0), torch.ones(1, 2, 2)), torch.ones(1, 2, 2)
+    )
     torch.testing.assert_close(depth_prior_from_map(depth, torch.zeros_like(mask)), torch.zeros_like(depth))
 
 

@@ -26,5 +26,8 @@ def test_plain_log_handlers_take_colour_codes_out_of_every_stream_handler_once()
         logger.removeHandler(handler)
     text = stream.getvalue()
     assert "\x1b[" not in text
-    assert text.startswith("ERROR -- Trial task failed for trial\n") and "RuntimeError: ray::ImplicitFunc.train() (pid=1)" in text
+    assert (
+        text.startswith("ERROR -- Trial task failed for trial\n")
+        and "RuntimeError: ray::ImplicitFunc.train() (pid=1)" in text
+    )
     assert type(handler.formatter.inner) is logging.Formatter  # the handler's own format, kept inside

@@ -114,8 +114,19 @@ def test_ema_and_raster_radius_set_together_are_both_listed_by_the_dry_run(shape
     (tmp_path / "msn").mkdir()
     (tmp_path / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")  # the paper profile's encoder weights: present
     monkeypatch.setenv("CDM_INPUTS", str(tmp_path))
-    args = [str(SWEEPS / "shapenet.yaml"), "--dry-run", "--no-estimate", "--profile", "paper",
-            "--set", f"data.root={shapenet.root}", "--set", "train.ema_decay=0.999", "--set", "model.raster_radius=0.02"]
+    args = [
+        str(SWEEPS / "shapenet.yaml"),
+        "--dry-run",
+        "--no-estimate",
+        "--profile",
+        "paper",
+        "--set",
+        f"data.root={shapenet.root}",
+        "--set",
+        "train.ema_decay=0.999",
+        "--set",
+        "model.raster_radius=0.02",
+    ]
     assert run.main(args) == 0
     card = capsys.readouterr().out.split("protocol card:\n", 1)[1]
     assert "  deviation: model.raster_radius: 0.02, not 0.0075 (PC² experiments/model/projection_model.py" in card
@@ -139,7 +150,9 @@ def test_the_paper_profile_lists_the_encoder_and_the_denoiser_only_when_they_dev
 def test_batch_size_lambda_and_point_counts_are_compared_with_what_the_sources_say(shapenet, co3d):
     bdm = "train.batch_size: 8, not 16 (BDM experiments/example_train.sh: dataloader.batch_size; the paper states none)"
     assert bdm in _card("shapenet", **{"data.root": str(shapenet.root), "train.batch_size": 8}).deviations
-    assert "train.batch_size" not in _fields(_card("shapenet", **{"data.root": str(shapenet.root), "train.batch_size": 16}))
+    assert "train.batch_size" not in _fields(
+        _card("shapenet", **{"data.root": str(shapenet.root), "train.batch_size": 16})
+    )
     assert "train.batch_size" not in _fields(_card("co3d", **{"data.root": str(co3d.root), "train.batch_size": 8}))
     assert "train.batch_size: 16, not 8 (PC² experiments/config/structured.py: DataloaderConfig.batch_size; " \
            "the paper states none)" in _card("co3d", **{"data.root": str(co3d.root), "train.batch_size": 16}).deviations
@@ -182,7 +195,10 @@ def test_a_field_the_record_lacks_is_named_not_passed_over(monkeypatch):
 def test_a_missing_split_file_is_the_data_protocols_line_and_one_model_per_class_is_compared(shapenet, co3d, tmp_path):
     bare = make_shapenet(tmp_path / "bare", per_split={"train": 1, "test": 1}, views=2)
     card = _card("prior_type", **{"data.root": str(bare.root), "data.kind": "shapenet_r2n2"})
-    assert card.deviations[0] == "split: PC15k's test folders, not BDM's R2N2 test split (put BDM's pc_dict_v2.json in data.root)"
+    assert (
+        card.deviations[0]
+        == "split: PC15k's test folders, not BDM's R2N2 test split (put BDM's pc_dict_v2.json in data.root)"
+    )
     assert not any(d.startswith("split:") for d in _card("shapenet", **{"data.root": str(shapenet.root)}).deviations)
     # the references train one model per class: Table 5's teddybear model trained with hydrant is listed
     two = _card("frames", **{"data.root": str(co3d.root), "data.categories": ["teddybear", "hydrant"]})
@@ -202,7 +218,9 @@ def test_table_2_on_shapenet_uses_car_and_lamp_stands_in_only_on_procedural_data
     assert "CDM, car (lamp stands in)" in {c.paper_label for c in procedural.cells}
     assert any("lamp stands in for car" in d for d in plan_card(procedural).deviations)
     # BDM blends with PVD's checkpoints; a prior trained here is listed
-    assert any(d.startswith("sampling.blend.prior_checkpoint: auto, not PVD's checkpoint") for d in plan_card(ours).deviations)
+    assert any(
+        d.startswith("sampling.blend.prior_checkpoint: auto, not PVD's checkpoint") for d in plan_card(ours).deviations
+    )
 
 
 def test_depth_renders_that_average_surfaces_are_a_deviation():
@@ -218,7 +236,9 @@ def test_the_paper_profile_trains_in_pcs_fp16_and_the_card_names_any_other_preci
                                                                                      monkeypatch, capsys):
     """Acceptance (issue 41): Table 5's paper card has no precision line; --set train.precision=fp32 adds
     one naming PC²'s mixed_precision; on ShapeNet the source is BDM's, the same field."""
-    assert all(cell.config.train.precision == "fp16" for cell in expand(load_spec(SWEEPS / "frames.yaml"), "paper").cells)
+    assert all(
+        cell.config.train.precision == "fp16" for cell in expand(load_spec(SWEEPS / "frames.yaml"), "paper").cells
+    )
     assert "train.precision" not in _fields(_card("frames", **{"data.root": str(co3d.root)}))
     pc2 = ("train.precision: fp32, not fp16 (PC² experiments/config/structured.py: RunConfig.mixed_precision 'fp16', "
            "Accelerate's autocast and loss scale)")
@@ -229,8 +249,17 @@ def test_the_paper_profile_trains_in_pcs_fp16_and_the_card_names_any_other_preci
     (tmp_path / "msn").mkdir()
     (tmp_path / "msn" / "vits16_800ep.pth.tar").write_bytes(b"")
     monkeypatch.setenv("CDM_INPUTS", str(tmp_path))
-    args = [str(SWEEPS / "frames.yaml"), "--dry-run", "--no-estimate", "--profile", "paper", "--set", f"data.root={co3d.root}",
-            "--set", "priors.depth_source=ground_truth"]
+    args = [
+        str(SWEEPS / "frames.yaml"),
+        "--dry-run",
+        "--no-estimate",
+        "--profile",
+        "paper",
+        "--set",
+        f"data.root={co3d.root}",
+        "--set",
+        "priors.depth_source=ground_truth",
+    ]
     assert run.main(args) == 0
     out = capsys.readouterr().out
     assert "train.precision" not in out.split("protocol card:\n", 1)[1]
@@ -252,7 +281,12 @@ def test_table_5_cells_are_the_papers_co3d_cdm():
 def test_a_table_of_two_data_sets_needs_data_kind_with_data_root(shapenet, capsys):
     with pytest.raises(SpecError, match="--set data.kind: this table ran on shapenet_r2n2 and co3d"):
         expand(load_spec(SWEEPS / "prior_type.yaml"), "paper", {"data.root": str(shapenet.root)})
-    assert run.main([str(SWEEPS / "prior_type.yaml"), "--dry-run", "--profile", "paper", "--set", f"data.root={shapenet.root}"]) == 2
+    assert (
+        run.main(
+            [str(SWEEPS / "prior_type.yaml"), "--dry-run", "--profile", "paper", "--set", f"data.root={shapenet.root}"]
+        )
+        == 2
+    )
     assert capsys.readouterr().err.startswith("error: --set data.kind:")
 
 
@@ -279,7 +313,10 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     sweep.end()
     record_ = finished.open_sweep(uri, plan.spec.name)
     assert finished.protocol_card_lines(record_) == lines
-    assert lines[0] == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa stand in for hydrant, teddybear and toytruck"
+    assert (
+        lines[0]
+        == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa stand in for hydrant, teddybear and toytruck"
+    )
     theirs = finished.results_table(record_, []).notes
     ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=run._settings(plan)).notes
     assert [n for n in theirs if n.startswith("protocol: ")] == [n for n in ours if n.startswith("protocol: ")] == [

@@ -383,7 +383,22 @@ def test_head_starts_near_zero_and_multipliers_scale_as_pc2s():
     # PC²'s int(multiplier × width) / int(multiplier × resolution), counted with its code: 1,822,707.
     small = PVCNN2Denoiser(5, width_multiplier=0.25, voxel_resolution_multiplier=0.5)
     assert sum(p.numel() for p in small.parameters()) == 1_822_707
-    assert [m.resolution for m in small.modules() if hasattr(m, "resolution")] == [16, 16, 8, 4, 4, 4, 4, 4, 4, 4, 8, 8, 16, 16]
+    assert [m.resolution for m in small.modules() if hasattr(m, "resolution")] == [
+        16,
+        16,
+        8,
+        4,
+        4,
+        4,
+        4,
+        4,
+        4,
+        4,
+        8,
+        8,
+        16,
+        16,
+    ]
     with pytest.raises(ValueError, match="model.width_multiplier=0.3"):
         PVCNN2Denoiser(4, width_multiplier=0.3)
 
@@ -467,7 +482,10 @@ def test_a_pvd_checkpoint_loads_as_bdms_prior():
     assert reference_in_channels(state) == 0
     model = PVCNN2Denoiser(0)
     load_reference_weights(model, state)
-    assert torch.equal(model.fp_layers[3][0].mlp.layers[0].weight, ckpt["model_state"]["model.module.fp_layers.3.0.mlp.layers.0.weight"])
+    assert torch.equal(
+        model.fp_layers[3][0].mlp.layers[0].weight,
+        ckpt["model_state"]["model.module.fp_layers.3.0.mlp.layers.0.weight"],
+    )
     bdm = {"prior_model": {"model." + n: v for n, v in state.items()}}  # BDM's other container, no DataParallel
     assert reference_state_dict(bdm, "pvd").keys() == state.keys()
     out = model(torch.randn(1, 200, 3), torch.zeros(1, 200, 0), torch.tensor([3]))
@@ -481,7 +499,9 @@ def test_mismatches_are_refused_naming_the_first():
     wrong = dict(state)
     wrong["fp_layers.1.0.mlp.layers.0.weight"] = torch.zeros(256, 447, 1)
     wrong["fp_layers.2.0.mlp.layers.0.weight"] = torch.zeros(1)
-    with pytest.raises(ValueError, match=r"'fp_layers.1.0.mlp.layers.0.weight' has shape \(256, 447, 1\).*\(256, 448, 1\)"):
+    with pytest.raises(
+        ValueError, match=r"'fp_layers.1.0.mlp.layers.0.weight' has shape \(256, 447, 1\).*\(256, 448, 1\)"
+    ):
         load_reference_weights(model, wrong)
     assert torch.equal(model.global_att.q.weight, before)  # nothing copied
     with pytest.raises(ValueError, match=r"'sa_layers.0.0.voxel_layers.0.weight' has shape \(32, 392, 3, 3, 3\)"):
@@ -506,14 +526,23 @@ def test_checkpoint_files_load_as_data_and_an_object_that_is_not_a_config_is_ref
     assert model.in_channels == 389
     with_cfg = tmp_path / "with_cfg.pth"
     torch.save({**_pc2_checkpoint(), "cfg": _Config()}, with_cfg)  # PC²'s OmegaConf cfg: tests/test_pc2_checkpoint.py
-    with pytest.raises(ValueError, match=r"with_cfg\.pth could run code from the file while loading \(it calls (tests\.)?test_pvcnn2\._Config\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"with_cfg\.pth could run code from the file while loading \(it calls (tests\.)?test_pvcnn2\._Config\)",
+    ):
         load_reference_checkpoint(with_cfg, "pc2")
 
 
 @pytest.mark.parametrize("mask_channels", [True, False])  # PC²'s Co3D inputs; BDM's ShapeNet ones
 def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny, mask_channels: bool):
-    cfg = tiny.replace(**{"model.denoiser": "pvcnn2", "model.width_multiplier": 0.25, "model.voxel_resolution_multiplier": 0.25,
-                          "model.mask_channels": mask_channels})
+    cfg = tiny.replace(
+        **{
+            "model.denoiser": "pvcnn2",
+            "model.width_multiplier": 0.25,
+            "model.voxel_resolution_multiplier": 0.25,
+            "model.mask_channels": mask_channels,
+        }
+    )
     net = CDMNetwork(cfg.model, prior_2d_channels=1)
     f = cfg.model.feature_dim
     assert isinstance(net.denoiser, PVCNN2Denoiser)
@@ -531,7 +560,9 @@ def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny, mask_channels: bool):
 def test_cross_attention_at_the_bottleneck_starts_as_pc2s_function_and_then_reads_the_tokens():
     torch.manual_seed(3)
     plain = PVCNN2Denoiser(2, width_multiplier=0.25, voxel_resolution_multiplier=0.25).eval()
-    attending = PVCNN2Denoiser(2, width_multiplier=0.25, voxel_resolution_multiplier=0.25, token_channels=8, num_tokens=4).eval()
+    attending = PVCNN2Denoiser(
+        2, width_multiplier=0.25, voxel_resolution_multiplier=0.25, token_channels=8, num_tokens=4
+    ).eval()
     attending.load_state_dict(plain.state_dict(), strict=False)  # the same PC² weights, plus the new block
     extra = {k for k in attending.state_dict()} - {k for k in plain.state_dict()}
     assert extra and all(k.startswith("cross_att.") for k in extra)
@@ -569,7 +600,9 @@ def test_a_pvd_checkpoint_file_is_a_blending_prior_with_pvds_schedule(tmp_path):
     assert torch.equal(prior.network.denoiser.sa_layers[0][0].voxel_layers[0].weight,
                        weights["model.module.sa_layers.0.0.voxel_layers.0.weight"])
     # PVD's schedule (BDM experiments/pvd/__init__.py): linear β 1e-4 → 0.02 over 1,000 steps, ε-prediction.
-    assert prior.diffusion.betas[0].item() == pytest.approx(1e-4) and prior.diffusion.betas[-1].item() == pytest.approx(0.02)
+    assert prior.diffusion.betas[0].item() == pytest.approx(1e-4) and prior.diffusion.betas[-1].item() == pytest.approx(
+        0.02
+    )
     assert len(prior.diffusion.betas) == 1000 and prior.diffusion.prediction == "eps"
     torch.save({"model_state": {k: v for k, v in list(weights.items())[1:]}}, tmp_path / "broken.pth")
     with pytest.raises(ValueError, match=r"sampling\.blend\.prior_checkpoint: .*broken\.pth: not a PVD checkpoint"):
@@ -578,7 +611,9 @@ def test_a_pvd_checkpoint_file_is_a_blending_prior_with_pvds_schedule(tmp_path):
 
 def test_pc2_timestep_embedding_divides_by_half_minus_one():
     emb = pc2_timestep_embedding(torch.tensor([0, 7]), 8)
-    freqs = torch.exp(-torch.arange(4, dtype=torch.float64) * torch.log(torch.tensor(10_000.0, dtype=torch.float64)) / 3)
+    freqs = torch.exp(
+        -torch.arange(4, dtype=torch.float64) * torch.log(torch.tensor(10_000.0, dtype=torch.float64)) / 3
+    )
     assert torch.equal(emb[0], torch.tensor([0.0] * 4 + [1.0] * 4))
     torch.testing.assert_close(emb[1], torch.cat([torch.sin(7 * freqs), torch.cos(7 * freqs)]).float())
 

@@ -55,8 +55,13 @@ def _start(tmp_path: Path, uri: str, text: str) -> tuple[SweepRun, object]:
     spec_file = tmp_path / f"{text.split()[1]}.yaml"
     spec_file.write_text(text)
     plan = expand(load_spec(spec_file), "smoke")
-    sweep = SweepRun.start(uri, plan.spec.name, f"{plan.spec.name} · smoke", tags={"spec": plan.spec.name, "profile": "smoke"},
-                           params={"trials": plan.num_trials})
+    sweep = SweepRun.start(
+        uri,
+        plan.spec.name,
+        f"{plan.spec.name} · smoke",
+        tags={"spec": plan.spec.name, "profile": "smoke"},
+        params={"trials": plan.num_trials},
+    )
     plan_file = tmp_path / "plan.json"
     plan_file.write_text(json.dumps({"fixed": plan.fixed, "sets": {}, "cells": [
         {"label": c.label, "values": c.values, "seed": c.seed, "paper": c.paper} for c in plan.cells]}, default=str))
@@ -64,8 +69,15 @@ def _start(tmp_path: Path, uri: str, text: str) -> tuple[SweepRun, object]:
     return sweep, plan
 
 
-def _trial(tmp_path: Path, sweep: SweepRun, trial_id: str, label: str, overrides: dict, evals: dict[int, dict[str, float]],
-           objects: list[dict[str, object]] | None = None) -> TrialRun:
+def _trial(
+    tmp_path: Path,
+    sweep: SweepRun,
+    trial_id: str,
+    label: str,
+    overrides: dict,
+    evals: dict[int, dict[str, float]],
+    objects: list[dict[str, object]] | None = None,
+) -> TrialRun:
     """A trial's child run fed as ``cdm.train.fit`` feeds it: losses, then evaluations (the last with objects.csv)."""
     cell = label.rsplit(" · seed ", 1)[0]
     run = TrialRun(sweep.uri, sweep.experiment_id, sweep.run_id, trial_id, label,
@@ -107,8 +119,18 @@ def grid_store(tmp_path_factory):
            {20: {"eval/cd": 60.0, "eval/f1": 0.48, **base, "eval/cd/chair": 61.0, "eval/f1/chair": 0.49}},
            _objects([50.0, 60.0, 70.0]))
     # The driver closes each with Tune's last result, the source of the per-category finals.
-    sweep.close_trial("t0", labels[0], "FINISHED", last={"eval/cd": 80.0, "eval/f1": 0.42, "eval/cd/chair": 81.0, "eval/f1/chair": 0.43})
-    sweep.close_trial("t1", labels[1], "FINISHED", last={"eval/cd": 60.0, "eval/f1": 0.48, "eval/cd/chair": 61.0, "eval/f1/chair": 0.49})
+    sweep.close_trial(
+        "t0",
+        labels[0],
+        "FINISHED",
+        last={"eval/cd": 80.0, "eval/f1": 0.42, "eval/cd/chair": 81.0, "eval/f1/chair": 0.43},
+    )
+    sweep.close_trial(
+        "t1",
+        labels[1],
+        "FINISHED",
+        last={"eval/cd": 60.0, "eval/f1": 0.48, "eval/cd/chair": 61.0, "eval/f1/chair": 0.49},
+    )
     # The driver's verdict for a trial that raised before it opened its run (_TrialCloser.on_trial_error).
     sweep.close_trial("t2", labels[2], "FAILED", error="cdm.train.TrainingDiverged: loss became NaN at step 3")
     # The driver's end of the sweep: the baselines once for the evaluation set, on the parent.
@@ -120,7 +142,10 @@ def grid_store(tmp_path_factory):
 def test_final_metrics_are_the_last_evaluation_under_stable_names(grid_store):
     uri, sweep = grid_store
     client = MlflowClient(uri)
-    runs = {r.info.run_name: r for r in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")}
+    runs = {
+        r.info.run_name: r
+        for r in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")
+    }
     first = runs["point_size=0.02 · seed 0"]
     assert first.data.metrics["final/cd"] == 80.0 and first.data.metrics["final/f1"] == 0.42
     assert first.data.params["final/cd/chair"] == "81.0" and first.data.params["final/f1/chair"] == "0.43"
@@ -141,18 +166,26 @@ def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, t
     text = capsys.readouterr().out
     rows = {line.split("  ")[0].rstrip(" ★"): line for line in text.splitlines() if line.startswith("point_size=")}
     assert set(rows) == {"point_size=0.02", "point_size=0.04", "point_size=0.08"}
-    assert "0/1 (1 failed)" in rows["point_size=0.08"] and "failed" in rows["point_size=0.08"].split("0/1 (1 failed)")[1]
+    assert (
+        "0/1 (1 failed)" in rows["point_size=0.08"] and "failed" in rows["point_size=0.08"].split("0/1 (1 failed)")[1]
+    )
     assert "0.420" in rows["point_size=0.02"] and "0.450" in rows["point_size=0.02"]  # ours beside the paper's
     assert rows["point_size=0.04"].startswith("point_size=0.04 ★")  # best F1
     # Paired with the first cell on the same 3 objects: every object 20 lower, so Δcd is exactly -20
     # (in results.md: the terminal shows the Δ of the sweep's metric, F1, within 120 columns).
     assert "+0.020 [+0.020, +0.020]" in rows["point_size=0.04"] and "better" in rows["point_size=0.04"]
-    assert max(len(line) for line in text.split("\nresults: ")[0].splitlines()) <= 120  # the table, not the paths after it
-    md_row = next(line for line in (out / "results.md").read_text().splitlines() if line.startswith("| point_size=0.04"))
+    assert (
+        max(len(line) for line in text.split("\nresults: ")[0].splitlines()) <= 120
+    )  # the table, not the paths after it
+    md_row = next(
+        line for line in (out / "results.md").read_text().splitlines() if line.startswith("| point_size=0.04")
+    )
     assert "-20.00 [-20.00, -20.00]" in md_row
     # The baseline comes from the parent run (logged once there, not on the children).
     assert "baseline: sphere" in text
-    assert "best cell point_size=0.04 (Δf1 +0.020 [+0.020, +0.020] against the next cell): beats sphere" in " ".join(text.split())
+    assert "best cell point_size=0.04 (Δf1 +0.020 [+0.020, +0.020] against the next cell): beats sphere" in " ".join(
+        text.split()
+    )
     assert "failed: point_size=0.08 · seed 0 — cdm.train.TrainingDiverged: loss became NaN at step 3" in text
     records = list(csv.DictReader((out / "results.csv").open()))
     assert [r["cell"] for r in records[:3]] == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
@@ -167,10 +200,18 @@ def test_paper_layout_puts_ours_beside_the_paper_per_cell(grid_store):
     record = finished.open_sweep(uri, "synth")
     table = finished.paper_layout(finished.trial_records(record, objects=False))
     assert list(table.index) == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
-    assert table.loc["point_size=0.02", ("all", "F1 ours")] == 0.42 and table.loc["point_size=0.02", ("all", "F1 paper")] == 0.45
-    assert table.loc["point_size=0.04", ("all", "CD ours")] == 60.0 and table.loc["point_size=0.04", ("all", "CD paper")] == 105.0
+    assert (
+        table.loc["point_size=0.02", ("all", "F1 ours")] == 0.42
+        and table.loc["point_size=0.02", ("all", "F1 paper")] == 0.45
+    )
+    assert (
+        table.loc["point_size=0.04", ("all", "CD ours")] == 60.0
+        and table.loc["point_size=0.04", ("all", "CD paper")] == 105.0
+    )
     assert table.loc["point_size=0.04", ("chair", "F1 ours")] == 0.49
-    assert table.loc["point_size=0.08", ("", "trials")] == "0/1 (1 failed)" and np.isnan(table.loc["point_size=0.08", ("all", "CD ours")])
+    assert table.loc["point_size=0.08", ("", "trials")] == "0/1 (1 failed)" and np.isnan(
+        table.loc["point_size=0.08", ("all", "CD ours")]
+    )
 
 
 def test_unknown_experiment_exits_2_listing_the_known_ones(grid_store, capsys):
@@ -192,7 +233,8 @@ def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_st
         f"**point_size=0.04**, seed 0, a trial of the sweep [synth — profile smoke]{link}. At its last "
         "evaluation eval/f1 (F1@0.01 sq. dist = 0.1 world) 0.48, eval/cd (CD ×1000) 60.0. Its cell against the reference "
         "cell: Δf1 +0.020 [+0.020, +0.020] "
-        "(95% paired interval), better. Baselines it beats on eval/f1: sphere.")
+        "(95% paired interval), better. Baselines it beats on eval/f1: sphere."
+    )
     assert "It failed: cdm.train.TrainingDiverged: loss became NaN at step 3." in text["point_size=0.08"]
     assert "Its cell is the reference cell the others are paired with." in text["point_size=0.02"]
 
@@ -214,7 +256,9 @@ def test_baselines_once_on_the_parent_and_no_per_trial_paths_in_params(grid_stor
     uri, sweep = grid_store
     client = MlflowClient(uri)
     parent = client.get_run(sweep.run_id)
-    assert parent.data.metrics["baseline/sphere/f1"] == 0.2 and not [k for k in parent.data.metrics if "point_size" in k]
+    assert parent.data.metrics["baseline/sphere/f1"] == 0.2 and not [
+        k for k in parent.data.metrics if "point_size" in k
+    ]
     assert parent.data.tags["mlflow.note.content"] == "synth: a grid"
     for child in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'"):
         assert not [k for k in child.data.metrics if k.startswith("baseline/")]
@@ -266,7 +310,12 @@ def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
     assert [t.outcome.label for t in trials] == ["λ=0.1 · seed 0", "λ=0.01 · seed 0", "λ=1 · seed 0", "λ=5 · seed 0"]
     assert [t.values["priors.lambda_3d"] for t in trials] == [0.1, 0.01, 1.0, 5.0]
     paths = report.write_plots(record, trials, tmp_path / "plots")
-    assert [p.name for p in paths] == ["metric_vs_value.png", "training_curves.png", "optuna_history.png", "optuna_importance.png"]
+    assert [p.name for p in paths] == [
+        "metric_vs_value.png",
+        "training_curves.png",
+        "optuna_history.png",
+        "optuna_importance.png",
+    ]
     for p in paths:
         assert mpimg.imread(p).std() > 0.01
 
@@ -315,7 +364,9 @@ def test_panel_views_match_where_the_clouds_match_and_differ_where_they_differ(t
     for k in range(3):  # prediction = ground truth: each pred view draws what the GT view draws
         assert _overlap(same[k], same[3 + k]) > 0.95
     assert _overlap(same[3], same[4]) < 0.8  # and the 3 views are different views
-    moved = panel_views(save_panel(tmp_path / "moved.png", batch, 0, gt * 0.3 + torch.tensor([0.4, 0.0, 0.0]), 50.0, 0.1))
+    moved = panel_views(
+        save_panel(tmp_path / "moved.png", batch, 0, gt * 0.3 + torch.tensor([0.4, 0.0, 0.0]), 50.0, 0.1)
+    )
     for k in range(3):
         assert _overlap(moved[k], moved[3 + k]) < 0.4
         assert _overlap(moved[3 + k], same[3 + k]) > 0.95  # the GT half does not depend on the prediction
@@ -338,12 +389,21 @@ def test_metric_vs_value_log_axis_baseline_lines_and_resolution(tmp_path):
 
     assert log_spaced([0.0075, 0.01, 0.02, 0.04, 0.08]) and log_spaced([1e-3, 1e-2, 1e-1, 1.0])
     assert not log_spaced([1, 2, 3, 4]) and not log_spaced([0.02, 0.04]) and not log_spaced([0.0, 0.1, 1.0])
-    points = [PlotPoint(f"point_size={v}", {"priors.point_size": v}, {"eval/f1": 0.3 + v, "eval/cd": 50 - v,
-                                                                      "baseline/sphere/f1": 0.1, "baseline/sphere/cd": 20.0})
-              for v in (0.0075, 0.01, 0.02, 0.04, 0.08)]
+    points = [
+        PlotPoint(
+            f"point_size={v}",
+            {"priors.point_size": v},
+            {"eval/f1": 0.3 + v, "eval/cd": 50 - v, "baseline/sphere/f1": 0.1, "baseline/sphere/cd": 20.0},
+        )
+        for v in (0.0075, 0.01, 0.02, 0.04, 0.08)
+    ]
     with_baseline = metric_vs_value(points, "eval/f1", "t", tmp_path / "a.png", "Table 5")
-    without = metric_vs_value([PlotPoint(p.cell, p.values, {k: v for k, v in p.metrics.items() if k.startswith("eval/")})
-                               for p in points], "eval/f1", "t", tmp_path / "b.png")
+    without = metric_vs_value(
+        [PlotPoint(p.cell, p.values, {k: v for k, v in p.metrics.items() if k.startswith("eval/")}) for p in points],
+        "eval/f1",
+        "t",
+        tmp_path / "b.png",
+    )
     image = Image.open(with_baseline)
     assert image.info["dpi"][0] == pytest.approx(150, abs=1)
     pixels = np.asarray(image.convert("RGB")).astype(int)
@@ -365,21 +425,35 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
     labels = [c.label for c in plan.cells]
     rng = np.random.default_rng(0)
     clouds = {}
-    base = {"baseline/sphere/f1": 0.2, "baseline/retrieval/f1": 0.6, "baseline/sphere/cd": 90.0, "baseline/retrieval/cd": 30.0}
+    base = {
+        "baseline/sphere/f1": 0.2,
+        "baseline/retrieval/f1": 0.6,
+        "baseline/sphere/cd": 90.0,
+        "baseline/retrieval/cd": 30.0,
+    }
     for i, label in enumerate(labels[:2]):
         folder = tmp_path / f"eval{i}"
         files = []
         for oid in ("chair_0001", "mug_0002"):
             for suffix in ("", ".gt", ".sphere", ".retrieval", ".gaussian", ".category_mean"):
-                cloud = clouds.setdefault((oid, suffix if suffix else label), torch.from_numpy(rng.uniform(-0.5, 0.5, (300, 3))).float())
+                cloud = clouds.setdefault(
+                    (oid, suffix if suffix else label), torch.from_numpy(rng.uniform(-0.5, 0.5, (300, 3))).float()
+                )
                 files.append(write_ply(folder / f"{oid}{suffix}.ply", cloud))
         table = folder / "objects.csv"
         table.write_text("object_id,category,eval_set,cd,f1,baseline/retrieval/cd,baseline/retrieval/f1\n"
                          + "".join(f"{oid},c,e1,{40 + 10 * i + j},{0.5 - 0.1 * i},30.0,0.6\n"
                                    for j, oid in enumerate(("chair_0001", "mug_0002"))))
         files.append(table)
-        run = TrialRun(uri, sweep.experiment_id, sweep.run_id, f"t{i}", label, {"cell": label.split(" · ")[0], "seed": "0"},
-                       tiny_config(tmp_path))
+        run = TrialRun(
+            uri,
+            sweep.experiment_id,
+            sweep.run_id,
+            f"t{i}",
+            label,
+            {"cell": label.split(" · ")[0], "seed": "0"},
+            tiny_config(tmp_path),
+        )
         run.on_eval(20, {"eval/f1": 0.4, "eval/cd": 50.0}, files)
         sweep.close_trial(f"t{i}", label, "FINISHED")
     sweep.log_results({"e1": base}, "grid")
@@ -395,7 +469,9 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
     cells = [label.split(" · ")[0] for label in labels[:2]]
     assert data["columns"] == [*cells, "ground truth", "baseline: retrieval"]  # retrieval: the best F1
     first = data["objects"][0]
-    assert [o["id"] for o in data["objects"]] == ["chair_0001", "mug_0002"] and set(first["clouds"]) == set(data["columns"])
+    assert [o["id"] for o in data["objects"]] == ["chair_0001", "mug_0002"] and set(first["clouds"]) == set(
+        data["columns"]
+    )
     assert np.allclose(first["clouds"][cells[1]], clouds[("chair_0001", labels[1])].numpy(), atol=5e-4)
     assert np.allclose(first["clouds"]["ground truth"], clouds[("chair_0001", ".gt")].numpy(), atol=5e-4)
     # Each canvas's title: that object's CD and F1 in that column (objects.csv); none for the ground truth.

@@ -23,8 +23,17 @@ def _recorded(store, tmp_path, tags: dict[str, str], config: str | None = "train
     """A child run as a sweep trial leaves it (repro.* tags, config.yaml), with ``tags`` over the record."""
     uri, experiment, parent = store
     client = MlflowClient(uri)
-    run = client.create_run(experiment, tags={"mlflow.parentRunId": parent, "trial_id": "t0", "repro.config_hash": "0" * 12,
-                                              "repro.git_commit": "abc", "repro.git_dirty": "false", **tags}).info.run_id
+    run = client.create_run(
+        experiment,
+        tags={
+            "mlflow.parentRunId": parent,
+            "trial_id": "t0",
+            "repro.config_hash": "0" * 12,
+            "repro.git_commit": "abc",
+            "repro.git_dirty": "false",
+            **tags,
+        },
+    ).info.run_id
     if config is not None:
         (tmp_path / "config.yaml").write_text(config)
         client.log_artifact(run, str(tmp_path / "config.yaml"))
@@ -35,7 +44,9 @@ def _recorded(store, tmp_path, tags: dict[str, str], config: str | None = "train
 @pytest.mark.parametrize("threads", ["0", "-1", "²", "9" * 5001, "4097", "two"])
 def test_a_recorded_thread_count_out_of_range_is_refused_before_training(store, tmp_path, threads):
     uri, run = _recorded(store, tmp_path, {"repro.torch_threads": threads})
-    with pytest.raises(RerunError, match=r"repro.torch_threads is .*; expected a whole number from 1 to 4096") as refused:
+    with pytest.raises(
+        RerunError, match=r"repro.torch_threads is .*; expected a whole number from 1 to 4096"
+    ) as refused:
         rerun(run, uri, tmp_path / "reruns", force=True)
     assert "\n" not in str(refused.value)
     assert not (tmp_path / "reruns").exists()

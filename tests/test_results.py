@@ -13,14 +13,26 @@ from sweeps.compare.table import TrialOutcome, build_table
 
 
 def _trial(cell, seed, status="ok", **metrics):
-    return TrialOutcome(f"{cell} · seed {seed}", cell, status, {k.replace("__", "/"): v for k, v in metrics.items()},
-                        paper_label="p" if cell == "a" else None, paper={"eval/f1": 0.461, "eval/f1/chair": 0.476} if cell == "a" else {})
+    return TrialOutcome(
+        f"{cell} · seed {seed}",
+        cell,
+        status,
+        {k.replace("__", "/"): v for k, v in metrics.items()},
+        paper_label="p" if cell == "a" else None,
+        paper={"eval/f1": 0.461, "eval/f1/chair": 0.476} if cell == "a" else {},
+    )
 
 
 OUTCOMES = [
-    _trial("a", 0, eval__f1=0.40, eval__cd=80.0, eval__f1__chair=0.30, baseline__sphere__f1=0.10, baseline__sphere__cd=90.0),
-    _trial("a", 1, eval__f1=0.50, eval__cd=70.0, eval__f1__chair=0.40, baseline__sphere__f1=0.12, baseline__sphere__cd=92.0),
-    _trial("b", 0, eval__f1=0.42, eval__cd=60.0, eval__f1__chair=0.20, baseline__sphere__f1=0.10, baseline__sphere__cd=90.0),
+    _trial(
+        "a", 0, eval__f1=0.40, eval__cd=80.0, eval__f1__chair=0.30, baseline__sphere__f1=0.10, baseline__sphere__cd=90.0
+    ),
+    _trial(
+        "a", 1, eval__f1=0.50, eval__cd=70.0, eval__f1__chair=0.40, baseline__sphere__f1=0.12, baseline__sphere__cd=92.0
+    ),
+    _trial(
+        "b", 0, eval__f1=0.42, eval__cd=60.0, eval__f1__chair=0.20, baseline__sphere__f1=0.10, baseline__sphere__cd=90.0
+    ),
     TrialOutcome("b · seed 1", "b", "failed", error="TrainingDiverged: loss became nan at step 3"),
     _trial("c", 0, status="stopped", eval__f1=0.20, eval__cd=150.0),
 ]
@@ -109,21 +121,36 @@ def _main_job_outcomes() -> list[TrialOutcome]:
     """The main job's shape (sweeps/point_size.yaml, local profile): 5 cells × 1 seed, 8 categories of 4
     objects, the four baselines, two paper rows; the 0.04 cell scores best and beats only the sphere."""
     categories = ["airplane", "bench", "car", "chair", "lamp", "sofa", "table", "watercraft"]
-    baselines = {"sphere": (0.10, 120.0), "gaussian": (0.50, 40.0), "category_mean": (0.55, 35.0), "retrieval": (0.60, 30.0)}
+    baselines = {
+        "sphere": (0.10, 120.0),
+        "gaussian": (0.50, 40.0),
+        "category_mean": (0.55, 35.0),
+        "retrieval": (0.60, 30.0),
+    }
     paper = {0.0075: ("10 frames + 0.0075 point size", 0.451), 0.04: ("10 frames + 0.04 point size", 0.461)}
     out = []
     for size, level in ((0.0075, 0.30), (0.01, 0.31), (0.02, 0.33), (0.04, 0.40), (0.08, 0.35)):
         rows = []
         for i, cat in enumerate(categories * 4):
             wobble = 0.01 * ((i * 7) % 5 - 2)
-            row = {"object_id": f"{cat}/{i:04d}", "category": cat, "eval_set": "abc", "f1": level + wobble, "cd": 60.0 - 50 * level}
+            row = {
+                "object_id": f"{cat}/{i:04d}",
+                "category": cat,
+                "eval_set": "abc",
+                "f1": level + wobble,
+                "cd": 60.0 - 50 * level,
+            }
             for b, (f1, cd) in baselines.items():
                 row |= {f"baseline/{b}/f1": f1 + wobble / 2, f"baseline/{b}/cd": cd}
             rows.append(row)
         metrics = {"eval/f1": level, "eval/cd": 60.0 - 50 * level}
         metrics |= {f"eval/{m}/{c}": v + 0.001 for m, v in (("f1", level), ("cd", 60 - 50 * level)) for c in categories}
-        metrics |= {f"baseline/{b}/{m}" + suffix: v for b, (f1, cd) in baselines.items() for m, v in (("f1", f1), ("cd", cd))
-                    for suffix in ["", *(f"/{c}" for c in categories)]}
+        metrics |= {
+            f"baseline/{b}/{m}" + suffix: v
+            for b, (f1, cd) in baselines.items()
+            for m, v in (("f1", f1), ("cd", cd))
+            for suffix in ["", *(f"/{c}" for c in categories)]
+        }
         label, value = paper.get(size, (None, None))
         out.append(TrialOutcome(f"point_size={size} · seed 0", f"point_size={size}", "ok", metrics, label,
                                 {"eval/f1": value} if value else {}, objects=tuple(rows)))
@@ -139,9 +166,14 @@ def test_terminal_table_fits_120_columns_at_the_main_jobs_size_and_says_where_th
     assert max(len(line) for line in table.markdown().splitlines()) > 200  # results.md keeps every column
     assert "eval/f1/chair" not in text and "eval/f1/chair" in table.markdown() and "eval/f1/<category>" in text
     assert "not shown here, in results.md and results.csv: " in text
-    assert ("best cell point_size=0.04 (Δf1 +0.050 [+0.050, +0.050] against the next cell): beats sphere; below Gaussian, "
-            "category mean, retrieval") in " ".join(text.split())
-    assert "cells point_size=0.0075, point_size=0.01, point_size=0.02, point_size=0.08: beat sphere; below Gaussian" in text
+    assert (
+        "best cell point_size=0.04 (Δf1 +0.050 [+0.050, +0.050] against the next cell): beats sphere; below Gaussian, "
+        "category mean, retrieval"
+    ) in " ".join(text.split())
+    assert (
+        "cells point_size=0.0075, point_size=0.01, point_size=0.02, point_size=0.08: beat sphere; below Gaussian"
+        in text
+    )
     # Footnotes only when they apply: one seed (no ±), no per-category paper numbers.
     assert "±" not in text and "ours (paper)" not in text
     # Baselines are reference rows: numbers, no Δ or verdict against the reference cell.
@@ -156,7 +188,9 @@ def test_settings_note_says_lambda_and_where_it_was_set():
     note = settings_note("local", 800, ["x0"], [0.1, 0.1], "profile local")
     assert note == ("profile local: 800 steps per trial; prediction target x0; "
                     "λ (priors.lambda_3d, Eq. 6) 0.1, from profile local, not from the paper")
-    assert "λ (priors.lambda_3d, Eq. 6) per cell (0.01, 1)," in settings_note("local", 800, ["x0"], [1.0, 0.01], "the spec's cells")
+    assert "λ (priors.lambda_3d, Eq. 6) per cell (0.01, 1)," in settings_note(
+        "local", 800, ["x0"], [1.0, 0.01], "the spec's cells"
+    )
     assert "λ (priors.lambda_3d, Eq. 6) searched," in settings_note("local", 800, ["x0"], [], "the spec's search")
 
 
@@ -168,9 +202,11 @@ WOBBLE = [1, -1, 0.5, -0.5, 1, -1]  # sums to 0: a shift by it alone leaves the 
 def _scored(cell: str, f1: list[float], cd: list[float], seed: int = 0) -> TrialOutcome:
     """A trial with per-object rows on 6 chairs; the sphere scores far worse, the Gaussian worse F1, better CD."""
     baselines = {"sphere": (0.10, 100.0), "gaussian": (0.10, 10.0)}
-    rows = tuple({"object_id": f"o{i}", "category": "chair", "f1": f, "cd": c}
-                 | {f"baseline/{b}/{m}": v + w / 100 for b, (bf, bc) in baselines.items() for m, v in (("f1", bf), ("cd", bc))}
-                 for i, (f, c, w) in enumerate(zip(f1, cd, WOBBLE)))
+    rows = tuple(
+        {"object_id": f"o{i}", "category": "chair", "f1": f, "cd": c}
+        | {f"baseline/{b}/{m}": v + w / 100 for b, (bf, bc) in baselines.items() for m, v in (("f1", bf), ("cd", bc))}
+        for i, (f, c, w) in enumerate(zip(f1, cd, WOBBLE))
+    )
     metrics = {"eval/f1": statistics.fmean(f1), "eval/cd": statistics.fmean(cd)}
     metrics |= {f"baseline/{b}/{m}": v for b, (bf, bc) in baselines.items() for m, v in (("f1", bf), ("cd", bc))}
     return TrialOutcome(f"{cell} · seed {seed}", cell, "ok", metrics, objects=rows)
@@ -178,9 +214,13 @@ def _scored(cell: str, f1: list[float], cd: list[float], seed: int = 0) -> Trial
 
 def _weighing_outcomes() -> list[TrialOutcome]:
     """``trade``: F1 up 0.05, CD worse by 5; ``cd only``: F1 only wobbles (Δ 0), CD worse by 3."""
-    return [_scored("ref", REF_F1, REF_CD),
-            _scored("trade", [f + 0.05 + w / 100 for f, w in zip(REF_F1, WOBBLE)], [c + 5 + w for c, w in zip(REF_CD, WOBBLE)]),
-            _scored("cd only", [f + w / 50 for f, w in zip(REF_F1, WOBBLE)], [c + 3 + w for c, w in zip(REF_CD, WOBBLE)])]
+    return [
+        _scored("ref", REF_F1, REF_CD),
+        _scored(
+            "trade", [f + 0.05 + w / 100 for f, w in zip(REF_F1, WOBBLE)], [c + 5 + w for c, w in zip(REF_CD, WOBBLE)]
+        ),
+        _scored("cd only", [f + w / 50 for f, w in zip(REF_F1, WOBBLE)], [c + 3 + w for c, w in zip(REF_CD, WOBBLE)]),
+    ]
 
 
 def test_the_verdict_weighs_the_partner_metric():
@@ -193,8 +233,10 @@ def test_the_verdict_weighs_the_partner_metric():
     text = table.text()
     assert "no clear difference" not in text and "level with" not in text
     # Against the Gaussian every cell scores better F1 and worse CD: that is what the sentence says.
-    assert ("best cell trade (Δf1 +0.050 [+0.043, +0.057] against the next cell): beats sphere; better on f1, worse on cd "
-            "than Gaussian") in table.summary
+    assert (
+        "best cell trade (Δf1 +0.050 [+0.043, +0.057] against the next cell): beats sphere; better on f1, worse on cd "
+        "than Gaussian"
+    ) in table.summary
     assert "against ref: trade better on f1, worse on cd; cd only worse on cd" in table.summary
     assert [r["beats baselines"] for r in table.records[:3]] == ["sphere"] * 3
     assert "verdict and beats baselines by eval/f1 (max) and eval/cd (min)" in text
@@ -209,14 +251,24 @@ def test_the_star_needs_a_difference_the_table_prints():
     assert "no ★: b, a tied for best by eval/f1 (max) at the printed precision" in table.notes
     assert table.summary[0] == "no best cell: b, a tie at eval/f1 0.468"
     apart = build_table(close[:1] + [_trial("b", 0, eval__f1=0.469, eval__cd=51.0)], "eval/f1", "max", "t")
-    assert apart.best == "b" and apart.rows[1][0] == "b ★" and apart.notes[-1].startswith("★ highest mean eval/f1 (max), apart")
+    assert (
+        apart.best == "b"
+        and apart.rows[1][0] == "b ★"
+        and apart.notes[-1].startswith("★ highest mean eval/f1 (max), apart")
+    )
     # Without per-object scores nothing tells the leader apart from the next cell: no "best".
-    assert apart.summary[0] == "no cell is resolvably best by eval/f1: the leader b (unpaired with the next cell): eval/f1 0.469"
+    assert (
+        apart.summary[0]
+        == "no cell is resolvably best by eval/f1: the leader b (unpaired with the next cell): eval/f1 0.469"
+    )
 
 
 def test_best_only_where_the_leaders_interval_against_the_next_cell_excludes_0():
     # `close` leads `ref` by 0.002 in F1 with a wobble of ±0.01 per object: starred, but not resolvably best.
-    close = [_scored("ref", REF_F1, REF_CD), _scored("close", [f + 0.002 + w / 100 for f, w in zip(REF_F1, WOBBLE)], REF_CD)]
+    close = [
+        _scored("ref", REF_F1, REF_CD),
+        _scored("close", [f + 0.002 + w / 100 for f, w in zip(REF_F1, WOBBLE)], REF_CD),
+    ]
     table = build_table(close, "eval/f1", "max", "t")
     assert table.best == "close" and table.rows[1][0] == "close ★"
     assert table.summary[0].startswith("no cell is resolvably best by eval/f1: the leader close (Δf1 +0.002 [")
@@ -254,7 +306,11 @@ def test_settled_cells_show_their_seeds_interval_and_verdict(tmp_path):
     assert table.answer[:2] == ("cell", "seeds")
     _, path = table.write(tmp_path)
     trade = next(r for r in csv.DictReader(path.open()) if r["cell"] == "trade")
-    assert (trade["seeds"], trade["stop reason"], trade["eval/f1 delta covers"]) == ("2", "settled", "seeds and objects")
+    assert (trade["seeds"], trade["stop reason"], trade["eval/f1 delta covers"]) == (
+        "2",
+        "settled",
+        "seeds and objects",
+    )
     assert float(trade["eval/f1 delta low"]) == 0.02
     assert "against ref: trade better, settled after 2 seeds (worse on cd, objects only); cd only open at 5 seeds " \
            "(worse on cd, objects only)" in table.summary
@@ -263,9 +319,15 @@ def test_settled_cells_show_their_seeds_interval_and_verdict(tmp_path):
 def test_every_f1_label_names_its_threshold_in_world_units():
     table = build_table(_main_job_outcomes(), "eval/f1", "max", "point_size — profile local")
     for text in (table.text(), table.markdown()):
-        assert "F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units" in " ".join(text.split())
+        assert (
+            "F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units"
+            in " ".join(text.split())
+        )
     assert metric_label("eval/f1") == "eval/f1 (F1@0.01 sq. dist = 0.1 world)"
-    assert metric_label("eval/f1/chair").endswith("(F1@0.01 sq. dist = 0.1 world)") and metric_label("eval/cd") == "eval/cd (CD ×1000)"
+    assert (
+        metric_label("eval/f1/chair").endswith("(F1@0.01 sq. dist = 0.1 world)")
+        and metric_label("eval/cd") == "eval/cd (CD ×1000)"
+    )
     assert metric_label("train/loss") == "train/loss"
     no_f1 = build_table([_trial("a", 0, train__loss=0.5)], "train/loss", "min", "t")  # no F1 shown: no footnote
     assert not any(n.startswith("F1 is") for n in no_f1.notes)

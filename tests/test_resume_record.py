@@ -19,7 +19,9 @@ def test_finished_trial_is_recognised_and_its_final_metrics_logged_once(tmp_path
     assert finished_trial_metrics(uri, sweep.experiment_id, sweep.run_id, "t0") is None  # still RUNNING
     assert finished_trial_metrics(uri, sweep.experiment_id, sweep.run_id, "t1") is None  # no run at all
 
-    sweep.close_trial("t0", "cell · seed 0", "FINISHED", last={"eval/cd": 40.0, "eval/f1": 0.35, "eval/f1/chair": 0.3456})
+    sweep.close_trial(
+        "t0", "cell · seed 0", "FINISHED", last={"eval/cd": 40.0, "eval/f1": 0.35, "eval/f1/chair": 0.3456}
+    )
     done = finished_trial_metrics(uri, sweep.experiment_id, sweep.run_id, "t0")
     # The per-category score the child logged only as final/f1/chair comes back under its reported name.
     assert done == {"train/loss": 0.05, "eval/cd": 40.0, "eval/f1": 0.35, "eval/f1/chair": 0.346, "step": 20}

@@ -26,7 +26,9 @@ from cdm.safe_io import (
 from tests.hostile_files import gzip_bomb, nested_json, npy_header, write_npz
 
 
-@pytest.mark.parametrize("kind,said", [("fifo", "is a FIFO"), ("folder", "is a folder"), ("dev_zero", "is a character device")])
+@pytest.mark.parametrize(
+    "kind,said", [("fifo", "is a FIFO"), ("folder", "is a folder"), ("dev_zero", "is a character device")]
+)
 def test_open_regular_refuses_what_is_not_a_regular_file_before_reading(tmp_path, kind, said):
     path = tmp_path / "checkpoint.pt"
     if kind == "fifo":
@@ -57,7 +59,9 @@ def test_a_gzip_bomb_stops_at_the_cap_with_memory_near_it(tmp_path):
     bomb = tmp_path / "frame_annotations.jgz"
     assert gzip_bomb(bomb, 3.0) < 4e6
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    with pytest.raises(ValueError, match=f"data.root: {bomb} decompresses to more than 64 MiB; set CDM_MAX_ANNOTATION_MIB"):
+    with pytest.raises(
+        ValueError, match=f"data.root: {bomb} decompresses to more than 64 MiB; set CDM_MAX_ANNOTATION_MIB"
+    ):
         read_gzip(bomb, "data.root", cap=64 * 2**20)
     grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before
     assert grown < 200 * 2**20
@@ -95,7 +99,10 @@ def test_an_npy_header_over_the_cap_is_refused_before_allocating(tmp_path):
     """(100000, 100000) float32 with no data: 37.3 GiB promised by a 128-byte file."""
     path = tmp_path / "0.npy"
     path.write_bytes(npy_header((100_000, 100_000)))
-    with pytest.raises(ValueError, match=r"declares a float32 array of shape \(100000, 100000\) \(37.3 GiB\); an array read here may hold at most 512 MiB"):
+    with pytest.raises(
+        ValueError,
+        match=r"declares a float32 array of shape \(100000, 100000\) \(37.3 GiB\); an array read here may hold at most 512 MiB",
+    ):
         load_npy(path, "priors.depth_maps")
     path.write_bytes(npy_header((1000, 1000)) + b"\0" * 100)
     with pytest.raises(ValueError, match="is shorter than its header says"):
@@ -112,7 +119,9 @@ def test_an_npz_bomb_is_refused_from_its_header_and_a_sum_of_members_from_theirs
     size = write_npz(path, {"a/b/c": np.ones(4, np.float32)}, bomb="procedural/chair/x")
     assert size < 2e6
     before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    with pytest.raises(ValueError, match=r"procedural/chair/x.npy declares a float32 array of shape \(423624704,\) \(1.6 GiB\)"):
+    with pytest.raises(
+        ValueError, match=r"procedural/chair/x.npy declares a float32 array of shape \(423624704,\) \(1.6 GiB\)"
+    ):
         load_npz(path, "model.global_embeddings")
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - before < 100 * 2**20
     assert load_npz(path, "model.global_embeddings", names=True) == ["a/b/c", "procedural/chair/x"]
@@ -122,14 +131,19 @@ def test_an_npz_bomb_is_refused_from_its_header_and_a_sum_of_members_from_theirs
     assert sorted(load_npz(path, "f")) == [f"o{i}" for i in range(5)]
 
 
-@pytest.mark.parametrize("path", ["../outside/x.jpg", "teddybear/../../x.jpg", "/etc/passwd", "\\\\server\\x", "C:/x", "", "a\0b"])
+@pytest.mark.parametrize(
+    "path", ["../outside/x.jpg", "teddybear/../../x.jpg", "/etc/passwd", "\\\\server\\x", "C:/x", "", "a\0b"]
+)
 def test_an_annotation_path_leaving_the_root_is_refused(path):
     with pytest.raises(ValueError, match="^frame_annotations.jgz entry 3: image.path gives the path"):
         inside(path, "frame_annotations.jgz entry 3: image.path")
 
 
 def test_an_annotation_path_below_the_root_is_kept():
-    assert inside("teddybear/101_11758_21048/images/frame000001.jpg", "x") == "teddybear/101_11758_21048/images/frame000001.jpg"
+    assert (
+        inside("teddybear/101_11758_21048/images/frame000001.jpg", "x")
+        == "teddybear/101_11758_21048/images/frame000001.jpg"
+    )
 
 
 @pytest.mark.parametrize("name", ["..", ".", "../../../ESCAPED", "a/b", ".hidden", "", "x" * 129, 7, None])

@@ -87,9 +87,12 @@ def test_the_optuna_kind_samples_the_typed_space():
     searcher = search_kind("optuna").tune_searcher(spec.search, "eval/f1", "max", "study-1")
     assert isinstance(searcher, OptunaSearch)
     assert (searcher.metric, searcher.mode) == ("eval/f1", "max")
-    params = {"x": {"type": "log_float", "low": 1e-3, "high": 10.0}, "n": {"type": "int", "low": 2, "high": 8, "step": 2},
-              "f": {"type": "float", "low": 0.0, "high": 1.0, "step": 0.25},
-              "c": {"type": "categorical", "choices": ["contour", "depth"]}}
+    params = {
+        "x": {"type": "log_float", "low": 1e-3, "high": 10.0},
+        "n": {"type": "int", "low": 2, "high": 8, "step": 2},
+        "f": {"type": "float", "low": 0.0, "high": 1.0, "step": 0.25},
+        "c": {"type": "categorical", "choices": ["contour", "depth"]},
+    }
     assert optuna_distributions({k: SpaceParam.model_validate(v) for k, v in params.items()}) == {
         "x": od.FloatDistribution(1e-3, 10.0, log=True), "n": od.IntDistribution(2, 8, step=2),
         "f": od.FloatDistribution(0.0, 1.0, step=0.25), "c": od.CategoricalDistribution(["contour", "depth"])}

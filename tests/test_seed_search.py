@@ -39,8 +39,10 @@ def _finish(sweep_run: SweepRun, trial_id: str, label: str, folder: Path, status
     with table.open("w", newline="") as fh:
         writer = csv.DictWriter(fh, ["object_id", "category", "eval_set", "cd", "f1"])
         writer.writeheader()
-        writer.writerows({"object_id": f"o{i}", "category": "chair", "eval_set": "e", "cd": 1.0, "f1": 0.1 * i + 0.05 * seed}
-                         for i in range(6))
+        writer.writerows(
+            {"object_id": f"o{i}", "category": "chair", "eval_set": "e", "cd": 1.0, "f1": 0.1 * i + 0.05 * seed}
+            for i in range(6)
+        )
     client.log_artifact(run.info.run_id, str(table), "eval/step_0000010")
     client.set_terminated(run.info.run_id, status)
 
@@ -76,7 +78,9 @@ def test_a_restored_searcher_keeps_its_proposals_reads_results_from_mlflow_and_r
     assert restored.proposed == {**first, **second}
     assert set(restored.results) == {*first.values(), "ref · seed 2"}  # read back from MLflow, not from the file
     assert restored.suggest("t20") is None  # null · seed 2 is Tune's to re-run: not proposed again
-    children = sweep_run.client.search_runs([sweep_run.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}'")
+    children = sweep_run.client.search_runs(
+        [sweep_run.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}'"
+    )
     assert "unseen" not in {c.data.tags["trial_id"] for c in children}  # its seed keeps one child run
     null_id = next(t for t, label in second.items() if label == "null · seed 2")
     _finish(sweep_run, null_id, "null · seed 2", tmp_path)
@@ -111,16 +115,31 @@ def _state_folder(tmp_path, text: str | bytes, name: str = "seed-searcher-2026-1
     return folder
 
 
-@pytest.mark.parametrize(("text", "said"), [
-    ('{"proposed": {"t0": "ref · seed 0"', "is not JSON"),
-    ("[" * 100_000 + "]" * 100_000, "nests 100000 levels deep"),
-    (json.dumps({"proposed": {f"t{i}": "ref · seed 0" for i in range(10**6)}, "spent_s": 1.0}), "bytes; a seed searcher's state is at most"),
-    (json.dumps({"proposed": {f"t{i}": "ref · seed 0" for i in range(7)}, "spent_s": 1.0}), "7 proposals, more than the plan's 6 trials"),
-    (json.dumps({"proposed": {"t0": "ref · seed 9"}, "spent_s": 1.0}), "proposal 'ref · seed 9' is no trial of this sweep"),
-    (json.dumps({"proposed": {"t0": "ref · seed 0", "t1": "ref · seed 0"}, "spent_s": 1.0}), "a trial proposed twice"),
-    ('{"proposed": {}, "spent_s": NaN}', "spent_s nan is not a finite number"),
-    ('{"proposed": [], "spent_s": 1}', 'expected {"proposed"'),
-])
+@pytest.mark.parametrize(
+    ("text", "said"),
+    [
+        ('{"proposed": {"t0": "ref · seed 0"', "is not JSON"),
+        ("[" * 100_000 + "]" * 100_000, "nests 100000 levels deep"),
+        (
+            json.dumps({"proposed": {f"t{i}": "ref · seed 0" for i in range(10**6)}, "spent_s": 1.0}),
+            "bytes; a seed searcher's state is at most",
+        ),
+        (
+            json.dumps({"proposed": {f"t{i}": "ref · seed 0" for i in range(7)}, "spent_s": 1.0}),
+            "7 proposals, more than the plan's 6 trials",
+        ),
+        (
+            json.dumps({"proposed": {"t0": "ref · seed 9"}, "spent_s": 1.0}),
+            "proposal 'ref · seed 9' is no trial of this sweep",
+        ),
+        (
+            json.dumps({"proposed": {"t0": "ref · seed 0", "t1": "ref · seed 0"}, "spent_s": 1.0}),
+            "a trial proposed twice",
+        ),
+        ('{"proposed": {}, "spent_s": NaN}', "spent_s nan is not a finite number"),
+        ('{"proposed": [], "spent_s": 1}', 'expected {"proposed"'),
+    ],
+)
 def test_a_damaged_or_oversized_searcher_state_is_refused_before_tune_restores_it(tmp_path, text, said):
     folder = _state_folder(tmp_path, text)
     with pytest.raises(StoreError, match=re.escape(said)) as refused:
@@ -133,7 +152,9 @@ def test_the_state_tune_restores_is_the_one_checked_and_a_missing_one_is_refused
     with pytest.raises(StoreError, match="holds no seed searcher state"):
         check_searcher_state(str(tmp_path), _plan())
     folder = _state_folder(tmp_path, "not json", "seed-searcher-2026-01-01_00-00-00.json")
-    _state_folder(tmp_path, json.dumps({"proposed": {"t0": "ref · seed 0"}, "spent_s": 3.0}))  # the later name: Tune's pick
+    _state_folder(
+        tmp_path, json.dumps({"proposed": {"t0": "ref · seed 0"}, "spent_s": 3.0})
+    )  # the later name: Tune's pick
     check_searcher_state(str(folder), _plan())
 
 
@@ -182,13 +203,39 @@ def test_resume_with_a_damaged_searcher_state_exits_2_and_runs_no_seed_again(tmp
     folder = tmp_path / "results" / "point_size" / "smoke"
     folder.mkdir(parents=True)
     spec = load_spec(ROOT / "sweeps" / "point_size.yaml").until_settled()
-    (folder / "sweep.json").write_text(json.dumps({"spec": spec.model_dump(mode="json"), "sets": {}, "profile": "smoke",
-                                                   "budget": None, "tracking_uri": uri, "parent_run_id": sweep_run.run_id}))
+    (folder / "sweep.json").write_text(
+        json.dumps(
+            {
+                "spec": spec.model_dump(mode="json"),
+                "sets": {},
+                "profile": "smoke",
+                "budget": None,
+                "tracking_uri": uri,
+                "parent_run_id": sweep_run.run_id,
+            }
+        )
+    )
     text = ('{"proposed": {"t0": "' if damage == "truncated"
             else json.dumps({"proposed": {f"t{i}": str(i) for i in range(10**6)}, "spent_s": 1.0}))
     (folder / "seed-searcher-2026-12-04_20-00-00.json").write_text(text)
-    outcome = run_command([str(ROOT / "sweeps" / "run.py"), str(ROOT / "sweeps" / "point_size.yaml"), "--resume",
-                           "--trust-storage", "--profile", "smoke", "--storage", str(tmp_path / "results")], tmp_path, timeout=300)
-    assert_refused(outcome, "--resume: ", "seed-searcher-2026-12-04_20-00-00.json", "without it a finished seed could run again")
-    children = sweep_run.client.search_runs([sweep_run.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}'")
+    outcome = run_command(
+        [
+            str(ROOT / "sweeps" / "run.py"),
+            str(ROOT / "sweeps" / "point_size.yaml"),
+            "--resume",
+            "--trust-storage",
+            "--profile",
+            "smoke",
+            "--storage",
+            str(tmp_path / "results"),
+        ],
+        tmp_path,
+        timeout=300,
+    )
+    assert_refused(
+        outcome, "--resume: ", "seed-searcher-2026-12-04_20-00-00.json", "without it a finished seed could run again"
+    )
+    children = sweep_run.client.search_runs(
+        [sweep_run.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}'"
+    )
     assert [c.data.tags["trial_id"] for c in children] == ["t0"]

@@ -86,7 +86,9 @@ def test_the_budget_stops_open_cells_with_reason_budget(trials, out_of_time, see
     rounds = _drive(plan, trials, out_of_time)
     started = {label for r in rounds for label in r}
     assert len(started) == 6 + 2 * (seeds - 2)
-    records = next_round(plan, started, {label: _score(label) for label in started}, **_limits(started, trials, out_of_time)).records
+    records = next_round(
+        plan, started, {label: _score(label) for label in started}, **_limits(started, trials, out_of_time)
+    ).records
     assert (records["null"].seeds, records["null"].reason) == (seeds, "budget")
     assert records["large"].reason == "settled"
 
@@ -108,13 +110,20 @@ def test_the_reference_is_whichever_cell_compare_to_names():
 
 
 def test_rows_of_a_trial_become_scores_of_the_metric_and_outcomes_become_started_and_results():
-    rows = [{"object_id": "a", "category": "chair", "f1": 0.5, "cd": 3.0}, {"object_id": "b", "category": "table", "f1": 0.25, "cd": 4.0}]
+    rows = [
+        {"object_id": "a", "category": "chair", "f1": 0.5, "cd": 3.0},
+        {"object_id": "b", "category": "table", "f1": 0.25, "cd": 4.0},
+    ]
     assert object_scores(rows, "eval/f1") == {"a": 0.5, "b": 0.25}
     assert object_scores(rows, "eval/cd/table") == {"b": 4.0}
     assert object_scores(rows, "train/loss") == {}
     plan = _plan(REFERENCE_NULL_LARGE)
-    outcomes = [TrialOutcome("ref · seed 0", "ref", "ok", objects=tuple(rows)), TrialOutcome("ref · seed 1", "ref", "failed"),
-                TrialOutcome("null · seed 0", "null", "pending"), TrialOutcome("null · seed 1", "null", "stopped", objects=tuple(rows))]
+    outcomes = [
+        TrialOutcome("ref · seed 0", "ref", "ok", objects=tuple(rows)),
+        TrialOutcome("ref · seed 1", "ref", "failed"),
+        TrialOutcome("null · seed 0", "null", "pending"),
+        TrialOutcome("null · seed 1", "null", "stopped", objects=tuple(rows)),
+    ]
     started, results = outcome_results(plan, outcomes)
     assert started == {"ref · seed 0", "ref · seed 1", "null · seed 0", "null · seed 1"}
     assert results == {"ref · seed 0": {"a": 0.5, "b": 0.25}, "ref · seed 1": None}
@@ -124,13 +133,17 @@ def test_a_budget_must_fit_round_1_and_needs_seeds_until_settled(tmp_path):
     plan = _plan(REFERENCE_NULL_LARGE)
     check_budget(plan, parse_budget("6"))
     check_budget(plan, parse_budget("45m"))
-    with pytest.raises(SpecError, match=r"--budget 5: round 1 alone runs 6 trials \(every cell at 2 seeds\); give at least 6"):
+    with pytest.raises(
+        SpecError, match=r"--budget 5: round 1 alone runs 6 trials \(every cell at 2 seeds\); give at least 6"
+    ):
         check_budget(plan, SeedBudget(trials=5))
     fixed = expand(Spec.model_validate({"name": "t", "cells": REFERENCE_NULL_LARGE, "seeds": [0, 1]}), "smoke")
     with pytest.raises(SpecError, match="--budget: only seeds run until settled spend a budget; add --until-settled"):
         check_budget(fixed, SeedBudget(seconds=60.0))
     lines = describe_rule(plan, SeedBudget(seconds=2700.0))
-    assert lines[0] == ("search: grid, seeds until settled: round 1 = 3 cells × 2 seeds = 6 trials; worst case 12 trials "
-                        "(3 cells × 4 seeds, 3 looks)")
+    assert lines[0] == (
+        "search: grid, seeds until settled: round 1 = 3 cells × 2 seeds = 6 trials; worst case 12 trials "
+        "(3 cells × 4 seeds, 3 looks)"
+    )
     assert "(better/worse) (no settle.margin: no level verdict); else" in lines[1] and "Bonferroni" in lines[2]
     assert lines[3] == "budget: 45 min wall time"

@@ -91,6 +91,8 @@ def test_a_run_with_the_store_is_bit_identical(tmp_path):
     built = build_eval_set(cfg, trainer.val_set, trainer.train_set, cfg.eval.seed)
     read = store.eval_set(cfg, trainer.val_set, trainer.train_set)
     assert read.baseline_clouds.keys() == built.baseline_clouds.keys() and built.baseline_clouds
-    assert all(torch.equal(read.baseline_clouds[o][b], c) for o, v in built.baseline_clouds.items() for b, c in v.items())
+    assert all(
+        torch.equal(read.baseline_clouds[o][b], c) for o, v in built.baseline_clouds.items() for b, c in v.items()
+    )
     files = {p.name for p in (tmp_path / "shared_run").rglob("*.ply")}
     assert any(name.endswith(".gt.ply") for name in files) and any(name.endswith(".retrieval.ply") for name in files)

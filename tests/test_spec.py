@@ -20,8 +20,18 @@ SHIPPED = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
 NEEDS_INPUTS = [p for p in SHIPPED if "$CDM_INPUTS" in p.read_text()]  # Tables 7 and 8: embeddings, generated images
 
 EXPECTED_TRIALS = {  # cells × seeds per shipped spec (Optuna: num_samples of the profile)
-    "point_size": 5, "frames": 7, "frames_point_size": 3, "priors_2d_3d": 4, "prior_type": 6,
-    "global_features": 6, "conditions": 7, "prediction": 3, "bdm_blend": 20, "shapenet": 10, "co3d": 6, "lambda": {"smoke": 4, "local": 8, "paper": 32},
+    "point_size": 5,
+    "frames": 7,
+    "frames_point_size": 3,
+    "priors_2d_3d": 4,
+    "prior_type": 6,
+    "global_features": 6,
+    "conditions": 7,
+    "prediction": 3,
+    "bdm_blend": 20,
+    "shapenet": 10,
+    "co3d": 6,
+    "lambda": {"smoke": 4, "local": 8, "paper": 32},
 }
 
 
@@ -37,7 +47,9 @@ def inputs(tmp_path_factory) -> Path:
     estimate's calibration trains on them); the other profiles' only round 0's input view, 8 px (a dry
     run checks that each object has its entry, and reads no image)."""
     folder = tmp_path_factory.mktemp("inputs")
-    baseline = {p: expand(load_spec(SWEEPS / "conditions.yaml"), p).cells[0].config for p in ("smoke", "local", "paper")}
+    baseline = {
+        p: expand(load_spec(SWEEPS / "conditions.yaml"), p).cells[0].config for p in ("smoke", "local", "paper")
+    }
     smoke = object_ids(baseline["smoke"])
     ids = sorted({o for cfg in baseline.values() for o in object_ids(cfg)})
     for seed, kind in enumerate(("text", "image", "depth")):
@@ -69,7 +81,9 @@ def test_every_shipped_spec_expands_in_every_profile(path, profile):
 
 @pytest.mark.slow  # each estimate trains a few calibration steps: 3-9 s a spec, ~45 s together
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
-def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, given_inputs, tmp_path, monkeypatch, capsys):
+def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(
+    path, given_inputs, tmp_path, monkeypatch, capsys
+):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(path), "--dry-run", "--smoke"]) == 0  # smoke: the calibration takes a second
     out = capsys.readouterr().out
@@ -88,7 +102,9 @@ def test_dry_run_lists_every_trial_estimates_its_cost_and_writes_nothing(path, g
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
 @pytest.mark.parametrize("profile", ["smoke", "local", "paper"])
-def test_every_spec_dry_runs_in_every_profile_with_its_protocol_card(path, profile, given_inputs, tmp_path, monkeypatch, capsys):
+def test_every_spec_dry_runs_in_every_profile_with_its_protocol_card(
+    path, profile, given_inputs, tmp_path, monkeypatch, capsys
+):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(path), "--dry-run", "--no-estimate", "--profile", profile]) == 0
     out = capsys.readouterr().out
@@ -97,8 +113,14 @@ def test_every_spec_dry_runs_in_every_profile_with_its_protocol_card(path, profi
     assert f"profile {profile}" in out and list(tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize(("path", "field"), [(SWEEPS / "global_features.yaml", "model.global_embeddings"),
-                                             (SWEEPS / "conditions.yaml", "data.condition_folder")], ids=lambda v: getattr(v, "stem", v))
+@pytest.mark.parametrize(
+    ("path", "field"),
+    [
+        (SWEEPS / "global_features.yaml", "model.global_embeddings"),
+        (SWEEPS / "conditions.yaml", "data.condition_folder"),
+    ],
+    ids=lambda v: getattr(v, "stem", v),
+)
 def test_a_dry_run_without_the_external_inputs_exits_2_naming_the_field(path, field, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("CDM_INPUTS", raising=False)
@@ -184,30 +206,56 @@ def test_optuna_trial_from_sampled_values():
     [
         ("name: t\ngird: {priors.point_size: [0.04]}\n", "gird: unknown key; allowed: name, description"),
         ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: zero\n", "seeds: Input should be a valid list"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nresources: {cpus_per_worker: many}\n", "resources.cpus_per_worker"),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nresources: {cpus_per_worker: many}\n",
+            "resources.cpus_per_worker",
+        ),
         ("name: t\ngrid: {}\n", "grid: empty"),
         ("name: t\ngrid: {priors.point_size: []}\n", "grid.priors.point_size: empty list"),
         ("name: t\ngrid: {priors.pointsize: [0.04]}\n", "grid.priors.pointsize: unknown config field"),
         ("name: t\ngrid: {priors.point_size: [2.0]}\n", "priors.point_size: Input should be less than or equal to 1"),
         ("name: t\ngrid: {priors.render_kind: [sparkly]}\n", "priors.render_kind"),
-        ("name: t\nsearch: {kind: optuna, space: {priors.lambda_3d: {type: log_float, low: 10, high: 1}}}\n",
-         "search.space.priors.lambda_3d: low (10.0) must be < high (1.0)"),
-        ("name: t\nsearch: {kind: optuna, space: {priors.point_size: {type: float, low: 0.01, high: 3}}}\n",
-         "search.space.priors.point_size=3.0"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nmetric: {name: eval/iou}\n", "metric.name: 'eval/iou' is not reported"),
+        (
+            "name: t\nsearch: {kind: optuna, space: {priors.lambda_3d: {type: log_float, low: 10, high: 1}}}\n",
+            "search.space.priors.lambda_3d: low (10.0) must be < high (1.0)",
+        ),
+        (
+            "name: t\nsearch: {kind: optuna, space: {priors.point_size: {type: float, low: 0.01, high: 3}}}\n",
+            "search.space.priors.point_size=3.0",
+        ),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nmetric: {name: eval/iou}\n",
+            "metric.name: 'eval/iou' is not reported",
+        ),
         ("name: t\ngrid: {priors.point_size: [0.04]}\nmetric: {name: eval/f1/teddybear}\n", "metric.name"),
         ("name: t\ngrid: {train.steps: [10]}\n", "grid.train.steps: set it through the profile's budget.steps"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nexclude: [{priors.point_size: 0.05}]\n", "exclude[0].priors.point_size"),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nexclude: [{priors.point_size: 0.05}]\n",
+            "exclude[0].priors.point_size",
+        ),
         ("name: t\n- not a mapping\n", "not valid YAML"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 3, max: 2, until: settled}\n", "seeds: min (3) must be ≤ max (2)"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 0, max: 2, until: settled}\n",
-         "seeds: min: Input should be greater than or equal to 1"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 1, max: 2, until: done}\n", "seeds: until: Input should be 'settled'"),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 3, max: 2, until: settled}\n",
+            "seeds: min (3) must be ≤ max (2)",
+        ),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 0, max: 2, until: settled}\n",
+            "seeds: min: Input should be greater than or equal to 1",
+        ),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 1, max: 2, until: done}\n",
+            "seeds: until: Input should be 'settled'",
+        ),
         ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 1, max: 2}\n", "seeds: until: Field required"),
         ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: []\n", "seeds: empty list"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nsettle: {margin: -0.1}\n", "settle.margin: Input should be greater than 0"),
-        ("name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 2, max: 3, until: settled}\nscheduler: {kind: asha}\n",
-         "scheduler: seeds until settled compares finished trials"),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nsettle: {margin: -0.1}\n",
+            "settle.margin: Input should be greater than 0",
+        ),
+        (
+            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 2, max: 3, until: settled}\nscheduler: {kind: asha}\n",
+            "scheduler: seeds until settled compares finished trials",
+        ),
     ],
 )
 def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_path, monkeypatch, capsys):
@@ -231,8 +279,10 @@ def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_
         (["--profile", "local", "--smoke"], "--smoke means --profile smoke"),
         (["--resume"], "holds no sweep to resume"),
         (["--budget", "2h"], "--budget: only seeds run until settled spend a budget; add --until-settled"),
-        (["--until-settled", "--budget", "2 hours"], "--budget '2 hours': give a wall time (2h, 45m, 30s; at most 366 days) or a "
-                                                     "number of trials (1 to 100000)"),
+        (
+            ["--until-settled", "--budget", "2 hours"],
+            "--budget '2 hours': give a wall time (2h, 45m, 30s; at most 366 days) or a number of trials (1 to 100000)",
+        ),
         (["--until-settled", "--budget", "²"], "--budget '²': give a wall time"),
         (["--until-settled", "--budget", "9" * 5001], "--budget '" + "9" * 40 + "'…: give a wall time"),
         (["--until-settled", "--budget", "1" + "0" * 400], "number of trials (1 to 100000)"),
@@ -240,7 +290,10 @@ def test_bad_spec_exits_2_naming_the_field_and_writes_nothing(body, needle, tmp_
         (["--until-settled", "--budget="], "--budget '': give a wall time"),
         (["--budget="], "--budget '': give a wall time"),
         (["--until-settled", "--budget", "0"], "--budget '0': give a wall time"),
-        (["--until-settled", "--budget", "9"], "--budget 9: round 1 alone runs 10 trials (every cell at 2 seeds); give at least 10"),
+        (
+            ["--until-settled", "--budget", "9"],
+            "--budget 9: round 1 alone runs 10 trials (every cell at 2 seeds); give at least 10",
+        ),
     ],
 )
 def test_bad_command_line_exits_2(argv, needle, tmp_path, monkeypatch, capsys):
@@ -251,7 +304,9 @@ def test_bad_command_line_exits_2(argv, needle, tmp_path, monkeypatch, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_until_settled_refuses_an_optuna_spec_and_a_resume_keeps_the_seeds_it_started_with(tmp_path, monkeypatch, capsys):
+def test_until_settled_refuses_an_optuna_spec_and_a_resume_keeps_the_seeds_it_started_with(
+    tmp_path, monkeypatch, capsys
+):
     monkeypatch.chdir(tmp_path)
     assert run.main([str(SWEEPS / "lambda.yaml"), "--smoke", "--until-settled"]) == 2
     assert "--until-settled: search.kind optuna samples one trial per point" in capsys.readouterr().err
@@ -268,7 +323,11 @@ def test_seeds_until_settled_from_the_spec_or_the_flag():
     assert spec.sequential.looks == 4 and spec.seed_values == [0, 1, 2, 3, 4, 5]
     assert spec.until_settled() is spec
     listed = Spec.model_validate({"name": "t", "grid": {"priors.point_size": [0.02, 0.04]}, "seeds": [4]})
-    assert listed.sequential is None and listed.until_settled().seeds.model_dump() == {"min": 2, "max": 5, "until": "settled"}
+    assert listed.sequential is None and listed.until_settled().seeds.model_dump() == {
+        "min": 2,
+        "max": 5,
+        "until": "settled",
+    }
     long = Spec.model_validate({"name": "t", "grid": {"priors.point_size": [0.02]}, "seeds": list(range(7))})
     assert long.until_settled().seeds.max == 7
     plan = expand(spec, "smoke")
@@ -276,16 +335,36 @@ def test_seeds_until_settled_from_the_spec_or_the_flag():
     assert [(c.label, plan.round_of(c)) for c in plan.cells[:6]] == [
         ("point_size=0.02 · seed 0", 1), ("point_size=0.02 · seed 1", 1), ("point_size=0.02 · seed 2", 1),
         ("point_size=0.02 · seed 3", 2), ("point_size=0.02 · seed 4", 3), ("point_size=0.02 · seed 5", 4)]
-    assert [c.label for c in plan.first_round] == [f"point_size={v} · seed {s}" for v in ("0.02", "0.04") for s in range(3)]
+    assert [c.label for c in plan.first_round] == [
+        f"point_size={v} · seed {s}" for v in ("0.02", "0.04") for s in range(3)
+    ]
     # The state a resume reads back validates to the same spec.
     assert Spec.model_validate(spec.model_dump(mode="json")) == spec
     assert [parse_budget(t) for t in ("2h", "45m", "30s", "1.5h", "12")] == [
-        SeedBudget(seconds=7200.0), SeedBudget(seconds=2700.0), SeedBudget(seconds=30.0), SeedBudget(seconds=5400.0), SeedBudget(trials=12)]
+        SeedBudget(seconds=7200.0),
+        SeedBudget(seconds=2700.0),
+        SeedBudget(seconds=30.0),
+        SeedBudget(seconds=5400.0),
+        SeedBudget(trials=12),
+    ]
 
 
 def test_a_dry_run_until_settled_says_the_rule_the_worst_case_and_its_time(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    assert run.main([str(SWEEPS / "point_size.yaml"), "--smoke", "--dry-run", "--no-estimate", "--until-settled", "--budget", "45m"]) == 0
+    assert (
+        run.main(
+            [
+                str(SWEEPS / "point_size.yaml"),
+                "--smoke",
+                "--dry-run",
+                "--no-estimate",
+                "--until-settled",
+                "--budget",
+                "45m",
+            ]
+        )
+        == 0
+    )
     out = " ".join(capsys.readouterr().out.split())  # lines wrapped at the terminal's width, joined
     assert ("search: grid, seeds until settled: round 1 = 5 cells × 2 seeds = 10 trials; worst case 25 trials "
             "(5 cells × 5 seeds, 4 looks)") in out
@@ -379,12 +458,23 @@ def test_the_paper_profile_names_every_missing_input_and_the_command_that_makes_
     assert len(captured.err.strip().splitlines()) == 1
     weights, maps = error.removeprefix("error: ").split("; priors.")
     assert weights.startswith(f"model.encoder_weights: {tmp_path}/inputs/msn/vits16_800ep.pth.tar does not exist")
-    assert "make it with: curl -L --create-dirs -o $CDM_INPUTS/msn/vits16_800ep.pth.tar https://dl.fbaipublicfiles.com" in weights
+    assert (
+        "make it with: curl -L --create-dirs -o $CDM_INPUTS/msn/vits16_800ep.pth.tar https://dl.fbaipublicfiles.com"
+        in weights
+    )
     assert maps.startswith(f"depth_maps: {tmp_path}/inputs/depth_maps does not exist")
-    assert f"make it with: python -m cdm.tools.export_views --out views/ --set data.kind=co3d --set data.root={root}" in maps
+    assert (
+        f"make it with: python -m cdm.tools.export_views --out views/ --set data.kind=co3d --set data.root={root}"
+        in maps
+    )
     # A user without the weights trains PC²'s trainable CNN instead: then only the depth maps are missing.
     assert run.main([*args, "--set", "model.encoder=cnn"]) == 2
-    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"error: priors.depth_maps: {tmp_path}/inputs/depth_maps")
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .splitlines()[-1]
+        .startswith(f"error: priors.depth_maps: {tmp_path}/inputs/depth_maps")
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["co3d"]
 
 
@@ -393,7 +483,11 @@ def test_table_4_trains_one_model_per_co3d_class_with_that_class_s_paper_row(tmp
 
     root = make_co3d(tmp_path / "co3d", categories=("hydrant", "teddybear", "toytruck"), frames=3).root
     plan = expand(load_spec(SWEEPS / "priors_2d_3d.yaml"), "paper", {"data.root": str(root), "data.kind": "co3d"})
-    assert len(plan.cells) == 12 and {c.config.data.categories for c in plan.cells} == {("hydrant",), ("teddybear",), ("toytruck",)}
+    assert len(plan.cells) == 12 and {c.config.data.categories for c in plan.cells} == {
+        ("hydrant",),
+        ("teddybear",),
+        ("toytruck",),
+    }
     both = next(c for c in plan.cells if c.config.priors.prior_3d and c.config.data.categories == ("toytruck",)
                 and c.config.priors.prior_2d == "depth")
     assert both.paper_label == "+2D+3D, toytruck" and both.paper == {"eval/cd": 125.40, "eval/f1": 0.474}

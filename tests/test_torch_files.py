@@ -28,7 +28,9 @@ def test_pickled_objects_garbage_and_a_truncated_archive_are_refused_apart(tmp_p
         _load(tmp_path / "objects.pt")
     assert "weights_only" not in str(refused.value)  # torch's own advice would run the file's code
     (tmp_path / "garbage.pt").write_bytes(b"not a torch file")
-    with pytest.raises(ValueError, match=r"^weights: .*garbage\.pt is not a readable weights file: not in torch's file format$"):
+    with pytest.raises(
+        ValueError, match=r"^weights: .*garbage\.pt is not a readable weights file: not in torch's file format$"
+    ):
         _load(tmp_path / "garbage.pt")
     torch.save({"w": torch.zeros(1000)}, tmp_path / "cut.pt")
     (tmp_path / "cut.pt").write_bytes((tmp_path / "cut.pt").read_bytes()[:600])
@@ -75,11 +77,16 @@ def test_load_inert_refuses_a_reduce_payload_and_runs_nothing(tmp_path, call, ar
     marker = tmp_path / "marker"
     module, name = call.rsplit(".", 1)
     func = getattr(builtins if module == "builtins" else importlib.import_module(module), name)
-    filled = tuple([a.format(marker=str(marker)) for a in arg] if isinstance(arg, list) else arg.format(marker=str(marker))
-                   for arg in args)
+    filled = tuple(
+        [a.format(marker=str(marker)) for a in arg] if isinstance(arg, list) else arg.format(marker=str(marker))
+        for arg in args
+    )
     torch.save({"model": {"w": torch.zeros(2)}, "cfg": {"run": _Payload(func, *filled)}}, tmp_path / "bad.pth")
-    with pytest.raises(ValueError, match=rf"^weights: .*bad\.pth could run code from the file while loading \(it calls {names}\); "
-                                         "refused, and nothing of it was run"):
+    with pytest.raises(
+        ValueError,
+        match=rf"^weights: .*bad\.pth could run code from the file while loading \(it calls {names}\); "
+        "refused, and nothing of it was run",
+    ):
         load_inert(tmp_path / "bad.pth", f"weights: {tmp_path / 'bad.pth'}", "weights file")
     assert not marker.exists()
 

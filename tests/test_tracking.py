@@ -26,7 +26,10 @@ def test_tracking_uri_is_absolute_and_overridable(tmp_path, monkeypatch):
     assert resolve_tracking_uri(None, tmp_path) == f"sqlite:///{tmp_path.resolve()}/sub/x.db"
     assert resolve_tracking_uri("http://10.0.0.5:5000", tmp_path) == "http://10.0.0.5:5000"
     assert resolve_tracking_uri("sqlite:////abs/m.db", tmp_path) == "sqlite:////abs/m.db"
-    assert ui_command("sqlite:////abs/m.db") == "mlflow ui --backend-store-uri sqlite:////abs/m.db --host 127.0.0.1 --port 5000"
+    assert (
+        ui_command("sqlite:////abs/m.db")
+        == "mlflow ui --backend-store-uri sqlite:////abs/m.db --host 127.0.0.1 --port 5000"
+    )
 
 
 def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path):
@@ -54,7 +57,9 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     assert [m.value for m in client.get_metric_history(first.run_id, "eval/cd")] == [50.0]
     run = client.get_run(first.run_id)
     # Every config field but the trial's own folder (different in every trial by construction).
-    assert run.data.params["priors.point_size"] == "0.02" and set(run.data.params) == set(cfg.flat()) - {"train.out_dir"}
+    assert run.data.params["priors.point_size"] == "0.02" and set(run.data.params) == set(cfg.flat()) - {
+        "train.out_dir"
+    }
     assert run.data.tags["mlflow.parentRunId"] == sweep.run_id and run.data.tags["checkpoint"] == str(tmp_path / "ckpt")
     assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval", "curves"}
     assert last_eval_files(client, first.run_id) == ["eval/step_0000010/panels/obj.png"]  # panels apart from clouds
@@ -93,7 +98,10 @@ def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
     assert final["train/lr"] == 1.235e-4  # 4 significant digits: a small learning rate keeps its value
     parent = client.get_run(sweep.run_id).data.metrics
     assert parent == {"baseline/sphere/cd": 150.0}
-    assert sorted(last_eval_files(client, trial.run_id)) == ["eval/step_0000010/clouds/o1.ply", "eval/step_0000010/objects.csv"]
+    assert sorted(last_eval_files(client, trial.run_id)) == [
+        "eval/step_0000010/clouds/o1.ply",
+        "eval/step_0000010/objects.csv",
+    ]
     assert "curves" not in {a.path for a in client.list_artifacts(trial.run_id)}  # drawn at the last evaluation only
     curve = learning_curve_png(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
     assert curve.stat().st_size > 2000
@@ -105,7 +113,10 @@ def test_the_experiment_is_a_model_training_one_and_every_link_opens_that_workfl
     old = client.create_experiment("older")  # made before the tag existed, e.g. by an earlier sweep
     client.create_experiment("other")
     sweep = SweepRun.start(uri, "older", "older · smoke", tags={}, params={})
-    assert sweep.experiment_id == old and client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+    assert (
+        sweep.experiment_id == old
+        and client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
+    )
     client.delete_experiment_tag(old, "mlflow.experimentKind")
     SweepRun.reopen(uri, sweep.run_id)  # --resume tags it again
     assert client.get_experiment(old).tags["mlflow.experimentKind"] == "custom_model_development"
@@ -113,4 +124,7 @@ def test_the_experiment_is_a_model_training_one_and_every_link_opens_that_workfl
     assert client.get_experiment(new).tags["mlflow.experimentKind"] == "custom_model_development"
     assert "mlflow.experimentKind" not in client.get_experiment_by_name("other").tags  # only the sweep's own
     assert ui_link("#/experiments/1/runs/abc") == "#/experiments/1/runs/abc?workflowType=machine_learning"
-    assert ui_link("#/experiments/1/runs?viewStateShareKey=k") == "#/experiments/1/runs?viewStateShareKey=k&workflowType=machine_learning"
+    assert (
+        ui_link("#/experiments/1/runs?viewStateShareKey=k")
+        == "#/experiments/1/runs?viewStateShareKey=k&workflowType=machine_learning"
+    )

@@ -93,7 +93,9 @@ def test_resume_with_another_voxel_backend_is_refused(tmp_path):
 
 
 def test_nan_loss_raises_a_readable_error(tmp_path):
-    cfg = tiny_config(tmp_path, **{"train.lr": 1e30, "train.warmup_steps": 0, "train.steps": 50, "train.grad_clip": 1e30})
+    cfg = tiny_config(
+        tmp_path, **{"train.lr": 1e30, "train.warmup_steps": 0, "train.steps": 50, "train.grad_clip": 1e30}
+    )
     with pytest.raises(TrainingDiverged, match="train.lr"):
         fit(cfg)
 
@@ -134,10 +136,17 @@ def test_resume_accepts_auto_resolved_to_the_same_backend_and_refuses_other_math
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
     bad = tmp_path / "checkpoint.pt"
     bad.write_bytes(b"not a checkpoint")  # not torch's format at all: said so, not called pickled objects
-    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt is not a readable CDM checkpoint: not in torch's file format"):
+    with pytest.raises(
+        ValueError, match=r"checkpoint: .*checkpoint\.pt is not a readable CDM checkpoint: not in torch's file format"
+    ):
         load_checkpoint(tmp_path)
-    torch.save({"step": 0, "model": argparse.Namespace(code=1)}, bad)  # weights_only refuses it, in our words (issue 23)
-    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt holds Python objects other than tensors and plain data; refused") as err:
+    torch.save(
+        {"step": 0, "model": argparse.Namespace(code=1)}, bad
+    )  # weights_only refuses it, in our words (issue 23)
+    with pytest.raises(
+        ValueError,
+        match=r"checkpoint: .*checkpoint\.pt holds Python objects other than tensors and plain data; refused",
+    ) as err:
         load_checkpoint(tmp_path)
     assert "weights_only" not in str(err.value)
     torch.save({"step": 0, "model": torch.zeros(1000)}, bad)

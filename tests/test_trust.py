@@ -380,9 +380,14 @@ def test_resume_against_a_store_without_the_parent_run_creates_nothing(in_tmp, c
     assert not ray.is_initialized()
 
 
-@pytest.mark.parametrize("value,needle", [("[" * 50_000 + "]" * 50_000, "100016 characters; a --set may have at most 4096"),
-                                          ("[" + ",".join(["a"] * 20_000) + "]", "40017 characters"),
-                                          ("[" * 17 + "a" + "]" * 17, "brackets nested 17 deep")])
+@pytest.mark.parametrize(
+    "value,needle",
+    [
+        ("[" * 50_000 + "]" * 50_000, "100016 characters; a --set may have at most 4096"),
+        ("[" + ",".join(["a"] * 20_000) + "]", "40017 characters"),
+        ("[" * 17 + "a" + "]" * 17, "brackets nested 17 deep"),
+    ],
+)
 def test_a_huge_or_deep_set_value_is_refused_at_once(in_tmp, capsys, value, needle):
     started = time.perf_counter()
     assert run.main(_argv(in_tmp, "--set", f"data.categories={value}")) == 2
@@ -434,8 +439,10 @@ def test_reconstruct_refuses_an_image_bomb_and_reads_a_real_image_as_opencv_does
 
 def _lock_store(db: Path, hold_s: float) -> subprocess.Popen:
     """Another writer holding ``db``'s write lock for ``hold_s`` seconds; prints once it holds it."""
-    code = ("import sqlite3, sys, time; c = sqlite3.connect(sys.argv[1], isolation_level=None); "
-            "c.execute('BEGIN EXCLUSIVE'); print('locked', flush=True); time.sleep(float(sys.argv[2])); c.execute('ROLLBACK')")
+    code = (
+        "import sqlite3, sys, time; c = sqlite3.connect(sys.argv[1], isolation_level=None); "
+        "c.execute('BEGIN EXCLUSIVE'); print('locked', flush=True); time.sleep(float(sys.argv[2])); c.execute('ROLLBACK')"
+    )
     holder = subprocess.Popen([sys.executable, "-c", code, str(db), str(hold_s)], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"
     return holder
@@ -617,7 +624,10 @@ def test_the_encoder_weights_refusal_never_advises_weights_only_false(tmp_path):
 
     torch.save({"target_encoder": argparse.Namespace(code=1)}, tmp_path / "objects.pth")
     (tmp_path / "garbage.pth").write_bytes(b"not a torch file")
-    for name, reason in (("objects.pth", "could run code from the file"), ("garbage.pth", "not in torch's file format")):
+    for name, reason in (
+        ("objects.pth", "could run code from the file"),
+        ("garbage.pth", "not in torch's file format"),
+    ):
         with pytest.raises(ValueError, match=reason) as refused:
             load_msn_state_dict(tmp_path / name)
         assert "weights_only" not in str(refused.value)

@@ -34,11 +34,20 @@ def test_shared_view_lands_on_scores_verdicts_and_baselines(grid_store):
     baseline = rows["baseline: sphere"]
     assert baseline.data.tags["kind"] == "baseline" and baseline.data.metrics == {"final/f1": 0.2, "final/cd": 150.0}
     assert "mlflow.parentRunId" not in baseline.data.tags  # no child of the sweep: its readers see trials only
-    assert sorted(rows[n].data.metrics.get("swept/priors.point_size", -1) for n in rows if "seed" in n) == [-1, 0.02, 0.04]
-    assert view.row_tags(table, "point_size=0.02", "eval/f1") == {"vs reference": "reference", "vs baselines": "beats sphere"}
+    assert sorted(rows[n].data.metrics.get("swept/priors.point_size", -1) for n in rows if "seed" in n) == [
+        -1,
+        0.02,
+        0.04,
+    ]
+    assert view.row_tags(table, "point_size=0.02", "eval/f1") == {
+        "vs reference": "reference",
+        "vs baselines": "beats sphere",
+    }
     assert view.row_tags(table, "point_size=0.04", "eval/f1") == {"vs reference": "better [+0.020, +0.020] Δf1 +0.020",
                                                                  "vs baselines": "beats sphere"}
-    assert view.row_tags(table, "point_size=0.08", "eval/f1")["vs reference"] == "no result"  # failed: not the reference
+    assert (
+        view.row_tags(table, "point_size=0.08", "eval/f1")["vs reference"] == "no result"
+    )  # failed: not the reference
     view.share_view(record, table)  # published again (report --log): the baseline rows are not doubled
     assert len(client.search_runs([sweep.experiment_id], "tags.kind = 'baseline'")) == 1
     assert [t.outcome.label for t in finished.trial_records(finished.open_sweep(uri, "synth"), objects=False)] == [

@@ -82,14 +82,18 @@ def test_sparse_group_norm_equals_masked_dense_reference():
             block = grid[b][occupied[b]][:, g * per : (g + 1) * per]
             mean, var = block.mean(), block.var(unbiased=False)
             normed = (grid[b][:, g * per : (g + 1) * per] - mean) / torch.sqrt(var + 1e-5)
-            expected[b][:, g * per : (g + 1) * per] = normed * weight[g * per : (g + 1) * per] + bias[g * per : (g + 1) * per]
+            expected[b][:, g * per : (g + 1) * per] = (
+                normed * weight[g * per : (g + 1) * per] + bias[g * per : (g + 1) * per]
+            )
     assert (expected.view(-1, c)[sparse.keys] - got).abs().max() <= 1e-9
 
 
 def test_dense_trilinear_devoxelisation_matches_grid_sample_with_border_padding():
     torch.manual_seed(0)
     coords = _cloud(2, 50, seed=3)
-    coords[0, :6] = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [0.01, 0.99, 0.3], [0.5, 0.5, 0.5], [1, 0, 0]])
+    coords[0, :6] = torch.tensor(
+        [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [0.01, 0.99, 0.3], [0.5, 0.5, 0.5], [1, 0, 0]]
+    )
     voxels = torch.randn(2, 3, 6, 6, 6)
     got = DenseGrid(coords, 6).devoxelize(voxels, "trilinear")
     grid = (coords * 2 - 1).flip(-1)[:, :, None, None, :]  # grid_sample wants (x, y, z) = (axis 2, 1, 0)
@@ -181,7 +185,10 @@ def test_points_on_the_grid_boundary():
     expected = _dense_rows(dense.conv(dense.voxelize(features), conv.weight, conv.bias))[sparse.keys]
     assert torch.allclose(sparse.conv(sparse.voxelize(features), conv.weight, conv.bias), expected, atol=1e-5)
     # A constant field devoxelises to the constant: out-of-grid corners are dropped and renormalised.
-    for grid, voxels in ((dense, torch.full((2, 3, r, r, r), 2.5)), (sparse, torch.full((sparse.keys.numel(), 3), 2.5))):
+    for grid, voxels in (
+        (dense, torch.full((2, 3, r, r, r), 2.5)),
+        (sparse, torch.full((sparse.keys.numel(), 3), 2.5)),
+    ):
         assert torch.allclose(grid.devoxelize(voxels, "trilinear"), torch.full((2, 20, 3), 2.5))
 
 

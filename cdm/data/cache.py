@@ -80,7 +80,9 @@ class ObjectRecord(NamedTuple):
     def nbytes(self) -> int:
         """Memory held by the record's tensors, in bytes (the record cache's budget unit)."""
         cams = self.sequence
-        return sum(t.numel() * t.element_size() for t in (self.cloud, self.views, cams.R, cams.T, cams.focal, cams.principal))
+        return sum(
+            t.numel() * t.element_size() for t in (self.cloud, self.views, cams.R, cams.T, cams.focal, cams.principal)
+        )
 
 
 class ViewImages(NamedTuple):
@@ -154,10 +156,14 @@ def read_shard(path: Path) -> Shard:
         with open_regular(path, "data.root") as f:
             head = f.read(16)
             if len(head) != 16 or head[:8] != _MAGIC:
-                raise ValueError(f"data.root: {path} is not a CDM shard (bad magic); delete it and rerun `python -m cdm prepare`")
+                raise ValueError(
+                    f"data.root: {path} is not a CDM shard (bad magic); delete it and rerun `python -m cdm prepare`"
+                )
             length = int.from_bytes(head[8:], "little")
             if length > MAX_TEXT_BYTES:
-                raise ValueError(f"data.root: {path} has a header of {length} bytes; delete it and rerun `python -m cdm prepare`")
+                raise ValueError(
+                    f"data.root: {path} has a header of {length} bytes; delete it and rerun `python -m cdm prepare`"
+                )
             header = parse_json(f.read(length), "data.root", path)
             buffer = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
     except OSError as exc:
@@ -174,7 +180,9 @@ def read_shard(path: Path) -> Shard:
 
 
 def _cameras(arrays: dict[str, np.ndarray], prefix: str, index: int | slice = slice(None)) -> Cameras:
-    return Cameras(*(torch.from_numpy(np.array(arrays[f"{prefix}_{k}"][index])) for k in ("R", "T", "focal", "principal")))
+    return Cameras(
+        *(torch.from_numpy(np.array(arrays[f"{prefix}_{k}"][index])) for k in ("R", "T", "focal", "principal"))
+    )
 
 
 def is_prepared(root: Path) -> bool:
@@ -198,9 +206,13 @@ class PreparedRoot:
         if not isinstance(manifest, dict):
             raise ValueError(f"data.root: {path} is not a manifest of `python -m cdm prepare`; prepare the root again")
         if manifest.get("format") != FORMAT:
-            raise ValueError(f"data.root: {path} has format {manifest.get('format')!r}, this version reads {FORMAT}; prepare again")
+            raise ValueError(
+                f"data.root: {path} has format {manifest.get('format')!r}, this version reads {FORMAT}; prepare again"
+            )
         if manifest["kind"] != kind:
-            raise ValueError(f"data.kind: {kind!r}, but {root} was prepared from data.kind={manifest['kind']!r}; set it to match")
+            raise ValueError(
+                f"data.kind: {kind!r}, but {root} was prepared from data.kind={manifest['kind']!r}; set it to match"
+            )
         return cls(root, manifest)
 
     def shard_path(self, published: str, object_id: str) -> Path:
@@ -230,7 +242,9 @@ class PreparedRoot:
         shard = read_shard(self.shard_path(published, object_id))
         a = shard.arrays
         cloud = torch.from_numpy(np.array(a["cloud"]))
-        return ObjectRecord(cloud, _cameras(a, "seq"), torch.from_numpy(np.array(a["views"])), float(shard.meta["scale"]))
+        return ObjectRecord(
+            cloud, _cameras(a, "seq"), torch.from_numpy(np.array(a["views"])), float(shard.meta["scale"])
+        )
 
     @property
     def has_estimated_depths(self) -> bool:

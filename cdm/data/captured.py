@@ -82,7 +82,9 @@ def resize_view(view: ViewImages, size: int) -> ViewImages:
     mask = np.where(mask > 127, 255, 0).astype(np.uint8)
     depth = None
     if view.depth is not None:  # nearest: blending across the silhouette would invent depths
-        depth = cv2.resize(view.depth.astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST).astype(np.float16)
+        depth = cv2.resize(view.depth.astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST).astype(
+            np.float16
+        )
     return view._replace(image=image, mask=mask, depth=depth)
 
 
@@ -114,13 +116,19 @@ class CapturedDataset(ObjectDataset):
         if self.prepared is not None:
             self._check_protocol(self.prepared.manifest.get("protocol", {}), cfg)
         chosen = self.categories(cfg)
-        self._refs = self.prepared.objects(self.published, chosen) if self.prepared is not None else self._raw_index(chosen)
+        self._refs = (
+            self.prepared.objects(self.published, chosen) if self.prepared is not None else self._raw_index(chosen)
+        )
         if not self._refs:
-            raise ValueError(f"data.root: {self.root} has no objects of categories {list(chosen)} in split {self.published!r}")
+            raise ValueError(
+                f"data.root: {self.root} has no objects of categories {list(chosen)} in split {self.published!r}"
+            )
         super().__init__(cfg, split, cache_bytes)
         p = cfg.priors
         estimated = p.prior_2d == "depth" and p.depth_source == "maps"
-        self.depth_maps = DepthMaps(p.depth_maps, p.depth_maps_disparity) if estimated and p.depth_maps is not None else None
+        self.depth_maps = (
+            DepthMaps(p.depth_maps, p.depth_maps_disparity) if estimated and p.depth_maps is not None else None
+        )
         self.shard_depths = estimated and p.depth_maps is None
         if self.shard_depths and (self.prepared is None or not self.prepared.has_estimated_depths):
             raise ValueError(
@@ -139,8 +147,10 @@ class CapturedDataset(ObjectDataset):
         for field, value in self.protocol(cfg).items():
             prepared = stored.get(field, DataConfig.model_fields[field.removeprefix("data.")].default)
             if prepared != value:
-                raise ValueError(f"{field}: {value!r}, but {self.root} was prepared with {prepared!r}; prepare the published "
-                                 f"data set again with --set {field}={value} into another --out, or set it to match")
+                raise ValueError(
+                    f"{field}: {value!r}, but {self.root} was prepared with {prepared!r}; prepare the published "
+                    f"data set again with --set {field}={value} into another --out, or set it to match"
+                )
 
     @classmethod
     def categories(cls, cfg: Config) -> tuple[str, ...]:
@@ -228,7 +238,9 @@ class CapturedDataset(ObjectDataset):
         v, image, mask, depth = self._view_tensors(index, choice)
         positions = select_sequence_views(len(surface.sequence), int(surface.views[choice]), self.num_views)
         if self.cfg.data.input_source == "folder":  # a generated input image (Table 8 rows 4, 6, 7)
-            image = self.condition_images.read_position(ref.object_id, int(surface.views[choice]), self.cfg.data.image_size)
+            image = self.condition_images.read_position(
+                ref.object_id, int(surface.views[choice]), self.cfg.data.image_size
+            )
         prior_depth = self._prior_depth(ref.object_id, choice, int(surface.views[choice]), depth)
         conditions = None
         if self.split == "train" and self.cfg.data.condition_views:
@@ -285,13 +297,17 @@ class CapturedDataset(ObjectDataset):
             views.append(Rendering(image, mask, self._prior_depth(object_id, c, position, depth), v.camera, v.camera))
             if self.cfg.data.condition_source == "folder":
                 generated.append(self.condition_images.read_position(object_id, position, size))
-        return condition_views(views, generated or None, self.shown_conditions(index, view_round), self.cfg.priors.prior_2d)
+        return condition_views(
+            views, generated or None, self.shown_conditions(index, view_round), self.cfg.priors.prior_2d
+        )
 
 
 def _with_first(cameras: Cameras, first: Cameras) -> Cameras:
     """``cameras`` (batch ``(H,)``) with camera 0 replaced by ``first`` (batch ``()``)."""
     fields = []
-    for many, one in zip((cameras.R, cameras.T, cameras.focal, cameras.principal), (first.R, first.T, first.focal, first.principal)):
+    for many, one in zip(
+        (cameras.R, cameras.T, cameras.focal, cameras.principal), (first.R, first.T, first.focal, first.principal)
+    ):
         out = many.clone()
         out[0] = one
         fields.append(out)

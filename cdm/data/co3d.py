@@ -141,7 +141,9 @@ def _frame(entry: dict, file_order: int) -> Frame:
         raise ValueError(f"viewpoint.focal_length {focal.tolist()} must lie in [{MIN_FOCAL}, {MAX_FOCAL}] (NDC)")
     principal = _finite(view["principal_point"], 2, "viewpoint.principal_point")
     if np.abs(principal).max() > MAX_PRINCIPAL:
-        raise ValueError(f"viewpoint.principal_point {principal.tolist()} must lie in [-{MAX_PRINCIPAL}, {MAX_PRINCIPAL}] (NDC)")
+        raise ValueError(
+            f"viewpoint.principal_point {principal.tolist()} must lie in [-{MAX_PRINCIPAL}, {MAX_PRINCIPAL}] (NDC)"
+        )
     scale = 1.0 if depth.get("scale_adjustment") is None else float(depth["scale_adjustment"])
     if not (math.isfinite(scale) and scale > 0):
         raise ValueError(f"depth.scale_adjustment {scale!r} must be finite and > 0")
@@ -162,7 +164,9 @@ def _frame(entry: dict, file_order: int) -> Frame:
     )
     hx, hy = _half_sizes(frame)
     if not 1 / MAX_PIXEL_ASPECT <= frame.focal[0] * hx / (frame.focal[1] * hy) <= MAX_PIXEL_ASPECT:
-        raise ValueError(f"viewpoint.focal_length {focal.tolist()} gives pixels {MAX_PIXEL_ASPECT}× wider than high or more")
+        raise ValueError(
+            f"viewpoint.focal_length {focal.tolist()} gives pixels {MAX_PIXEL_ASPECT}× wider than high or more"
+        )
     return frame
 
 
@@ -181,7 +185,9 @@ def _category(folder: Path, stamp: tuple[int, ...]) -> Category:
         except ValueError as exc:  # the checks say which field; int() and float() say which value
             raise ValueError(f"data.root: {files[0]} entry {number}: {exc}") from None
         except (KeyError, TypeError, IndexError, AttributeError, OverflowError) as exc:
-            raise ValueError(f"data.root: {files[0]} entry {number} is malformed ({type(exc).__name__}: {exc})") from None
+            raise ValueError(
+                f"data.root: {files[0]} entry {number} is malformed ({type(exc).__name__}: {exc})"
+            ) from None
     for seq in frames.values():
         seq.sort(key=lambda f: f.number)
     sequences, set_lists = read_json(files[1], "data.root", gzipped=True), read_json(files[2], "data.root")
@@ -191,7 +197,9 @@ def _category(folder: Path, stamp: tuple[int, ...]) -> Category:
                   inside(s["point_cloud"]["path"], f"{where} {str(s['sequence_name'])[:80]!r}: point_cloud.path")
                   for s in sequences if s.get("point_cloud")}
     except (KeyError, TypeError, IndexError, AttributeError) as exc:
-        raise ValueError(f"data.root: malformed sequence annotation in {files[1]} ({type(exc).__name__}: {exc})") from None
+        raise ValueError(
+            f"data.root: malformed sequence annotation in {files[1]} ({type(exc).__name__}: {exc})"
+        ) from None
     try:
         lists = {k: [(str(e[0]), int(e[1])) for e in v] for k, v in set_lists.items()}
     except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError) as exc:
@@ -274,7 +282,9 @@ def _crop_box(frame: Frame, mask: np.ndarray) -> tuple[int, int, int, int]:
     if not len(rows):
         return centred_box(frame)
     cy, cx = (rows.min() + rows.max() + 1) / 2.0, (cols.min() + cols.max() + 1) / 2.0
-    return _box(frame, cx, cy, max(rows.max() + 1 - rows.min(), (cols.max() + 1 - cols.min()) / aspect) * (1.0 + CROP_MARGIN))
+    return _box(
+        frame, cx, cy, max(rows.max() + 1 - rows.min(), (cols.max() + 1 - cols.min()) / aspect) * (1.0 + CROP_MARGIN)
+    )
 
 
 def _crop(array: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
@@ -320,9 +330,15 @@ class Co3DDataset(CapturedDataset):
             raise ValueError(f"data.root: cannot list {root}: {exc.strerror}") from None
         # A category folder is recognised by any of its annotation files, so one missing file is
         # reported by name rather than hiding the category.
-        found = tuple(p.name for p in folders if PLAIN_NAME.fullmatch(p.name) and any((p / name).exists() for name in _ANNOTATIONS))
+        found = tuple(
+            p.name
+            for p in folders
+            if PLAIN_NAME.fullmatch(p.name) and any((p / name).exists() for name in _ANNOTATIONS)
+        )
         if not found:
-            raise ValueError(f"data.root: {root} has no Co3D category folder (none holds frame_annotations.jgz); expected {cls.layout}")
+            raise ValueError(
+                f"data.root: {root} has no Co3D category folder (none holds frame_annotations.jgz); expected {cls.layout}"
+            )
         return found
 
     def _raw_index(self, categories: tuple[str, ...]) -> list[tuple[str, str]]:
@@ -348,7 +364,9 @@ class Co3DDataset(CapturedDataset):
                     self._sequences[object_id] = (frames, views, annotations.clouds[seq])
                     refs.append((name, object_id))
             if not refs:
-                raise ValueError(f"data.root: no sequence of {folder} with a point cloud is in the {self.published!r} list of {SET_LIST}")
+                raise ValueError(
+                    f"data.root: no sequence of {folder} with a point cloud is in the {self.published!r} list of {SET_LIST}"
+                )
             per_category.append(refs)
         return interleave(per_category)
 
@@ -389,12 +407,18 @@ class Co3DDataset(CapturedDataset):
         path = self.root / frame.image
         bgr = read_image(path, cv2.IMREAD_COLOR, "data.root")
         if bgr is None:
-            raise ValueError(f"data.root: cannot read image {path} (missing or corrupt); expected a JPEG of {frame.size[1]}×{frame.size[0]}")
+            raise ValueError(
+                f"data.root: cannot read image {path} (missing or corrupt); expected a JPEG of {frame.size[1]}×{frame.size[0]}"
+            )
         if bgr.shape[:2] != frame.size:
-            raise ValueError(f"data.root: {path} is {bgr.shape[1]}×{bgr.shape[0]}, its annotation says {frame.size[1]}×{frame.size[0]}")
+            raise ValueError(
+                f"data.root: {path} is {bgr.shape[1]}×{bgr.shape[0]}, its annotation says {frame.size[1]}×{frame.size[0]}"
+            )
         mask = read_image(self.root / frame.mask, cv2.IMREAD_GRAYSCALE, "data.root")
         if mask is None:
-            raise ValueError(f"data.root: cannot read mask {self.root / frame.mask} (missing or corrupt); expected a grey PNG")
+            raise ValueError(
+                f"data.root: cannot read mask {self.root / frame.mask} (missing or corrupt); expected a grey PNG"
+            )
         if mask.shape != frame.size:
             mask = cv2.resize(mask, frame.size[::-1], interpolation=cv2.INTER_LINEAR)
         box = _crop_box(frame, mask)
@@ -411,10 +435,16 @@ class Co3DDataset(CapturedDataset):
         if frame.depth is not None:
             raw = load_depth(self.root / frame.depth)
             if raw.shape != frame.size:  # nearest: blending would invent depths across edges
-                raw = cv2.resize(raw.astype(np.float32), frame.size[::-1], interpolation=cv2.INTER_NEAREST).astype(np.float16)
-            depth = cv2.resize(_crop(raw, box).astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST).astype(np.float16)
+                raw = cv2.resize(raw.astype(np.float32), frame.size[::-1], interpolation=cv2.INTER_NEAREST).astype(
+                    np.float16
+                )
+            depth = cv2.resize(
+                _crop(raw, box).astype(np.float32), (size, size), interpolation=cv2.INTER_NEAREST
+            ).astype(np.float16)
             depth[mask == 0] = 0  # the sample format: depth 0 off the object
         focal, principal = crop_camera(frame, box)
         pose = record.sequence[position]
-        camera = Cameras(pose.R, pose.T, torch.tensor(focal, dtype=torch.float32), torch.tensor(principal, dtype=torch.float32))
+        camera = Cameras(
+            pose.R, pose.T, torch.tensor(focal, dtype=torch.float32), torch.tensor(principal, dtype=torch.float32)
+        )
         return ViewImages(np.ascontiguousarray(image), mask, depth, frame.scale_adjustment * record.scale, camera)

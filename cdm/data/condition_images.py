@@ -60,7 +60,9 @@ class ConditionImages:
         self.grey = grey_images
         self.by_position = by_position
         if not self.folder.is_dir():
-            raise ValueError(f"{_FIELD}: {self.folder} is not a folder; write <object_id>/<round>/<view>.png images there")
+            raise ValueError(
+                f"{_FIELD}: {self.folder} is not a folder; write <object_id>/<round>/<view>.png images there"
+            )
         self._rounds: dict[str, int] = {}
 
     def rounds(self, object_id: str) -> int:

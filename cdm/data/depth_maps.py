@@ -55,8 +55,10 @@ class DepthMaps:
             said = read_json(record, _FIELD)
             written = said.get("disparity") if isinstance(said, dict) else None
             if written is not disparity:
-                raise ValueError(f"priors.depth_maps_disparity: {self.folder} holds {'disparity' if written else 'depth'} "
-                                 f"maps ({record}); set priors.depth_maps_disparity={str(bool(written)).lower()}")
+                raise ValueError(
+                    f"priors.depth_maps_disparity: {self.folder} holds {'disparity' if written else 'depth'} "
+                    f"maps ({record}); set priors.depth_maps_disparity={str(bool(written)).lower()}"
+                )
 
     def require(self, object_ids: Iterable[str]) -> None:
         """``ValueError`` naming the first object id without a folder of maps."""

@@ -105,7 +105,9 @@ class MeshFolderDataset(ObjectDataset):
                     "least 2 (one per split)"
                 )
             held_out = _held_out(files, folder)
-            self._frames[category] = box_frame(_bounds(p, (p.stat().st_size, p.stat().st_mtime_ns)) for p in files if p not in held_out)
+            self._frames[category] = box_frame(
+                _bounds(p, (p.stat().st_size, p.stat().st_mtime_ns)) for p in files if p not in held_out
+            )
             chosen = [p for p in files if (p in held_out) == (split == "val")]
             refs = [(category, f"meshes/{category}/{p.relative_to(folder).as_posix()}") for p in chosen]
             self._files.update({object_id: path for (_, object_id), path in zip(refs, chosen, strict=True)})

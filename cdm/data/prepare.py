@@ -45,7 +45,10 @@ def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, n
     seq = record.sequence
     arrays = {
         "cloud": record.cloud.numpy().astype(np.float32),
-        "seq_R": seq.R.numpy(), "seq_T": seq.T.numpy(), "seq_focal": seq.focal.numpy(), "seq_principal": seq.principal.numpy(),
+        "seq_R": seq.R.numpy(),
+        "seq_T": seq.T.numpy(),
+        "seq_focal": seq.focal.numpy(),
+        "seq_principal": seq.principal.numpy(),
         "views": record.views.numpy().astype(np.int64),
         "images": np.stack([v.image for v in views]),
         "masks": np.stack([v.mask for v in views]),

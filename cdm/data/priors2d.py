@@ -65,7 +65,9 @@ def depth_prior_from_map(depth: Tensor, mask: Tensor) -> Tensor:
     return torch.where(fg, nearness, torch.zeros_like(depth))
 
 
-def prior_2d_channels(kind: Literal["none", "contour", "depth"], image: Tensor, mask: Tensor, depth: Tensor | None) -> Tensor:
+def prior_2d_channels(
+    kind: Literal["none", "contour", "depth"], image: Tensor, mask: Tensor, depth: Tensor | None
+) -> Tensor:
     """The 2D-prior channels of one sample (Eq. 7), ``PRIOR_2D_CHANNELS[kind]`` of them.
 
     ``"depth"`` uses the sample's own depth map. That map comes from the data (a renderer or a

@@ -120,5 +120,7 @@ def collate(samples: list[Sample]) -> Batch:
         points=torch.stack([s.points for s in samples]),
         category=tuple(s.category for s in samples),
         object_id=tuple(s.object_id for s in samples),
-        conditions=None if any(s.conditions is None for s in samples) else ConditionViews.stack([s.conditions for s in samples]),
+        conditions=None
+        if any(s.conditions is None for s in samples)
+        else ConditionViews.stack([s.conditions for s in samples]),
     )

@@ -60,7 +60,15 @@ from cdm.data.views import Split, interleave
 from cdm.normalise import Frame, bdm_frame
 from cdm.safe_io import PLAIN_NAME, load_npy, plain_name, read_bounded, read_json
 
-__all__ = ["BDM_SPLIT_FILE", "DISTANCE_SCALE", "R2N2_FOCAL", "SYNSETS", "ShapeNetR2N2Dataset", "r2n2_cameras", "v2_to_v1"]
+__all__ = [
+    "BDM_SPLIT_FILE",
+    "DISTANCE_SCALE",
+    "R2N2_FOCAL",
+    "SYNSETS",
+    "ShapeNetR2N2Dataset",
+    "r2n2_cameras",
+    "v2_to_v1",
+]
 
 SYNSETS = {
     "02691156": "airplane", "02828884": "bench", "02933112": "cabinet", "02958343": "car", "03001627": "chair",
@@ -91,7 +99,9 @@ def v2_to_v1(points: np.ndarray) -> np.ndarray:
 
 def r2n2_cameras(metadata: np.ndarray) -> torch.Tensor:
     """``(V, 3)`` (elevation °, azimuth ° in our convention, distance) of metadata rows ``(V, 5)``."""
-    return torch.tensor(np.stack([metadata[:, 1], 90.0 - metadata[:, 0], metadata[:, 3] * DISTANCE_SCALE], 1), dtype=torch.float32)
+    return torch.tensor(
+        np.stack([metadata[:, 1], 90.0 - metadata[:, 0], metadata[:, 3] * DISTANCE_SCALE], 1), dtype=torch.float32
+    )
 
 
 def _read_metadata(path: Path) -> np.ndarray:
@@ -137,8 +147,10 @@ class ShapeNetR2N2Dataset(CapturedDataset):
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
         if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source != "maps":
-            raise ValueError("priors.prior_2d: 'depth' on ShapeNet needs estimated maps (R2N2 renderings have no depth): "
-                             "set priors.depth_source=maps and priors.depth_maps, or use 'contour' or 'none'")
+            raise ValueError(
+                "priors.prior_2d: 'depth' on ShapeNet needs estimated maps (R2N2 renderings have no depth): "
+                "set priors.depth_source=maps and priors.depth_maps, or use 'contour' or 'none'"
+            )
         self._models: dict[str, tuple[str, str, str]] = {}
         """object id → (synset, model, PC15k folder)."""
         super().__init__(cfg, split, cache_bytes)
@@ -152,7 +164,11 @@ class ShapeNetR2N2Dataset(CapturedDataset):
         for folder in (root / _RENDERINGS, root / _CLOUDS):
             if not folder.is_dir():
                 raise ValueError(f"data.root: {folder} is missing; expected {cls.layout}")
-        found = tuple(name for synset, name in SYNSETS.items() if (root / _RENDERINGS / synset).is_dir() and (root / _CLOUDS / synset).is_dir())
+        found = tuple(
+            name
+            for synset, name in SYNSETS.items()
+            if (root / _RENDERINGS / synset).is_dir() and (root / _CLOUDS / synset).is_dir()
+        )
         if not found:
             raise ValueError(f"data.root: no R2N2 synset folder (e.g. {root / _CLOUDS / '03001627'}) is in both "
                              f"{_RENDERINGS} and {_CLOUDS} under {root}")
@@ -185,13 +201,17 @@ class ShapeNetR2N2Dataset(CapturedDataset):
             source = self.root / BDM_SPLIT_FILE
             models = members.get(synset, {})
             if not isinstance(models, dict):
-                raise ValueError(f"data.root: {source}, split {published!r}, synset {synset}: expected model → PC15k folder")
+                raise ValueError(
+                    f"data.root: {source}, split {published!r}, synset {synset}: expected model → PC15k folder"
+                )
             entries = sorted(models.items())
             for model, pc_folder in entries:
                 where = f"data.root: {source}, split {published!r}, synset {synset}"
                 plain_name(model, f"{where}, model")
                 if pc_folder not in _PC15K_SPLITS:
-                    raise ValueError(f"{where}, model {model}: PC15k folder {str(pc_folder)[:40]!r}; expected one of {', '.join(_PC15K_SPLITS)}")
+                    raise ValueError(
+                        f"{where}, model {model}: PC15k folder {str(pc_folder)[:40]!r}; expected one of {', '.join(_PC15K_SPLITS)}"
+                    )
         # PC15k has models R2N2 never rendered (and BDM's file names clouds PC15k may lack): skipped.
         found = [(model, pc_folder) for model, pc_folder in entries
                  if (self.root / _RENDERINGS / synset / model / "rendering" / "rendering_metadata.txt").is_file()
@@ -214,7 +234,10 @@ class ShapeNetR2N2Dataset(CapturedDataset):
 
     def _paths(self, index: int) -> tuple[Path, Path]:
         synset, model, pc_folder = self._models[self.objects[index].object_id]
-        return self.root / _RENDERINGS / synset / model / "rendering", self.root / _CLOUDS / synset / pc_folder / f"{model}.npy"
+        return (
+            self.root / _RENDERINGS / synset / model / "rendering",
+            self.root / _CLOUDS / synset / pc_folder / f"{model}.npy",
+        )
 
     def frame(self, category: str) -> Frame:
         """BDM's global normalisation of ``category`` (:func:`cdm.normalise.bdm_frame`) over every full
@@ -223,7 +246,9 @@ class ShapeNetR2N2Dataset(CapturedDataset):
             raise ValueError(f"data.root: {self.root} is prepared, its clouds already in the frame; the frame is "
                              "computed from the published tree")
         synset = _NAMES[category]
-        npys = [self.root / _CLOUDS / synset / folder / f"{model}.npy" for model, folder in self._members("train", synset)]
+        npys = [
+            self.root / _CLOUDS / synset / folder / f"{model}.npy" for model, folder in self._members("train", synset)
+        ]
         return _training_frame(tuple((npy, npy.stat().st_mtime_ns) for npy in npys))
 
     def _raw_record(self, index: int) -> ObjectRecord:
@@ -248,7 +273,9 @@ class ShapeNetR2N2Dataset(CapturedDataset):
         if raw is None:
             raise ValueError(f"data.root: cannot read image {path} (missing or corrupt); expected a 137×137 RGBA PNG")
         if raw.ndim != 3 or raw.shape[2] != 4 or raw.dtype != np.uint8:
-            raise ValueError(f"data.root: {path} is not an 8-bit RGBA PNG (shape {raw.shape}, {raw.dtype}); R2N2 renderings are")
+            raise ValueError(
+                f"data.root: {path} is not an 8-bit RGBA PNG (shape {raw.shape}, {raw.dtype}); R2N2 renderings are"
+            )
         alpha = raw[..., 3:].astype(np.float32) / 255.0
         # Composite on white, as R2N2 renderings are usually shown; the mask keeps the silhouette.
         rgb = (raw[..., 2::-1].astype(np.float32) * alpha + 255.0 * (1.0 - alpha)).round().astype(np.uint8)

@@ -407,7 +407,9 @@ class ObjectDataset(Dataset, ABC):
             points=surface.cloud,
             category=ref.category,
             object_id=ref.object_id,
-            conditions=self._conditions(index, surface, view, view_round) if self.split == "train" and d.condition_views else None,
+            conditions=self._conditions(index, surface, view, view_round)
+            if self.split == "train" and d.condition_views
+            else None,
         )
 
     def drawn_view(self, index: int, view_round: int) -> View:
@@ -422,7 +424,10 @@ class ObjectDataset(Dataset, ABC):
         renders = [render_view(surface, v, d.image_size, 1) for v in turned]
         generated = None
         if d.condition_source == "folder":
-            generated = [self.condition_images.read(self.objects[index].object_id, view_round, j, d.image_size) for j in range(1, k + 1)]
+            generated = [
+                self.condition_images.read(self.objects[index].object_id, view_round, j, d.image_size)
+                for j in range(1, k + 1)
+            ]
         return condition_views(renders, generated, self.shown_conditions(index, view_round), self.cfg.priors.prior_2d)
 
     def shown_conditions(self, index: int, view_round: int) -> int:

@@ -73,7 +73,9 @@ def mask_distance_transform(mask: Tensor) -> Tensor:
     return dist[:, None].to(mask.dtype)
 
 
-def conditioning_map(features: Tensor, prior_2d: Tensor, image: Tensor, mask: Tensor, mask_channels: bool = True) -> Tensor:
+def conditioning_map(
+    features: Tensor, prior_2d: Tensor, image: Tensor, mask: Tensor, mask_channels: bool = True
+) -> Tensor:
     """Stack the per-pixel conditioning channels, once per image.
 
     Args:
@@ -128,7 +130,10 @@ def project_views(cond_maps: Tensor, points: Tensor, cameras: Cameras, valid: Te
     b, v, c, s, _ = cond_maps.shape
     seen_channel = cond_maps.new_ones(b, v, 1, s, s)  # gathers 1 exactly where a point is visible
     gathered = project_conditioning(
-        torch.cat([cond_maps, seen_channel], dim=2).flatten(0, 1), points.repeat_interleave(v, 0), cameras.flatten(), radius
+        torch.cat([cond_maps, seen_channel], dim=2).flatten(0, 1),
+        points.repeat_interleave(v, 0),
+        cameras.flatten(),
+        radius,
     ).unflatten(0, (b, v)) * valid[:, :, None, None].to(cond_maps.dtype)  # (B, V, N, C + 1)
     seen = gathered[..., -1:].sum(dim=1)
     return gathered[..., :-1].sum(dim=1) / seen.clamp(min=1.0)

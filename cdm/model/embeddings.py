@@ -49,14 +49,18 @@ class Embeddings(NamedTuple):
         """``(B, T, E)`` tokens of the batch's objects; an id missing from the file is a ``ValueError``."""
         missing = [o for o in object_ids if o not in self.tokens]
         if missing:
-            raise ValueError(f"{_FIELD}: no embedding for object id {missing[0]!r}; the file must hold every object of both splits")
+            raise ValueError(
+                f"{_FIELD}: no embedding for object id {missing[0]!r}; the file must hold every object of both splits"
+            )
         return torch.stack([self.tokens[o] for o in object_ids])
 
 
 def _read(path: str | Path, names: bool):
     path = input_path(path)
     if not path.exists():
-        raise ValueError(f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py (docs/paper.md, 'External inputs')")
+        raise ValueError(
+            f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py (docs/paper.md, 'External inputs')"
+        )
     with open_regular(path, _FIELD) as f:
         single = f.read(6) == b"\x93NUMPY"
     if single:
@@ -83,7 +87,9 @@ def load_embeddings(path: str | Path) -> Embeddings:
     first = next(iter(arrays.values()))
     if len(shapes) != 1 or first.ndim not in (1, 2) or first.shape[-1] < 1:
         raise ValueError(f"{_FIELD}: every array must have the same shape (E,) or (T, E); found {sorted(shapes)[:3]}")
-    bad = next((k for k, a in arrays.items() if not np.issubdtype(a.dtype, np.floating) or not np.isfinite(a).all()), None)
+    bad = next(
+        (k for k, a in arrays.items() if not np.issubdtype(a.dtype, np.floating) or not np.isfinite(a).all()), None
+    )
     if bad is not None:
         raise ValueError(f"{_FIELD}: the embedding of {bad!r} is not finite floating point")
     tokens = {k: torch.from_numpy(np.atleast_2d(a).astype(np.float32)) for k, a in arrays.items()}

@@ -215,7 +215,9 @@ def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -
     raw = load_inert(path, field, "torch file")
     state = raw.get("target_encoder", raw.get("model", raw)) if isinstance(raw, dict) else None
     if not isinstance(state, dict):
-        raise ValueError(f"{field}: expected a state dict, MSN's checkpoint with 'target_encoder' or PC²'s with 'model'")
+        raise ValueError(
+            f"{field}: expected a state dict, MSN's checkpoint with 'target_encoder' or PC²'s with 'model'"
+        )
     state = {k.removeprefix("module."): v for k, v in state.items() if isinstance(k, str)}
     if any(k.startswith(_PC2_PREFIX) for k in state):
         state = {k.removeprefix(_PC2_PREFIX): v for k, v in state.items() if k.startswith(_PC2_PREFIX)}
@@ -229,7 +231,9 @@ def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -
         )
     wrong = [k for k, shape in expected.items() if not isinstance(state[k], Tensor) or state[k].shape != shape]
     if wrong:
-        raise ValueError(f"{field}: {wrong[0]} has shape {tuple(state[wrong[0]].shape)}, ViT-S/16 needs {tuple(expected[wrong[0]])}")
+        raise ValueError(
+            f"{field}: {wrong[0]} has shape {tuple(state[wrong[0]].shape)}, ViT-S/16 needs {tuple(expected[wrong[0]])}"
+        )
     return state
 
 

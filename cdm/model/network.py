@@ -113,7 +113,11 @@ class CDMNetwork(nn.Module):
         self.denoiser: nn.Module
         if self.pc2_order:
             self.denoiser = PVCNN2Denoiser(
-                in_channels, cfg.width_multiplier, cfg.voxel_resolution_multiplier, embed_dim=cfg.time_embed_dim, **tokens
+                in_channels,
+                cfg.width_multiplier,
+                cfg.voxel_resolution_multiplier,
+                embed_dim=cfg.time_embed_dim,
+                **tokens,
             )
             if cfg.init_from is not None:
                 path = input_path(cfg.init_from)
@@ -146,12 +150,16 @@ class CDMNetwork(nn.Module):
             given = self.embeddings.batch(batch.object_id).to(features)  # (B, T, E)
             context = ImageContext(pixel, given.mean(dim=1) if concat else None, given if attend else None)
         else:
-            context = ImageContext(pixel, global_embedding(features) if concat else None, image_tokens(features) if attend else None)
+            context = ImageContext(
+                pixel, global_embedding(features) if concat else None, image_tokens(features) if attend else None
+            )
         c = batch.conditions
         if c is None:
             return context
         image, mask, prior = (t.flatten(0, 1) for t in (c.image, c.mask, c.prior_2d))
-        views = self._arrange(conditioning_map(self._encode(image, mask, prior), prior, image, mask, self.mask_channels))
+        views = self._arrange(
+            conditioning_map(self._encode(image, mask, prior), prior, image, mask, self.mask_channels)
+        )
         views = views.unflatten(0, c.valid.shape)
         return context._replace(views=views, view_cameras=c.camera, view_valid=c.valid)
 
@@ -194,7 +202,9 @@ class CDMNetwork(nn.Module):
             cond = project_conditioning(context.pixel, x_t, camera, self.raster_radius)
         else:
             fields = ("R", "T", "focal", "principal")
-            cameras = Cameras(*(torch.cat([getattr(camera, f)[:, None], getattr(context.view_cameras, f)], 1) for f in fields))
+            cameras = Cameras(
+                *(torch.cat([getattr(camera, f)[:, None], getattr(context.view_cameras, f)], 1) for f in fields)
+            )
             valid = torch.cat([context.view_valid.new_ones(x_t.shape[0], 1), context.view_valid], dim=1)
             maps = torch.cat([context.pixel[:, None], context.views], dim=1)
             cond = project_views(maps, x_t, cameras, valid, self.raster_radius)

@@ -67,7 +67,9 @@ class PointVoxelBlock(nn.Module):
         devoxelize: ``trilinear`` or ``nearest`` (:class:`~cdm.model.voxels.VoxelBranch`).
     """
 
-    def __init__(self, in_channels: int, out_channels: int, resolution: int, time_channels: int, devoxelize: Devoxelize):
+    def __init__(
+        self, in_channels: int, out_channels: int, resolution: int, time_channels: int, devoxelize: Devoxelize
+    ):
         super().__init__()
         self.time = nn.Linear(time_channels, in_channels)
         self.voxel = VoxelBranch(in_channels, out_channels, resolution, devoxelize)
@@ -125,7 +127,9 @@ class PVCNNDenoiser(nn.Module):
         )
         self.attention_after = len(widths) // 2 if token_channels is not None else None
         self.attention = (
-            PointCrossAttention(widths[self.attention_after], token_channels, num_tokens) if token_channels is not None else None
+            PointCrossAttention(widths[self.attention_after], token_channels, num_tokens)
+            if token_channels is not None
+            else None
         )
         last = widths[-1]
         self.head = nn.Linear(last, last)

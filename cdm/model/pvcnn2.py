@@ -304,7 +304,9 @@ class PVCNN2Denoiser(nn.Module):
         # Supplementary Table 7's ⊗ rows: PC²'s network has no cross-attention and the paper does not say
         # where it adds one; ours lets the bottleneck centres attend to the tokens, after the global
         # attention. Its output projection starts at zero, so PC²'s function is unchanged at the start.
-        self.cross_att = PointCrossAttention(channels, token_channels, num_tokens) if token_channels is not None else None
+        self.cross_att = (
+            PointCrossAttention(channels, token_channels, num_tokens) if token_channels is not None else None
+        )
 
         skip_channels[0] = in_channels  # FP4 takes the inputs without xyz
         fp_layers = []

@@ -94,7 +94,9 @@ def load_reference_weights(model: PVCNN2Denoiser, state: Mapping[str, Tensor]) -
     expected = model.state_dict()
     for name, tensor in expected.items():
         if name not in state:
-            raise ValueError(f"reference weights lack {name!r} (shape {tuple(tensor.shape)}) that the pvcnn2 denoiser has")
+            raise ValueError(
+                f"reference weights lack {name!r} (shape {tuple(tensor.shape)}) that the pvcnn2 denoiser has"
+            )
         if tuple(state[name].shape) != tuple(tensor.shape):
             raise ValueError(
                 f"reference weight {name!r} has shape {tuple(state[name].shape)}, the pvcnn2 denoiser's is "

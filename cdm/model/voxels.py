@@ -377,7 +377,10 @@ class SparseGrid(VoxelGrid):
         count = (self.rows_per_sample * (c // num_groups)).to(voxels.dtype)[:, None]  # (B, 1)
         mean = voxels.new_zeros(self.batch_size, num_groups).index_add_(0, self.row_batch, x.sum(-1)) / count
         centred = x - mean[self.row_batch][..., None]
-        var = voxels.new_zeros(self.batch_size, num_groups).index_add_(0, self.row_batch, centred.square().sum(-1)) / count
+        var = (
+            voxels.new_zeros(self.batch_size, num_groups).index_add_(0, self.row_batch, centred.square().sum(-1))
+            / count
+        )
         normed = centred * torch.rsqrt(var + eps)[self.row_batch][..., None]
         return normed.view(m, c) * weight + bias
 

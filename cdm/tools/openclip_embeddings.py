@@ -51,7 +51,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")
     p.add_argument("--kind", required=True, choices=("image", "text", "depth"))
     p.add_argument("--out", required=True, type=Path, help=".npz to write")
-    p.add_argument("--depth-maps", type=Path, help="estimated maps (<object_id>/<position>.npy) instead of rendered depth")
+    p.add_argument(
+        "--depth-maps", type=Path, help="estimated maps (<object_id>/<position>.npy) instead of rendered depth"
+    )
     p.add_argument("--model", default="ViT-B-32")
     p.add_argument("--pretrained", default="laion2b_s34b_b79k")
     args = p.parse_args(argv)

@@ -77,7 +77,9 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, s
             elif cloud is not None:
                 xy, depth = _view(cloud)
                 order = np.argsort(depth)  # far points first, near ones drawn over them
-                colour = "tab:green" if label == "ground truth" else "0.4" if label.startswith("baseline") else "tab:blue"
+                colour = (
+                    "tab:green" if label == "ground truth" else "0.4" if label.startswith("baseline") else "tab:blue"
+                )
                 ax.scatter(xy[order, 0], xy[order, 1], s=0.6, c=colour, alpha=0.85, linewidths=0)
             ax.set_xlim(-1, 1)
             ax.set_ylim(-1, 1)
@@ -91,8 +93,10 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, s
                 ax.set_title(label, fontsize=FONT)
             if c == 0:
                 ax.set_ylabel(oid, fontsize=FONT - 1)
-    fig.suptitle(f"{title}\nCD ×1000 (lower is better) · F1@0.01 on the squared distance, 0.1 world units (higher is better)",
-                 fontsize=FONT + 1)
+    fig.suptitle(
+        f"{title}\nCD ×1000 (lower is better) · F1@0.01 on the squared distance, 0.1 world units (higher is better)",
+        fontsize=FONT + 1,
+    )
     fig.tight_layout()
     return _save(fig, path)
 

@@ -20,8 +20,17 @@ import numpy as np
 from sweeps.compare.rules import metric_label, partner
 from sweeps.storage import write_file
 
-__all__ = ["DPI", "PlotPoint", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "save_figure", "training_curves",
-           "view_cloud"]
+__all__ = [
+    "DPI",
+    "PlotPoint",
+    "log_spaced",
+    "metric_vs_value",
+    "optuna_plots",
+    "read_ply",
+    "save_figure",
+    "training_curves",
+    "view_cloud",
+]
 
 DPI = 150
 """Resolution of every saved figure."""
@@ -59,8 +68,9 @@ def _axis(points: Sequence[PlotPoint]) -> tuple[list[str], dict[str, float], str
     cells = list(dict.fromkeys(p.cell for p in points))
     keys = list(dict.fromkeys(k for p in points for k in p.values))
     first = {p.cell: p.values for p in reversed(points)}
-    numeric = len(keys) == 1 and all(isinstance(first[c].get(keys[0]), (int, float)) and not isinstance(first[c].get(keys[0]), bool)
-                                     for c in cells)
+    numeric = len(keys) == 1 and all(
+        isinstance(first[c].get(keys[0]), (int, float)) and not isinstance(first[c].get(keys[0]), bool) for c in cells
+    )
     if numeric:
         x = {c: float(first[c][keys[0]]) for c in cells}
         return sorted(cells, key=x.__getitem__), x, keys[0]  # left to right, whatever order the trials came in
@@ -104,7 +114,9 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
             colour = f"C{i}"
             xs, means, bars = [], [], []
             for c in cells:
-                values = [p.metrics[key] for p in points if p.cell == c and key in p.metrics and math.isfinite(p.metrics[key])]
+                values = [
+                    p.metrics[key] for p in points if p.cell == c and key in p.metrics and math.isfinite(p.metrics[key])
+                ]
                 if values:
                     mean = statistics.fmean(values)
                     xs.append(x[c])
@@ -117,23 +129,41 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
                 label = f"ours: {'all objects' if series == 'all' else series}"
                 if series == "all" and m == metric and intervals:
                     label += " (bars: 95% paired interval vs the reference cell)"
-                ax.errorbar(xs, means, yerr=np.array(bars).T, fmt="o-", color=colour, capsize=4, lw=2 if series == "all" else 1,
-                            label=label)
+                ax.errorbar(
+                    xs,
+                    means,
+                    yerr=np.array(bars).T,
+                    fmt="o-",
+                    color=colour,
+                    capsize=4,
+                    lw=2 if series == "all" else 1,
+                    label=label,
+                )
             paper = {p.cell: (p.paper[key], p.paper_label) for p in points if key in p.paper}
             if paper:
                 ax.scatter([x[c] for c in paper], [v for v, _ in paper.values()], marker="*", s=160, color=colour,
                            edgecolor="black", zorder=3, label=f"{paper_table} (the paper's data set, not ours)")
                 for c, (value, row) in paper.items():
-                    ax.annotate(row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=FONT, color=colour)
+                    ax.annotate(
+                        row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=FONT, color=colour
+                    )
         short = m.removeprefix("eval/")
         for i, b in enumerate(baselines):
             values = [p.metrics[f"baseline/{b}/{short}"] for p in points if f"baseline/{b}/{short}" in p.metrics]
             if values:
                 ax.axhline(statistics.fmean(values), color="0.45", lw=1, ls=(0, (4, 2 + 2 * i)), zorder=1)
                 # Labels staggered along the line: baselines often score alike (category mean, retrieval).
-                ax.annotate(f"baseline: {_baseline_label(b)}", (1.0 - 0.3 * i, statistics.fmean(values)),
-                            xycoords=("axes fraction", "data"),
-                            xytext=(-2, 2), textcoords="offset points", ha="right", va="bottom", fontsize=FONT, color="0.35")
+                ax.annotate(
+                    f"baseline: {_baseline_label(b)}",
+                    (1.0 - 0.3 * i, statistics.fmean(values)),
+                    xycoords=("axes fraction", "data"),
+                    xytext=(-2, 2),
+                    textcoords="offset points",
+                    ha="right",
+                    va="bottom",
+                    fontsize=FONT,
+                    color="0.35",
+                )
         if xlabel is None:
             ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=FONT)
         else:
@@ -143,7 +173,9 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
                 ax.set_xlabel(f"{xlabel} (log scale)", fontsize=FONT + 1)
                 ax.minorticks_off()
             ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
-        ax.set_ylabel(metric_label(m) + (", lower is better" if m.endswith("cd") else ", higher is better"), fontsize=FONT + 1)
+        ax.set_ylabel(
+            metric_label(m) + (", lower is better" if m.endswith("cd") else ", higher is better"), fontsize=FONT + 1
+        )
         ax.tick_params(labelsize=FONT)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=FONT, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
@@ -159,7 +191,11 @@ def has_curve(history: Mapping[str, Sequence[tuple[int, float]]], metric: str) -
 
 
 def training_curves(
-    curves: Mapping[str, Mapping[str, Sequence[tuple[int, float]]]], cells: Mapping[str, str], metric: str, title: str, path: Path
+    curves: Mapping[str, Mapping[str, Sequence[tuple[int, float]]]],
+    cells: Mapping[str, str],
+    metric: str,
+    title: str,
+    path: Path,
 ) -> Path:
     """The loss against the training step, its terms apart: the diffusion term, the λ × 3D-prior term
     (``train/loss − train/loss_diffusion``, Eq. 6) and their sum, one line per trial, one colour per cell
@@ -182,7 +218,11 @@ def training_curves(
         return out | ({metric: sorted(history[metric])} if history.get(metric) else {})
 
     panels = {label: series(history) for label, history in curves.items()}
-    keys = [k for k in ("diffusion term", "λ × 3D prior term", "total (Eq. 6)", metric) if any(p.get(k) for p in panels.values())]
+    keys = [
+        k
+        for k in ("diffusion term", "λ × 3D prior term", "total (Eq. 6)", metric)
+        if any(p.get(k) for p in panels.values())
+    ]
     fig, axes = plt.subplots(1, len(keys), figsize=(3.8 * len(keys), 3.6), squeeze=False)
     colours = {c: f"C{i % 10}" for i, c in enumerate(dict.fromkeys(cells[label] for label in curves))}
     labelled: set[str] = set()
@@ -200,8 +240,14 @@ def training_curves(
         ax.tick_params(labelsize=FONT)
         ax.grid(alpha=0.3)
     if 1 < len(colours) <= 12:  # one cell needs no legend; beyond 12 a legend hides the curves
-        fig.legend(*axes[0][0].get_legend_handles_labels(), fontsize=FONT, loc="upper center", ncol=min(len(colours), 6),
-                   bbox_to_anchor=(0.5, 0.0), frameon=False)
+        fig.legend(
+            *axes[0][0].get_legend_handles_labels(),
+            fontsize=FONT,
+            loc="upper center",
+            ncol=min(len(colours), 6),
+            bbox_to_anchor=(0.5, 0.0),
+            frameon=False,
+        )
     fig.suptitle(title, fontsize=FONT + 2)
     fig.tight_layout()
     return _save(fig, path)
@@ -231,7 +277,9 @@ def optuna_plots(
     study = optuna.create_study(direction="minimize" if mode == "min" else "maximize")
     for values, value in trials:
         state = optuna.trial.TrialState.COMPLETE if value is not None else optuna.trial.TrialState.FAIL
-        study.add_trial(optuna.trial.create_trial(params=values, distributions=dict(distributions), value=value, state=state))
+        study.add_trial(
+            optuna.trial.create_trial(params=values, distributions=dict(distributions), value=value, state=state)
+        )
     paths = []
     # Optuna's plots switch the global style to ggplot; the context restores it for every later figure.
     # Its matplotlib backend is marked experimental, which would warn on every sweep.

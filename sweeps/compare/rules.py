@@ -14,8 +14,20 @@ from typing import Any, Literal
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import lambda_source
 
-__all__ = ["F1_UNIT", "PROTOCOL_NOTE", "Stat", "metric_label", "number_text", "object_column", "partner", "partner_mode", "rounded", "settings_note", "settings_notes",
-           "weighed"]
+__all__ = [
+    "F1_UNIT",
+    "PROTOCOL_NOTE",
+    "Stat",
+    "metric_label",
+    "number_text",
+    "object_column",
+    "partner",
+    "partner_mode",
+    "rounded",
+    "settings_note",
+    "settings_notes",
+    "weighed",
+]
 
 
 @dataclass(frozen=True)
@@ -94,7 +106,9 @@ def weighed(verdicts: Sequence[tuple[str, str]]) -> str:
     return ", ".join(f"{v} on {m.removeprefix('eval/')}" for m, v in named)
 
 
-def settings_note(profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float], lambda_from: str) -> str:
+def settings_note(
+    profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float], lambda_from: str
+) -> str:
     """The table's first note: what produced the numbers (profile, budget, prediction target, λ).
 
     ``lambda_from`` says where the λ of Eq. 6 (``priors.lambda_3d``) was set (``profile local``,
@@ -104,7 +118,13 @@ def settings_note(profile: str, steps: object, targets: Iterable[str], lambdas: 
     targets = sorted(set(targets))
     shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
     values = sorted(set(lambdas))
-    lam = f"{values[0]:g}" if len(values) == 1 else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")" if values else "searched"
+    lam = (
+        f"{values[0]:g}"
+        if len(values) == 1
+        else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")"
+        if values
+        else "searched"
+    )
     return (f"profile {profile}: {steps} steps per trial; prediction target {shown}; "
             f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")
 
@@ -120,8 +140,10 @@ def settings_notes(spec: Spec, profile: str, steps: object, targets: Iterable[st
     protocol card (:mod:`sweeps.plan.protocol`) a line per note. ``fixed``/``sets``: the plan's fixed
     overrides and ``--set`` values, where :func:`sweeps.plan.trials.lambda_source` looks for λ."""
     searched = "priors.lambda_3d" in spec.search.space
-    return [settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),
-            *(PROTOCOL_NOTE + line for line in card)]
+    return [
+        settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),
+        *(PROTOCOL_NOTE + line for line in card),
+    ]
 
 
 def object_column(metric: str) -> tuple[str, str | None] | None:

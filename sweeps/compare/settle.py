@@ -35,8 +35,18 @@ from sweeps.plan.spec import SpecError
 from sweeps.plan.trials import Cell, SweepPlan
 from sweeps.storage import write_file
 
-__all__ = ["BUDGET_TAG", "Round", "check_budget", "describe_rule", "final_round", "next_round", "object_scores", "outcome_results", "write_settle_json",
-           "settle_json"]
+__all__ = [
+    "BUDGET_TAG",
+    "Round",
+    "check_budget",
+    "describe_rule",
+    "final_round",
+    "next_round",
+    "object_scores",
+    "outcome_results",
+    "write_settle_json",
+    "settle_json",
+]
 
 BUDGET_TAG = "settle.budget_ended"
 """Parent-run tag set when the wall-time budget ends (its value: seconds spent): no seed starts after it."""
@@ -72,7 +82,9 @@ def object_scores(rows: Iterable[Mapping[str, object]], metric: str) -> dict[str
             if column in r and (category is None or r.get("category") == category)}
 
 
-def outcome_results(plan: SweepPlan, outcomes: Iterable[TrialOutcome]) -> tuple[set[str], dict[str, dict[str, float] | None]]:
+def outcome_results(
+    plan: SweepPlan, outcomes: Iterable[TrialOutcome]
+) -> tuple[set[str], dict[str, dict[str, float] | None]]:
     """(started labels, results) of a finished ``run_sweep``: what :func:`next_round` reads, from the trials'
     outcomes instead of the searcher's memory."""
     started, results = set(), {}

@@ -61,7 +61,9 @@ class TrialOutcome:
         return self.status in FINISHED
 
 
-def sweep_order(labels: Sequence[str] | None, metric: str, mode: Literal["min", "max"]) -> Callable[[TrialOutcome], float]:
+def sweep_order(
+    labels: Sequence[str] | None, metric: str, mode: Literal["min", "max"]
+) -> Callable[[TrialOutcome], float]:
     """Sort key of a sweep's outcomes, as the runner and the report list them: a grid's trials in its
     plan's order ``labels`` (unplanned last); an Optuna sweep's (``labels`` None) best ``metric`` first."""
     if labels is not None:
@@ -71,7 +73,9 @@ def sweep_order(labels: Sequence[str] | None, metric: str, mode: Literal["min", 
     return lambda o: sign * o.metrics.get(metric, sign * math.inf)
 
 
-def unstarted(planned: Sequence[str], outcomes: Iterable[TrialOutcome], next_round: Collection[str] | None = None) -> list[str]:
+def unstarted(
+    planned: Sequence[str], outcomes: Iterable[TrialOutcome], next_round: Collection[str] | None = None
+) -> list[str]:
     """Labels of a grid's ``planned`` trials with no outcome, in plan order: the rows an interrupted sweep
     lists as pending, the runner's table and the report's alike. ``next_round``: a sequential sweep's
     trials its rule would start next (:func:`sweeps.compare.settle.final_round`); the seeds it never
@@ -128,7 +132,9 @@ class ResultsTable:
         if categories:  # eval/f1/chair, eval/f1/lamp, … → eval/f1/<category>
             dropped[dropped.index(categories[0])] = categories[0].rsplit("/", 1)[0] + "/<category>"
             dropped = [h for h in dropped if h not in categories]
-        notes = self.notes + (["not shown here, in results.md and results.csv: " + ", ".join(dropped)] if dropped else [])
+        notes = self.notes + (
+            ["not shown here, in results.md and results.csv: " + ", ".join(dropped)] if dropped else []
+        )
         out += [""] + [textwrap.fill(s, width) for s in self.summary] if self.summary else []
         out += [""] + [textwrap.fill(n, width, subsequent_indent="  ") for n in notes] if notes else []
         return "\n".join(out)
@@ -168,7 +174,9 @@ def _finished(group: Sequence[TrialOutcome]) -> list[TrialOutcome]:
 
 def _object_scores(group: Sequence[TrialOutcome], key: str, category: str | None) -> dict[str, float]:
     """``object_id →`` score under ``key`` of a cell's finished trials, seeds averaged per object."""
-    trials = [[r for r in o.objects if category is None or r["category"] == category] for o in _finished(group) if o.objects]
+    trials = [
+        [r for r in o.objects if category is None or r["category"] == category] for o in _finished(group) if o.objects
+    ]
     return per_object_means(trials, key) if trials and all(key in r for t in trials for r in t) else {}
 
 
@@ -215,7 +223,9 @@ class _Pairing:
                 others = [(p, to_baseline[(name, b, p)]) for p in shown[1:] if (name, b, p) in to_baseline]
                 pairing.against.setdefault(name, {})[b] = weighed([(m, verdict), *others])
         for name in cells:
-            found = {m: d.verdict(modes[m]) for m in shown if isinstance(d := pairing.diffs.get((name, m)), PairedDifference)}
+            found = {
+                m: d.verdict(modes[m]) for m in shown if isinstance(d := pairing.diffs.get((name, m)), PairedDifference)
+            }
             record = pairing.settled.get(name)
             if record is not None:
                 # The partner was not decided on: its interval over objects only, said as such.
@@ -223,7 +233,9 @@ class _Pairing:
                            if m != metric and v not in ("no clear difference", record.decision.verdict)]
                 pairing.verdicts[name] = "".join([record.text(), *aside])
             elif metric in found:
-                pairing.verdicts[name] = weighed([(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric])
+                pairing.verdicts[name] = weighed(
+                    [(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric]
+                )
         if unpaired:
             pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
                                  f"comparison needs the same evaluation set): {', '.join(unpaired)}")
@@ -245,7 +257,9 @@ class _Pairing:
         out = []
         for m in shown:
             d = self.delta(name, m, metric)
-            out.append("reference" if name == self.reference else d.text() if isinstance(d, PairedDifference) else d or "–")
+            out.append(
+                "reference" if name == self.reference else d.text() if isinstance(d, PairedDifference) else d or "–"
+            )
         return out + [self.verdicts.get(name, ""), ", ".join(self.beats(name)) or "none"]
 
 
@@ -290,7 +304,10 @@ def build_table(
         header += [m, f"paper {m}"]
     header += [f"{metric}/{c}" for c in categories]
     if pairing:
-        header += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in shown] + ["verdict", "beats baselines"]
+        header += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in shown] + [
+            "verdict",
+            "beats baselines",
+        ]
 
     stats = {name: Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
              for name, group in cells.items()}
@@ -309,7 +326,12 @@ def build_table(
         trials = f"{counts['ok'] + counts['stopped']}/{len(group)}" + "".join(
             f" ({counts[s]} {s})" for s in ("stopped", "failed", "pending") if counts[s])
         row = [name + mark.get(name, "")] + ([first.paper_label or ""] if has_paper_label else []) + [trials]
-        record: dict[str, object] = {"cell": name, "paper_setting": first.paper_label or "", "best": name == best, **counts}
+        record: dict[str, object] = {
+            "cell": name,
+            "paper_setting": first.paper_label or "",
+            "best": name == best,
+            **counts,
+        }
         if seeds_column:
             settle = pairing.settled.get(name)  # type: ignore[union-attr]
             row.append(f"{settle.seeds} ({settle.reason})" if settle else "")
@@ -374,8 +396,18 @@ def build_table(
     narrowing += ["paper setting"] + ([f"paper {second}", second] if second else [])
     answer = ("cell", *["seeds"] * seeds_column, *shown,
               *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
-    return ResultsTable(title, header, rows, records, notes, best, _summary(cells, stats, leaders, metric, pairing, lead, mode),
-                        frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]), tuple(narrowing), answer)
+    return ResultsTable(
+        title,
+        header,
+        rows,
+        records,
+        notes,
+        best,
+        _summary(cells, stats, leaders, metric, pairing, lead, mode),
+        frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]),
+        tuple(narrowing),
+        answer,
+    )
 
 
 def _lead(cells: dict[str, list[TrialOutcome]], best: str, runner_up: str, metric: str) -> PairedDifference | None:
@@ -388,8 +420,15 @@ def _baseline_name(name: str) -> str:
     return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
 
 
-def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, Stat | None], leaders: list[str], metric: str,
-             pairing: _Pairing | None, lead: PairedDifference | None = None, mode: Literal["min", "max"] = "max") -> list[str]:
+def _summary(
+    cells: dict[str, list[TrialOutcome]],
+    stats: dict[str, Stat | None],
+    leaders: list[str],
+    metric: str,
+    pairing: _Pairing | None,
+    lead: PairedDifference | None = None,
+    mode: Literal["min", "max"] = "max",
+) -> list[str]:
     """One sentence per class of cells — the best cell (only when ``lead``, its paired Δ to the next, excludes 0;
     else the leader, said not resolvable), then cells that stand the same against the baselines (weighed
     verdicts), then every cell's verdict against the reference cell — and one for those with no result."""
@@ -405,11 +444,17 @@ def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, Stat | None]
         for b, v in against.items():
             by_verdict.setdefault(v, []).append(_baseline_name(b))
         ordered = [v for v in words if v in by_verdict] + [v for v in by_verdict if v not in words]
-        return "; ".join(f"{words[v]} {', '.join(by_verdict[v])}" if v in words else f"{v} than {', '.join(by_verdict[v])}"
-                         for v in ordered)
+        return "; ".join(
+            f"{words[v]} {', '.join(by_verdict[v])}" if v in words else f"{v} than {', '.join(by_verdict[v])}"
+            for v in ordered
+        )
 
     best = leaders[0] if len(leaders) == 1 else None
-    lead_text = f"Δ{metric.removeprefix('eval/')} {lead.text()} against the next cell" if lead else "unpaired with the next cell"
+    lead_text = (
+        f"Δ{metric.removeprefix('eval/')} {lead.text()} against the next cell"
+        if lead
+        else "unpaired with the next cell"
+    )
     if best and lead is not None and lead.verdict(mode) == "better":
         out = [f"best cell {best} ({lead_text}): {standing(best, False)}"]
     elif best:
@@ -427,7 +472,9 @@ def _summary(cells: dict[str, list[TrialOutcome]], stats: dict[str, Stat | None]
         for name, verdict in pairing.verdicts.items():
             by_verdict.setdefault(verdict, []).append(name)
         if by_verdict:
-            out.append(f"against {pairing.reference}: " + "; ".join(f"{', '.join(n)} {v}" for v, n in by_verdict.items()))
+            out.append(
+                f"against {pairing.reference}: " + "; ".join(f"{', '.join(n)} {v}" for v, n in by_verdict.items())
+            )
     failed = [name for name in cells if stats[name] is None]
     if failed:
         out.append(f"no result (failed or not run): {', '.join(failed)}")

@@ -35,7 +35,17 @@ from pathlib import Path
 
 from sweeps.storage import StoreError, private_folder, write_private
 
-__all__ = ["LOOPBACK_ENV", "DeliberateTokenNote", "TOKEN_NOTE_LOGGER", "SESSION_RECORDS", "is_session_process", "private_token", "reap_stale_sessions", "session_pids", "start"]
+__all__ = [
+    "LOOPBACK_ENV",
+    "DeliberateTokenNote",
+    "TOKEN_NOTE_LOGGER",
+    "SESSION_RECORDS",
+    "is_session_process",
+    "private_token",
+    "reap_stale_sessions",
+    "session_pids",
+    "start",
+]
 
 LOOPBACK_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
 """Ray's switch that, set to ``0``, keeps a node's address (and so its listeners) on loopback."""

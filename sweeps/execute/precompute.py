@@ -136,8 +136,10 @@ def check_space(plan: SweepPlan, sweep_dir: str, remote: bool) -> None:
         probe = probe.parent
     free = shutil.disk_usage(probe).free
     if need > free:
-        raise StoreError(f"--storage {sweep_dir}: the views and evaluation sets its cells share ({root}) need "
-                         f"{_size(need)} but its disk has {_size(free)} free; free space, or give --storage on a larger disk")
+        raise StoreError(
+            f"--storage {sweep_dir}: the views and evaluation sets its cells share ({root}) need "
+            f"{_size(need)} but its disk has {_size(free)} free; free space, or give --storage on a larger disk"
+        )
 
 
 def _size(n: float) -> str:

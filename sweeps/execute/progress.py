@@ -26,8 +26,17 @@ from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from cdm.train import Callback
 
-__all__ = ["QUIET_LOGGERS", "StepCounter", "StepReporter", "SweepProgress", "counter_name", "is_tty", "plain_log_handlers",
-           "quiet_environment", "quiet_loggers"]
+__all__ = [
+    "QUIET_LOGGERS",
+    "StepCounter",
+    "StepReporter",
+    "SweepProgress",
+    "counter_name",
+    "is_tty",
+    "plain_log_handlers",
+    "quiet_environment",
+    "quiet_loggers",
+]
 
 QUIET_LOGGERS = ("ray.train", "ray.tune", "mlflow", "alembic")
 """Loggers whose INFO lines are boilerplate in a sweep ("Checkpoint successfully created at", "Running
@@ -80,7 +89,10 @@ def plain_log_handlers() -> None:
     Ray colours the ``ray::…()`` line of every task error it formats (``RayTaskError``) whatever
     ``RAY_COLOR_PREFIX`` says, and Tune logs a failed trial's error with it.
     """
-    loggers = [logging.getLogger(), *(x for x in logging.root.manager.loggerDict.values() if isinstance(x, logging.Logger))]
+    loggers = [
+        logging.getLogger(),
+        *(x for x in logging.root.manager.loggerDict.values() if isinstance(x, logging.Logger)),
+    ]
     for logger in loggers:
         for handler in logger.handlers:
             if isinstance(handler, logging.StreamHandler) and not isinstance(handler.formatter, _NoColour):
@@ -122,7 +134,11 @@ class StepReporter(Callback):
 
 def _clock(seconds: float) -> str:
     seconds = int(max(0.0, seconds))
-    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}" if seconds >= 3600 else f"{seconds // 60}:{seconds % 60:02d}"
+    return (
+        f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+        if seconds >= 3600
+        else f"{seconds // 60}:{seconds % 60:02d}"
+    )
 
 
 class SweepProgress(ray.tune.Callback):
@@ -177,9 +193,12 @@ class SweepProgress(ray.tune.Callback):
         elapsed = time.monotonic() - self.started
         rounds = self.rounds > 1
         at_most = "≤" if rounds else ""
-        text = ("sweep: " + (f"round {max(1, self.round)} of ≤{self.rounds} · " if rounds else "")
-                + f"{len(self.done)}/{at_most}{self.trials} done, {len(self.running)} running, {len(self.failed)} failed"
-                f" · {done_steps}/{at_most}{total} steps · {_clock(elapsed)} elapsed")
+        text = (
+            "sweep: "
+            + (f"round {max(1, self.round)} of ≤{self.rounds} · " if rounds else "")
+            + f"{len(self.done)}/{at_most}{self.trials} done, {len(self.running)} running, {len(self.failed)} failed"
+            f" · {done_steps}/{at_most}{total} steps · {_clock(elapsed)} elapsed"
+        )
         if self.predicted_s is not None:
             left = self.predicted_s * (1 - done_steps / total) if total else 0.0
             text += f", ~{left / 60:.1f} min left (calibrated{', at most' if rounds else ''})"

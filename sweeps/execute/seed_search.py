@@ -83,8 +83,10 @@ def check_searcher_state(sweep_dir: str, plan: SweepPlan) -> None:
     where = found[-1]
     info = filesystem.get_file_info(where)
     if info.size > MAX_STATE_BYTES:
-        raise StoreError(f"--resume: {where} is {info.size} bytes; a seed searcher's state is at most {MAX_STATE_BYTES} "
-                         f"(damaged or planted); {_FRESH_START}")
+        raise StoreError(
+            f"--resume: {where} is {info.size} bytes; a seed searcher's state is at most {MAX_STATE_BYTES} "
+            f"(damaged or planted); {_FRESH_START}"
+        )
     with filesystem.open_input_stream(where) as stream:
         parse_searcher_state(stream.read(info.size + 1)[:MAX_STATE_BYTES + 1], where, plan)
 

@@ -31,8 +31,23 @@ from sweeps.compare.rules import rounded
 from sweeps.compare.table import TrialOutcome
 from sweeps.store_retry import PatientClient, wait_when_busy
 
-__all__ = ["EVAL_FOLDERS", "EXPERIMENT_KIND", "SYSTEM_METRICS", "WORKFLOW", "SweepRun", "baselines_by_eval_set", "TrialRun", "find_trial_run", "finished_trial_metrics", "metric_histories", "parent_baselines",
-           "resolve_tracking_uri", "trial_metrics", "ui_command", "ui_link"]
+__all__ = [
+    "EVAL_FOLDERS",
+    "EXPERIMENT_KIND",
+    "SYSTEM_METRICS",
+    "WORKFLOW",
+    "SweepRun",
+    "baselines_by_eval_set",
+    "TrialRun",
+    "find_trial_run",
+    "finished_trial_metrics",
+    "metric_histories",
+    "parent_baselines",
+    "resolve_tracking_uri",
+    "trial_metrics",
+    "ui_command",
+    "ui_link",
+]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
 wait_when_busy()  # every process that logs waits for a busy SQLite store instead of failing
@@ -219,8 +234,15 @@ class SweepRun:
         for path in paths:
             self.client.log_artifact(self.run_id, str(path))
 
-    def close_trial(self, trial_id: str, run_name: str, status: str, error: str | None = None, stopped_early: bool = False,
-                    last: Mapping[str, object] | None = None) -> None:
+    def close_trial(
+        self,
+        trial_id: str,
+        run_name: str,
+        status: str,
+        error: str | None = None,
+        stopped_early: bool = False,
+        last: Mapping[str, object] | None = None,
+    ) -> None:
         """Set a child run's final status from Tune's verdict; creates the run if the trial died before opening it.
 
         Args:
@@ -327,7 +349,9 @@ def metric_histories(client: MlflowClient, run_id: str, keys: Iterable[str]) -> 
     return {k: [(m.step, m.value) for m in client.get_metric_history(run_id, k)] for k in keys}
 
 
-def learning_curve_png(client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "") -> Path | None:
+def learning_curve_png(
+    client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = ""
+) -> Path | None:
     """The run's training curves (:func:`sweeps.compare.plots.training_curves` for this one trial: the loss terms
     apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``;
     None while the run holds no curve (no loss logged, fewer than two evaluations).
@@ -374,7 +398,9 @@ class TrialRun(Callback):
                 experiment_id, run_name=run_name,
                 tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, **tags})
             self.run_id = run.info.run_id
-            _log_params(self.client, self.run_id, _params({k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}))
+            _log_params(
+                self.client, self.run_id, _params({k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS})
+            )
             self.client.log_text(self.run_id, yaml.safe_dump(config.to_dict(), sort_keys=False), "config.yaml")
         else:
             self.run_id = found
@@ -385,7 +411,9 @@ class TrialRun(Callback):
     def _log(self, step: int, metrics: dict[str, float]) -> None:
         now = int(time.time() * 1000)
         named = {("system/" + k.removeprefix("train/") if k in SYSTEM_METRICS else k): v for k, v in metrics.items()}
-        self.client.log_batch(self.run_id, metrics=[Metric(k, _shown(k, float(v)), now, step) for k, v in named.items()])
+        self.client.log_batch(
+            self.run_id, metrics=[Metric(k, _shown(k, float(v)), now, step) for k, v in named.items()]
+        )
 
     def on_start(self, record: dict[str, str]) -> None:
         self.client.log_batch(self.run_id, tags=[RunTag(f"repro.{k}", v) for k, v in record.items()])

@@ -145,8 +145,16 @@ def train_loop(job: TrialJob) -> None:
         callbacks += [
             TrialProgress(job.label, config.train.steps, job.metric),
             StepReporter(setup.parent_run_id, job.label),
-            TrialRun(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, job.trial_id, job.label, job.tags, config,
-                     job.metric),
+            TrialRun(
+                setup.tracking_uri,
+                setup.experiment_id,
+                setup.parent_run_id,
+                job.trial_id,
+                job.label,
+                job.tags,
+                config,
+                job.metric,
+            ),
         ]
     checkpoint = ray.tune.get_checkpoint() if job.local else ray.train.get_checkpoint()
     with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
@@ -169,15 +177,24 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     trial_id = ctx.get_trial_id()
     done = finished_trial_metrics(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, trial_id)
     if done is not None:
-        print(f"[{cell.label}] already finished before the driver stopped (its MLflow run says so): not re-run", flush=True)
+        print(
+            f"[{cell.label}] already finished before the driver stopped (its MLflow run says so): not re-run",
+            flush=True,
+        )
         ray.tune.report(done)
         return
     r = plan.profile.resources
     categories = ",".join(cell.config.data.categories) or "all"
     tags = {
-        "cell": cell.name, "group": cell.group, "seed": str(cell.seed), "spec": plan.spec.name, "profile": plan.profile.name,
+        "cell": cell.name,
+        "group": cell.group,
+        "seed": str(cell.seed),
+        "spec": plan.spec.name,
+        "profile": plan.profile.name,
         # `category` is the short name the UI's search box is documented with (docs/mlflow.md, Search box).
-        "categories": categories, "category": categories, "tune_trial_dir": ctx.get_trial_dir(),
+        "categories": categories,
+        "category": categories,
+        "tune_trial_dir": ctx.get_trial_dir(),
         "ray_node_id": ray.get_runtime_context().get_node_id(),
         **{f"repro.{k}": v for k, v in setup.code.items()},
     }
@@ -251,7 +268,9 @@ class _TrialCloser(ray.tune.Callback):
 
     def _count(self, trials, ending=None) -> str:
         # Counted from Tune's trial list, so trials finished before a resume count too.
-        done = {t.trial_id for t in trials if t.status in ("TERMINATED", "ERROR")} | ({ending.trial_id} if ending else set())
+        done = {t.trial_id for t in trials if t.status in ("TERMINATED", "ERROR")} | (
+            {ending.trial_id} if ending else set()
+        )
         at_most = "≤" if self.plan.sequential else ""  # a sequential sweep's count is its worst case
         return f"{len(done)}/{at_most}{self.plan.num_trials} trials done"
 
@@ -287,7 +306,9 @@ def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> 
         return {}, SeedSearcher(plan, sweep_run, budget), plan.num_trials
     if not s.sampled:
         return {"cell": ray.tune.grid_search([c.label for c in plan.cells])}, None, 1
-    study = f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # e.g. Optuna's study names are unique per sweep
+    study = (
+        f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # e.g. Optuna's study names are unique per sweep
+    )
     searcher = search_kind(s.kind).tune_searcher(s, plan.spec.metric.name, plan.spec.metric.mode, study)
     return {}, searcher, plan.num_trials
 
@@ -299,8 +320,13 @@ def _scheduler(plan: SweepPlan):
     from ray.tune.schedulers import ASHAScheduler
 
     # Time axis = the trainer's step (reported with every evaluation), which survives a resume.
-    return ASHAScheduler(time_attr="step", max_t=plan.profile.steps, grace_period=sch.grace_evals * plan.profile.eval_every,
-                         reduction_factor=sch.reduction_factor, brackets=1)
+    return ASHAScheduler(
+        time_attr="step",
+        max_t=plan.profile.steps,
+        grace_period=sch.grace_evals * plan.profile.eval_every,
+        reduction_factor=sch.reduction_factor,
+        brackets=1,
+    )
 
 
 def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
@@ -319,8 +345,16 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
     return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects)
 
 
-def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: SweepRun, resume: bool, remote: bool = False,
-              callbacks: Sequence[ray.tune.Callback] = (), budget: SeedBudget | None = None) -> list[TrialOutcome]:
+def run_sweep(
+    plan: SweepPlan,
+    conc: Concurrency,
+    sweep_dir: str,
+    sweep_run: SweepRun,
+    resume: bool,
+    remote: bool = False,
+    callbacks: Sequence[ray.tune.Callback] = (),
+    budget: SeedBudget | None = None,
+) -> list[TrialOutcome]:
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
     ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
@@ -343,11 +377,16 @@ def run_sweep(plan: SweepPlan, conc: Concurrency, sweep_dir: str, sweep_run: Swe
               f"{done.eval_sets} evaluation set(s) with baselines, in {done.seconds:.1f} s", flush=True)
     r = plan.profile.resources
     cores = 0 if "://" in sweep_dir else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
-    setup = TrialSetup(plan, sweep_dir, sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version(), root, cores)
+    setup = TrialSetup(
+        plan, sweep_dir, sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version(), root, cores
+    )
     trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
-    print(f"cluster{' (at most)' if remote else ''}: {conc.cpus:g} CPUs, {conc.gpus:g} GPUs → up to {conc.max_concurrent} "
-          f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)"
-          + (f", taking turns on {cores} cores (one computing trial per core)" if cores else ""), flush=True)
+    print(
+        f"cluster{' (at most)' if remote else ''}: {conc.cpus:g} CPUs, {conc.gpus:g} GPUs → up to {conc.max_concurrent} "
+        f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)"
+        + (f", taking turns on {cores} cores (one computing trial per core)" if cores else ""),
+        flush=True,
+    )
     if resume:
         tuner = ray.tune.Tuner.restore(sweep_dir, trainable=trainable, resume_unfinished=True,
                                        resume_errored=False, restart_errored=False)

@@ -49,11 +49,15 @@ def parse_budget(text: str) -> SeedBudget:
     text = text.strip()
     if _TRIALS.fullmatch(text) and 1 <= int(text) <= MAX_BUDGET_TRIALS:
         return SeedBudget(trials=int(text))
-    if (match := _DURATION.fullmatch(text)) and 0 < (seconds := float(match[1]) * {"h": 3600, "m": 60, "s": 1}[match[2]]) <= MAX_BUDGET_SECONDS:
+    if (match := _DURATION.fullmatch(text)) and 0 < (
+        seconds := float(match[1]) * {"h": 3600, "m": 60, "s": 1}[match[2]]
+    ) <= MAX_BUDGET_SECONDS:
         return SeedBudget(seconds=seconds)
     shown = repr(text[:40]) + ("…" if len(text) > 40 else "")
-    raise LimitError(f"--budget {shown}: give a wall time (2h, 45m, 30s; at most {MAX_BUDGET_SECONDS // 86_400} days) or a "
-                    f"number of trials (1 to {MAX_BUDGET_TRIALS})")
+    raise LimitError(
+        f"--budget {shown}: give a wall time (2h, 45m, 30s; at most {MAX_BUDGET_SECONDS // 86_400} days) or a "
+        f"number of trials (1 to {MAX_BUDGET_TRIALS})"
+    )
 
 
 def budget_option(text: str | None) -> SeedBudget | None:

@@ -25,7 +25,11 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
         (f"metric: {spec.metric.name} ({spec.metric.mode}); scheduler: {spec.scheduler.kind}; "
          f"max retries per trial: {spec.failure.max_retries}"),
     ]
-    mode = "Train local mode (loop inside the trial)" if r.workers_per_trial == 0 else f"{r.workers_per_trial} Train workers"
+    mode = (
+        "Train local mode (loop inside the trial)"
+        if r.workers_per_trial == 0
+        else f"{r.workers_per_trial} Train workers"
+    )
     line = f"resources: {mode}, {r.cpus_per_worker:g} CPUs + {r.gpus_per_worker:g} GPUs per worker"
     if cpus is None:
         line += "; concurrency derived from the cluster at run time"
@@ -47,7 +51,9 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
     elif plan.sequential is not None:
         out += rule
     else:
-        out.append(f"search: grid, {plan.num_trials} trials ({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):")
+        out.append(
+            f"search: grid, {plan.num_trials} trials ({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):"
+        )
     if not spec.search.sampled:
         for i, cell in enumerate(plan.cells, 1):
             values = ", ".join(f"{k}={v}" for k, v in cell.values.items())
@@ -59,8 +65,10 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
                 line += f"   [paper {spec.paper.table} · {cell.paper_label}: {numbers}]"
             out.append(line)
         if plan.grid_trials is not None:
-            out.append(f"  … and {plan.num_trials - len(plan.cells)} more trials, each checked (a dry-run lists the first "
-                       f"{len(plan.cells)}; their inputs and memory stand for the rest)")
+            out.append(
+                f"  … and {plan.num_trials - len(plan.cells)} more trials, each checked (a dry-run lists the first "
+                f"{len(plan.cells)}; their inputs and memory stand for the rest)"
+            )
     return wrapped("\n".join(out))
 
 

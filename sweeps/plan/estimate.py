@@ -97,9 +97,11 @@ class Estimate:
     """What :func:`paper_gpu_line` says: measured GPU-hours, or the counted-FLOP lower bound, labelled."""
 
     def text(self) -> str:
-        return (f"estimate: {'worst case, ' if self.worst_case else ''}{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
-                f"{self.concurrent} at a time → "
-                f"~{self.wall_s / 60:.1f} min wall on this machine;\n  {self.gpu_line}")
+        return (
+            f"estimate: {'worst case, ' if self.worst_case else ''}{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
+            f"{self.concurrent} at a time → "
+            f"~{self.wall_s / 60:.1f} min wall on this machine;\n  {self.gpu_line}"
+        )
 
 
 def calibrate(config: Config, steps: int = 3, eval_set: bool = True, evaluate: bool = True) -> TrialCost:
@@ -160,7 +162,9 @@ def _eval_objects(cfg: Config) -> int:
     if cfg.eval.protocol == "paper" and cfg.data.root is not None:
         # Counted on the data set alone: the external inputs (depth maps, weights) change no count, and a
         # machine planning a cluster run need not hold them.
-        return len(build_dataset(cfg.replace(**{"priors.prior_2d": "none", "priors.depth_source": "ground_truth"}), "val"))
+        return len(
+            build_dataset(cfg.replace(**{"priors.prior_2d": "none", "priors.depth_source": "ground_truth"}), "val")
+        )
     return cfg.eval.num_objects * len(list_categories(cfg))
 
 
@@ -234,7 +238,9 @@ def _measured_details(figures: dict, cfg: Config) -> str:
     if entry.get("largest_batch") is not None:
         parts.append(f"largest batch that fits {entry['largest_batch']}")
     if step.get("sample_batch_s") is not None:
-        parts.append(f"a batch through 1,000 DDPM steps {step['sample_batch_s']:.0f} s ({step.get('sample_batch_note', 'measured')})")
+        parts.append(
+            f"a batch through 1,000 DDPM steps {step['sample_batch_s']:.0f} s ({step.get('sample_batch_note', 'measured')})"
+        )
     if step.get("flop_fraction") is not None:
         parts.append(f"{100 * step['flop_fraction']:.1f} % of the device's peak FLOP/s")
     return "; ".join(parts)
@@ -252,7 +258,9 @@ def paper_trial_gpu_hours_bound(paper: SweepPlan, figures: dict | None = None) -
     scale = cfg.train.batch_size / counted["batch_size"]
     flops = _per_trial(paper, cfg, counted["train_step"] * scale, counted["sample_step"] * scale)
     peak = PEAK_FLOPS[BOUND_GPU][cfg.train.precision]
-    return flops / peak * _trial_gpus(paper) / 3600.0, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
+    return flops / peak * _trial_gpus(
+        paper
+    ) / 3600.0, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
 
 
 def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
@@ -268,8 +276,10 @@ def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
     bound, basis = paper_trial_gpu_hours_bound(paper, figures)
     if bound is None:
         return f"{line}; no lower bound: {basis}"
-    return (f"{line}; lower bound, not a measurement: ≥ {bound * paper.num_trials:.2f} GPU-hours ({bound:.3f} per trial "
-            f"× {paper.num_trials}) if every counted FLOP ran at the {basis} and nothing else took time")
+    return (
+        f"{line}; lower bound, not a measurement: ≥ {bound * paper.num_trials:.2f} GPU-hours ({bound:.3f} per trial "
+        f"× {paper.num_trials}) if every counted FLOP ran at the {basis} and nothing else took time"
+    )
 
 
 def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False) -> Estimate:
@@ -303,8 +313,9 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
     for i, signature in unevaluated:
         costs[i] = replace(costs[i], eval_s=evaluated.get(signature, statistics.fmean(evaluated.values())))
     steps = plan.profile.steps
-    trial_s = statistics.fmean(replace(c, eval_set_s=costs[0].eval_set_s).trial_s(steps, plan.profile.eval_every, shared)
-                               for c in costs)
+    trial_s = statistics.fmean(
+        replace(c, eval_set_s=costs[0].eval_set_s).trial_s(steps, plan.profile.eval_every, shared) for c in costs
+    )
     lanes = max(1.0, min(float(concurrent), cpus))
     if concurrent <= cpus:
         trials_wall = math.ceil(plan.num_trials / max(1, concurrent)) * trial_s

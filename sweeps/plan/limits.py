@@ -138,7 +138,9 @@ def count_trials(spec: Any) -> tuple[int, str]:
     if spec.search.sampled:
         samples = [spec.search.num_samples, *(p.num_samples for p in spec.profiles.values() if p.num_samples)]
         return max(samples), "search.num_samples"
-    return max(1, len(spec.cells)) * math.prod(len(v) for v in spec.grid.values()) * len(spec.seed_values), "grid × cells × seeds"
+    return max(1, len(spec.cells)) * math.prod(len(v) for v in spec.grid.values()) * len(
+        spec.seed_values
+    ), "grid × cells × seeds"
 
 
 def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:

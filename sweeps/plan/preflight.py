@@ -35,7 +35,9 @@ def check_inputs(plan: SweepPlan, remote: bool) -> None:
     if not any(required_inputs(cfg) for cfg in configs):
         print("external inputs: none (everything is generated or in data.root)", flush=True)
         return
-    print("external inputs:\n" + "\n".join(f"  {n}: {describe_inputs(cfg)}" for n, cfg in zip(names, configs)), flush=True)
+    print(
+        "external inputs:\n" + "\n".join(f"  {n}: {describe_inputs(cfg)}" for n, cfg in zip(names, configs)), flush=True
+    )
     check_present(*configs)
     covered = set()
     for cfg in configs:
@@ -53,7 +55,10 @@ def estimate_line(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
     try:
         predicted = estimate(plan, cpus, concurrent, shared)
     except TrainingDiverged as exc:
-        print(f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way", flush=True)
+        print(
+            f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way",
+            flush=True,
+        )
         return None
     print(wrapped(predicted.text()), flush=True)
     return predicted

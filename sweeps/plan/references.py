@@ -124,9 +124,12 @@ _COMMON: dict[str, Entry] = {
     "data.condition_grey": Stated(False, "paper Supp. Table 8 row 1"),
     # model
     "model.denoiser": Stated("pvcnn2", "PC² experiments/model/point_cloud_model.py: PVCNN2"),
-    "model.width_multiplier": Stated(1.0, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}),
-    "model.voxel_resolution_multiplier": Stated(1.0, "PC² experiments/model/point_cloud_model.py",
-                                                {"model.denoiser": ("pvcnn2",)}),
+    "model.width_multiplier": Stated(
+        1.0, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
+    ),
+    "model.voxel_resolution_multiplier": Stated(
+        1.0, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
+    ),
     "model.encoder": Stated("vit_s16", f"{_PC2}: image_feature_model vit_small_patch16_224_msn, frozen"),
     "model.encoder_weights": NoEffect("a path; a checkpoint records the weights' SHA-256"),
     "model.feature_dim": Stated(384, f"{_PC2}: ViT-S/16's channels"),
@@ -139,8 +142,9 @@ _COMMON: dict[str, Entry] = {
     "model.global_feature": Stated("none", "paper §3.3: global embeddings gave no gain; PC² use_global_features False"),
     "model.global_source": NotStated("read only with model.global_feature (Supp. Table 7 sweeps it)"),
     "model.global_embeddings": _PATH,
-    "model.init_from": Stated(None, "PC² experiments/main.py: each table's model trained from scratch by its recipe",
-                              {"eval.only": (False,)}),
+    "model.init_from": Stated(
+        None, "PC² experiments/main.py: each table's model trained from scratch by its recipe", {"eval.only": (False,)}
+    ),
     # diffusion
     "diffusion.num_steps": Stated(1000, "PC² experiments/model/model.py: diffusers' 1,000 training timesteps"),
     "diffusion.beta_start": Stated(1e-5, f"{_PC2}: beta_start"),
@@ -148,23 +152,33 @@ _COMMON: dict[str, Entry] = {
     "diffusion.prediction": Stated("eps", "paper Eq. 3 and 6: ε-prediction"),
     "diffusion.sampler": Stated("ddpm", f"{_PC2}: diffusion_scheduler ddpm"),
     "diffusion.sample_steps": Stated(1000, f"{_PC2}: num_inference_steps", {"diffusion.sampler": ("ddim",)}),
-    "diffusion.ddpm_steps": Stated(None, f"{_PC2}: num_inference_steps 1000, every timestep", {"diffusion.sampler": ("ddpm",)}),
-    "diffusion.timestep_spacing": NotStated("DDIM's step placement; the references sample with DDPM", noted=True,
-                                            when={"diffusion.sampler": ("ddim",)}),
+    "diffusion.ddpm_steps": Stated(
+        None, f"{_PC2}: num_inference_steps 1000, every timestep", {"diffusion.sampler": ("ddpm",)}
+    ),
+    "diffusion.timestep_spacing": NotStated(
+        "DDIM's step placement; the references sample with DDPM", noted=True, when={"diffusion.sampler": ("ddim",)}
+    ),
     "diffusion.clip_x0": Stated(None, "PC² experiments/model/model.py: DDPMScheduler(clip_sample=False)"),
     # priors
     "priors.prior_3d": Stated(True, "paper §3.2: CDM trains with the 3D prior constraint"),
     "priors.lambda_3d": Stated(1.0, "paper Eq. 6: the prior term has unit weight (Eq. 5's λ is the ELBO's)", _PRIOR_3D),
     "priors.num_views": Stated(10, "paper Table 5: H = 10 (the F1 of Table 3's CDM, teddybear)", _PRIOR_3D),
     "priors.point_size": Stated(0.04, "paper §4 Implementation Details", _PRIOR_3D),
-    "priors.depth_layer": Stated("a front layer (PyTorch3D's z-buffer keeps the nearest point)",
-                                 "paper §4: PyTorch3D renders the 3D prior images",
-                                 {**_PRIOR_3D, "priors.render_kind": ("depth",)}, accepts=lambda v: v is not None),
+    "priors.depth_layer": Stated(
+        "a front layer (PyTorch3D's z-buffer keeps the nearest point)",
+        "paper §4: PyTorch3D renders the 3D prior images",
+        {**_PRIOR_3D, "priors.render_kind": ("depth",)},
+        accepts=lambda v: v is not None,
+    ),
     "priors.render_size": Stated(224, "paper §4 Implementation Details", _PRIOR_3D),
-    "priors.target": Stated("x0_hat", "paper §3.2: the term is back-propagated as a regulariser; x_t as Eq. 6 "
-                            "writes it carries no gradient", _PRIOR_3D),
-    "priors.depth_source": Stated("maps", "paper §3.3: depth estimated from the image (DINOv2)",
-                                  {"priors.prior_2d": ("depth",)}),
+    "priors.target": Stated(
+        "x0_hat",
+        "paper §3.2: the term is back-propagated as a regulariser; x_t as Eq. 6 writes it carries no gradient",
+        _PRIOR_3D,
+    ),
+    "priors.depth_source": Stated(
+        "maps", "paper §3.3: depth estimated from the image (DINOv2)", {"priors.prior_2d": ("depth",)}
+    ),
     "priors.depth_maps": _PATH,
     "priors.depth_maps_disparity": NoEffect("the maps' file format, converted on reading"),
     # train
@@ -175,7 +189,9 @@ _COMMON: dict[str, Entry] = {
     "train.warmup_steps": Stated(2000, f"{_PC2}: CosineSchedulerConfig num_warmup_steps"),
     "train.grad_clip": Stated(50.0, f"{_PC2}: clip_grad_norm"),
     "train.ema_decay": Stated(None, f"{_PC2}: use_ema False"),
-    "train.precision": Stated("fp16", f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"),
+    "train.precision": Stated(
+        "fp16", f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
+    ),
     "train.eval_every": NoEffect("when to score; the final score is at train.steps"),
     "train.log_every": NoEffect("logging"),
     "train.seed": _DRAW,
@@ -183,23 +199,34 @@ _COMMON: dict[str, Entry] = {
     "train.threads": NoEffect("CPU threads"),
     "train.out_dir": _PATH,
     # eval
-    "eval.protocol": Stated("paper", "PC² and BDM experiments/config/structured.py: num_sample_batches None, every "
-                            "object of the split"),
+    "eval.protocol": Stated(
+        "paper", "PC² and BDM experiments/config/structured.py: num_sample_batches None, every object of the split"
+    ),
     "eval.num_objects": NotStated("the quick protocol's subset", when={"eval.protocol": ("quick",)}),
     "eval.f1_threshold": Stated(0.01, "paper §4 Metrics: F-Score@0.01; BDM experiments/evaluation/evaluation_f1.py"),
     "eval.seed": _DRAW,
     "eval.save_clouds": NoEffect("drawings; no score changes"),
     "eval.retrieval_bank": NoEffect("a baseline's search, not the model's score"),
-    "eval.only": NotStated("PC²'s released weights (model.init_from) scored instead of a retrained PC²", noted=True,
-                           when={"eval.only": (True,)}),
+    "eval.only": NotStated(
+        "PC²'s released weights (model.init_from) scored instead of a retrained PC²",
+        noted=True,
+        when={"eval.only": (True,)},
+    ),
     # sampling.blend
-    "sampling.blend.enabled": Stated(False, "paper Tables 1, 3–6: sampled without BDM (only Table 2's +BDM rows blend)"),
-    "sampling.blend.prior_checkpoint": Stated("PVD's checkpoint from BDM's repository",
-                                              "paper §4: PVD as the pre-trained prior, checkpoints from BDM's code",
-                                              _BLEND, accepts=lambda v: str(v).endswith(".pth")),  # cdm.prior_model.load_prior
+    "sampling.blend.enabled": Stated(
+        False, "paper Tables 1, 3–6: sampled without BDM (only Table 2's +BDM rows blend)"
+    ),
+    "sampling.blend.prior_checkpoint": Stated(
+        "PVD's checkpoint from BDM's repository",
+        "paper §4: PVD as the pre-trained prior, checkpoints from BDM's code",
+        _BLEND,
+        accepts=lambda v: str(v).endswith(".pth"),
+    ),  # cdm.prior_model.load_prior
     "sampling.blend.milestones": Stated([936, 872, 128, 64, 32], "BDM experiments/example_sample_blending.sh", _BLEND),
     "sampling.blend.window_steps": Stated(16, "BDM experiments/example_sample_blending.sh: roll_step", _BLEND),
-    "sampling.blend.select_prob": Stated(0.5, "BDM experiments/main_blending.py: torch.randint(0, 2) per point", _BLEND),
+    "sampling.blend.select_prob": Stated(
+        0.5, "BDM experiments/main_blending.py: torch.randint(0, 2) per point", _BLEND
+    ),
     "sampling.blend.seed": _DRAW,
     "sampling.blend.prior_timestep": Stated("same_index", "BDM experiments/main_blending.py: prior_milestones", _BLEND),
 }
@@ -217,8 +244,9 @@ _SHAPENET: dict[str, Entry] = {
     "data.kind": Stated("shapenet_r2n2", "paper §4: ShapeNet, R2N2 renderings with PC15k clouds as BDM"),
     "data.categories": Stated("one category per model", f"{_BDM_TRAIN}: dataset.category", accepts=_one_category),
     "data.num_points": Stated(4096, "paper §4; BDM experiments/example_train.sh: dataset.max_points"),
-    "data.eval_split": Stated("test", "BDM experiments/dataset/shapenet_r2n2.py: R2N2's test split (pc_dict_v2.json)",
-                              _SHAPENET_ONLY),
+    "data.eval_split": Stated(
+        "test", "BDM experiments/dataset/shapenet_r2n2.py: R2N2's test split (pc_dict_v2.json)", _SHAPENET_ONLY
+    ),
     "data.train_view": Stated(0, f"{_BDM}: which_view_from24 '00'", _SHAPENET_ONLY),
     "data.mask_rgb": NoEffect("Co3D only"),
     "data.drop_outliers": NoEffect("Co3D only"),
@@ -228,7 +256,9 @@ _SHAPENET: dict[str, Entry] = {
     "priors.prior_2d": Stated("contour", "paper §4.1 ShapeNet: contour as the 2D prior"),
     "priors.render_kind": Stated("planar", "paper §4.1 ShapeNet: planar point images in the 3D prior", _PRIOR_3D),
     "train.batch_size": Stated(16, f"{_BDM_TRAIN}: dataloader.batch_size; the paper states none"),
-    "train.precision": Stated("fp16", f"{_BDM}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"),
+    "train.precision": Stated(
+        "fp16", f"{_BDM}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
+    ),
     "eval.num_points": Stated(4096, "BDM experiments/example_sample.sh: dataset.max_points"),
 }
 
@@ -239,9 +269,12 @@ _CO3D: dict[str, Entry] = {
     "data.eval_split": Stated("val", f"{_PC2}: eval_split val of subset fewview_dev", _CO3D_ONLY),
     "data.train_view": NoEffect("ShapeNet only"),
     "data.mask_rgb": Stated(True, f"{_PC2}: CO3DConfig.mask_images = use_mask", _CO3D_ONLY),
-    "data.drop_outliers": Stated(False, "PC² experiments/dataset/__init__.py: PyTorch3D's loader, every point", _CO3D_ONLY),
-    "data.exclude_sequences": Stated(True, "PC² experiments/dataset/__init__.py: EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE",
-                                     _CO3D_ONLY),
+    "data.drop_outliers": Stated(
+        False, "PC² experiments/dataset/__init__.py: PyTorch3D's loader, every point", _CO3D_ONLY
+    ),
+    "data.exclude_sequences": Stated(
+        True, "PC² experiments/dataset/__init__.py: EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE", _CO3D_ONLY
+    ),
     "data.frames_per_sequence": Stated(1, "PC² experiments/dataset/__init__.py: n_frames_per_sequence=1", _CO3D_ONLY),
     "model.mask_channels": Stated(True, f"{_PC2}: use_mask and use_distance_transform True"),
     "priors.prior_2d": Stated("depth", "paper §1, §3.3: depth estimated from real-world images"),

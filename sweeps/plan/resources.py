@@ -56,11 +56,17 @@ def plan_concurrency(
         raise SpecError(
             f"resources: one trial needs {per_cpu:g} CPUs and {per_gpu:g} GPUs but the cluster {has} {cpus:g} and {gpus:g}; "
             "lower resources.cpus_per_worker / gpus_per_worker / workers_per_trial"
-            + ("; or give the cluster a node type that fits one trial (its autoscaler's bounds count, where it "
-               "publishes them; otherwise the nodes up now: keep one such node up, e.g. min_workers: 1)" if remote else "")
+            + (
+                "; or give the cluster a node type that fits one trial (its autoscaler's bounds count, where it "
+                "publishes them; otherwise the nodes up now: keep one such node up, e.g. min_workers: 1)"
+                if remote
+                else ""
+            )
         )
     if remote:
-        return Concurrency(trial, per_cpu, per_gpu, min(resources.max_concurrent_trials or num_trials, num_trials), cpus, gpus)
+        return Concurrency(
+            trial, per_cpu, per_gpu, min(resources.max_concurrent_trials or num_trials, num_trials), cpus, gpus
+        )
     # The small epsilon keeps 2 CPUs / 0.4 at 5, not 4.999… → 4 (Ray itself counts in 1e-4 units).
     fit = int(cpus / per_cpu + 1e-6)
     if per_gpu > 0:

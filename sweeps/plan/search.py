@@ -14,7 +14,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any, ClassVar, Protocol
 
-__all__ = ["SEARCHES", "GridSearch", "OptunaSampler", "SearchKind", "SearchSettings", "optuna_distributions", "search_kind"]
+__all__ = [
+    "SEARCHES",
+    "GridSearch",
+    "OptunaSampler",
+    "SearchKind",
+    "SearchSettings",
+    "optuna_distributions",
+    "search_kind",
+]
 
 
 class SearchSettings(Protocol):
@@ -64,7 +72,9 @@ class OptunaSampler(SearchKind):
         import optuna
         from ray.tune.search.optuna import OptunaSearch
 
-        sampler = (optuna.samplers.TPESampler if search.sampler == "tpe" else optuna.samplers.RandomSampler)(seed=search.seed)
+        sampler = (optuna.samplers.TPESampler if search.sampler == "tpe" else optuna.samplers.RandomSampler)(
+            seed=search.seed
+        )
         # Given its own space, OptunaSearch never receives TuneConfig's metric/mode: pass them here too.
         return OptunaSearch(space=optuna_distributions(search.space), metric=metric, mode=mode, sampler=sampler,
                             study_name=study)

@@ -314,7 +314,9 @@ class Spec(_Strict):
         dotted += [(f"cells[{i}].set", k) for i, c in enumerate(self.cells) for k in c.set]
         dotted += [("search.space", k) for k in self.search.space]
         dotted += [(f"profiles.{p}.overrides", k) for p, prof in self.profiles.items() for k in prof.overrides]
-        dotted += [(f"paper.rows[{i}].when", k) for i, r in enumerate(self.paper.rows if self.paper else []) for k in r.when]
+        dotted += [
+            (f"paper.rows[{i}].when", k) for i, r in enumerate(self.paper.rows if self.paper else []) for k in r.when
+        ]
         dotted += [(f"datasets.{d}.{part}", k) for d, run in self.datasets.items() for part in ("overrides", "grid")
                    for k in getattr(run, part)]
         for where, key in dotted:
@@ -332,7 +334,9 @@ class Spec(_Strict):
         if not self.search.sampled and not self.grid and not self.cells:
             raise ValueError("grid: empty; give at least one dotted config field with a list of values (or cells)")
         if self.search.sampled and (self.grid or self.cells or len(self.seed_values) > 1):
-            raise ValueError(f"search: {self.search.kind} explores search.space; leave grid and cells empty and give one seed")
+            raise ValueError(
+                f"search: {self.search.kind} explores search.space; leave grid and cells empty and give one seed"
+            )
         if self.sequential is not None and self.scheduler.kind != "none":
             raise ValueError("scheduler: seeds until settled compares finished trials; a scheduler stopping some early "
                              "would compare unequal training: use kind none")

@@ -172,7 +172,9 @@ def resolve_profile(spec: Spec, name: str, shared: dict[str, Profile]) -> Resolv
     budget = Budget.model_validate(_patch(base.budget, local.budget))
     if budget.steps is None or budget.eval_every is None:
         raise SpecError(f"profiles.{name}.budget: give both steps and eval_every")
-    resources = Resources.model_validate({**_patch(base.resources, spec.resources), **local.resources.model_dump(exclude_unset=True)})
+    resources = Resources.model_validate(
+        {**_patch(base.resources, spec.resources), **local.resources.model_dump(exclude_unset=True)}
+    )
     return ResolvedProfile(
         name=name,
         description=local.description or base.description,
@@ -181,7 +183,9 @@ def resolve_profile(spec: Spec, name: str, shared: dict[str, Profile]) -> Resolv
         overrides={**base.overrides, **spec.base, **local.overrides},
         resources=resources,
         num_samples=local.num_samples or base.num_samples,
-        datasets={d: {**base.datasets.get(d, {}), **local.datasets.get(d, {})} for d in {*base.datasets, *local.datasets}},
+        datasets={
+            d: {**base.datasets.get(d, {}), **local.datasets.get(d, {})} for d in {*base.datasets, *local.datasets}
+        },
     )
 
 
@@ -268,7 +272,9 @@ def _dataset_run(spec: Spec, profile: str, sets: dict[str, Any]) -> DatasetRun |
         return None
     if "data.kind" not in sets:
         if len(spec.datasets) > 1:
-            raise SpecError(f"--set data.kind: this table ran on {' and '.join(spec.datasets)}; say which data.root holds")
+            raise SpecError(
+                f"--set data.kind: this table ran on {' and '.join(spec.datasets)}; say which data.root holds"
+            )
         sets["data.kind"] = next(iter(spec.datasets))
     return spec.datasets.get(sets["data.kind"])
 
@@ -302,7 +308,13 @@ def expand(
     if run is not None:
         spec = spec.model_copy(update={"grid": {**spec.grid, **run.grid}})
     kind = sets.get("data.kind", prof.overrides.get("data.kind"))
-    fixed = {**prof.overrides, **prof.datasets.get(kind, {}), **(run.overrides if run else {}), "train.steps": prof.steps, "train.eval_every": prof.eval_every}
+    fixed = {
+        **prof.overrides,
+        **prof.datasets.get(kind, {}),
+        **(run.overrides if run else {}),
+        "train.steps": prof.steps,
+        "train.eval_every": prof.eval_every,
+    }
     fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
     try:
         load_config(None, {**fixed, **sets})
@@ -323,7 +335,9 @@ def expand(
                 cell = Cell(name, trial_label(name, seed), values, seed, config,
                             paper.label if paper else None, dict(paper.values) if paper else {})
                 if hash(cell.label) in labels:
-                    raise SpecError(f"cells: two cells share the name {cell.label!r}; give explicit cells distinct labels")
+                    raise SpecError(
+                        f"cells: two cells share the name {cell.label!r}; give explicit cells distinct labels"
+                    )
                 labels.add(hash(cell.label))
                 names |= _metric_names(config)
                 compared = compared or name == spec.compare_to

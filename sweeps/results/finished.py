@@ -119,7 +119,9 @@ def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | Non
     names = [a.path for a in client.list_artifacts(run_id)]
     specs = [n for n in names if n.endswith((".yaml", ".yml"))]
     if not specs or "plan.json" not in names:
-        raise ReportError(f"sweep run {run_id} has no spec file or plan.json artifact (artifacts: {', '.join(names) or 'none'})")
+        raise ReportError(
+            f"sweep run {run_id} has no spec file or plan.json artifact (artifacts: {', '.join(names) or 'none'})"
+        )
     with tempfile.TemporaryDirectory() as tmp:
         spec = load_spec(client.download_artifacts(run_id, specs[0], tmp))
         plan = json.loads(Path(client.download_artifacts(run_id, "plan.json", tmp)).read_text())
@@ -193,12 +195,21 @@ def _settings(record: SweepRecord) -> list[str]:
     profile's budget on the parent run and each trial's resolved prediction target and λ in its params."""
     plan = record.plan
     fixed, sets = plan.get("fixed", {}), plan.get("sets", {})
-    targets = {r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params}
+    targets = {
+        r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params
+    }
     lambdas = {float(r.data.params["priors.lambda_3d"]) for r in record.children if "priors.lambda_3d" in r.data.params}
-    return settings_notes(record.spec, record.profile, record.parent.data.params.get("steps", "?"),
-                          targets or [sets.get("diffusion.prediction") or fixed.get("diffusion.prediction", DiffusionConfig().prediction)],
-                          lambdas or [float({**fixed, **sets}.get("priors.lambda_3d", PriorsConfig().lambda_3d))],
-                          fixed, sets, protocol_card_lines(record))
+    return settings_notes(
+        record.spec,
+        record.profile,
+        record.parent.data.params.get("steps", "?"),
+        targets
+        or [sets.get("diffusion.prediction") or fixed.get("diffusion.prediction", DiffusionConfig().prediction)],
+        lambdas or [float({**fixed, **sets}.get("priors.lambda_3d", PriorsConfig().lambda_3d))],
+        fixed,
+        sets,
+        protocol_card_lines(record),
+    )
 
 
 def protocol_card_lines(record: SweepRecord) -> list[str]:
@@ -219,7 +230,9 @@ def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTabl
     spec = record.spec
     outcomes = [t.outcome for t in trials]
     settled = None
-    if spec.sequential is not None:  # where each cell stopped, as the runner's searcher decided (sweeps/compare/settle.py)
+    if (
+        spec.sequential is not None
+    ):  # where each cell stopped, as the runner's searcher decided (sweeps/compare/settle.py)
         settled = _final_round(record, outcomes).records
     return build_table(outcomes, spec.metric.name, spec.metric.mode, record.title,
                        f"{spec.paper.table}: {spec.paper.note}" if spec.paper else "", compare_to=spec.compare_to,
@@ -246,8 +259,10 @@ def paper_layout(trials: list[TrialRecord]):
     for name, group in cells.items():
         done = [o for o in group if o.finished]
         failed = sum(o.status == "failed" for o in group)
-        row: dict[tuple[str, str], Any] = {("", "paper setting"): group[0].paper_label or "",
-                                           ("", "trials"): f"{len(done)}/{len(group)}" + (f" ({failed} failed)" if failed else "")}
+        row: dict[tuple[str, str], Any] = {
+            ("", "paper setting"): group[0].paper_label or "",
+            ("", "trials"): f"{len(done)}/{len(group)}" + (f" ({failed} failed)" if failed else ""),
+        }
         for g in groups:
             for short in ("cd", "f1"):
                 key = f"eval/{short}" + ("" if g == "all" else f"/{g}")

@@ -50,7 +50,9 @@ __all__ = [
 ]
 
 
-def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, ...]) -> dict[str, dict[str, list[tuple[int, float]]]]:
+def _histories(
+    record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, ...]
+) -> dict[str, dict[str, list[tuple[int, float]]]]:
     """Trial label → metric → ``(step, value)`` history, for the trials that logged any of ``keys``."""
     out = {}
     for t in trials:
@@ -61,21 +63,28 @@ def _histories(record: SweepRecord, trials: list[TrialRecord], keys: tuple[str, 
     return out
 
 
-def write_plots(record: SweepRecord, trials: list[TrialRecord], folder: Path, table: ResultsTable | None = None) -> list[Path]:
+def write_plots(
+    record: SweepRecord, trials: list[TrialRecord], folder: Path, table: ResultsTable | None = None
+) -> list[Path]:
     """``metric_vs_value.png`` (with ``table``: each cell's paired interval against the reference),
     ``training_curves.png`` and, for Optuna sweeps, Optuna's history and importances."""
     spec, folder = record.spec, Path(folder)
     metric = spec.metric.name
     done = [t for t in trials if t.outcome.finished]
-    points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done]
+    points = [
+        PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done
+    ]
     intervals = {str(r["cell"]): (float(r[f"{metric} delta low"]), float(r[f"{metric} delta high"]))  # type: ignore[arg-type]
                  for r in (table.records if table else []) if r.get(f"{metric} delta") is not None}
     paths = []
     if points:
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
                                      spec.paper.table if spec.paper else "paper", intervals))
-    curves = {label: history for label, history in _histories(record, trials, ("train/loss", "train/loss_diffusion", metric)).items()
-              if has_curve(history, metric)}
+    curves = {
+        label: history
+        for label, history in _histories(record, trials, ("train/loss", "train/loss_diffusion", metric)).items()
+        if has_curve(history, metric)
+    }
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
         paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
@@ -122,7 +131,9 @@ def _prose(text: str, bullet: bool = False) -> str:
     return "\n".join(lines)
 
 
-def describe_sweep(spec: Spec, profile: str, profile_description: str, table: ResultsTable, card: Sequence[str] = ()) -> str:
+def describe_sweep(
+    spec: Spec, profile: str, profile_description: str, table: ResultsTable, card: Sequence[str] = ()
+) -> str:
     """The parent run's description (Markdown, the run page's first block), the answer first: the
     best cell's verdict sentence, the narrow table (cell, metric, partner, Δ with its interval,
     verdict) that fits MLflow's description pane at 1,280 px — MLflow shows a description's first
@@ -140,8 +151,14 @@ def describe_sweep(spec: Spec, profile: str, profile_description: str, table: Re
     notes = [n for n in table.notes if not n.startswith(PROTOCOL_NOTE)]
     out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
     # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists them whole.
-    out += ["**Protocol card** (sources in `results.md`):\n"
-            + "\n".join(_prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)] if card else []
+    out += (
+        [
+            "**Protocol card** (sources in `results.md`):\n"
+            + "\n".join(_prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)
+        ]
+        if card
+        else []
+    )
     out += [_prose(f"**{spec.name}**: {spec.description}".rstrip(": ")),
             _prose(f"Profile **{profile}**: {profile_description}".rstrip(": "))]
     return "\n\n".join(part for part in out if part)
@@ -154,7 +171,9 @@ def _best_baseline(record: SweepRecord, trials: list[TrialRecord]) -> str | None
     mode = mode if short == metric.removeprefix("eval/") else "max"
     means = {}
     for b in BASELINES:
-        values = [t.outcome.metrics[f"baseline/{b}/{short}"] for t in trials if f"baseline/{b}/{short}" in t.outcome.metrics]
+        values = [
+            t.outcome.metrics[f"baseline/{b}/{short}"] for t in trials if f"baseline/{b}/{short}" in t.outcome.metrics
+        ]
         if values:
             means[b] = statistics.fmean(values)
     return (min if mode == "min" else max)(means, key=means.__getitem__) if means else None
@@ -172,7 +191,11 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
     files = {cell: last_eval_files(record.client, t.run_id) for cell, t in firsts.items()}
     stems = [f.removesuffix(".gt.ply") for f in next(iter(files.values()), []) if f.endswith(".gt.ply")]
     # The same objects in every column; evaluation folders differ by step, so match on the file name.
-    names = [Path(s).name for s in stems if all(any(Path(f).name == Path(s).name + ".ply" for f in fs) for fs in files.values())]
+    names = [
+        Path(s).name
+        for s in stems
+        if all(any(Path(f).name == Path(s).name + ".ply" for f in fs) for fs in files.values())
+    ]
     if not names:
         return []
     best = _best_baseline(record, trials)
@@ -184,7 +207,9 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
             for name in names:
                 wanted = {cell: f"{name}.ply"}
                 if cell == next(iter(firsts)):
-                    wanted |= {"ground truth": f"{name}.gt.ply"} | ({baseline: f"{name}.{best}.ply"} if baseline else {})
+                    wanted |= {"ground truth": f"{name}.gt.ply"} | (
+                        {baseline: f"{name}.{best}.ply"} if baseline else {}
+                    )
                 for label, file in wanted.items():
                     if file in folder_of:
                         local = record.client.download_artifacts(t.run_id, folder_of[file], str(Path(tmp) / t.run_id))
@@ -194,7 +219,11 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
         panels_of = {Path(f).name: f for f in files[first.outcome.cell] if f.endswith(".png")}
         for name in names:  # the input image, from the first cell's panel of that object
             if f"{name}.png" in panels_of:
-                found = panel_input(Path(record.client.download_artifacts(first.run_id, panels_of[f"{name}.png"], str(Path(tmp) / "in"))))
+                found = panel_input(
+                    Path(
+                        record.client.download_artifacts(first.run_id, panels_of[f"{name}.png"], str(Path(tmp) / "in"))
+                    )
+                )
                 if found is not None:
                     inputs[name] = found
     columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
@@ -204,7 +233,9 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
             viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=scores)]
 
 
-def _object_scores(record: SweepRecord, firsts: dict[str, TrialRecord], best: str | None) -> dict[str, dict[str, tuple[float, float]]]:
+def _object_scores(
+    record: SweepRecord, firsts: dict[str, TrialRecord], best: str | None
+) -> dict[str, dict[str, tuple[float, float]]]:
     """Object file stem → column (each cell; the best baseline) → its ``(CD, F1)`` in ``objects.csv``."""
     out: dict[str, dict[str, tuple[float, float]]] = {}
     for i, (cell, t) in enumerate(firsts.items()):
@@ -231,15 +262,21 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
         out.append("It did not finish.")
     else:
         shown = [m for m in (spec.metric.name, partner(spec.metric.name)) if m and m in o.metrics]
-        out.append("At its last evaluation " + ", ".join(f"{metric_label(m)} {rounded(o.metrics[m])}" for m in shown) + ".")
+        out.append(
+            "At its last evaluation " + ", ".join(f"{metric_label(m)} {rounded(o.metrics[m])}" for m in shown) + "."
+        )
         cell = next((r for r in table.records if r["cell"] == o.cell), {})
         delta = cell.get(f"{spec.metric.name} delta")
         if delta is None and f"{spec.metric.name} delta" in cell and not cell.get("verdict"):
             out.append("Its cell is the reference cell the others are paired with.")
         elif delta is not None:
             short = spec.metric.name.removeprefix("eval/")
-            diff = PairedDifference(delta, cell[f"{spec.metric.name} delta low"], cell[f"{spec.metric.name} delta high"], 0)
-            out.append(f"Its cell against the reference cell: Δ{short} {diff.text()} (95% paired interval), {cell['verdict']}.")
+            diff = PairedDifference(
+                delta, cell[f"{spec.metric.name} delta low"], cell[f"{spec.metric.name} delta high"], 0
+            )
+            out.append(
+                f"Its cell against the reference cell: Δ{short} {diff.text()} (95% paired interval), {cell['verdict']}."
+            )
         if "beats baselines" in cell:
             beaten = str(cell["beats baselines"]).replace(";", ", ")
             out.append(f"Baselines it beats on {spec.metric.name}: {beaten or 'none'}.")
@@ -255,7 +292,9 @@ def publish(uri: str, parent_run_id: str, folder: Path) -> str:
     table = results_table(record, trials)
     for t in trials:
         if t.run_id is not None:
-            tags = {"mlflow.note.content": describe_trial(record, t, table)} | row_tags(table, t.outcome.cell, record.spec.metric.name)
+            tags = {"mlflow.note.content": describe_trial(record, t, table)} | row_tags(
+                table, t.outcome.cell, record.spec.metric.name
+            )
             # The fields the sweep set, in full: of ~84 params, the ones that vary (priors.point_size, not model.raster_radius).
             tags |= {"swept": ", ".join(f"{k}={v}" for k, v in t.values.items())} if t.values else {}
             for key, value in tags.items():
@@ -273,7 +312,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("experiment", help="MLflow experiment name (= the spec's name)")
     p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
     p.add_argument("--run-id", default=None, help="parent run of the sweep (default: the experiment's latest sweep)")
-    p.add_argument("--out", type=Path, default=None, help="folder for results.{md,csv} and plots (default: results/<experiment>/report)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="folder for results.{md,csv} and plots (default: results/<experiment>/report)",
+    )
     p.add_argument("--log", action="store_true", help="also log the plots onto the parent run and save the UI view")
     return p
 

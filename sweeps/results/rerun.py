@@ -55,8 +55,10 @@ def _code_warnings(tags: dict[str, str], force: bool) -> list[str]:
     if recorded["git_commit"] != code["git_commit"]:
         warnings.append(f"recorded commit {recorded['git_commit']}, checked out {code['git_commit']} (--force)")
     if "true" in (recorded["git_dirty"], code["git_dirty"]):
-        warnings.append(f"uncommitted changes (recorded run: {recorded['git_dirty']}, this checkout: {code['git_dirty']}); "
-                        "the code may differ from the recorded run's")
+        warnings.append(
+            f"uncommitted changes (recorded run: {recorded['git_dirty']}, this checkout: {code['git_dirty']}); "
+            "the code may differ from the recorded run's"
+        )
     return warnings
 
 
@@ -69,8 +71,10 @@ def _recorded_threads(text: str | None) -> int:
     if text is None:
         return torch.get_num_threads()
     if not (text.isascii() and text.isdigit() and len(text) <= 4 and 1 <= int(text) <= MAX_THREADS):
-        raise RerunError(f"--rerun: the record's repro.torch_threads is {text[:40]!r}; expected a whole number from 1 to "
-                         f"{MAX_THREADS} (a damaged or edited record)")
+        raise RerunError(
+            f"--rerun: the record's repro.torch_threads is {text[:40]!r}; expected a whole number from 1 to "
+            f"{MAX_THREADS} (a damaged or edited record)"
+        )
     return int(text)
 
 
@@ -98,7 +102,9 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
             config = load_config(client.download_artifacts(run_id, "config.yaml", tmp),
                                  {"train.out_dir": str(out_root / run_id)})
         except (MlflowException, OSError) as exc:
-            raise RerunError(f"--rerun: run {run_id} has no readable config.yaml ({' '.join(str(exc).split())[:200]})") from None
+            raise RerunError(
+                f"--rerun: run {run_id} has no readable config.yaml ({' '.join(str(exc).split())[:200]})"
+            ) from None
         except ValueError as exc:  # ConfigError: a recorded value this code no longer accepts
             raise RerunError(f"--rerun: run {run_id}'s config.yaml: {exc}") from None
     if config_hash(config) != tags["repro.config_hash"]:
@@ -111,8 +117,15 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     # Float sums depend on how work is split between threads; the trial's count makes them equal.
     torch.set_num_threads(threads)
     name = f"rerun of {run.info.run_name}"
-    tracked = TrialRun(uri, run.info.experiment_id, tags.get("mlflow.parentRunId", ""), f"rerun:{run_id}:{time.time_ns()}",
-                       name, {"rerun_of": run_id}, config)
+    tracked = TrialRun(
+        uri,
+        run.info.experiment_id,
+        tags.get("mlflow.parentRunId", ""),
+        f"rerun:{run_id}:{time.time_ns()}",
+        name,
+        {"rerun_of": run_id},
+        config,
+    )
     seen = _Record()
     try:
         fit(config, [TrialProgress(name, config.train.steps, "eval/cd"), tracked, seen])

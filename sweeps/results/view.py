@@ -82,13 +82,26 @@ def baseline_rows(record: SweepRecord, table: ResultsTable) -> list[str]:
     for row in (r for r in table.records if str(r["cell"]).startswith("baseline: ")):
         name = str(row["cell"])
         if name not in found:
-            run_id = client.create_run(record.experiment_id, run_name=name, tags={
-                "sweep": parent, "kind": BASELINE_KIND, "vs reference": BASELINE_KIND,
-                "mlflow.note.content": f"The trivial baseline {name.removeprefix('baseline: ')}, scored on the sweep's "
-                                       "held-out objects (`cdm/evaluate.py`): what a cell's number is worth."}).info.run_id
+            run_id = client.create_run(
+                record.experiment_id,
+                run_name=name,
+                tags={
+                    "sweep": parent,
+                    "kind": BASELINE_KIND,
+                    "vs reference": BASELINE_KIND,
+                    "mlflow.note.content": f"The trivial baseline {name.removeprefix('baseline: ')}, scored on the sweep's "
+                    "held-out objects (`cdm/evaluate.py`): what a cell's number is worth.",
+                },
+            ).info.run_id
             now = int(time.time() * 1000)
-            client.log_batch(run_id, metrics=[Metric("final/" + m.removeprefix("eval/"), float(row[f"{m} mean"]), now, 0)
-                                              for m in shown if row.get(f"{m} mean") is not None])
+            client.log_batch(
+                run_id,
+                metrics=[
+                    Metric("final/" + m.removeprefix("eval/"), float(row[f"{m} mean"]), now, 0)
+                    for m in shown
+                    if row.get(f"{m} mean") is not None
+                ],
+            )
             client.set_terminated(run_id)
             found[name] = run_id
         out.append(found[name])
@@ -115,7 +128,9 @@ def share_view(record: SweepRecord, table: ResultsTable | None = None) -> str:
     group row averages the seeds."""
     metric, mode = record.spec.metric.name, record.spec.metric.mode
     trials, parent = record.children, record.parent.info.run_id
-    swept = list(dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])]))
+    swept = list(
+        dict.fromkeys([*record.spec.search.space, *(k for c in record.plan.get("cells", []) for k in c["values"])])
+    )
     numeric = [k for k in swept if all(sort_key(r.data.params[k]) is not None for r in trials if k in r.data.params)]
     now = int(time.time() * 1000)
     for run in trials:
@@ -123,12 +138,19 @@ def share_view(record: SweepRecord, table: ResultsTable | None = None) -> str:
             record.client.set_tag(run.info.run_id, "sweep", parent)
         keys = [k for k in numeric if k in run.data.params and f"swept/{k}" not in run.data.metrics]
         if keys:
-            record.client.log_batch(run.info.run_id, metrics=[Metric(f"swept/{k}", sort_key(run.data.params[k]), now, 0) for k in keys])
+            record.client.log_batch(
+                run.info.run_id, metrics=[Metric(f"swept/{k}", sort_key(run.data.params[k]), now, 0) for k in keys]
+            )
     if table is not None:
         baseline_rows(record, table)
     finals = ["final/" + m.removeprefix("eval/") for m in (metric, partner(metric)) if m and m.startswith("eval/")]
-    columns = ([f"metrics.`{m}`" for m in finals or [metric]] + ["tags.`vs reference`", "tags.`vs baselines`"]
-               + [f"metrics.`swept/{k}`" for k in numeric] + [f"params.`{k}`" for k in swept if k not in numeric] + ["tags.`seed`"])
+    columns = (
+        [f"metrics.`{m}`" for m in finals or [metric]]
+        + ["tags.`vs reference`", "tags.`vs baselines`"]
+        + [f"metrics.`swept/{k}`" for k in numeric]
+        + [f"params.`{k}`" for k in swept if k not in numeric]
+        + ["tags.`seed`"]
+    )
     widths = {c: _WIDTHS["metric"] for c in columns if c.startswith("metrics.")}
     widths |= {f"tags.`{k}`": _WIDTHS[k] for k in ("vs reference", "vs baselines")}
     state: dict[str, object] = {

@@ -37,14 +37,20 @@ def test_bdm_blend_smoke_sweep(cluster, tmp_path, capsys):
     cells = [f"{s} · categories={c}" for s in settings for c in ("airplane", "chair")]
     assert [c.removesuffix(" ★") for c in rows if not c.startswith("baseline")] == cells
     # Every row sits beside its Table 2 numbers (airplane / chair columns of the paper).
-    paper = {(r["cell"].removesuffix(" ★"), float(r["eval/cd paper"]), float(r["eval/f1 paper"])) for r in rows.values() if r["eval/cd paper"]}
+    paper = {
+        (r["cell"].removesuffix(" ★"), float(r["eval/cd paper"]), float(r["eval/f1 paper"]))
+        for r in rows.values()
+        if r["eval/cd paper"]
+    }
     assert paper == {
         ("PC² · categories=airplane", 65.97, 0.655), ("PC² · categories=chair", 65.57, 0.464),
         ("PC²+BDM · categories=airplane", 59.04, 0.660), ("PC²+BDM · categories=chair", 64.21, 0.485),
         ("CDM · categories=airplane", 59.72, 0.660), ("CDM · categories=chair", 62.93, 0.476),
         ("CDM+BDM · categories=airplane", 57.35, 0.665), ("CDM+BDM · categories=chair", 58.54, 0.497),
     }
-    assert all(r["ok"] == "1" and 0.0 < float(r["eval/cd mean"]) for c, r in rows.items() if not c.startswith("baseline"))
+    assert all(
+        r["ok"] == "1" and 0.0 < float(r["eval/cd mean"]) for c, r in rows.items() if not c.startswith("baseline")
+    )
     assert "PC²+BDM, airplane" in out and "59.04" in out
 
     # One prior per category, trained by the first blended trial and reused by the second.
@@ -62,10 +68,14 @@ def test_bdm_blend_smoke_sweep(cluster, tmp_path, capsys):
     assert len(params) == 8
     blended = params["PC²+BDM · categories=chair · seed 0"]
     assert blended["sampling.blend.enabled"] == "True"
-    assert blended["sampling.blend.prior_checkpoint"] == str(sweep / "priors" / chair.name.replace("chair-", "{category}-"))
+    assert blended["sampling.blend.prior_checkpoint"] == str(
+        sweep / "priors" / chair.name.replace("chair-", "{category}-")
+    )
     assert params["PC² · categories=chair · seed 0"]["sampling.blend.prior_checkpoint"] == "auto"
     # Blending changes sampling only: the two cells of a setting train the same model.
     loss = {name: client.get_metric_history(c.info.run_id, "train/loss")[-1].value
             for c in children for name in [c.info.run_name] if "chair" in name}
     assert loss["PC² · categories=chair · seed 0"] == loss["PC²+BDM · categories=chair · seed 0"]
-    assert float(rows["PC² · categories=chair"]["eval/cd mean"]) != float(rows["PC²+BDM · categories=chair"]["eval/cd mean"])
+    assert float(rows["PC² · categories=chair"]["eval/cd mean"]) != float(
+        rows["PC²+BDM · categories=chair"]["eval/cd mean"]
+    )

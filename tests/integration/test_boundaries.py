@@ -56,7 +56,9 @@ def s3(tmp_path_factory) -> Iterator[dict[str, str]]:
                                   stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         wait_http(f"{url}/moto-api/", server, log)
-        setup = dict(endpoint_url=url, region_name="us-east-1", aws_access_key_id="setup", aws_secret_access_key="setup")
+        setup = dict(
+            endpoint_url=url, region_name="us-east-1", aws_access_key_id="setup", aws_secret_access_key="setup"
+        )
         iam = boto3.client("iam", **setup)
         iam.create_user(UserName="cdm")
         policy = iam.create_policy(PolicyName="s3-all", PolicyDocument=json.dumps(
@@ -128,7 +130,11 @@ def _s3_files(env: dict[str, str], prefix: str) -> list[str]:
 
 
 def _alive(pids: set[int]) -> set[int]:
-    return {p for p in pids if Path(f"/proc/{p}").exists() and "Z" not in Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1][:3]}
+    return {
+        p
+        for p in pids
+        if Path(f"/proc/{p}").exists() and "Z" not in Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1][:3]
+    }
 
 
 def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tmp_path):
@@ -137,11 +143,22 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
                     "profiles: {smoke: {budget: {steps: 60, eval_every: 10}}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = f"s3://{BUCKET}/results"
-    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", storage, "--tracking-uri", uri]
+    argv = [
+        sys.executable,
+        str(ROOT / "sweeps" / "run.py"),
+        str(spec),
+        "--smoke",
+        "--storage",
+        storage,
+        "--tracking-uri",
+        uri,
+    ]
     env = {**os.environ, **s3, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
     env.pop("RAY_ADDRESS", None)
     logs = [tmp_path / "a.log", tmp_path / "b.log"]
-    copies = [subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT) for log in logs]
+    copies = [
+        subprocess.Popen(argv, cwd=tmp_path, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT) for log in logs
+    ]
     try:
         deadline = time.monotonic() + 120
         while all(c.poll() is None for c in copies):
@@ -237,8 +254,10 @@ def test_a_disk_that_fills_mid_run_is_said_as_such_and_the_shared_cache_removed(
         err = capfd.readouterr().err
         errors = [line for line in err.splitlines() if line.startswith("error:")]
         assert code == 2 and len(errors) == 1, err[-3000:]
-        assert errors[0].startswith(f"error: no space left on the device of {disk}/full/smoke (removed the shared cache "
-                                    f"{disk}/full/smoke/shared)"), errors[0]
+        assert errors[0].startswith(
+            f"error: no space left on the device of {disk}/full/smoke (removed the shared cache "
+            f"{disk}/full/smoke/shared)"
+        ), errors[0]
         assert errors[0].endswith(f"--profile smoke --storage {disk} --resume"), errors[0]
         assert not (disk / "full" / "smoke" / "shared").exists() and (disk / "full" / "smoke" / "sweep.json").exists()
     assert not ray.is_initialized()
@@ -248,14 +267,25 @@ def test_a_disk_that_fills_mid_run_is_said_as_such_and_the_shared_cache_removed(
     assert [r.info.status for r in parents] == ["FAILED"]
 
 
-@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])  # Ctrl-C; kill, a scheduler
+@pytest.mark.parametrize(
+    "stop", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"]
+)  # Ctrl-C; kill, a scheduler
 def test_a_stopped_driver_closes_the_interrupted_child_as_killed_and_the_hint_keeps_the_storage(tmp_path, stop):
     spec = tmp_path / "spec.yaml"
     spec.write_text("name: sigint\ngrid: {priors.point_size: [0.02, 0.04]}\nresources: {max_concurrent_trials: 1}\n"
                     "profiles: {smoke: {budget: {steps: 400, eval_every: 10}}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = tmp_path / "my results"
-    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", str(storage), "--tracking-uri", uri]
+    argv = [
+        sys.executable,
+        str(ROOT / "sweeps" / "run.py"),
+        str(spec),
+        "--smoke",
+        "--storage",
+        str(storage),
+        "--tracking-uri",
+        uri,
+    ]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
     env.pop("RAY_ADDRESS", None)
     log = tmp_path / "driver.log"
@@ -275,7 +305,9 @@ def test_a_stopped_driver_closes_the_interrupted_child_as_killed_and_the_hint_ke
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("sigint").experiment_id])
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
-    assert children and all(c.info.status == "KILLED" for c in children), [(c.info.run_name, c.info.status) for c in children]
+    assert children and all(c.info.status == "KILLED" for c in children), [
+        (c.info.run_name, c.info.status) for c in children
+    ]
     # The parent is KILLED; the runs view's baseline rows (finished scores, no trials) are no runs of it.
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags and r.data.tags.get("kind") != BASELINE_KIND]
     assert [r.info.status for r in parents] == ["KILLED"]

@@ -96,7 +96,13 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
                 assert f"eval/{name}/{category}" not in metrics and f"final/{name}/{category}" not in metrics
         # No wall of one-point charts: at most 6 single-point metric series on a child.
         single = [k for k in metrics if len(client.get_metric_history(child.info.run_id, k)) == 1]
-        assert len(single) <= 6 and set(single) <= {"final/cd", "final/f1", "swept/priors.point_size", "eval/cd", "eval/f1"}, single
+        assert len(single) <= 6 and set(single) <= {
+            "final/cd",
+            "final/f1",
+            "swept/priors.point_size",
+            "eval/cd",
+            "eval/f1",
+        }, single
         for row in objects:
             name = str(row["object_id"]).replace("/", "_")
             png = f"eval/step_0000020/panels/{name}.png"
@@ -110,23 +116,36 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
     parent_files = {a.path for a in client.list_artifacts(smoke.parent.info.run_id)}
     parent_files |= {a.path for a in client.list_artifacts(smoke.parent.info.run_id, "plots")}
     parent_files |= {a.path for a in client.list_artifacts(smoke.parent.info.run_id, "reconstructions")}
-    assert parent_files >= {"results.md", "results.csv", "spec.yaml", "plan.json", "plots/metric_vs_value.png",
-                            "plots/training_curves.png", "reconstructions/reconstructions.png", "reconstructions/reconstructions.html"}
+    assert parent_files >= {
+        "results.md",
+        "results.csv",
+        "spec.yaml",
+        "plan.json",
+        "plots/metric_vs_value.png",
+        "plots/training_curves.png",
+        "reconstructions/reconstructions.png",
+        "reconstructions/reconstructions.html",
+    }
     # The parent carries the results: per cell and per baseline, under readable names, and a description.
     parent = client.get_run(smoke.parent.info.run_id)
     # The parent: at most 12 one-point metrics (the baselines' overall scores), the rest as params and results.md.
-    assert sorted(parent.data.metrics) == sorted(f"baseline/{b}/{m}" for b in ("sphere", "gaussian", "category_mean", "retrieval")
-                                                 for m in ("cd", "f1"))
+    assert sorted(parent.data.metrics) == sorted(
+        f"baseline/{b}/{m}" for b in ("sphere", "gaussian", "category_mean", "retrieval") for m in ("cd", "f1")
+    )
     assert float(parent.data.params["baseline/sphere/f1/chair"]) >= 0
     for child in smoke.children:
         assert not [k for k in child.data.metrics if k.startswith("baseline/")]  # once, on the parent
         assert "train.out_dir" not in child.data.params
-    assert {f"baseline/{b}/f1" for b in ("sphere", "gaussian", "category_mean", "retrieval")} <= set(parent.data.metrics)
+    assert {f"baseline/{b}/f1" for b in ("sphere", "gaussian", "category_mean", "retrieval")} <= set(
+        parent.data.metrics
+    )
     description = parent.data.tags["mlflow.note.content"]
     # The headline leads: a best cell only where the leader is apart from the next one, as the smoke outcome falls.
     head = " ".join(description.split("\n\n")[0].split())
     assert description.startswith("**compare**") and "Profile **smoke**" in description
-    assert "best cell point_size=0.0" in head or "no cell is resolvably best by eval/f1: the leader point_size=0.0" in head
+    assert (
+        "best cell point_size=0.0" in head or "no cell is resolvably best by eval/f1: the leader point_size=0.0" in head
+    )
     assert parent.info.run_name.startswith("compare · smoke: ") and parent.info.run_name.split(": ", 1)[1] in head
     assert client.get_experiment(smoke.experiment_id).tags["mlflow.experimentKind"] == "custom_model_development"
     assert "| cell | eval/f1 | eval/cd | Δf1 vs point_size=0.02 [95% CI] | verdict |" in description
@@ -156,7 +175,9 @@ def test_notebook_runs_top_to_bottom_and_shows_the_paper_layout(smoke, tmp_path,
     monkeypatch.setenv("CDM_COMPARE_OUT", str(tmp_path / "out"))
     nb = nbformat.read(ROOT / "notebooks" / "compare.ipynb", as_version=4)
     nb.cells.append(nbformat.v4.new_code_cell('print(table.to_json(orient="split"))'))
-    NotebookClient(nb, timeout=180, kernel_name="python3", resources={"metadata": {"path": str(ROOT / "notebooks")}}).execute()
+    NotebookClient(
+        nb, timeout=180, kernel_name="python3", resources={"metadata": {"path": str(ROOT / "notebooks")}}
+    ).execute()
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.outputs if o.output_type == "error"]
     assert not errors
     table = json.loads(nb.cells[-1].outputs[0]["text"])
@@ -204,26 +225,51 @@ def test_mlflow_opens_model_training_with_the_answer_on_the_first_screen(chromiu
     tags = {c.data.tags["cell"]: client.get_run(c.info.run_id).data.tags for c in smoke.children}
     assert tags["point_size=0.02"]["vs reference"] == "reference"
     versus = tags["point_size=0.04"]["vs reference"]  # e.g. "unclear [-0.033, +0.064] Δf1 +0.016"
-    verdict, interval = re.fullmatch(r"(unclear|better|worse|[a-z ,]+ on (?:f1|cd)) (\[[-+]\d\.\d{3}, [-+]\d\.\d{3}\]) Δf1 [-+]\d\.\d{3}",
-                                     versus).groups()
-    urls = screenshots.pages(mlflow_server, smoke.experiment_id, smoke.parent.info.run_id, [c.info.run_id for c in smoke.children])
+    verdict, interval = re.fullmatch(
+        r"(unclear|better|worse|[a-z ,]+ on (?:f1|cd)) (\[[-+]\d\.\d{3}, [-+]\d\.\d{3}\]) Δf1 [-+]\d\.\d{3}", versus
+    ).groups()
+    urls = screenshots.pages(
+        mlflow_server, smoke.experiment_id, smoke.parent.info.run_id, [c.info.run_id for c in smoke.children]
+    )
     assert all("workflowType=machine_learning" in u for u in urls.values())
     # The printed link: a verdict word, its interval, the baselines as rows; no GenAI navigation.
-    wanted = [verdict, interval, "reference", "baseline: sphere", "baseline: gaussian", "final/f1", "final/cd", "Model registry"]
+    wanted = [
+        verdict,
+        interval,
+        "reference",
+        "baseline: sphere",
+        "baseline: gaussian",
+        "final/f1",
+        "final/cd",
+        "Model registry",
+    ]
     runs_png = tmp_path / "runs.png"
-    seen = screenshots.first_screen(chromium, urls["mlflow_sweep_view.png"], wanted + list(screenshots.GENAI_ENTRIES), runs_png,
-                                    tmp_path / "profile-runs", wait_for=wanted)
+    seen = screenshots.first_screen(
+        chromium,
+        urls["mlflow_sweep_view.png"],
+        wanted + list(screenshots.GENAI_ENTRIES),
+        runs_png,
+        tmp_path / "profile-runs",
+        wait_for=wanted,
+    )
     assert seen == {t: t in wanted for t in seen}, seen
     # The parent run: its name, on top of the page, is the verdict.
     parent = client.get_run(smoke.parent.info.run_id)
     parent_png = tmp_path / "parent.png"
-    seen = screenshots.first_screen(chromium, urls["mlflow_parent_run.png"], [parent.info.run_name, "Model registry"], parent_png,
-                                    tmp_path / "profile-parent")
+    seen = screenshots.first_screen(
+        chromium,
+        urls["mlflow_parent_run.png"],
+        [parent.info.run_name, "Model registry"],
+        parent_png,
+        tmp_path / "profile-parent",
+    )
     assert seen == {parent.info.run_name: True, "Model registry": True}
     assert "resolvably best" in parent.info.run_name or "best cell" in parent.info.run_name
     child_png = tmp_path / "child.png"
     name = smoke.children[0].info.run_name
-    assert screenshots.first_screen(chromium, urls["mlflow_child_run.png"], [name], child_png, tmp_path / "profile-child") == {name: True}
+    assert screenshots.first_screen(
+        chromium, urls["mlflow_child_run.png"], [name], child_png, tmp_path / "profile-child"
+    ) == {name: True}
     compare_png = tmp_path / "compare.png"
     dom = screenshots.chromium_page(chromium, urls["mlflow_compare.png"], compare_png, tmp_path / "profile-compare")
     assert "Comparing 2 Runs" in dom
@@ -240,7 +286,9 @@ def test_mlflow_opens_model_training_with_the_answer_on_the_first_screen(chromiu
 
 def test_reconstruction_viewer_draws_its_canvases_offline(chromium, smoke, tmp_path):
     client = MlflowClient(smoke.uri)
-    page = Path(client.download_artifacts(smoke.parent.info.run_id, "reconstructions/reconstructions.html", str(tmp_path)))
+    page = Path(
+        client.download_artifacts(smoke.parent.info.run_id, "reconstructions/reconstructions.html", str(tmp_path))
+    )
     shot = tmp_path / "viewer.png"
     dom = screenshots.chromium_page(chromium, page.as_uri(), shot, tmp_path, 1600, 700)
     # One canvas per column (2 cells, ground truth, best baseline), created and drawn by the inline script,
@@ -259,4 +307,6 @@ def test_reconstruction_viewer_draws_its_canvases_offline(chromium, smoke, tmp_p
 
 def _text(html: str) -> str:
     """The page's visible text, whitespace collapsed (tags dropped)."""
-    return " ".join(re.sub(r"<[^>]+>", " ", re.sub(r"<(script|style)[^>]*>.*?</\1>", "", html, flags=re.DOTALL)).split())
+    return " ".join(
+        re.sub(r"<[^>]+>", " ", re.sub(r"<(script|style)[^>]*>.*?</\1>", "", html, flags=re.DOTALL)).split()
+    )

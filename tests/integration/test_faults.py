@@ -196,7 +196,10 @@ def test_autoscaler_bounds_count_as_what_a_remote_cluster_could_offer(machines):
     # The record an autoscaler keeps in the GCS (what Ray Data reads): up to 4 nodes of 2 GPUs each.
     config = autoscaler_pb2.ClusterConfig(node_group_configs=[
         autoscaler_pb2.NodeGroupConfig(name="gpu", resources={"CPU": 8, "GPU": 2}, min_count=0, max_count=4)])
-    key, namespace = ray._raylet.GCS_AUTOSCALER_CLUSTER_CONFIG_KEY.encode(), ray._raylet.GCS_AUTOSCALER_STATE_NAMESPACE.encode()
+    key, namespace = (
+        ray._raylet.GCS_AUTOSCALER_CLUSTER_CONFIG_KEY.encode(),
+        ray._raylet.GCS_AUTOSCALER_STATE_NAMESPACE.encode(),
+    )
     assert cluster_capacity(remote=True) == {"CPU": 2, "GPU": 0}  # none published: the nodes up
     assert cluster_machines(remote=True) == 2
     _internal_kv_put(key, config.SerializeToString(), namespace=namespace)
@@ -224,8 +227,9 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
         return len(trials) == 2 and all(_tune_checkpoints(t) >= 3 for t in trials)
 
     # allow_graceful=False: SIGKILL every process of the node, as when a machine is lost.
-    code, injected, wall = _sweep_with_fault(argv, both_checkpointed,
-                                             lambda: machines.cluster.remove_node(machines.worker(), allow_graceful=False))
+    code, injected, wall = _sweep_with_fault(
+        argv, both_checkpointed, lambda: machines.cluster.remove_node(machines.worker(), allow_graceful=False)
+    )
     out = capfd.readouterr().out
     assert injected, f"the sweep ended before both trials checkpointed three times:\n{out[-3000:]}"
     assert code == 0, out[-3000:]
@@ -243,12 +247,16 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
 def test_killed_train_worker_resumes_from_its_checkpoint(machines, mlflow_http, tmp_path, capfd):
     machines.ensure_worker()
     steps, every = 140, 20
-    argv = _argv(tmp_path, f"""
+    argv = _argv(
+        tmp_path,
+        f"""
 name: worker_kill
 grid: {{priors.point_size: [0.04]}}
 failure: {{max_retries: 1}}
 profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}, resources: {{workers_per_trial: 1, cpus_per_worker: 0.99}}}}}}
-""", mlflow_http)
+""",
+        mlflow_http,
+    )
     train = tmp_path / "results" / "worker_kill" / "smoke" / "train"
 
     def checkpointed() -> bool:
@@ -296,8 +304,14 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
     env = {**os.environ, "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}  # the ray#59110 workaround, for the driver process
     log = tmp_path / "driver.log"
     with log.open("w") as fh:
-        driver = subprocess.Popen([sys.executable, str(ROOT / "sweeps" / "run.py"), *argv, "--address", machines.cluster.address],
-                                  cwd=tmp_path, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+        driver = subprocess.Popen(
+            [sys.executable, str(ROOT / "sweeps" / "run.py"), *argv, "--address", machines.cluster.address],
+            cwd=tmp_path,
+            env=env,
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
     folder = tmp_path / "store" / "driver_kill" / "smoke"
     finished_at: dict[str, float] = {}  # child run name → when the test first saw it FINISHED
     interrupted: set[str] = set()
@@ -328,7 +342,11 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
     settled = {name for name, t in finished_at.items() if killed_at - t > 2}
     assert settled and interrupted and len(finished_at) < 3, (finished_at, interrupted)
     client = MlflowClient(mlflow_http)
-    before = {c.info.run_name: c.data.metrics["eval/f1"] for c in _children(mlflow_http, "driver_kill") if c.info.run_name in settled}
+    before = {
+        c.info.run_name: c.data.metrics["eval/f1"]
+        for c in _children(mlflow_http, "driver_kill")
+        if c.info.run_name in settled
+    }
     capfd.readouterr()
 
     assert run.main([*argv, "--resume"]) == 0  # in this process, already connected: joins the same cluster
@@ -355,14 +373,23 @@ profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}}}}}
     assert f"MLflow: open {mlflow_http}/#/experiments/" in out
 
 
-def test_an_input_the_estimate_cannot_read_fails_in_one_line_and_leaves_no_sweep(machines, mlflow_http, tmp_path, capfd):
+def test_an_input_the_estimate_cannot_read_fails_in_one_line_and_leaves_no_sweep(
+    machines, mlflow_http, tmp_path, capfd
+):
     meshes = tmp_path / "meshes" / "chair"
     meshes.mkdir(parents=True)
     for i in range(4):
         (meshes / f"m{i}.obj").write_text("not a mesh")
-    argv = [*_argv(tmp_path, f"name: unreadable\ngrid: {{priors.point_size: [0.04]}}\n"
-                             f"base: {{data.kind: meshes, data.root: {tmp_path / 'meshes'}, data.categories: [chair]}}\n",
-                   mlflow_http), "--address", machines.cluster.address]
+    argv = [
+        *_argv(
+            tmp_path,
+            f"name: unreadable\ngrid: {{priors.point_size: [0.04]}}\n"
+            f"base: {{data.kind: meshes, data.root: {tmp_path / 'meshes'}, data.categories: [chair]}}\n",
+            mlflow_http,
+        ),
+        "--address",
+        machines.cluster.address,
+    ]
     for attempt in range(2):  # the same command again is refused for the input, not as "already holds a sweep"
         capfd.readouterr()
         assert run.main(argv) == 2

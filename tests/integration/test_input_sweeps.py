@@ -46,7 +46,14 @@ def cluster(inputs):
 @pytest.mark.parametrize(("spec", "rows"), [("global_features", 6), ("conditions", 7)])
 def test_smoke_sweep_runs_every_row(cluster, tmp_path, capsys, spec, rows):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    argv = [str(ROOT / "sweeps" / f"{spec}.yaml"), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri]
+    argv = [
+        str(ROOT / "sweeps" / f"{spec}.yaml"),
+        "--smoke",
+        "--storage",
+        str(tmp_path / "results"),
+        "--tracking-uri",
+        uri,
+    ]
     assert run.main(argv) == 0
     out = capsys.readouterr().out
     assert "MISSING" not in out and "external inputs:" in out

@@ -61,7 +61,9 @@ def _driver(args: list[str], address: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
 
 
-def test_shards_made_on_two_nodes_equal_the_one_process_run_byte_for_byte(two_nodes, co3d, one_process, tmp_path, capsys):
+def test_shards_made_on_two_nodes_equal_the_one_process_run_byte_for_byte(
+    two_nodes, co3d, one_process, tmp_path, capsys
+):
     out = tmp_path / "prepared"
     assert inputs.main(["prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out), *SIZE]) == 0
     assert "prepared" in capsys.readouterr().out
@@ -105,7 +107,9 @@ def test_a_bad_object_fails_alone_and_is_named(two_nodes, co3d, tmp_path):
     bad = sorted((root / "hydrant" / sequence / "images").glob("*.jpg"))[0]
     bad.write_bytes(b"not a jpeg")
     out = tmp_path / "prepared"
-    driver = _driver(["prepare", "--data-kind", "co3d", "--root", str(root), "--out", str(out), *SIZE], two_nodes.address)
+    driver = _driver(
+        ["prepare", "--data-kind", "co3d", "--root", str(root), "--out", str(out), *SIZE], two_nodes.address
+    )
     stdout, stderr = driver.communicate(timeout=300)
     assert driver.returncode == 1, stderr
     failed = [line for line in stderr.splitlines() if line.startswith("failed: ")]

@@ -161,8 +161,9 @@ def serve_mlflow(store: Path, grace_s: float = 10.0) -> Iterator[str]:
     """``mlflow server`` on 127.0.0.1 with a SQLite backend and proxied artifacts in ``store``; its URL."""
     store.mkdir(parents=True, exist_ok=True)
     # Clients upload through the server (mlflow-artifacts:/), so trials on any node reach it.
-    with screenshots.mlflow_server(f"sqlite:///{store / 'mlflow.db'}", store / "server.log", artifacts=store / "artifacts",
-                       grace_s=grace_s) as url:
+    with screenshots.mlflow_server(
+        f"sqlite:///{store / 'mlflow.db'}", store / "server.log", artifacts=store / "artifacts", grace_s=grace_s
+    ) as url:
         yield url
 
 
@@ -245,7 +246,12 @@ def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, 
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
     assert len(parents) == 1 and parents[0].info.status == "FINISHED"
     parent = parents[0]
-    assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"point_size.yaml", "plan.json", "results.md", "results.csv"}
+    assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {
+        "point_size.yaml",
+        "plan.json",
+        "results.md",
+        "results.csv",
+    }
     # One child per trial: the 5 point sizes of the spec, one seed.
     assert sorted(c.data.params["priors.point_size"] for c in children) == ["0.0075", "0.01", "0.02", "0.04", "0.08"]
     assert len({c.data.tags["trial_id"] for c in children}) == 5

@@ -25,7 +25,9 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_finished_trial_missing_from_tunes_snapshot_is_not_rerun(cluster, tmp_path, capfd):
     spec = tmp_path / "spec.yaml"
-    spec.write_text("name: late\ngrid: {priors.point_size: [0.04]}\nprofiles: {smoke: {budget: {steps: 20, eval_every: 10}}}\n")
+    spec.write_text(
+        "name: late\ngrid: {priors.point_size: [0.04]}\nprofiles: {smoke: {budget: {steps: 20, eval_every: 10}}}\n"
+    )
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     argv = [str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri]
     folder = tmp_path / "results" / "late" / "smoke"

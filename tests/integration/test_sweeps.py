@@ -60,8 +60,11 @@ class Sweep:
 def e2e(cluster, tmp_path_factory) -> Sweep:
     """A 2-cell smoke grid with a paper row, run once for the module's tests."""
     tmp_path = tmp_path_factory.mktemp("e2e")
-    argv, uri = _sweep(tmp_path, "name: e2e\ngrid: {priors.point_size: [0.02, 0.04]}\n"
-                          "paper: {table: T5, rows: [{label: size 0.04, when: {priors.point_size: 0.04}, values: {eval/f1: 0.461}}]}\n")
+    argv, uri = _sweep(
+        tmp_path,
+        "name: e2e\ngrid: {priors.point_size: [0.02, 0.04]}\n"
+        "paper: {table: T5, rows: [{label: size 0.04, when: {priors.point_size: 0.04}, values: {eval/f1: 0.461}}]}\n",
+    )
     printed = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(printed):
@@ -74,7 +77,9 @@ def test_grid_of_two_cells_end_to_end(e2e):
     assert "profile in force: smoke" in out
     assert f"mlflow ui --backend-store-uri {uri} --host 127.0.0.1" in out
     table = out[out.index("e2e — profile smoke"):]
-    assert "point_size=0.02" in table and "point_size=0.04" in table and "0.461" in table and "baseline: sphere" in table
+    assert (
+        "point_size=0.02" in table and "point_size=0.04" in table and "0.461" in table and "baseline: sphere" in table
+    )
     folder = e2e.folder / "e2e" / "smoke"
     assert (folder / "results.md").read_text().count("| point_size=0.0") == 2
     assert (folder / "results.csv").read_text().splitlines()[0].startswith("cell,")
@@ -83,7 +88,12 @@ def test_grid_of_two_cells_end_to_end(e2e):
     children = [c for c in children if "rerun_of" not in c.data.tags]  # the re-run test's run joins the experiment
     assert len(parents) == 1 and len(children) == 2
     parent = parents[0]
-    assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {"spec.yaml", "plan.json", "results.md", "results.csv"}
+    assert {a.path for a in client.list_artifacts(parent.info.run_id)} >= {
+        "spec.yaml",
+        "plan.json",
+        "results.md",
+        "results.csv",
+    }
     assert sorted(r.info.run_name for r in children) == ["point_size=0.02 · seed 0", "point_size=0.04 · seed 0"]
     for child in children:
         assert child.info.status == "FINISHED"
@@ -94,7 +104,9 @@ def test_grid_of_two_cells_end_to_end(e2e):
         assert [m.step for m in sorted(loss, key=lambda m: m.step)] == [5, 10, 15, 20]
         assert [m.step for m in client.get_metric_history(child.info.run_id, "eval/f1")] in ([10, 20], [20, 10])
         # Per category: the last evaluation's score once, as a final/… param (no chart of one point).
-        assert float(child.data.params["final/f1/chair"]) >= 0 and not client.get_metric_history(child.info.run_id, "final/f1/chair")
+        assert float(child.data.params["final/f1/chair"]) >= 0 and not client.get_metric_history(
+            child.info.run_id, "final/f1/chair"
+        )
         assert not client.get_metric_history(child.info.run_id, "eval/f1/chair")
         files = last_eval_files(client, child.info.run_id)  # eval/step_0000020/{panels,clouds}/
         assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
@@ -165,7 +177,9 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     assert run.main(rerun_argv) == 0
     out = capsys.readouterr().out
     assert "reproduced exactly" in out and "DIFFERENT" not in out
-    again = [r for r in client.search_runs([child.info.experiment_id]) if r.data.tags.get("rerun_of") == child.info.run_id]
+    again = [
+        r for r in client.search_runs([child.info.experiment_id]) if r.data.tags.get("rerun_of") == child.info.run_id
+    ]
     assert len(again) == 1
     assert again[0].data.metrics["eval/cd"] == child.data.metrics["eval/cd"]
     assert again[0].data.metrics["eval/f1"] == child.data.metrics["eval/f1"]
@@ -191,7 +205,10 @@ def test_progress_line_counts_steps_across_trials_in_place_on_a_terminal(cluster
         out = io.StringIO()
         progress = SweepProgress(f"p{tty}", trials=3, steps=100, label=lambda t: t.label, predicted_s=600.0, tty=tty,
                                  stream=out, refresh_s=0.05, every_s=0.05)
-        a, b = SimpleNamespace(label="a", last_result={"step": 100}), SimpleNamespace(label="b", last_result={"step": 40})
+        a, b = (
+            SimpleNamespace(label="a", last_result={"step": 100}),
+            SimpleNamespace(label="b", last_result={"step": 40}),
+        )
         progress.on_trial_start(0, [], a)
         progress.on_trial_start(0, [], b)
         reporter = StepReporter(f"p{tty}", "b")  # as a trial reports, through the sweep's named actor

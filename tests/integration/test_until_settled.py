@@ -53,7 +53,11 @@ def _children(uri: str, experiment: str) -> tuple[MlflowClient, list, list]:
     if exp is None:
         return client, [], []
     runs = client.search_runs([exp.experiment_id])
-    return client, [r for r in runs if r.data.tags.get("kind") == "sweep"], [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    return (
+        client,
+        [r for r in runs if r.data.tags.get("kind") == "sweep"],
+        [r for r in runs if "mlflow.parentRunId" in r.data.tags],
+    )
 
 
 def _settle(client: MlflowClient, parent_id: str, tmp_path: Path) -> dict:
@@ -100,7 +104,11 @@ def test_a_driver_killed_after_round_1_resumes_without_running_a_seed_twice(clus
     deadline = time.monotonic() + 300
     # Round 1 has finished once round 2 starts; killed then, Tune's last snapshot (one a second) holds
     # round 2's proposals, which the restored searcher must neither lose nor propose again.
-    while time.monotonic() < deadline and driver.poll() is None and "▶ started [null · seed 2]" not in (tmp_path / "driver.log").read_text():
+    while (
+        time.monotonic() < deadline
+        and driver.poll() is None
+        and "▶ started [null · seed 2]" not in (tmp_path / "driver.log").read_text()
+    ):
         time.sleep(0.2)
     time.sleep(1.5)
     assert driver.poll() is None, (tmp_path / "driver.log").read_text()[-3000:]
@@ -124,9 +132,15 @@ def test_a_driver_killed_after_round_1_resumes_without_running_a_seed_twice(clus
     assert "[null · seed 2] resuming from" in out or "▶ started [null · seed 2]" in out
     client, parents, children = _children(uri, "again")
     labels = Counter(c.info.run_name for c in children)
-    assert labels == Counter({f"{cell} · seed {s}": 1 for cell in ("reference", "null") for s in range(3)})  # none twice, none lost
+    assert labels == Counter(
+        {f"{cell} · seed {s}": 1 for cell in ("reference", "null") for s in range(3)}
+    )  # none twice, none lost
     assert all(c.info.status == "FINISHED" for c in children)
     assert len({c.data.tags["trial_id"] for c in children}) == 6
     cells = _settle(client, parents[0].info.run_id, tmp_path)["cells"]
-    assert list(cells) == ["null"] and (cells["null"]["seeds"], cells["null"]["verdict"], cells["null"]["reason"]) == (3, "open", "max")
+    assert list(cells) == ["null"] and (cells["null"]["seeds"], cells["null"]["verdict"], cells["null"]["reason"]) == (
+        3,
+        "open",
+        "max",
+    )
     assert set(cells["null"]["interval"]) == {"mean", "low", "high", "objects", "covers"}
