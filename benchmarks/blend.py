@@ -27,12 +27,12 @@ from benchmarks.common import paired
 from cdm.blend import blend_windows
 from cdm.config import Config, load_config
 from cdm.data import build_dataset
+from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import collate
 from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.evaluate import reconstruct
 from cdm.model import CDMNetwork
 from cdm.prior_model import load_prior, prior_config, train_prior
-from cdm.data.priors2d import PRIOR_2D_CHANNELS
 
 __all__ = ["blend_overhead"]
 

@@ -209,8 +209,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def cmd_prepare(args: argparse.Namespace) -> int:
     from cdm.data import DATASETS
-    from cdm.data.prepare import prepare
     from cdm.data.captured import CapturedDataset
+    from cdm.data.prepare import prepare
 
     preparable = [k for k, cls in DATASETS.items() if issubclass(cls, CapturedDataset)]
     if args.data_kind not in preparable:

@@ -32,8 +32,8 @@ from sweeps.compare.settle import check_budget, describe_rule
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.precompute import check_space, shared_root
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
+from sweeps.plan.budget import SeedBudget, budget_option
 from sweeps.plan.describe import describe, wrapped
-from sweeps.plan.preflight import check_inputs, dry_run, estimate_line
 from sweeps.plan.limits import (
     LISTED_TRIALS,
     MAX_TRIALS,
@@ -43,9 +43,9 @@ from sweeps.plan.limits import (
     check_trials,
     count_trials,
 )
+from sweeps.plan.preflight import check_inputs, dry_run, estimate_line
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.resources import plan_concurrency
-from sweeps.plan.budget import SeedBudget, budget_option
 from sweeps.plan.spec import Spec, SpecError, load_spec
 from sweeps.plan.trials import SweepPlan, expand
 from sweeps.storage import (
@@ -313,9 +313,8 @@ def _run(
     import ray
 
     from sweeps.compare.table import build_table
-    from sweeps.execute.tracking import baselines_by_eval_set
     from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
-    from sweeps.execute.tracking import SweepRun, resolve_tracking_uri
+    from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, resolve_tracking_uri
     from sweeps.execute.trial import run_sweep
     from sweeps.results.report import describe_sweep, publish
 

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import pytest
-import torch
-
 from pathlib import Path
 
+import pytest
+import torch
 import yaml
 
 from cdm.config import Config, apply_overrides, load_config

@@ -13,7 +13,6 @@ import yaml
 
 from cdm.config import load_config
 from cdm.data import build_dataset
-
 from tests.conftest import TINY
 
 

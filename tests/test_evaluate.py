@@ -87,10 +87,10 @@ def test_paper_protocol_takes_every_object(tmp_path):
 
 
 def test_one_drawn_object_per_category_and_drawing_changes_no_score(tmp_path):
+    from cdm.data.priors2d import PRIOR_2D_CHANNELS
     from cdm.diffusion import GaussianDiffusion
     from cdm.evaluate import run_evaluation
     from cdm.model import CDMNetwork
-    from cdm.data.priors2d import PRIOR_2D_CHANNELS
     from sweeps.compare.plots import read_ply
 
     cfg = tiny_config(tmp_path, **{"data.categories": ["chair", "airplane"], "data.val_objects": 2,

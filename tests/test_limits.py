@@ -17,9 +17,9 @@ import ray
 import yaml
 
 from cdm.config import Config, ConfigError, config_field_paths, load_config, parse_override
+from cdm.memory import check_memory, estimate_train_bytes
 from sweeps import run
 from sweeps.execute.claim import ClaimError, claim
-from cdm.memory import check_memory, estimate_train_bytes
 from sweeps.plan.limits import LimitError, check_trials, load_yaml
 from sweeps.plan.spec import Spec, SpecError, load_spec
 from sweeps.plan.trials import expand

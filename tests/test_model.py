@@ -24,7 +24,6 @@ from cdm.model import (
 )
 
 
-
 def _model_config(tiny: Config, **changes) -> ModelConfig:
     """The shared tiny config's model group (tests/conftest.py) with ``changes``, validated."""
     return ModelConfig.model_validate({**tiny.model.model_dump(), **changes})

@@ -85,10 +85,10 @@ def _objects(path) -> tuple[dict, ...]:
 @pytest.mark.slow
 def test_a_trained_model_is_marked_better_than_its_reset_copy(tmp_path):
     from cdm.data import build_dataset
+    from cdm.data.priors2d import PRIOR_2D_CHANNELS
     from cdm.diffusion import GaussianDiffusion
     from cdm.evaluate import build_eval_set, run_evaluation
     from cdm.model import CDMNetwork
-    from cdm.data.priors2d import PRIOR_2D_CHANNELS
     from cdm.train import fit
     from tests.conftest import tiny_config
 

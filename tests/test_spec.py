@@ -8,9 +8,9 @@ import pytest
 
 from cdm.config import ConfigError
 from sweeps import run
+from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.estimate import Estimate
 from sweeps.plan.resources import plan_concurrency
-from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.spec import Resources, Spec, SpecError, load_profiles, load_spec
 from sweeps.plan.trials import expand, lambda_source
 from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings

@@ -29,8 +29,8 @@ import pytest
 import ray
 from mlflow import MlflowClient
 
-from cdm.data.images import read_image
 from cdm.config import load_config
+from cdm.data.images import read_image
 from sweeps import run, store_retry
 from sweeps.execute import local_cluster, stopping
 from sweeps.execute.claim import ClaimError, claim, claims_folder

@@ -33,8 +33,8 @@ from torch import Tensor
 
 from cdm.config import ModelConfig
 from cdm.data.lru import ByteLRU
-from cdm.paths import input_path
 from cdm.model.voxels import norm_groups
+from cdm.paths import input_path
 from cdm.safe_io import open_regular
 from cdm.torch_files import load_inert
 

@@ -25,8 +25,8 @@ from cdm.cameras import Cameras
 from cdm.config import ModelConfig
 from cdm.data.sample import Batch
 from cdm.model.conditioning import conditioning_channels, conditioning_map, project_conditioning, project_views
-from cdm.model.encoder import build_encoder
 from cdm.model.embeddings import load_embeddings
+from cdm.model.encoder import build_encoder
 from cdm.model.global_features import TOKEN_GRID, global_embedding, image_tokens
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.pvcnn2 import PVCNN2Denoiser

@@ -43,8 +43,8 @@ from sweeps.execute.cores import CoreLease, lease_cores
 from sweeps.execute.precompute import precompute, shared_root
 from sweeps.execute.progress import StepReporter, quiet_loggers
 from sweeps.execute.tracking import SweepRun, TrialRun, finished_trial_metrics
-from sweeps.plan.resources import Concurrency
 from sweeps.plan.budget import SeedBudget
+from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
 from sweeps.plan.trials import SweepPlan
 

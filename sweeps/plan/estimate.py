@@ -33,9 +33,9 @@ from pathlib import Path
 
 from cdm.config import Config, load_config
 from cdm.data import build_dataset, list_categories
-from cdm.prior_model import ensure_priors
-from cdm.optim import TrainingDiverged
 from cdm.evaluate import build_eval_set
+from cdm.optim import TrainingDiverged
+from cdm.prior_model import ensure_priors
 from cdm.train import Trainer
 from sweeps.plan.trials import SweepPlan, expand
 

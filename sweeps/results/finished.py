@@ -21,12 +21,12 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.config import DiffusionConfig, PriorsConfig
-from sweeps.compare.settle import Round, final_round
 from sweeps.compare.rules import settings_notes
+from sweeps.compare.settle import Round, final_round
 from sweeps.compare.table import FINISHED, ResultsTable, TrialOutcome, build_table, sweep_order, unstarted
 from sweeps.execute.tracking import last_objects, parent_baselines, trial_metrics
-from sweeps.plan.protocol import CARD_TAG
 from sweeps.plan.budget import parse_budget
+from sweeps.plan.protocol import CARD_TAG
 from sweeps.plan.spec import SpaceParam, Spec, load_spec
 from sweeps.plan.trials import SweepPlan, expand, split_label
 

@@ -32,8 +32,8 @@ from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_p
 from sweeps.compare.rules import PROTOCOL_NOTE, metric_label, partner, rounded
 from sweeps.compare.table import ResultsTable
 from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri, ui_link
-from sweeps.plan.spec import Spec
 from sweeps.plan.search import optuna_distributions
+from sweeps.plan.spec import Spec
 from sweeps.plan.trials import split_label
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 from sweeps.results.view import headline_name, row_tags, share_view

@@ -26,13 +26,13 @@ import pytest
 import ray
 from mlflow import MlflowClient
 
+from docs.screenshots import free_port, wait_http
 from sweeps import run
-from sweeps.results.view import BASELINE_KIND
 from sweeps.execute.local_cluster import SESSION_RECORDS, session_pids
 from sweeps.execute.precompute import shared_bytes
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
-from docs.screenshots import free_port, wait_http
+from sweeps.results.view import BASELINE_KIND
 from tests.test_trust import small_disk
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]

@@ -25,10 +25,10 @@ from nbclient import NotebookClient
 
 from docs import screenshots
 from sweeps import run
-from sweeps.results import report
-from tests.integration.local_ray import local_ray
 from sweeps.compare.rules import rounded
 from sweeps.execute.tracking import last_eval_files, last_objects
+from sweeps.results import report
+from tests.integration.local_ray import local_ray
 from tests.test_report import _overlap, panel_views
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
