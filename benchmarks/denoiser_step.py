@@ -169,7 +169,8 @@ def main() -> None:
         total = sum(geometry.values())
         parts = ", ".join(f"{k} {v:.2f}" for k, v in sorted(geometry.items(), key=lambda kv: -kv[1]) if v > 0)
         print(
-            f"\npvcnn2 paper step: geometric ops {total:.2f} s of {result.b_s:.2f} s = {100 * total / result.b_s:.1f} % ({parts})"
+            f"\npvcnn2 paper step: geometric ops {total:.2f} s of {result.b_s:.2f} s = "
+            f"{100 * total / result.b_s:.1f} % ({parts})"
         )
         mem_pv = peak_rss_mb(PAPER, {**POINTVOXEL[PAPER], "model.denoiser": "pointvoxel"})
         mem_p2 = peak_rss_mb(PAPER, {"model.denoiser": "pvcnn2"})

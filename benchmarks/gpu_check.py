@@ -36,6 +36,7 @@ import json
 import sys
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -179,7 +180,7 @@ def check(device: str, quick: bool, deadline_s: float) -> dict:
                 if precision == "fp32":
                     flops[n] = count_flops(trainer)
                 batch = trainer.next_batch()
-                step_s = device_median_s(lambda: trainer.train_step(batch), trainer.device, 2 if quick else 8,
+                step_s = device_median_s(partial(trainer.train_step, batch), trainer.device, 2 if quick else 8,
                                          warmup=int(precision != "fp32"))
                 peak = peak_flops(name, precision)
                 row = {"train_step_s": step_s,
@@ -196,7 +197,7 @@ def check(device: str, quick: bool, deadline_s: float) -> dict:
         "one trial of each spec's paper profile on its procedural stand-in (no data.root here): 100k steps and "
         "every evaluation of eval.num_objects per category; ShapeNet's at the stand-in's batch 8 (BDM's 16 with "
         "data.root). With data.root, sweeps/run.py --dry-run --profile paper counts the real evaluation split")
-    for size, spec in SPECS.items():
+    for spec in SPECS.values():
         paper = expand(load_spec(ROOT / "sweeps" / spec), "paper")
         hours, why = paper_trial_gpu_hours(paper, figures)
         figures["trial_gpu_hours"][spec] = hours if hours is not None else why

@@ -57,7 +57,8 @@ def loader_speed(quick: bool, out_dir: str) -> list[dict]:
         rows.append(
             {
                 "benchmark": "loader raw / prepared",
-                "case": f"{label}: raw {count / result.b_s:.0f} vs prepared {count / result.a_s:.0f} samples/s ({count} objects)",
+                "case": f"{label}: raw {count / result.b_s:.0f} vs prepared {count / result.a_s:.0f} samples/s "
+                f"({count} objects)",
                 "without_s": result.a_s / count,
                 "with_s": result.b_s / count,
                 "ratio": result.ratio,

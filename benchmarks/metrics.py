@@ -6,6 +6,8 @@ and the largest absolute CD difference between the two (they must agree).
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -36,7 +38,7 @@ def metrics_vs_scipy(quick: bool) -> list[dict]:
         for search in ("kdtree", "brute"):
             ours = chamfer_f1(pred, gt, search=search).cd.numpy()
             timing = paired(
-                lambda: chamfer_f1(pred, gt, search=search), lambda: scipy_chamfer(pn, gn), repeats=2 if quick else 3
+                partial(chamfer_f1, pred, gt, search=search), partial(scipy_chamfer, pn, gn), repeats=2 if quick else 3
             )
             rows.append(
                 {

@@ -29,7 +29,8 @@ def quick_config_quality(quick: bool, out_dir: str) -> list[dict]:
         rows.append(
             {
                 "benchmark": f"quick config CD×1000 vs {baseline} ({minutes:.1f} min)",
-                "case": f"{cfg.train.steps} steps, F1 {metrics['eval/f1']:.3f} vs {metrics[f'baseline/{baseline}/f1']:.3f}",
+                "case": f"{cfg.train.steps} steps, F1 {metrics['eval/f1']:.3f} vs "
+                f"{metrics[f'baseline/{baseline}/f1']:.3f}",
                 "without_s": theirs,
                 "with_s": ours,
                 "ratio": ours / theirs,

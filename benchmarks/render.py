@@ -9,6 +9,8 @@ pairs, and per-image costs (the z-buffer, the blur) keep the slope below 1 at th
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import torch
 
@@ -40,8 +42,8 @@ def rendering(quick: bool, out_dir: str) -> list[dict]:
         for n in counts:
             pts = torch.rand(h, n, 3, generator=torch.Generator().manual_seed(n)) - 0.5
             repeats = 2 if quick else 5
-            a = _per_image(lambda: rasterize_points(pts, cams, SIZE, 0.0075), h, repeats)
-            b = _per_image(lambda: splat_points(pts, cams, SIZE, 0.04, "planar"), h, repeats)
+            a = _per_image(partial(rasterize_points, pts, cams, SIZE, 0.0075), h, repeats)
+            b = _per_image(partial(splat_points, pts, cams, SIZE, 0.04, "planar"), h, repeats)
             rows.append({"benchmark": "render: rasterize vs splat", "case": f"N={n}, 224², H={h} (s per image)",
                          "without_s": a, "with_s": b, "ratio": b / a, "target": "report"})
             if h == 10:

@@ -54,7 +54,8 @@ def to_markdown(rows: list[dict]) -> str:
     for r in rows:
         if r["benchmark"] != "paper scaling":
             lines.append(
-                f"| {r['benchmark']} | {r['case']} | {r['without_s']:.4f} | {r['with_s']:.4f} | {r['ratio']:.3f} | {r['target']} |"
+                f"| {r['benchmark']} | {r['case']} | {r['without_s']:.4f} | {r['with_s']:.4f} | {r['ratio']:.3f} "
+                f"| {r['target']} |"
             )
     scaling = [r for r in rows if r["benchmark"] == "paper scaling"]
     if scaling:

@@ -21,6 +21,7 @@ import argparse
 import json
 import sys
 import tempfile
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
             trainer = _trainer(cfg)
             batch = trainer.next_batch()
             trainer.train_step(batch)  # warm-up
-            ops, biggest = count_ops(lambda: trainer.train_step(batch))
+            ops, biggest = count_ops(partial(trainer.train_step, batch))
             rows.append(
                 {
                     "op": "training step",

@@ -91,7 +91,8 @@ def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = 
     return rows + [
         {
             "benchmark": "CPU per step in a sweep ÷ alone",
-            "case": f"{spec_name}, {profile}: every cell, in-trial system/cpu_s_per_step ÷ the cell's first 40 batches alone",
+            "case": f"{spec_name}, {profile}: every cell, in-trial system/cpu_s_per_step ÷ the cell's first 40 "
+            "batches alone",
             "without_s": alone_s,
             "with_s": trial_s,
             "ratio": trial_s / alone_s,
@@ -118,5 +119,6 @@ if __name__ == "__main__":
     args = parser.parse_args()
     for row in sweep_cpu_per_step(args.tracking_uri, args.experiment, args.cpus):
         print(
-            f"| {row['benchmark']} | {row['case']} | {row['without_s']:.4f} | {row['with_s']:.4f} | {row['ratio']:.3f} | {row['target']} |"
+            f"| {row['benchmark']} | {row['case']} | {row['without_s']:.4f} | {row['with_s']:.4f} "
+            f"| {row['ratio']:.3f} | {row['target']} |"
         )

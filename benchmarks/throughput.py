@@ -1,17 +1,18 @@
 """Training throughput and peak memory of the paper-scale model, on CPU or CUDA.
 
-Batch 8, 224² images, PC²'s PVCNN2 (the paper profile's denoiser), the CDM step with the 3D prior constraint (H=10, point size 0.04), at 4,096
-points (ShapeNet) and 16,384 (Co3D). Each row: ``a`` = seconds per training step, ``b`` = seconds per
-sampling step (one denoiser forward on the batch, what evaluation repeats ``diffusion.sample_steps``
-times), ``ratio`` = training samples per second. On CUDA it also writes ``gpu_costs.json`` (figures
-per cloud size), which ``sweeps/plan/estimate.py`` reads for paper-profile GPU-hours once copied to
-``benchmarks/gpu_costs.json``.
+Batch 8, 224² images, PC²'s PVCNN2 (the paper profile's denoiser), the CDM step with the 3D prior constraint
+(H=10, point size 0.04), at 4,096 points (ShapeNet) and 16,384 (Co3D). Each row: ``a`` = seconds per training
+step, ``b`` = seconds per sampling step (one denoiser forward on the batch, what evaluation repeats
+``diffusion.sample_steps`` times), ``ratio`` = training samples per second. On CUDA it also writes
+``gpu_costs.json`` (figures per cloud size), which ``sweeps/plan/estimate.py`` reads for paper-profile GPU-hours
+once copied to ``benchmarks/gpu_costs.json``.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -47,7 +48,7 @@ def throughput(quick: bool, out_dir: str, device: str) -> list[dict]:
         batch = trainer.next_batch()
         if dev.type == "cuda":
             torch.cuda.reset_peak_memory_stats(dev)
-        step_s = device_median_s(lambda: trainer.train_step(batch), dev, 3 if quick else 6)
+        step_s = device_median_s(partial(trainer.train_step, batch), dev, 3 if quick else 6)
         sample_s = denoiser_eval_s(trainer.network, batch, dev, 3 if quick else 10)
         memory = (f"peak {torch.cuda.max_memory_allocated(dev) / 2**30:.2f} GiB GPU memory" if dev.type == "cuda"
                   else "one CPU thread")

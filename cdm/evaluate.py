@@ -307,7 +307,10 @@ def write_ply(path: Path, points: Tensor) -> Path:
     """Write an ``(N, 3)`` cloud as ASCII PLY."""
     path.parent.mkdir(parents=True, exist_ok=True)
     pts = points.detach().cpu().numpy()
-    header = f"ply\nformat ascii 1.0\nelement vertex {len(pts)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    header = (
+        f"ply\nformat ascii 1.0\nelement vertex {len(pts)}\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
     with path.open("w") as fh:
         fh.write(header)
         np.savetxt(fh, pts, fmt="%.6f")

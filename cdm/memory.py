@@ -52,7 +52,8 @@ def check_memory(configs: list[Config], concurrent: int, total: int | None = Non
         if need > budget:
             d, t = config.data, config.train
             raise ConfigError(
-                f"data.train_objects={d.train_objects}, data.num_points={d.num_points}, data.image_size={d.image_size}, "
+                f"data.train_objects={d.train_objects}, data.num_points={d.num_points}, "
+                f"data.image_size={d.image_size}, "
                 f"train.batch_size={t.batch_size}: {concurrent} run(s) at once need at least {need / 2**30:.1f} GiB "
                 f"but this machine has {total / 2**30:.1f} GiB ({MEMORY_FRACTION:.0%} usable); lower these sizes "
                 "(in a sweep, or resources.max_concurrent_trials)"

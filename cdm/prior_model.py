@@ -12,8 +12,9 @@ Schedule: BDM's prior, PVD's linear β from 1e-4 to 0.02 over T = 1000 (BDM
 (PVD: ε).
 
 A prior is a folder holding ``checkpoint.pt``: resolved config, step, voxel back-end, weights,
-``kind`` and ``category``; or PVD's own ``.pth`` checkpoint, as BDM blends with (:func:`load_prior`). ``python -m cdm train-prior`` writes one; :func:`ensure_priors` trains and
-caches them for ``sampling.blend.prior_checkpoint: auto`` (sweep trials).
+``kind`` and ``category``; or PVD's own ``.pth`` checkpoint, as BDM blends with (:func:`load_prior`).
+``python -m cdm train-prior`` writes one; :func:`ensure_priors` trains and caches them for
+``sampling.blend.prior_checkpoint: auto`` (sweep trials).
 """
 
 from __future__ import annotations
@@ -178,7 +179,8 @@ def prior_path(template: str, category: str) -> Path:
     if template == AUTO:
         raise ValueError(
             f"{_FIELD}: 'auto' is resolved inside sweep trials (one prior per category, trained and cached in the "
-            "sweep folder); outside a sweep, train one with `python -m cdm train-prior --category <name>` and pass its folder"
+            "sweep folder); outside a sweep, train one with `python -m cdm train-prior --category <name>` "
+            "and pass its folder"
         )
     return Path(template.replace("{category}", category))
 

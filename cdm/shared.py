@@ -135,7 +135,8 @@ class SharedStore:
         return _batch(torch.load(path, mmap=True, weights_only=True))
 
     def eval_set(self, cfg: Config, val: ObjectDataset, train: ObjectDataset) -> EvalSet:
-        """The evaluation set of ``cfg`` (:func:`cdm.evaluate.build_eval_set`), read when stored, else built and stored."""
+        """The evaluation set of ``cfg`` (:func:`cdm.evaluate.build_eval_set`), read when stored, else built and
+        stored."""
         path = self._eval_path(eval_key(cfg, val, train))
         if path.exists():
             d = torch.load(path, weights_only=True)

@@ -98,7 +98,8 @@ def _check_compatible(state: Checkpoint, config: Config, network: CDMNetwork) ->
     if state.voxel_backend != network.voxel_backend:
         raise ValueError(
             f"resume: checkpoint trained with voxel back-end {state.voxel_backend!r}, this run resolves to "
-            f"{network.voxel_backend!r}; set model.voxel_backend={state.voxel_backend} (the back-ends compute different functions)"
+            f"{network.voxel_backend!r}; set model.voxel_backend={state.voxel_backend} "
+            "(the back-ends compute different functions)"
         )
     saved, now = state.config, config.to_dict()
     # The resolved back-end is compared above; `auto` and its resolution may be written either way.

@@ -2,12 +2,12 @@
 
 ``python docs/screenshots.py --tracking-uri sqlite:///…/mlflow.db [--experiment point_size] [--out docs]``
 
-Starts ``mlflow server`` on the store (127.0.0.1, a free port), opens the sweep's saved view, the
-comparison of its child runs, the parent run's page and its first child run's page (the first screen
-at 1,280 × 800 in a fresh profile: MLflow's default panels, its Assistant open) and the 3D viewer artifact in Debian's ``chromium``,
-and writes downscaled PNGs into ``--out``, together with the parent run's ``metric_vs_value.png`` and
-``reconstructions.png``: every picture in ``docs/``. ``tests/integration/test_compare.py`` drives the
-same functions against its smoke sweep.
+Starts ``mlflow server`` on the store (127.0.0.1, a free port), opens the sweep's saved view, the comparison of
+its child runs, the parent run's page and its first child run's page (the first screen at 1,280 × 800 in a fresh
+profile: MLflow's default panels, its Assistant open) and the 3D viewer artifact in Debian's ``chromium``, and
+writes downscaled PNGs into ``--out``, together with the parent run's ``metric_vs_value.png`` and
+``reconstructions.png``: every picture in ``docs/``. ``tests/integration/test_compare.py`` drives the same
+functions against its smoke sweep.
 """
 
 from __future__ import annotations
@@ -227,7 +227,10 @@ def first_screen(chromium: str, url: str, texts: list[str], screenshot: Path, pr
         browser.call("Emulation.setDeviceMetricsOverride", {"width": width, "height": height, "deviceScaleFactor": 1,
                                                             "mobile": False}, session)
         browser.call("Page.navigate", {"url": url}, session)
-        probe = f"{json.dumps(texts if wait_for is None else wait_for)}.every(t => document.body && document.body.innerText.includes(t))"
+        probe = (
+            f"{json.dumps(texts if wait_for is None else wait_for)}"
+            ".every(t => document.body && document.body.innerText.includes(t))"
+        )
         deadline = time.monotonic() + timeout
         while not browser.call("Runtime.evaluate", {"expression": probe, "returnByValue": True}, session)["result"].get(
             "value"
@@ -253,7 +256,8 @@ def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: li
 
     ids = json.dumps(child_run_ids, separators=(",", ":"))
     return {
-        "mlflow_sweep_view.png": f"{server}/{ui_link(f'#/experiments/{experiment_id}/runs?viewStateShareKey=sweep-{parent_run_id}')}",
+        "mlflow_sweep_view.png": f"{server}/"
+        f"{ui_link(f'#/experiments/{experiment_id}/runs?viewStateShareKey=sweep-{parent_run_id}')}",
         "mlflow_compare.png": f"{server}/"
         + ui_link(
             f"#/compare-runs?runs={urllib.parse.quote(ids)}"

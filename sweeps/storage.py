@@ -285,8 +285,9 @@ def private_folder(path: Path) -> Path:
 
 
 def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
-    """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent), never through a link standing at ``path``: a
-    symbolic link (``O_NOFOLLOW``) or a second name of another file (a hard link) is refused, its target untouched.
+    """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent), never through a link standing
+    at ``path``: a symbolic link (``O_NOFOLLOW``) or a second name of another file (a hard link) is refused,
+    its target untouched.
 
     Raises:
         StoreError: naming ``path``.
@@ -303,7 +304,8 @@ def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
             raise StoreError(
-                f"{path}: not a plain file with one name ({info.st_nlink} links) where this sweep writes a file; remove it"
+                f"{path}: not a plain file with one name ({info.st_nlink} links) where this sweep writes a file; "
+                "remove it"
             )
         os.ftruncate(fd, 0)
         out.write(text)
@@ -336,7 +338,8 @@ def read_text(location: str) -> str:
             raw = stream.read(size + 1)
     if size is None or size > MAX_STATE_BYTES or len(raw) > MAX_STATE_BYTES:
         raise StoreError(
-            f"--resume: {location} is over {MAX_STATE_BYTES} bytes, not a sweep's record; remove the folder to start over"
+            f"--resume: {location} is over {MAX_STATE_BYTES} bytes, not a sweep's record; "
+            "remove the folder to start over"
         )
     return raw.decode(errors="replace")  # a damaged file fails as JSON, with its name
 

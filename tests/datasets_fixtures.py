@@ -209,10 +209,10 @@ CO3D_SPLITS = {"train": 2, "val": 1, "test": 1}
 def make_co3d(root: Path, categories=("teddybear", "hydrant"), frames: int = 6, seed: int = 0,
               upscale: int = 1, splits: dict[str, int] | None = None,
               sequence_names: dict[str, list[str]] | None = None) -> Co3DTree:
-    """``root/<category>/...`` with ``splits`` sequences per set-list split (default train 2, val 1,
-    test 1) plus a train sequence without a point cloud. ``sequence_names`` (split → names) renames
-    the first sequences with clouds of a split in every category (e.g. to names on PC²'s lists). Images are 96×72 or 64×88 (× ``upscale``)
-    JPEGs; the world frame is the L shape scaled ×2.5, rotated and shifted; fx ≠ fy and an
+    """``root/<category>/...`` with ``splits`` sequences per set-list split (default train 2, val 1, test 1)
+    plus a train sequence without a point cloud. ``sequence_names`` (split → names) renames the first sequences
+    with clouds of a split in every category (e.g. to names on PC²'s lists). Images are 96×72 or
+    64×88 (× ``upscale``) JPEGs; the world frame is the L shape scaled ×2.5, rotated and shifted; fx ≠ fy and an
     off-centre principal point exercise the crop camera."""
     rng = np.random.default_rng(seed)
     tree = Co3DTree(root)

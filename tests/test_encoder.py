@@ -16,7 +16,8 @@ from tests.conftest import tiny_config
 
 
 def write_msn_checkpoint(path, seed: int = 0, *, module_prefix: bool = True):
-    """Random ViT-S/16 weights saved as MSN publishes them: ``target_encoder`` with ``module.`` keys and an ``fc`` head."""
+    """Random ViT-S/16 weights saved as MSN publishes them: ``target_encoder`` with ``module.`` keys and an
+    ``fc`` head."""
     torch.manual_seed(seed)
     vit = ViTS16()
     state = {k: torch.randn_like(v) * 0.05 for k, v in vit.state_dict().items()}

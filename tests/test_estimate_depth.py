@@ -44,7 +44,8 @@ def _save(model, folder: Path) -> str:
 
 
 def tiny_dpt(folder: Path) -> str:
-    """DINOv2's DPT head, as ``facebook/dpt-dinov2-*`` build it, at toy size (it outputs depth), saved into ``folder``."""
+    """DINOv2's DPT head, as ``facebook/dpt-dinov2-*`` build it, at toy size (it outputs depth), saved into
+    ``folder``."""
     torch.manual_seed(0)
     config = transformers.DPTConfig(backbone_config=_backbone(), hidden_size=32, neck_hidden_sizes=[16, 16, 16, 16],
                                     fusion_hidden_size=16, head_hidden_size=16, reassemble_factors=[4, 2, 1, 0.5])

@@ -278,14 +278,16 @@ def test_a_sweep_cell_names_pc2s_released_weights_and_a_missing_file_stops_it_be
     assert run.main([str(spec), "--dry-run", "--no-estimate", "--profile", "paper"]) == 0
     out = capsys.readouterr().out
     assert (
-        f"PC² (released weights) · categories=sofa · seed 0: inputs: model.init_from={inputs}/pc2/sofa/checkpoint-latest.pth (ok)\n"
+        "PC² (released weights) · categories=sofa · seed 0: inputs: "
+        f"model.init_from={inputs}/pc2/sofa/checkpoint-latest.pth (ok)\n"
         in out
     )
     # … its ViT-S/16 from the same file, not MSN's (the retrained cells read that one)
     listed = " ".join(out.split())  # the plan folds its lines at 120 columns
     assert (
-        "1. PC² (released weights) · categories=bottle · seed 0 (priors.prior_2d=none, priors.prior_3d=False, eval.only=True, "
-        "model.init_from=$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth, model.encoder_weights=None, data.categories=['bottle']) "
+        "1. PC² (released weights) · categories=bottle · seed 0 (priors.prior_2d=none, priors.prior_3d=False, "
+        "eval.only=True, model.init_from=$CDM_INPUTS/pc2/{category}/checkpoint-latest.pth, "
+        "model.encoder_weights=None, data.categories=['bottle']) "
         "[paper Table 3 · PC², hydrant (bottle stands in): eval/cd 92.32, eval/f1 0.485]"
     ) in listed
 

@@ -1,4 +1,5 @@
-"""The protocol card: a diff of the whole resolved config against the table's reference record, and where it is shown."""
+"""The protocol card: a diff of the whole resolved config against the table's reference record, and where it
+is shown."""
 
 from __future__ import annotations
 
@@ -315,7 +316,8 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     assert finished.protocol_card_lines(record_) == lines
     assert (
         lines[0]
-        == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa stand in for hydrant, teddybear and toytruck"
+        == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa "
+        "stand in for hydrant, teddybear and toytruck"
     )
     theirs = finished.results_table(record_, []).notes
     ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=run._settings(plan)).notes

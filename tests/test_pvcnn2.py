@@ -550,7 +550,8 @@ def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny, mask_channels: bool):
     batch = tiny_batch(n=300)
     context = net.encode(batch)
     features = net.encoder(batch.image, batch.mask, batch.prior_2d)
-    # PC²'s projection_model.py: RGB normalised to [-1, 1], image features, mask, distance; the prior after the features.
+    # PC²'s projection_model.py: RGB normalised to [-1, 1], image features, mask, distance; the prior after
+    # the features.
     pc2 = [batch.image * 2 - 1, features, batch.prior_2d, batch.mask, mask_distance_transform(batch.mask)]
     assert torch.equal(context.pixel, torch.cat(pc2[: 5 if cfg.model.mask_channels else 3], dim=1))
     out = net(batch.points, torch.tensor([0, 999]), context, batch.camera)

@@ -228,10 +228,12 @@ def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_st
     raw = {t.outcome.cell: report.describe_trial(record, t, table) for t in trials}
     assert max(len(line) for d in raw.values() for line in d.splitlines()) <= report.DESCRIPTION_WIDTH
     text = {cell: " ".join(d.split()) for cell, d in raw.items()}  # Markdown joins the wrapped lines
-    link = f"(#/experiments/{sweep.experiment_id}/runs/{sweep.run_id}?workflowType=machine_learning)"  # MLflow's model training
+    # workflowType: MLflow's model training view
+    link = f"(#/experiments/{sweep.experiment_id}/runs/{sweep.run_id}?workflowType=machine_learning)"
     assert text["point_size=0.04"] == (
         f"**point_size=0.04**, seed 0, a trial of the sweep [synth — profile smoke]{link}. At its last "
-        "evaluation eval/f1 (F1@0.01 sq. dist = 0.1 world) 0.48, eval/cd (CD ×1000) 60.0. Its cell against the reference "
+        "evaluation eval/f1 (F1@0.01 sq. dist = 0.1 world) 0.48, eval/cd (CD ×1000) 60.0. "
+        "Its cell against the reference "
         "cell: Δf1 +0.020 [+0.020, +0.020] "
         "(95% paired interval), better. Baselines it beats on eval/f1: sphere."
     )

@@ -101,7 +101,8 @@ def test_an_npy_header_over_the_cap_is_refused_before_allocating(tmp_path):
     path.write_bytes(npy_header((100_000, 100_000)))
     with pytest.raises(
         ValueError,
-        match=r"declares a float32 array of shape \(100000, 100000\) \(37.3 GiB\); an array read here may hold at most 512 MiB",
+        match=r"declares a float32 array of shape \(100000, 100000\) \(37.3 GiB\); "
+        r"an array read here may hold at most 512 MiB",
     ):
         load_npy(path, "priors.depth_maps")
     path.write_bytes(npy_header((1000, 1000)) + b"\0" * 100)

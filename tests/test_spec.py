@@ -253,7 +253,8 @@ def test_optuna_trial_from_sampled_values():
             "settle.margin: Input should be greater than 0",
         ),
         (
-            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 2, max: 3, until: settled}\nscheduler: {kind: asha}\n",
+            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 2, max: 3, until: settled}\n"
+            "scheduler: {kind: asha}\n",
             "scheduler: seeds until settled compares finished trials",
         ),
     ],

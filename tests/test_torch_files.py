@@ -1,4 +1,5 @@
-"""Torch files read as tensors and plain data only: what loads, the refusals in our words, and a config read as inert records."""
+"""Torch files read as tensors and plain data only: what loads, the refusals in our words, and a config read
+as inert records."""
 
 from __future__ import annotations
 

@@ -441,7 +441,8 @@ def _lock_store(db: Path, hold_s: float) -> subprocess.Popen:
     """Another writer holding ``db``'s write lock for ``hold_s`` seconds; prints once it holds it."""
     code = (
         "import sqlite3, sys, time; c = sqlite3.connect(sys.argv[1], isolation_level=None); "
-        "c.execute('BEGIN EXCLUSIVE'); print('locked', flush=True); time.sleep(float(sys.argv[2])); c.execute('ROLLBACK')"
+        "c.execute('BEGIN EXCLUSIVE'); print('locked', flush=True); time.sleep(float(sys.argv[2])); "
+        "c.execute('ROLLBACK')"
     )
     holder = subprocess.Popen([sys.executable, "-c", code, str(db), str(hold_s)], stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "locked"
@@ -579,7 +580,8 @@ def test_a_full_disk_is_recognised_from_python_and_from_torch():
 
 @contextlib.contextmanager
 def small_disk(folder: Path, size: str) -> Iterator[Path]:
-    """``folder`` as a fresh tmpfs of ``size`` (``mount -o size=…``); the test is skipped where mounting is not allowed."""
+    """``folder`` as a fresh tmpfs of ``size`` (``mount -o size=…``); the test is skipped where mounting is not
+    allowed."""
     folder.mkdir()
     mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True)
     if mounted.returncode != 0:

@@ -233,7 +233,8 @@ class PreparedRoot:
         missing = [p for p in (self.shard_path(published, oid) for _, oid in refs) if not p.is_file()]
         if missing:
             raise ValueError(
-                f"data.root: {self.root} is incomplete: {len(missing)} of {len(refs)} shards missing (first: {missing[0]}); "
+                f"data.root: {self.root} is incomplete: {len(missing)} of {len(refs)} shards missing "
+                f"(first: {missing[0]}); "
                 "run the same `python -m cdm prepare` command again to finish it"
             )
         return refs

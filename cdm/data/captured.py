@@ -260,7 +260,8 @@ class CapturedDataset(ObjectDataset):
         )
 
     def _train_view(self, index: int, count: int) -> int:
-        """``data.train_view`` as an index into object ``index``'s ``count`` input views (BDM's ``which_view_from24``)."""
+        """``data.train_view`` as an index into object ``index``'s ``count`` input views (BDM's
+        ``which_view_from24``)."""
         view = self.cfg.data.train_view
         if view >= count:
             raise ValueError(f"data.train_view: {view}, but {self.objects[index].object_id} has {count} input views")

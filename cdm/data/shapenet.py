@@ -210,7 +210,8 @@ class ShapeNetR2N2Dataset(CapturedDataset):
                 plain_name(model, f"{where}, model")
                 if pc_folder not in _PC15K_SPLITS:
                     raise ValueError(
-                        f"{where}, model {model}: PC15k folder {str(pc_folder)[:40]!r}; expected one of {', '.join(_PC15K_SPLITS)}"
+                        f"{where}, model {model}: PC15k folder {str(pc_folder)[:40]!r}; "
+                        f"expected one of {', '.join(_PC15K_SPLITS)}"
                     )
         # PC15k has models R2N2 never rendered (and BDM's file names clouds PC15k may lack): skipped.
         found = [(model, pc_folder) for model, pc_folder in entries

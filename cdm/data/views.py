@@ -12,8 +12,9 @@ Shared by every data set made of meshes (procedural shapes, mesh folders). Per o
 Per view: a random camera looking at the frame's origin (elevation −10…40°, azimuth 0…360°, distance
 3…4 frame units), its focal fitted so the rendered surface reaches a random 70–90 % of the half-frame in
 the widest of its prior views (a photographer's zoom: the image shows the object at about one size, and
-the focal, an input, carries how large it is), a random light and background; the dense cloud is rasterized by :func:`cdm.render.rasterize_points` with discs of
-1.5 px and the front-most point of each pixel is Lambert-shaded (two-sided normals).
+the focal, an input, carries how large it is), a random light and background; the dense cloud is
+rasterized by :func:`cdm.render.rasterize_points` with discs of 1.5 px and the front-most point of each
+pixel is Lambert-shaded (two-sided normals).
 
 :class:`ObjectDataset` holds what every such data set shares: ids, seeding, an LRU cache of
 surfaces, views per split. Seeding is a pure function of ``data.seed`` and the object id, so the

@@ -59,7 +59,8 @@ def _read(path: str | Path, names: bool):
     path = input_path(path)
     if not path.exists():
         raise ValueError(
-            f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py (docs/paper.md, 'External inputs')"
+            f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py "
+            "(docs/paper.md, 'External inputs')"
         )
     with open_regular(path, _FIELD) as f:
         single = f.read(6) == b"\x93NUMPY"

@@ -75,7 +75,8 @@ def _chunk(device: torch.device, pairs_per_row: int) -> int:
 
 
 def _squared_distances(a: Tensor, b: Tensor) -> Tensor:
-    """``(B, 3, P)`` and ``(B, 3, Q)`` → ``(B, P, Q)`` of ``Σ_axis (a − b)²``, summed x, y, z in order as the kernels do.
+    """``(B, 3, P)`` and ``(B, 3, Q)`` → ``(B, P, Q)`` of ``Σ_axis (a − b)²``, summed x, y, z in order as the
+    kernels do.
 
     In place on two buffers: the search is bound by memory traffic (2.5× faster than out-of-place).
     """

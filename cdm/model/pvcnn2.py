@@ -341,7 +341,8 @@ class PVCNN2Denoiser(nn.Module):
         """
         if conditioning.shape[:2] != x_t.shape[:2] or conditioning.shape[2] != self.in_channels:
             raise ValueError(
-                f"conditioning must be (B, N, {self.in_channels}) for x_t {tuple(x_t.shape)}, got {tuple(conditioning.shape)}"
+                f"conditioning must be (B, N, {self.in_channels}) for x_t {tuple(x_t.shape)}, "
+                f"got {tuple(conditioning.shape)}"
             )
         if (tokens is None) != (self.cross_att is None):
             raise ValueError("pass tokens exactly when the denoiser was built with token_channels")

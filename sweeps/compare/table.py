@@ -188,7 +188,8 @@ class _Pairing:
     diffs: dict[tuple[str, str], PairedDifference | str]
     """``(row name, metric) →`` the difference, or why there is none."""
     against: dict[str, dict[str, str]]
-    """Cell → baseline → weighed verdict of the cell against it (``better``: on the metric, not worse on the partner)."""
+    """Cell → baseline → weighed verdict of the cell against it (``better``: on the metric, not worse on the
+    partner)."""
     verdicts: dict[str, str]
     """Cell → its weighed verdict against the reference cell; a settled cell's says after how many seeds."""
     settled: Mapping[str, SettleRecord]
@@ -245,7 +246,8 @@ class _Pairing:
         return [b for b, v in self.against.get(name, {}).items() if v == "better"]
 
     def delta(self, name: str, m: str, metric: str) -> PairedDifference | str | None:
-        """Row ``name``'s Δ on ``m``: a settled cell's interval over seeds and objects on the metric, else the paired one."""
+        """Row ``name``'s Δ on ``m``: a settled cell's interval over seeds and objects on the metric, else the
+        paired one."""
         record = self.settled.get(name)
         if record is not None and m == metric:
             i = record.decision.interval

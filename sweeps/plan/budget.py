@@ -42,7 +42,8 @@ def parse_budget(text: str) -> SeedBudget:
     :data:`MAX_BUDGET_TRIALS`) as a :class:`SeedBudget`.
 
     Raises:
-        LimitError: anything else (empty, ``²``, 5,001 digits, ``1e400`` seconds), naming ``--budget`` and the accepted forms.
+        LimitError: anything else (empty, ``²``, 5,001 digits, ``1e400`` seconds), naming ``--budget`` and the
+            accepted forms.
     """
     if not isinstance(text, str):
         raise LimitError(f"--budget {str(text)[:40]!r}: expected text such as 2h or 12")

@@ -52,7 +52,8 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
         out += rule
     else:
         out.append(
-            f"search: grid, {plan.num_trials} trials ({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):"
+            f"search: grid, {plan.num_trials} trials "
+            f"({plan.num_trials // len(spec.seeds)} cells × {len(spec.seeds)} seeds):"
         )
     if not spec.search.sampled:
         for i, cell in enumerate(plan.cells, 1):

@@ -1,11 +1,11 @@
 """What a sweep will cost, said before it starts: trials, wall time on this machine, paper-profile GPU-hours.
 
-Local time comes from a short calibration in this process, on one torch thread (how trials run on a
-small machine): a few training steps of every distinct cell (up to :data:`CALIBRATED_CELLS`, spread over
-the grid; a cell's loss can cost more than its neighbour's, e.g. depth renders against none) and one
-evaluation per distinct evaluation cost (:func:`_eval_signature`, at most :data:`EVALUATED_CELLS`). Trials run one thread each; when
-the sweep shares its training views and evaluation set (:mod:`sweeps.execute.precompute`), they are rendered
-once before the trials, on every CPU, and the trials no longer pay them:
+Local time comes from a short calibration in this process, on one torch thread (how trials run on a small
+machine): a few training steps of every distinct cell (up to :data:`CALIBRATED_CELLS`, spread over the grid; a
+cell's loss can cost more than its neighbour's, e.g. depth renders against none) and one evaluation per distinct
+evaluation cost (:func:`_eval_signature`, at most :data:`EVALUATED_CELLS`). Trials run one thread each; when the
+sweep shares its training views and evaluation set (:mod:`sweeps.execute.precompute`), they are rendered once
+before the trials, on every CPU, and the trials no longer pay them:
 
     trial ≈ start-up + set-up + steps × (step [+ batch]) + evaluations × evaluation [− building the set]
     wall  ≈ shared work + ⌈trials ÷ concurrent⌉ × trial       (concurrent ≤ CPUs: waves)
@@ -44,7 +44,8 @@ __all__ = ["BOUND_GPU", "GPU_COSTS", "PEAK_FLOPS", "Estimate", "TrialCost", "cal
 
 GPU_COSTS = Path(__file__).resolve().parents[2] / "benchmarks" / "gpu_costs.json"
 STARTUP_S = 2.0
-"""Seconds per trial outside training in local mode with reused actors (measured with ray 2.60 on 2 CPUs; benchmarks/RESULTS.md, sweep efficiency)."""
+"""Seconds per trial outside training in local mode with reused actors (measured with ray 2.60 on 2 CPUs;
+benchmarks/RESULTS.md, sweep efficiency)."""
 PEAK_FLOPS: dict[str, dict[str, float]] = {
     # Dense (no sparsity) tensor-core peaks, FLOP/s, from NVIDIA's datasheets: "NVIDIA H100 Tensor Core GPU"
     # (SXM: FP16/BF16 1,979 and TF32 989 TFLOPS with sparsity; PCIe 1,513 and 756), "NVIDIA H200 Tensor
@@ -98,7 +99,8 @@ class Estimate:
 
     def text(self) -> str:
         return (
-            f"estimate: {'worst case, ' if self.worst_case else ''}{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
+            f"estimate: {'worst case, ' if self.worst_case else ''}"
+            f"{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
             f"{self.concurrent} at a time → "
             f"~{self.wall_s / 60:.1f} min wall on this machine;\n  {self.gpu_line}"
         )
@@ -239,7 +241,8 @@ def _measured_details(figures: dict, cfg: Config) -> str:
         parts.append(f"largest batch that fits {entry['largest_batch']}")
     if step.get("sample_batch_s") is not None:
         parts.append(
-            f"a batch through 1,000 DDPM steps {step['sample_batch_s']:.0f} s ({step.get('sample_batch_note', 'measured')})"
+            f"a batch through 1,000 DDPM steps {step['sample_batch_s']:.0f} s "
+            f"({step.get('sample_batch_note', 'measured')})"
         )
     if step.get("flop_fraction") is not None:
         parts.append(f"{100 * step['flop_fraction']:.1f} % of the device's peak FLOP/s")

@@ -54,7 +54,8 @@ def plan_concurrency(
     if per_cpu > cpus or per_gpu > gpus:
         has = "could offer at most" if remote else "has"
         raise SpecError(
-            f"resources: one trial needs {per_cpu:g} CPUs and {per_gpu:g} GPUs but the cluster {has} {cpus:g} and {gpus:g}; "
+            f"resources: one trial needs {per_cpu:g} CPUs and {per_gpu:g} GPUs "
+            f"but the cluster {has} {cpus:g} and {gpus:g}; "
             "lower resources.cpus_per_worker / gpus_per_worker / workers_per_trial"
             + (
                 "; or give the cluster a node type that fits one trial (its autoscaler's bounds count, where it "

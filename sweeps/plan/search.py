@@ -31,7 +31,8 @@ class SearchSettings(Protocol):
     sampler: str
     seed: int
     space: Mapping[str, Any]
-    """Dotted config field → :class:`sweeps.plan.spec.SpaceParam` (``type``, ``low``, ``high``, ``step``, ``choices``)."""
+    """Dotted config field → :class:`sweeps.plan.spec.SpaceParam` (``type``, ``low``, ``high``, ``step``,
+    ``choices``)."""
 
 
 class SearchKind:

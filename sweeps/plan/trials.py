@@ -11,8 +11,8 @@ One trial's config is resolved in this order, later wins::
 
 :func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
 the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
-searcher may start has its label and config before Ray starts), validates a sampled search's space at its bounds, and checks
-the metric against :func:`cdm.train.metric_names`, so a typo fails with one
+searcher may start has its label and config before Ray starts), validates a sampled search's space at
+its bounds, and checks the metric against :func:`cdm.train.metric_names`, so a typo fails with one
 :class:`sweeps.plan.spec.SpecError` naming the field.
 """
 
@@ -218,7 +218,8 @@ def cell_name(values: dict[str, Any]) -> str:
 
 
 def _cell_values(spec: Spec) -> Iterator[tuple[str, dict[str, Any]]]:
-    """(name, swept values) per cell, one at a time: explicit cells crossed with the grid, minus excluded combinations."""
+    """(name, swept values) per cell, one at a time: explicit cells crossed with the grid, minus excluded
+    combinations."""
     keys = list(spec.grid)
     for cell in spec.cells or [ExplicitCell(label="")]:
         for vals in itertools.product(*spec.grid.values()):

@@ -150,7 +150,8 @@ def describe_sweep(
                   "`results.md` artifact.")]
     notes = [n for n in table.notes if not n.startswith(PROTOCOL_NOTE)]
     out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
-    # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists them whole.
+    # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists
+    # them whole.
     out += (
         [
             "**Protocol card** (sources in `results.md`):\n"
@@ -295,7 +296,8 @@ def publish(uri: str, parent_run_id: str, folder: Path) -> str:
             tags = {"mlflow.note.content": describe_trial(record, t, table)} | row_tags(
                 table, t.outcome.cell, record.spec.metric.name
             )
-            # The fields the sweep set, in full: of ~84 params, the ones that vary (priors.point_size, not model.raster_radius).
+            # The fields the sweep set, in full: of ~84 params, the ones that vary (priors.point_size, not
+            # model.raster_radius).
             tags |= {"swept": ", ".join(f"{k}={v}" for k, v in t.values.items())} if t.values else {}
             for key, value in tags.items():
                 record.client.set_tag(t.run_id, key, value)

@@ -108,7 +108,10 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
         except ValueError as exc:  # ConfigError: a recorded value this code no longer accepts
             raise RerunError(f"--rerun: run {run_id}'s config.yaml: {exc}") from None
     if config_hash(config) != tags["repro.config_hash"]:
-        message = f"config hash {config_hash(config)} differs from the recorded {_shown(tags['repro.config_hash'])} (defaults changed?)"
+        message = (
+            f"config hash {config_hash(config)} differs from the recorded {_shown(tags['repro.config_hash'])} "
+            "(defaults changed?)"
+        )
         if not force:
             raise RerunError(message + "; pass --force to re-run anyway")
         warnings.append(message)

@@ -89,7 +89,8 @@ def baseline_rows(record: SweepRecord, table: ResultsTable) -> list[str]:
                     "sweep": parent,
                     "kind": BASELINE_KIND,
                     "vs reference": BASELINE_KIND,
-                    "mlflow.note.content": f"The trivial baseline {name.removeprefix('baseline: ')}, scored on the sweep's "
+                    "mlflow.note.content": f"The trivial baseline {name.removeprefix('baseline: ')}, "
+                    "scored on the sweep's "
                     "held-out objects (`cdm/evaluate.py`): what a cell's number is worth.",
                 },
             ).info.run_id

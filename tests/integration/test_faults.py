@@ -253,7 +253,8 @@ def test_killed_train_worker_resumes_from_its_checkpoint(machines, mlflow_http, 
 name: worker_kill
 grid: {{priors.point_size: [0.04]}}
 failure: {{max_retries: 1}}
-profiles: {{smoke: {{budget: {{steps: {steps}, eval_every: {every}}}, resources: {{workers_per_trial: 1, cpus_per_worker: 0.99}}}}}}
+profiles:
+  smoke: {{budget: {{steps: {steps}, eval_every: {every}}}, resources: {{workers_per_trial: 1, cpus_per_worker: 0.99}}}}
 """,
         mlflow_http,
     )
@@ -390,7 +391,7 @@ def test_an_input_the_estimate_cannot_read_fails_in_one_line_and_leaves_no_sweep
         "--address",
         machines.cluster.address,
     ]
-    for attempt in range(2):  # the same command again is refused for the input, not as "already holds a sweep"
+    for _ in range(2):  # the same command again is refused for the input, not as "already holds a sweep"
         capfd.readouterr()
         assert run.main(argv) == 2
         err = capfd.readouterr().err

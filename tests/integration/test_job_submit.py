@@ -119,7 +119,8 @@ class Head:
 
 @pytest.fixture(scope="module")
 def ray_head() -> Iterator[Head]:
-    """A one-node Ray head (2 CPUs, dashboard on 127.0.0.1, token auth on) for this module's tests, stopped afterwards."""
+    """A one-node Ray head (2 CPUs, dashboard on 127.0.0.1, token auth on) for this module's tests, stopped
+    afterwards."""
     # Without ray[default] the dashboard starts in minimal mode with no HTTP server, so no job can
     # be submitted: say so instead of timing out.
     missing = [m for m in ("aiohttp_cors", "grpc", "opencensus") if importlib.util.find_spec(m) is None]
