@@ -161,9 +161,9 @@ def main(argv: list[str] | None = None) -> int:
         except StoreError as exc:
             return _fail(str(exc))
     if args.report is not None:
-        from sweeps.results import report
+        from sweeps.results import publish
 
-        return report.main([args.report, *(["--tracking-uri", args.tracking_uri] if args.tracking_uri else [])])
+        return publish.main([args.report, *(["--tracking-uri", args.tracking_uri] if args.tracking_uri else [])])
     if args.rerun is not None:
         from sweeps.execute.tracking import resolve_tracking_uri
         from sweeps.results.rerun import RerunError, rerun
@@ -316,7 +316,7 @@ def _run(
     from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
     from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, resolve_tracking_uri
     from sweeps.execute.trial import run_sweep
-    from sweeps.results.report import describe_sweep, publish
+    from sweeps.results.publish import describe_sweep, publish
 
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
     # in a staging folder, copied at once (sweep.json, so a crashed sweep can be resumed) and at the end.

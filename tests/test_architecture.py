@@ -228,7 +228,7 @@ def test_the_stage_check_catches_an_import_from_a_later_stage():
         "sweeps.plan.spec": {"sweeps.execute.trial"},
         "sweeps.execute.trial": {"sweeps.plan.spec", "sweeps.storage"},
         "sweeps.storage": {"sweeps.compare.table"},
-        "sweeps.run": {"sweeps.results.report"},
+        "sweeps.run": {"sweeps.results.publish"},
     }
     assert _backward_arrows(graph) == [
         "sweeps.plan.spec ─► sweeps.execute.trial",

@@ -8,9 +8,9 @@ import json
 from mlflow import MlflowClient
 
 from sweeps.results import finished, view
-from tests import test_report
+from tests import test_publish
 
-grid_store = test_report.grid_store  # three cells (0.02, 0.04, 0.08 failed), one seed each, the sphere baseline
+grid_store = test_publish.grid_store  # three cells (0.02, 0.04, 0.08 failed), one seed each, the sphere baseline
 
 
 def test_shared_view_lands_on_scores_verdicts_and_baselines(grid_store):

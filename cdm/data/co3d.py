@@ -4,8 +4,7 @@ Layout under ``data.root`` (as published, one folder per category)::
 
     <category>/frame_annotations.jgz       gzipped JSON list: one entry per frame (image, mask, depth, viewpoint)
     <category>/sequence_annotations.jgz    gzipped JSON list: one entry per sequence (its point_cloud)
-    <category>/set_lists/set_lists_fewview_dev.json
-                                           {"train"|"val"|"test": [[sequence, frame_number, image path], ...]}
+    <category>/set_lists/set_lists_fewview_dev.json   {"train"|"val"|"test": [[sequence, frame_number, image path], …]}
     <category>/<sequence>/images/frame000001.jpg, masks/frame000001.png,
         depths/frame000001.jpg.geometric.png, pointcloud.ply
 
@@ -338,8 +337,7 @@ class Co3DDataset(CapturedDataset):
         )
         if not found:
             raise ValueError(
-                f"data.root: {root} has no Co3D category folder (none holds frame_annotations.jgz); "
-                f"expected {cls.layout}"
+                f"data.root: {root} has no Co3D category folder (no frame_annotations.jgz); expected {cls.layout}"
             )
         return found
 
@@ -367,8 +365,7 @@ class Co3DDataset(CapturedDataset):
                     refs.append((name, object_id))
             if not refs:
                 raise ValueError(
-                    f"data.root: no sequence of {folder} with a point cloud is in the {self.published!r} "
-                    f"list of {SET_LIST}"
+                    f"data.root: no sequence of {folder} with a cloud is in the {self.published!r} list of {SET_LIST}"
                 )
             per_category.append(refs)
         return interleave(per_category)
@@ -411,13 +408,11 @@ class Co3DDataset(CapturedDataset):
         bgr = read_image(path, cv2.IMREAD_COLOR, "data.root")
         if bgr is None:
             raise ValueError(
-                f"data.root: cannot read image {path} (missing or corrupt); "
-                f"expected a JPEG of {frame.size[1]}×{frame.size[0]}"
+                f"data.root: cannot read image {path} (missing or corrupt); expected {frame.size[1]}×{frame.size[0]}"
             )
         if bgr.shape[:2] != frame.size:
             raise ValueError(
-                f"data.root: {path} is {bgr.shape[1]}×{bgr.shape[0]}, "
-                f"its annotation says {frame.size[1]}×{frame.size[0]}"
+                f"data.root: {path} is {bgr.shape[1]}×{bgr.shape[0]}, annotated as {frame.size[1]}×{frame.size[0]}"
             )
         mask = read_image(self.root / frame.mask, cv2.IMREAD_GRAYSCALE, "data.root")
         if mask is None:

@@ -415,10 +415,9 @@ FRAMES: dict[str, Frame] = {
         "table": ((0.0, 0.54, 0.0), 1.25),
     }.items()
 }
-"""Each category's frame (:mod:`cdm.normalise`), fixed for the data set: the union bounding box of 1,000 objects
-of the category (seeds ``[7, i]``) in the world frame of :func:`make_shape`, its largest half-extent widened by
-2 % and rounded up. Every object fits ``[-1, 1]³`` in it; the median one reaches 0.6–0.8
-(``tests/test_normalise.py``)."""
+"""Each category's frame (:mod:`cdm.normalise`), fixed for the data set: the union bounding box of 1,000 objects of
+the category (seeds ``[7, i]``) in the world frame of :func:`make_shape`, its largest half-extent widened by 2 % and
+rounded up. Every object fits ``[-1, 1]³`` in it; the median one reaches 0.6–0.8 (``tests/test_normalise.py``)."""
 
 
 class ProceduralDataset(ObjectDataset):

@@ -1,7 +1,7 @@
 """Reconstructions of a sweep side by side: a PNG grid and a self-contained 3D viewer (HTML).
 
 Rows are the same evaluated objects (one per category), columns the sweep's cells, then the ground
-truth and the best baseline. Knows nothing of MLflow: :mod:`sweeps.results.report` downloads the clouds and
+truth and the best baseline. Knows nothing of MLflow: :mod:`sweeps.results.publish` downloads the clouds and
 hands them in as arrays. The viewer is one HTML file with its data and its JavaScript inline (no
 network, no library), so MLflow's artifact view shows it as it is and it opens offline.
 """

@@ -1,6 +1,6 @@
 """Plots of a sweep for comparing its cells: metric vs swept value, training curves, Optuna's own views.
 
-Knows nothing of MLflow: :mod:`sweeps.results.report` reads the runs and hands in plain numbers. Every
+Knows nothing of MLflow: :mod:`sweeps.results.publish` reads the runs and hands in plain numbers. Every
 function writes one PNG (matplotlib's Agg backend, no display needed) and returns its path.
 """
 

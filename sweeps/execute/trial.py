@@ -38,10 +38,10 @@ from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
 from sweeps.compare.table import TrialOutcome, sweep_order, unstarted
-from sweeps.execute.checkpoints import KEEP, CheckpointPruner, prune_finished
 from sweeps.execute.cores import CoreLease, lease_cores
 from sweeps.execute.precompute import precompute, shared_root
 from sweeps.execute.progress import StepReporter, quiet_loggers
+from sweeps.execute.pruning import KEEP, CheckpointPruner, prune_finished
 from sweeps.execute.tracking import SweepRun, TrialRun, finished_trial_metrics
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
@@ -222,7 +222,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
             name=f"trial_{trial_id}",
             storage_path=f"{setup.sweep_dir}/train",
             failure_config=ray.train.FailureConfig(max_failures=plan.spec.failure.max_retries),
-            # Safe here, unlike Tune's (sweeps/execute/checkpoints.py): Train writes the state naming its newest
+            # Safe here, unlike Tune's (sweeps/execute/pruning.py): Train writes the state naming its newest
             # checkpoints before deleting older ones (ray/train/v2/.../checkpoint_manager.py).
             checkpoint_config=ray.train.CheckpointConfig(num_to_keep=KEEP),
             callbacks=_tune_report_callbacks() if r.workers_per_trial else None,
@@ -411,7 +411,7 @@ def run_sweep(
                 name=sweep_dir.rsplit("/", 1)[1],
                 storage_path=sweep_dir.rsplit("/", 1)[0],
                 failure_config=ray.tune.FailureConfig(max_failures=plan.spec.failure.max_retries),
-                # Every checkpoint stays until CheckpointPruner (sweeps/execute/checkpoints.py) deletes it
+                # Every checkpoint stays until CheckpointPruner (sweeps/execute/pruning.py) deletes it
                 # safely: Tune's num_to_keep deletes before the state naming the newer one is uploaded.
                 checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=None),
                 sync_config=ray.tune.SyncConfig(sync_period=1),

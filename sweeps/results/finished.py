@@ -3,7 +3,7 @@
 :func:`open_sweep` finds the sweep (the experiment's latest, or a given parent run), :func:`trial_records`
 rebuilds each trial's outcome as the runner's results table reads it, and :func:`results_table` the
 table itself; :func:`paper_layout` sets the cells out as the paper prints them (for the notebook).
-The runner's end-of-sweep publishing and ``sweeps/results/report.py`` are built on these; so is the notebook.
+The runner's end-of-sweep publishing and ``sweeps/results/publish.py`` are built on these; so is the notebook.
 """
 
 from __future__ import annotations

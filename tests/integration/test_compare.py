@@ -27,9 +27,9 @@ from docs import screenshots
 from sweeps import run
 from sweeps.compare.rules import rounded
 from sweeps.execute.tracking import last_eval_files, last_objects
-from sweeps.results import report
+from sweeps.results import publish
 from tests.integration.local_ray import local_ray
-from tests.test_report import _overlap, panel_views
+from tests.test_publish import _overlap, panel_views
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -158,7 +158,7 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
 
 def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, monkeypatch):
     out = tmp_path / "report"
-    assert report.main(["compare", "--tracking-uri", smoke.uri, "--out", str(out)]) == 0
+    assert publish.main(["compare", "--tracking-uri", smoke.uri, "--out", str(out)]) == 0
     rebuilt = (out / "results.md").read_text()
     assert rebuilt == (smoke.folder / "results" / "compare" / "smoke" / "results.md").read_text()
     assert "Δf1 vs point_size=0.02 [95% CI]" in rebuilt and rebuilt.count("| point_size=0.0") == 2

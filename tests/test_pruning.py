@@ -8,7 +8,7 @@ from pathlib import Path
 import ray.tune
 from ray.tune.experiment import Trial
 
-from sweeps.execute.checkpoints import CheckpointPruner, prune_finished
+from sweeps.execute.pruning import CheckpointPruner, prune_finished
 
 
 def _checkpoints(folder: Path, n: int) -> list[ray.tune.Checkpoint]:

@@ -28,7 +28,7 @@ from sweeps.compare import rules
 from sweeps.execute.tracking import SweepRun, TrialRun
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
-from sweeps.results import finished, report
+from sweeps.results import finished, publish
 from tests.conftest import tiny_config
 
 GRID = """name: synth
@@ -162,7 +162,7 @@ def test_final_metrics_are_the_last_evaluation_under_stable_names(grid_store):
 def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, tmp_path, capsys):
     uri, _ = grid_store
     out = tmp_path / "report"
-    assert report.main(["synth", "--tracking-uri", uri, "--out", str(out)]) == 0
+    assert publish.main(["synth", "--tracking-uri", uri, "--out", str(out)]) == 0
     text = capsys.readouterr().out
     rows = {line.split("  ")[0].rstrip(" ★"): line for line in text.splitlines() if line.startswith("point_size=")}
     assert set(rows) == {"point_size=0.02", "point_size=0.04", "point_size=0.08"}
@@ -216,7 +216,7 @@ def test_paper_layout_puts_ours_beside_the_paper_per_cell(grid_store):
 
 def test_unknown_experiment_exits_2_listing_the_known_ones(grid_store, capsys):
     uri, _ = grid_store
-    assert report.main(["point_sise", "--tracking-uri", uri]) == 2
+    assert publish.main(["point_sise", "--tracking-uri", uri]) == 2
     assert capsys.readouterr().err.strip() == "error: no MLflow experiment named 'point_sise'; known: Default, synth"
 
 
@@ -225,8 +225,8 @@ def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_st
     record = finished.open_sweep(uri, "synth")
     trials = finished.trial_records(record)
     table = finished.results_table(record, trials)
-    raw = {t.outcome.cell: report.describe_trial(record, t, table) for t in trials}
-    assert max(len(line) for d in raw.values() for line in d.splitlines()) <= report.DESCRIPTION_WIDTH
+    raw = {t.outcome.cell: publish.describe_trial(record, t, table) for t in trials}
+    assert max(len(line) for d in raw.values() for line in d.splitlines()) <= publish.DESCRIPTION_WIDTH
     text = {cell: " ".join(d.split()) for cell, d in raw.items()}  # Markdown joins the wrapped lines
     # workflowType: MLflow's model training view
     link = f"(#/experiments/{sweep.experiment_id}/runs/{sweep.run_id}?workflowType=machine_learning)"
@@ -273,7 +273,7 @@ def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_stor
     record = finished.open_sweep(uri, "synth")
     table = finished.results_table(record, finished.trial_records(record))
     card = finished.protocol_card_lines(record)
-    text = report.describe_sweep(record.spec, "smoke", "tiny", table, card)
+    text = publish.describe_sweep(record.spec, "smoke", "tiny", table, card)
     blocks = text.split("\n\n")
     assert blocks[0] == ("**synth**, profile **smoke**, by eval/f1 (higher is better): best cell point_size=0.04 "
                          "(Δf1 +0.020 [+0.020, +0.020] against the next cell): beats sphere.")
@@ -290,7 +290,7 @@ def test_description_lines_are_short_and_every_number_rounded(grid_store):
     record = finished.open_sweep(uri, "synth")
     table = finished.results_table(record, finished.trial_records(record))
     long_card = ["deviation: train.steps: 20, not 100000 (" + "a source " * 40 + ")"]
-    text = report.describe_sweep(record.spec, "smoke", "a profile " * 40, table, long_card)
+    text = publish.describe_sweep(record.spec, "smoke", "a profile " * 40, table, long_card)
     assert max(len(line) for line in text.splitlines()) <= 200
     # The tables' precision: 3 decimals below 10, 2 above; no 16-digit float (0.42000000000000004).
     assert not re.findall(r"\d\.\d{4,}", text)
@@ -311,7 +311,7 @@ def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
     trials = finished.trial_records(record, objects=False)
     assert [t.outcome.label for t in trials] == ["λ=0.1 · seed 0", "λ=0.01 · seed 0", "λ=1 · seed 0", "λ=5 · seed 0"]
     assert [t.values["priors.lambda_3d"] for t in trials] == [0.1, 0.01, 1.0, 5.0]
-    paths = report.write_plots(record, trials, tmp_path / "plots")
+    paths = publish.write_plots(record, trials, tmp_path / "plots")
     assert [p.name for p in paths] == [
         "metric_vs_value.png",
         "training_curves.png",
@@ -461,7 +461,7 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
     sweep.log_results({"e1": base}, "grid")
     sweep.end()
     record = finished.open_sweep(uri, "synth")
-    png, page = report.reconstructions(record, finished.trial_records(record, objects=False), tmp_path / "out")
+    png, page = publish.reconstructions(record, finished.trial_records(record, objects=False), tmp_path / "out")
     width, height = Image.open(png).size
     assert width > 1.5 * height  # 4 columns (2 cells, GT, best baseline) × 2 rows
     text = page.read_text()
