@@ -8,8 +8,9 @@ import statistics
 import pytest
 import torch
 
+from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.rules import metric_label, settings_note
-from sweeps.compare.table import TrialOutcome, build_table
+from sweeps.compare.table import build_table
 
 
 def _trial(cell, seed, status="ok", **metrics):

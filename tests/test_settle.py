@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.settle import check_budget, describe_rule, next_round, object_scores, outcome_results
-from sweeps.compare.table import TrialOutcome
 from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.spec import Spec, SpecError
 from sweeps.plan.trials import SweepPlan, expand

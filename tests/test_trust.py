@@ -120,7 +120,8 @@ def test_a_planted_state_file_link_is_not_written_through(in_tmp):
 
 @pytest.mark.parametrize("plant", ["symlink", "hardlink"])
 def test_results_files_are_never_written_through_a_planted_link(tmp_path, plant):
-    from sweeps.compare.table import TrialOutcome, build_table
+    from sweeps.compare.outcomes import TrialOutcome
+    from sweeps.compare.table import build_table
 
     table = build_table([TrialOutcome("a · seed 0", "a", "ok", {"eval/f1": 0.5})], "eval/f1", "max", "t")
     clean = tmp_path / "clean"

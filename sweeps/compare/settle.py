@@ -26,10 +26,10 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.paired import UnpairedError
 from sweeps.compare.rules import object_column
 from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
-from sweeps.compare.table import TrialOutcome
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.spec import SpecError
 from sweeps.plan.trials import Cell, SweepPlan

@@ -1,87 +1,39 @@
 """The results table of a sweep: one row per cell, mean ± std over seeds, the paper's number beside it.
 
-Knows nothing of Ray or MLflow: the runner turns finished trials into :class:`TrialOutcome` s and
-this module aggregates and formats them — plain text for the terminal, Markdown and CSV for the
-sweep folder. Trivial baselines the trainer reports (``baseline/<name>/<metric>``: sphere, Gaussian,
-category mean, retrieval) get their own rows, so a local result is never read without them (the
-local recipes land near them: benchmarks/RESULTS.md, "Which recipe learns").
+Knows nothing of Ray or MLflow: the runner turns finished trials into
+:class:`sweeps.compare.outcomes.TrialOutcome` s and this module aggregates and formats them — plain text
+for the terminal, Markdown and CSV for the sweep folder. Trivial baselines the trainer reports
+(``baseline/<name>/<metric>``: sphere, Gaussian, category mean, retrieval) get their own rows, so a local
+result is never read without them (the local recipes land near them: benchmarks/RESULTS.md, "Which
+recipe learns").
 
 When trials carry their per-object scores, every cell (and every baseline) is also compared pairwise
-with a reference cell (:mod:`sweeps.compare.paired`): mean difference, 95% bootstrap interval and a verdict,
-plus which baselines the cell beats with an interval that excludes 0. A verdict weighs the metric
-and its partner (``better on f1, worse on cd``); cells that ran until their comparison settled
-(:mod:`sweeps.compare.sequential`) show their seeds, why they stopped, and an interval over seeds and objects.
+with a reference cell (:mod:`sweeps.compare.pairing`): the Δ columns, a verdict weighing the metric and
+its partner (``better on f1, worse on cd``), the baselines the cell beats; cells that ran until their
+comparison settled (:mod:`sweeps.compare.sequential`) show their seeds, why they stopped, and an
+interval over seeds and objects.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import math
 import textwrap
-from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from cdm.evaluate import BASELINES
-from sweeps.compare.paired import PairedDifference, UnpairedError, compare, per_object_means
-from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode, weighed
+from sweeps.compare.outcomes import TrialOutcome, finished
+from sweeps.compare.paired import PairedDifference
+from sweeps.compare.pairing import Pairing, lead_difference, paired_record
+from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
 
-__all__ = ["FINISHED", "ResultsTable", "TrialOutcome", "build_table", "sweep_order", "unstarted"]
-
-Status = Literal["ok", "stopped", "failed", "pending"]
-FINISHED: tuple[Status, ...] = ("ok", "stopped")
-"""Statuses whose trial has metrics to aggregate: ran to the end, or stopped early by the scheduler."""
-
-
-@dataclass(frozen=True)
-class TrialOutcome:
-    """How one trial ended and its last evaluation's metrics."""
-
-    label: str
-    """Unique trial label (the MLflow run name)."""
-    cell: str
-    """Cell name; trials of one cell at different seeds are aggregated."""
-    status: Status
-    """``ok`` ran to the end, ``stopped`` early by the scheduler, ``failed`` raised, ``pending`` never ran."""
-    metrics: dict[str, float] = field(default_factory=dict)
-    paper_label: str | None = None
-    paper: dict[str, float] = field(default_factory=dict)
-    error: str | None = None
-    objects: tuple[dict[str, object], ...] = ()
-    """Per-object rows of the last evaluation (``object_id``, ``category``, ``cd``, ``f1``, ``baseline/…``)."""
-
-    @property
-    def finished(self) -> bool:
-        """Ran to the end or was stopped early: its last evaluation counts."""
-        return self.status in FINISHED
-
-
-def sweep_order(
-    labels: Sequence[str] | None, metric: str, mode: Literal["min", "max"]
-) -> Callable[[TrialOutcome], float]:
-    """Sort key of a sweep's outcomes, as the runner and the report list them: a grid's trials in its
-    plan's order ``labels`` (unplanned last); an Optuna sweep's (``labels`` None) best ``metric`` first."""
-    if labels is not None:
-        order = {label: i for i, label in enumerate(labels)}
-        return lambda o: order.get(o.label, len(order))
-    sign = 1 if mode == "min" else -1
-    return lambda o: sign * o.metrics.get(metric, sign * math.inf)
-
-
-def unstarted(
-    planned: Sequence[str], outcomes: Iterable[TrialOutcome], next_round: Collection[str] | None = None
-) -> list[str]:
-    """Labels of a grid's ``planned`` trials with no outcome, in plan order: the rows an interrupted sweep
-    lists as pending, the runner's table and the report's alike. ``next_round``: a sequential sweep's
-    trials its rule would start next (:func:`sweeps.compare.settle.final_round`); the seeds it never
-    needed are no trials of it."""
-    seen = {o.label for o in outcomes}
-    return [label for label in planned if label not in seen and (next_round is None or label in next_round)]
+__all__ = ["ResultsTable", "build_table"]
 
 
 @dataclass(frozen=True)
@@ -168,101 +120,40 @@ def _categories(outcomes: Sequence[TrialOutcome], metric: str) -> list[str]:
     return sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
 
 
-def _finished(group: Sequence[TrialOutcome]) -> list[TrialOutcome]:
-    return [o for o in group if o.finished]
+@dataclass(frozen=True)
+class _Columns:
+    """What a table shows, shared by its header, its rows and its notes."""
 
+    metric: str
+    shown: list[str]
+    """The metric and its partner (:func:`sweeps.compare.rules.partner`), each with the paper's beside."""
+    categories: list[str]
+    """Categories with a ``<metric>/<category>`` column, in the wide table only."""
+    paper_label: bool
+    """A ``paper setting`` column: some trial names the paper's row it stands for."""
+    pairing: Pairing | None
 
-def _object_scores(group: Sequence[TrialOutcome], key: str, category: str | None) -> dict[str, float]:
-    """``object_id →`` score under ``key`` of a cell's finished trials, seeds averaged per object."""
-    trials = [
-        [r for r in o.objects if category is None or r["category"] == category] for o in _finished(group) if o.objects
-    ]
-    return per_object_means(trials, key) if trials and all(key in r for t in trials for r in t) else {}
+    @property
+    def seeds(self) -> bool:
+        """A ``seeds`` column: some cell ran until its comparison settled."""
+        return bool(self.pairing and self.pairing.settled)
 
+    @property
+    def per_category(self) -> list[str]:
+        return [f"{self.metric}/{c}" for c in self.categories]
 
-@dataclass
-class _Pairing:
-    """Paired differences of every cell and baseline against the reference cell, per shown metric."""
-
-    reference: str
-    diffs: dict[tuple[str, str], PairedDifference | str]
-    """``(row name, metric) →`` the difference, or why there is none."""
-    against: dict[str, dict[str, str]]
-    """Cell → baseline → weighed verdict of the cell against it (``better``: on the metric, not worse on the
-    partner)."""
-    verdicts: dict[str, str]
-    """Cell → its weighed verdict against the reference cell; a settled cell's says after how many seeds."""
-    settled: Mapping[str, SettleRecord]
-    notes: list[str]
-
-    @classmethod
-    def build(cls, cells: dict[str, list[TrialOutcome]], reference: str, shown: list[str],
-              mode: Literal["min", "max"], baselines: list[str], settled: Mapping[str, SettleRecord]) -> _Pairing:
-        pairing = cls(reference, {}, {}, {}, {n: r for n, r in settled.items() if n in cells and n != reference}, [])
-        metric, modes = shown[0], {m: mode if m == shown[0] else partner_mode(m) for m in shown}
-        to_baseline: dict[tuple[str, str, str], str] = {}
-        unpaired: list[str] = []
-        for m in shown:
-            column, category = object_column(m)  # type: ignore[misc]
-            scores = {name: _object_scores(group, column, category) for name, group in cells.items()}
-            for name, values in scores.items():
-                if name == reference or not values:
-                    continue
-                try:
-                    pairing.diffs[(name, m)] = compare(values, scores[reference], (name, reference))
-                except UnpairedError:
-                    pairing.diffs[(name, m)] = "not paired"
-                    unpaired += [name] if m == metric else []
-            for name, group in cells.items():
-                for b in baselines:
-                    # The baselines scored on this cell's own objects, whichever objects those are.
-                    ours, theirs = scores[name], _object_scores(group, f"baseline/{b}/{column}", category)
-                    if ours and set(ours) == set(theirs):
-                        to_baseline[(name, b, m)] = compare(ours, theirs, (name, b)).verdict(modes[m])
-        for (name, b, m), verdict in to_baseline.items():
-            if m == metric:
-                others = [(p, to_baseline[(name, b, p)]) for p in shown[1:] if (name, b, p) in to_baseline]
-                pairing.against.setdefault(name, {})[b] = weighed([(m, verdict), *others])
-        for name in cells:
-            found = {
-                m: d.verdict(modes[m]) for m in shown if isinstance(d := pairing.diffs.get((name, m)), PairedDifference)
-            }
-            record = pairing.settled.get(name)
-            if record is not None:
-                # The partner was not decided on: its interval over objects only, said as such.
-                aside = [f" ({v} on {m.removeprefix('eval/')}, objects only)" for m, v in found.items()
-                           if m != metric and v not in ("no clear difference", record.decision.verdict)]
-                pairing.verdicts[name] = "".join([record.text(), *aside])
-            elif metric in found:
-                pairing.verdicts[name] = weighed(
-                    [(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric]
-                )
-        if unpaired:
-            pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
-                                 f"comparison needs the same evaluation set): {', '.join(unpaired)}")
-        return pairing
-
-    def beats(self, name: str) -> list[str]:
-        return [b for b, v in self.against.get(name, {}).items() if v == "better"]
-
-    def delta(self, name: str, m: str, metric: str) -> PairedDifference | str | None:
-        """Row ``name``'s Δ on ``m``: a settled cell's interval over seeds and objects on the metric, else the
-        paired one."""
-        record = self.settled.get(name)
-        if record is not None and m == metric:
-            i = record.decision.interval
-            return PairedDifference(i.mean, i.low, i.high, i.objects)
-        return self.diffs.get((name, m))
-
-    def columns(self, name: str, shown: list[str], metric: str) -> list[str]:
-        """A cell's Δ per shown metric, verdict and the baselines it beats."""
-        out = []
-        for m in shown:
-            d = self.delta(name, m, metric)
-            out.append(
-                "reference" if name == self.reference else d.text() if isinstance(d, PairedDifference) else d or "–"
-            )
-        return out + [self.verdicts.get(name, ""), ", ".join(self.beats(name)) or "none"]
+    def header(self) -> list[str]:
+        out = ["cell"] + (["paper setting"] if self.paper_label else []) + ["trials"] + ["seeds"] * self.seeds
+        for m in self.shown:
+            out += [m, f"paper {m}"]
+        out += self.per_category
+        if self.pairing:
+            reference = self.pairing.reference
+            out += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in self.shown] + [
+                "verdict",
+                "beats baselines",
+            ]
+        return out
 
 
 def build_table(
@@ -291,25 +182,14 @@ def build_table(
         cells.setdefault(o.cell, []).append(o)
     second = partner(metric)
     shown = [m for m in (metric, second) if m is not None]
-    categories = _categories(outcomes, metric)
-    has_paper_label = any(o.paper_label for o in outcomes)
     # In cdm.evaluate's order, weakest first (sphere … retrieval); any other after them.
     found = {k.split("/")[1] for o in outcomes for k in o.metrics if k.startswith("baseline/")}
     baselines = [b for b in BASELINES if b in found] + sorted(found - set(BASELINES))
     reference = compare_to or next(iter(cells), None)
     pairing = None
-    if object_column(metric) is not None and reference in cells and any(o.objects for o in _finished(cells[reference])):
-        pairing = _Pairing.build(cells, reference, shown, mode, baselines, settled or {})
-    seeds_column = bool(pairing and pairing.settled)
-    header = ["cell"] + (["paper setting"] if has_paper_label else []) + ["trials"] + ["seeds"] * seeds_column
-    for m in shown:
-        header += [m, f"paper {m}"]
-    header += [f"{metric}/{c}" for c in categories]
-    if pairing:
-        header += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in shown] + [
-            "verdict",
-            "beats baselines",
-        ]
+    if object_column(metric) is not None and reference in cells and any(o.objects for o in finished(cells[reference])):
+        pairing = Pairing.build(cells, reference, shown, mode, baselines, settled or {})
+    columns = _Columns(metric, shown, _categories(outcomes, metric), any(o.paper_label for o in outcomes), pairing)
 
     stats = {name: Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
              for name, group in cells.items()}
@@ -318,66 +198,100 @@ def build_table(
     leaders = [name for _, name in ranked if number_text(stats[name].mean) == number_text(stats[ranked[0][1]].mean)]  # type: ignore[union-attr]
     best = leaders[0] if len(leaders) == 1 else None
     mark = {best: " ★"} if best else {name: " (tied)" for name in leaders}
-    lead = _lead(cells, best, ranked[1][1], metric) if pairing and best and len(ranked) > 1 else None
+    lead = lead_difference(cells, best, ranked[1][1], metric) if pairing and best and len(ranked) > 1 else None
 
-    rows: list[list[str]] = []
-    records: list[dict[str, object]] = []
-    for name, group in cells.items():
-        first = group[0]
-        counts = {s: sum(o.status == s for o in group) for s in ("ok", "stopped", "failed", "pending")}
-        trials = f"{counts['ok'] + counts['stopped']}/{len(group)}" + "".join(
-            f" ({counts[s]} {s})" for s in ("stopped", "failed", "pending") if counts[s])
-        row = [name + mark.get(name, "")] + ([first.paper_label or ""] if has_paper_label else []) + [trials]
-        record: dict[str, object] = {
-            "cell": name,
-            "paper_setting": first.paper_label or "",
-            "best": name == best,
-            **counts,
-        }
-        if seeds_column:
-            settle = pairing.settled.get(name)  # type: ignore[union-attr]
-            row.append(f"{settle.seeds} ({settle.reason})" if settle else "")
-            record.update({"seeds": settle.seeds if settle else None, "stop reason": settle.reason if settle else ""})
-        done = _finished(group)
-        for m in shown + [f"{metric}/{c}" for c in categories]:
-            stat = Stat.of([o.metrics[m] for o in done if m in o.metrics])
-            paper = first.paper.get(m)
-            text = "failed" if stat is None and counts["failed"] else ("–" if stat is None else stat.text())
-            if m in shown:
-                row += [text, "" if paper is None else number_text(paper)]
-            else:
-                row.append(text + ("" if paper is None else f" ({number_text(paper)})"))
-            record.update({f"{m} mean": stat.mean if stat else None, f"{m} std": stat.std if stat else None,
-                           f"{m} paper": paper})
-        if pairing:
-            row += pairing.columns(name, shown, metric)
-            record.update(_paired_record(pairing, name, shown, metric))
-        rows.append(row)
-        records.append(record)
+    made = [_cell_row(columns, name, group, mark.get(name, ""), best) for name, group in cells.items()]
+    if metric.startswith("eval/"):
+        made += [_baseline_row(columns, b, finished(outcomes)) for b in baselines]
+    notes = list(settings) + _notes(columns, outcomes, cells, paper_note, mode, leaders, best, bool(ranked))
+    narrowing = [f"Δ{second.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and second else []
+    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else [])
+    answer = ("cell", *["seeds"] * columns.seeds, *shown,
+              *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
+    return ResultsTable(
+        title,
+        columns.header(),
+        [row for row, _ in made],
+        [record for _, record in made],
+        notes,
+        best,
+        _summary(cells, stats, leaders, metric, pairing, lead, mode),
+        frozenset(columns.per_category + ["beats baselines"]),
+        tuple(narrowing),
+        answer,
+    )
 
-    suffix = metric.removeprefix("eval/") if metric.startswith("eval/") else None
-    for b in baselines if suffix else []:
-        done = _finished(outcomes)
-        # Baselines depend on the evaluation data only, not on the cell: their mean is the number.
-        row = [f"baseline: {b}"] + ([""] if has_paper_label else []) + [""] + [""] * seeds_column
-        record = {"cell": f"baseline: {b}"}
-        for m in shown + [f"{metric}/{c}" for c in categories]:
-            key = "baseline/" + b + "/" + m.removeprefix("eval/")
-            stat = Stat.of([o.metrics[key] for o in done if key in o.metrics])
-            row += [number_text(stat.mean) if stat else "–"] + ([""] if m in shown else [])
-            record.update({f"{m} mean": stat.mean if stat else None})
-        if pairing:  # a reference row: no difference to the reference cell, no verdict
-            row += [""] * (len(shown) + 2)
-        rows.append(row)
-        records.append(record)
 
-    notes = list(settings)
-    notes += [F1_UNIT] if any(m.split("/")[1:2] == ["f1"] for m in shown) else []
+def _cell_row(
+    columns: _Columns, name: str, group: list[TrialOutcome], mark: str, best: str | None
+) -> tuple[list[str], dict[str, object]]:
+    """A cell's row (its trials aggregated over seeds) and its CSV record."""
+    first = group[0]
+    counts = {s: sum(o.status == s for o in group) for s in ("ok", "stopped", "failed", "pending")}
+    trials = f"{counts['ok'] + counts['stopped']}/{len(group)}" + "".join(
+        f" ({counts[s]} {s})" for s in ("stopped", "failed", "pending") if counts[s])
+    row = [name + mark] + ([first.paper_label or ""] if columns.paper_label else []) + [trials]
+    record: dict[str, object] = {
+        "cell": name,
+        "paper_setting": first.paper_label or "",
+        "best": name == best,
+        **counts,
+    }
+    if columns.seeds:
+        settle = columns.pairing.settled.get(name)  # type: ignore[union-attr]
+        row.append(f"{settle.seeds} ({settle.reason})" if settle else "")
+        record.update({"seeds": settle.seeds if settle else None, "stop reason": settle.reason if settle else ""})
+    done = finished(group)
+    for m in columns.shown + columns.per_category:
+        stat = Stat.of([o.metrics[m] for o in done if m in o.metrics])
+        paper = first.paper.get(m)
+        text = "failed" if stat is None and counts["failed"] else ("–" if stat is None else stat.text())
+        if m in columns.shown:
+            row += [text, "" if paper is None else number_text(paper)]
+        else:
+            row.append(text + ("" if paper is None else f" ({number_text(paper)})"))
+        record.update({f"{m} mean": stat.mean if stat else None, f"{m} std": stat.std if stat else None,
+                       f"{m} paper": paper})
+    if columns.pairing:
+        row += columns.pairing.columns(name, columns.shown, columns.metric)
+        record.update(paired_record(columns.pairing, name, columns.shown, columns.metric))
+    return row, record
+
+
+def _baseline_row(columns: _Columns, b: str, done: list[TrialOutcome]) -> tuple[list[str], dict[str, object]]:
+    """Baseline ``b``'s row and record: it depends on the evaluation data only, not on the cell, so its mean
+    over every finished trial is the number."""
+    row = [f"baseline: {b}"] + ([""] if columns.paper_label else []) + [""] + [""] * columns.seeds
+    record: dict[str, object] = {"cell": f"baseline: {b}"}
+    for m in columns.shown + columns.per_category:
+        key = "baseline/" + b + "/" + m.removeprefix("eval/")
+        stat = Stat.of([o.metrics[key] for o in done if key in o.metrics])
+        row += [number_text(stat.mean) if stat else "–"] + ([""] if m in columns.shown else [])
+        record.update({f"{m} mean": stat.mean if stat else None})
+    if columns.pairing:  # a reference row: no difference to the reference cell, no verdict
+        row += [""] * (len(columns.shown) + 2)
+    return row, record
+
+
+def _notes(
+    columns: _Columns,
+    outcomes: Sequence[TrialOutcome],
+    cells: dict[str, list[TrialOutcome]],
+    paper_note: str,
+    mode: Literal["min", "max"],
+    leaders: list[str],
+    best: str | None,
+    ranked: bool,
+) -> list[str]:
+    """The notes under the table: units, the paper's source, what the star and the Δ columns mean, failures."""
+    metric, shown, pairing = columns.metric, columns.shown, columns.pairing
+    second = shown[1] if len(shown) > 1 else None
+    notes = [F1_UNIT] if any(m.split("/")[1:2] == ["f1"] for m in shown) else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
-    if any(f"{metric}/{c}" in o.paper for o in outcomes for c in categories):
+    if any(c in o.paper for o in outcomes for c in columns.per_category):
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
-    seeds = max((len(_finished(group)) for group in cells.values()), default=0)
+    seeds = max((len(finished(group)) for group in cells.values()), default=0)
     if ranked:
         star = (f"★ highest mean {metric} ({mode}), apart from the next at the printed precision; \"best\" only where "
                 f"its paired interval against the next cell excludes 0" if best else
@@ -385,37 +299,15 @@ def build_table(
         notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
         weighed = f"{metric} ({mode})" + (f" and {second} ({partner_mode(second)})" if second else "")
-        notes.append(f"Δ: mean over the same objects of (row − {reference}), seeds averaged per object, with a 95% "
-                     f"paired bootstrap interval over the objects; verdict and beats baselines by {weighed}, interval "
-                     f"excluding 0 (a verdict names each metric when they disagree)")
+        notes.append(f"Δ: mean over the same objects of (row − {pairing.reference}), seeds averaged per object, "
+                     f"with a 95% paired bootstrap interval over the objects; verdict and beats baselines by "
+                     f"{weighed}, interval excluding 0 (a verdict names each metric when they disagree)")
         notes.append("the bootstrap intervals cover the held-out objects only, not training seeds: "
                      + ("with one seed per cell, another seed can move a cell by more than an interval's width"
                         if seeds == 1 else "the seeds are averaged, their spread is not in the interval"))
-        notes += [SETTLED_FOOTNOTE] if seeds_column else []
+        notes += [SETTLED_FOOTNOTE] if columns.seeds else []
         notes += pairing.notes
-    notes += [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
-    narrowing = [f"Δ{second.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and second else []
-    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else [])
-    answer = ("cell", *["seeds"] * seeds_column, *shown,
-              *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
-    return ResultsTable(
-        title,
-        header,
-        rows,
-        records,
-        notes,
-        best,
-        _summary(cells, stats, leaders, metric, pairing, lead, mode),
-        frozenset([f"{metric}/{c}" for c in categories] + ["beats baselines"]),
-        tuple(narrowing),
-        answer,
-    )
-
-
-def _lead(cells: dict[str, list[TrialOutcome]], best: str, runner_up: str, metric: str) -> PairedDifference | None:
-    """The leader ``best`` against the next cell ``runner_up`` on ``metric``, paired per object; None if unpaired."""
-    ours, theirs = (_object_scores(cells[n], *object_column(metric)) for n in (best, runner_up))  # type: ignore[misc]
-    return compare(ours, theirs, (best, runner_up)) if ours and theirs and set(ours) == set(theirs) else None
+    return notes + [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
 
 
 def _baseline_name(name: str) -> str:
@@ -427,7 +319,7 @@ def _summary(
     stats: dict[str, Stat | None],
     leaders: list[str],
     metric: str,
-    pairing: _Pairing | None,
+    pairing: Pairing | None,
     lead: PairedDifference | None = None,
     mode: Literal["min", "max"] = "max",
 ) -> list[str]:
@@ -481,18 +373,3 @@ def _summary(
     if failed:
         out.append(f"no result (failed or not run): {', '.join(failed)}")
     return out
-
-
-def _paired_record(pairing: _Pairing, name: str, shown: list[str], metric: str) -> dict[str, object]:
-    record: dict[str, object] = {}
-    for m in shown:
-        d = pairing.delta(name, m, metric)
-        ok = isinstance(d, PairedDifference)
-        record.update({f"{m} delta": d.mean if ok else None, f"{m} delta low": d.low if ok else None,
-                       f"{m} delta high": d.high if ok else None})
-    settle = pairing.settled.get(name)
-    paired = isinstance(pairing.diffs.get((name, metric)), PairedDifference)
-    record[f"{metric} delta covers"] = settle.decision.interval.covers if settle else "objects" if paired else ""
-    record["verdict"] = pairing.verdicts.get(name, "")
-    record["beats baselines"] = ";".join(pairing.beats(name))
-    return record

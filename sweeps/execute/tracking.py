@@ -27,8 +27,8 @@ from mlflow.entities import Metric, Param, RunTag
 
 from cdm.config import Config
 from cdm.train import Callback
+from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.rules import rounded
-from sweeps.compare.table import TrialOutcome
 from sweeps.store_retry import PatientClient, wait_when_busy
 
 __all__ = [

@@ -37,7 +37,7 @@ from cdm.prior_model import ensure_priors
 from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
-from sweeps.compare.table import TrialOutcome, sweep_order, unstarted
+from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import CoreLease, lease_cores
 from sweeps.execute.precompute import precompute, shared_root
 from sweeps.execute.progress import StepReporter, quiet_loggers

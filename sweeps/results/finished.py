@@ -21,9 +21,10 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.config import DiffusionConfig, PriorsConfig
+from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
-from sweeps.compare.table import FINISHED, ResultsTable, TrialOutcome, build_table, sweep_order, unstarted
+from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.tracking import last_objects, parent_baselines, trial_metrics
 from sweeps.plan.budget import parse_budget
 from sweeps.plan.protocol import CARD_TAG
