@@ -112,19 +112,7 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
         for i, series in enumerate(["all", *categories]):
             key = m if series == "all" else f"{m}/{series}"
             colour = f"C{i}"
-            xs, means, bars = [], [], []
-            for c in cells:
-                values = [
-                    p.metrics[key] for p in points if p.cell == c and key in p.metrics and math.isfinite(p.metrics[key])
-                ]
-                if values:
-                    mean = statistics.fmean(values)
-                    xs.append(x[c])
-                    means.append(mean)
-                    spread = statistics.stdev(values) if len(values) > 1 else 0.0
-                    # The paired interval is Δ's: drawn around the mean as its half-width.
-                    paired = (intervals or {}).get(c) if key == metric else None
-                    bars.append(((paired[1] - paired[0]) / 2,) * 2 if paired else (spread, spread))
+            xs, means, bars = _cell_means(points, cells, x, key, intervals if key == metric else None)
             if xs:
                 label = f"ours: {'all objects' if series == 'all' else series}"
                 if series == "all" and m == metric and intervals:
@@ -139,49 +127,86 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
                     lw=2 if series == "all" else 1,
                     label=label,
                 )
-            paper = {p.cell: (p.paper[key], p.paper_label) for p in points if key in p.paper}
-            if paper:
-                ax.scatter([x[c] for c in paper], [v for v, _ in paper.values()], marker="*", s=160, color=colour,
-                           edgecolor="black", zorder=3, label=f"{paper_table} (the paper's data set, not ours)")
-                for c, (value, row) in paper.items():
-                    ax.annotate(
-                        row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=FONT, color=colour
-                    )
-        short = m.removeprefix("eval/")
-        for i, b in enumerate(baselines):
-            values = [p.metrics[f"baseline/{b}/{short}"] for p in points if f"baseline/{b}/{short}" in p.metrics]
-            if values:
-                ax.axhline(statistics.fmean(values), color="0.45", lw=1, ls=(0, (4, 2 + 2 * i)), zorder=1)
-                # Labels staggered along the line: baselines often score alike (category mean, retrieval).
-                ax.annotate(
-                    f"baseline: {_baseline_label(b)}",
-                    (1.0 - 0.3 * i, statistics.fmean(values)),
-                    xycoords=("axes fraction", "data"),
-                    xytext=(-2, 2),
-                    textcoords="offset points",
-                    ha="right",
-                    va="bottom",
-                    fontsize=FONT,
-                    color="0.35",
-                )
-        if xlabel is None:
-            ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=FONT)
-        else:
-            ax.set_xlabel(xlabel, fontsize=FONT + 1)
-            if log_spaced(list(x.values())):
-                ax.set_xscale("log")
-                ax.set_xlabel(f"{xlabel} (log scale)", fontsize=FONT + 1)
-                ax.minorticks_off()
-            ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
-        ax.set_ylabel(
-            metric_label(m) + (", lower is better" if m.endswith("cd") else ", higher is better"), fontsize=FONT + 1
-        )
-        ax.tick_params(labelsize=FONT)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=FONT, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
+            _paper_stars(ax, points, x, key, colour, paper_table)
+        _baseline_lines(ax, points, baselines, m.removeprefix("eval/"))
+        _value_axes(ax, m, cells, x, xlabel)
     fig.suptitle(title, fontsize=FONT + 2)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def _cell_means(
+    points: Sequence[PlotPoint],
+    cells: list[str],
+    x: Mapping[str, float],
+    key: str,
+    intervals: Mapping[str, tuple[float, float]] | None,
+) -> tuple[list[float], list[float], list[tuple[float, float]]]:
+    """Per cell with a finite ``key``: its x, its mean over seeds and its bar (down, up): half the paired
+    interval's width where ``intervals`` has the cell, else ± std over seeds."""
+    xs, means, bars = [], [], []
+    for c in cells:
+        values = [p.metrics[key] for p in points if p.cell == c and key in p.metrics and math.isfinite(p.metrics[key])]
+        if values:
+            xs.append(x[c])
+            means.append(statistics.fmean(values))
+            spread = statistics.stdev(values) if len(values) > 1 else 0.0
+            # The paired interval is Δ's: drawn around the mean as its half-width.
+            paired = (intervals or {}).get(c)
+            bars.append(((paired[1] - paired[0]) / 2,) * 2 if paired else (spread, spread))
+    return xs, means, bars
+
+
+def _paper_stars(ax, points: Sequence[PlotPoint], x: Mapping[str, float], key: str, colour: str,
+                 paper_table: str) -> None:
+    """The paper's numbers for ``key`` as stars, each labelled with its paper row (else its cell)."""
+    paper = {p.cell: (p.paper[key], p.paper_label) for p in points if key in p.paper}
+    if not paper:
+        return
+    ax.scatter([x[c] for c in paper], [v for v, _ in paper.values()], marker="*", s=160, color=colour,
+               edgecolor="black", zorder=3, label=f"{paper_table} (the paper's data set, not ours)")
+    for c, (value, row) in paper.items():
+        ax.annotate(row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=FONT, color=colour)
+
+
+def _baseline_lines(ax, points: Sequence[PlotPoint], baselines: list[str], short: str) -> None:
+    """Each baseline's mean on ``short`` (``cd``, ``f1``) as a dashed horizontal line, labelled."""
+    for i, b in enumerate(baselines):
+        values = [p.metrics[f"baseline/{b}/{short}"] for p in points if f"baseline/{b}/{short}" in p.metrics]
+        if values:
+            ax.axhline(statistics.fmean(values), color="0.45", lw=1, ls=(0, (4, 2 + 2 * i)), zorder=1)
+            # Labels staggered along the line: baselines often score alike (category mean, retrieval).
+            ax.annotate(
+                f"baseline: {_baseline_label(b)}",
+                (1.0 - 0.3 * i, statistics.fmean(values)),
+                xycoords=("axes fraction", "data"),
+                xytext=(-2, 2),
+                textcoords="offset points",
+                ha="right",
+                va="bottom",
+                fontsize=FONT,
+                color="0.35",
+            )
+
+
+def _value_axes(ax, m: str, cells: list[str], x: Mapping[str, float], xlabel: str | None) -> None:
+    """The swept value on x (cell names, or numbers on a log axis when log-spaced), ``m`` on y, the legend
+    below the axes."""
+    if xlabel is None:
+        ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=FONT)
+    else:
+        ax.set_xlabel(xlabel, fontsize=FONT + 1)
+        if log_spaced(list(x.values())):
+            ax.set_xscale("log")
+            ax.set_xlabel(f"{xlabel} (log scale)", fontsize=FONT + 1)
+            ax.minorticks_off()
+        ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
+    ax.set_ylabel(
+        metric_label(m) + (", lower is better" if m.endswith("cd") else ", higher is better"), fontsize=FONT + 1
+    )
+    ax.tick_params(labelsize=FONT)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=FONT, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
 
 
 def has_curve(history: Mapping[str, Sequence[tuple[int, float]]], metric: str) -> bool:
