@@ -253,6 +253,38 @@ def _front_layer(
     return (z <= nearest.gather(1, pixel) + depth_layer).to(z.dtype)
 
 
+def _validate_splat(
+    points: Tensor, cameras: Cameras, image_size: int, point_size: float, kind: str, depth_layer: float | None
+) -> None:
+    """:func:`splat_points`' arguments checked, each error naming the argument and what is allowed."""
+    _validate(points, cameras, image_size, point_size, "point_size")
+    if point_size <= 0.0:
+        raise ValueError(f"point_size must be > 0 (the point radius, NDC units), got {point_size}")
+    if kind not in ("depth", "planar"):
+        raise ValueError(f"kind must be 'depth' or 'planar', got {kind!r}")
+    if depth_layer is not None and (kind != "depth" or not depth_layer > 0.0):
+        raise ValueError(
+            f"depth_layer must be None or > 0 and only with kind='depth', got {depth_layer!r} with {kind!r}"
+        )
+
+
+def _bilinear_deposit(col: Tensor, row: Tensor, front: Tensor, side: int) -> tuple[Tensor, Tensor]:
+    """Each point's weight ``front`` shared bilinearly among the 4 canvas pixels around ``(col, row)``:
+    ``(B, 4N)`` weights (0 off the canvas) and their flat pixel indices on the ``side × side`` canvas. The
+    pixel is chosen without gradient; the weights carry the gradient w.r.t. the projection."""
+    col0, row0 = torch.floor(col).detach(), torch.floor(row).detach()
+    fc, fr = col - col0, row - row0
+    values = []
+    indices = []
+    for dr, wr in ((0, 1.0 - fr), (1, fr)):
+        for dc, wc in ((0, 1.0 - fc), (1, fc)):
+            r, c = row0 + dr, col0 + dc
+            on_canvas = ((r >= 0) & (r < side) & (c >= 0) & (c < side)).to(front.dtype)
+            values.append(wr * wc * front * on_canvas)
+            indices.append((r.clamp(0, side - 1) * side + c.clamp(0, side - 1)).long())
+    return torch.cat(values, dim=1), torch.cat(indices, dim=1)
+
+
 def splat_points(
     points: Tensor,
     cameras: Cameras,
@@ -293,15 +325,7 @@ def splat_points(
     Returns:
         ``(B, S, S)`` image, differentiable w.r.t. ``points``. Points behind the camera add nothing.
     """
-    _validate(points, cameras, image_size, point_size, "point_size")
-    if point_size <= 0.0:
-        raise ValueError(f"point_size must be > 0 (the point radius, NDC units), got {point_size}")
-    if kind not in ("depth", "planar"):
-        raise ValueError(f"kind must be 'depth' or 'planar', got {kind!r}")
-    if depth_layer is not None and (kind != "depth" or not depth_layer > 0.0):
-        raise ValueError(
-            f"depth_layer must be None or > 0 and only with kind='depth', got {depth_layer!r} with {kind!r}"
-        )
+    _validate_splat(points, cameras, image_size, point_size, kind, depth_layer)
     b, n, _ = points.shape
     s = image_size
     proj = project_points(points, cameras, eps=Z_NEAR)
@@ -314,20 +338,9 @@ def splat_points(
     side = s + 2 * half  # canvas with a footprint-wide margin
 
     col, row = pix[..., 0] + half, pix[..., 1] + half
-    col0, row0 = torch.floor(col).detach(), torch.floor(row).detach()
-    fc, fr = col - col0, row - row0
     if depth_layer is not None:
         front = front * _front_layer(z.detach(), col.detach(), row.detach(), front, side, half, depth_layer)
-    values = []
-    indices = []
-    for dr, wr in ((0, 1.0 - fr), (1, fr)):
-        for dc, wc in ((0, 1.0 - fc), (1, fc)):
-            r, c = row0 + dr, col0 + dc
-            on_canvas = ((r >= 0) & (r < side) & (c >= 0) & (c < side)).to(points.dtype)
-            values.append(wr * wc * front * on_canvas)
-            indices.append((r.clamp(0, side - 1) * side + c.clamp(0, side - 1)).long())
-    w = torch.cat(values, dim=1)  # (B, 4N)
-    flat = torch.cat(indices, dim=1)
+    w, flat = _bilinear_deposit(col, row, front, side)
     deposits = torch.stack([w * z.repeat(1, 4), w], dim=1) if kind == "depth" else w[:, None]  # planar needs no Σwz
     c = deposits.shape[1]
     canvas = points.new_zeros(b, c, side * side).scatter_add(2, flat[:, None, :].expand(b, c, 4 * n), deposits)
