@@ -154,24 +154,13 @@ class PC2File(NamedTuple):
         return lines
 
 
-def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File:
-    """The config fields that rebuild ``path``'s network and PC²'s sampler (:class:`PC2File`).
+def _checked_values(tree: Mapping, label: str) -> dict[str, object]:
+    """The values of :data:`PC2_DEFAULTS`' keys in the file's ``cfg`` (PC²'s default where it is silent),
+    checked: numbers are numbers, and the network they ask for is one this code builds.
 
     Raises:
-        ValueError: the file could run code while loading, holds no PC² model, or its ``cfg`` asks for a
-            network this one cannot be (another image model, global features, colour, a scale factor);
-            the message starts with ``flag`` (the option that named the file) and the path.
+        ValueError: naming ``label``, the field and what it holds.
     """
-    file = input_path(path)
-    label = f"{flag}: {file}"
-    raw = load_inert(file, label, "PC² checkpoint")
-    if not isinstance(raw, Mapping) or not isinstance(raw.get("model", raw), Mapping):
-        raise ValueError(f"{label} holds no model state dict")
-    tree = config_data(raw.get("cfg")) or {}
-    if not isinstance(tree, Mapping):
-        raise ValueError(
-            f"{label}: its cfg is a {type(tree).__name__}, not a config of groups (run, dataset, model, …)"
-        )
     value = {key: _lookup(tree, key) for key in PC2_DEFAULTS}
     numbers = (
         "dataset.image_size",
@@ -198,6 +187,28 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     if wrong:
         raise ValueError(f"{label}: its cfg asks for what this network cannot be: {', '.join(wrong)} (PC²'s "
                          "defaults in its experiments/config/structured.py are what is read)")
+    return value
+
+
+def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File:
+    """The config fields that rebuild ``path``'s network and PC²'s sampler (:class:`PC2File`).
+
+    Raises:
+        ValueError: the file could run code while loading, holds no PC² model, or its ``cfg`` asks for a
+            network this one cannot be (another image model, global features, colour, a scale factor);
+            the message starts with ``flag`` (the option that named the file) and the path.
+    """
+    file = input_path(path)
+    label = f"{flag}: {file}"
+    raw = load_inert(file, label, "PC² checkpoint")
+    if not isinstance(raw, Mapping) or not isinstance(raw.get("model", raw), Mapping):
+        raise ValueError(f"{label} holds no model state dict")
+    tree = config_data(raw.get("cfg")) or {}
+    if not isinstance(tree, Mapping):
+        raise ValueError(
+            f"{label}: its cfg is a {type(tree).__name__}, not a config of groups (run, dataset, model, …)"
+        )
+    value = _checked_values(tree, label)
     ddim = value["run.diffusion_scheduler"] == "ddim"
     steps = min(int(value["run.num_inference_steps"]), 1000)
     points = int(value["dataset.max_points"])
