@@ -198,18 +198,20 @@ def test_every_arrow_of_the_architecture_doc_is_an_import():
 
 
 STAGES = ("plan", "compare", "execute", "results")
-"""``sweeps/``'s stage packages in the order a sweep walks them (docs/ARCHITECTURE.md)."""
+"""``sweeps/``'s stage packages stacked from the bottom: each may import only those before it. Not the run
+order (plan, execute, compare, results): ``compare/`` is plain numbers that ``execute/`` already uses while
+the trials run, so ``execute/`` and ``results/`` build on it, and it on ``plan/`` (docs/ARCHITECTURE.md)."""
 
 
 def _stage(module: str) -> int | None:
-    """Position of a ``sweeps`` module's stage in :data:`STAGES`; None for the entry points and the
+    """Height of a ``sweeps`` module's stage in :data:`STAGES`; None for the entry points and the
     storage modules every stage shares (``sweeps.run``, ``sweeps.report``, ``sweeps.storage``, …)."""
     parts = module.split(".")
     return STAGES.index(parts[1]) if len(parts) > 2 and parts[0] == "sweeps" and parts[1] in STAGES else None
 
 
 def _backward_arrows(graph: dict[str, set[str]]) -> list[str]:
-    """Imports that point from a stage to a later one, or from a shared module into any stage."""
+    """Imports that point from a stage to one built on it, or from a shared module into any stage."""
     bad = []
     for importer, imported in graph.items():
         if not importer.startswith("sweeps.") or importer in ("sweeps.run", "sweeps.report", "sweeps.inputs"):
@@ -223,7 +225,7 @@ def _backward_arrows(graph: dict[str, set[str]]) -> list[str]:
     return sorted(bad)
 
 
-def test_the_stage_check_catches_an_import_from_a_later_stage():
+def test_the_stage_check_catches_an_import_of_a_stage_built_on_the_importer():
     graph = {
         "sweeps.plan.spec": {"sweeps.execute.trial"},
         "sweeps.execute.trial": {"sweeps.plan.spec", "sweeps.storage"},
@@ -236,7 +238,7 @@ def test_the_stage_check_catches_an_import_from_a_later_stage():
     ]
 
 
-def test_sweeps_stages_import_only_earlier_stages():
+def test_sweeps_stages_import_only_the_stages_they_build_on():
     modules = _modules()
     assert {m.split(".")[1] for m in modules if _stage(m) is not None} == set(STAGES)
     assert _backward_arrows(_graph()) == []

@@ -1,3 +1,4 @@
-"""Stage 2, comparing cells (no Ray, no MLflow): the results table, paired intervals, the seeds-until-settled
-rule, plots and the reconstructions gallery. Used while a sweep runs and after it.
+"""Comparing cells, while the trials run and after: the results table, paired intervals, the seeds-until-settled
+rule, plots and the reconstructions gallery. Plain numbers, no Ray, no MLflow: the running of the trials (each
+trial's outcome, the seed searcher's rule) and the read-back of a finished sweep build on it.
 """

@@ -1,3 +1,3 @@
-"""Stage 4, a finished sweep read back from MLflow: its records, what it publishes (plots, descriptions, the
+"""A finished sweep read back from MLflow, the last stage: its records, what it publishes (plots, descriptions, the
 runs view) and the re-run of one trial.
 """
