@@ -106,3 +106,106 @@ def test_every_image_the_readme_shows_exists() -> None:
     assert len(images) >= 6, images
     missing = [i for i in images if not (ROOT / i).is_file()]
     assert not missing, missing
+
+
+# The README's result tables copy numbers measured in docs/local-results.md; a copy that drifts from its
+# source fails here. Each pair: README section, the column there, the local-results section and its column.
+LOCAL_RESULTS = ROOT / "docs" / "local-results.md"
+COPIED_COLUMNS = [
+    ("The main job's results", 0, "The main job on", {
+        "eval/f1": "eval/f1", "paper F1": "paper eval/f1", "eval/cd": "eval/cd", "Δf1": "Δf1", "verdict": "verdict"
+    }),
+    ("Reading an ablation", 0, "The main job on 2026-12-03", {"one seed: Δf1": "Δf1"}),
+]
+"""(README section, which of its tables, local-results.md section, README column → local column). A section
+is the first whose heading starts so: local-results.md puts the newest main job first, so the README's
+refreshed table is held against the run it came from. Columns are named by how their header starts; a
+column compares what each cell leads with, ``verdict`` its whole text."""
+
+
+def _section(text: str, heading: str) -> str:
+    """The body of the first ``## heading…`` section (to the next heading of that level or higher)."""
+    body = re.split(rf"^## {re.escape(heading)}.*\n", text, maxsplit=1, flags=re.M)[1]
+    return re.split(r"^##? ", body, flags=re.M)[0]
+
+
+def _markdown_tables(text: str) -> list[list[dict[str, str]]]:
+    """Every pipe table of ``text``, each a list of rows (header → cell text)."""
+    tables, lines = [], text.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("|") and not (i and lines[i - 1].startswith("|")) and lines[i + 1].startswith("|---"):
+            header = [c.strip() for c in line.strip("|").split("|")]
+            rows = []
+            for row in lines[i + 2:]:
+                if not row.startswith("|"):
+                    break
+                rows.append(dict(zip(header, (c.strip() for c in row.strip("|").split("|")))))
+            tables.append(rows)
+    return tables
+
+
+def _printed_table(text: str) -> list[dict[str, str]]:
+    """The table the runner prints, in the first code block of ``text``: columns cut where its dashes start."""
+    block = text.split("```\n", 2)[1].splitlines()
+    start = next(i for i, line in enumerate(block) if line.startswith("cell "))
+    cuts = [m.start() for m in re.finditer(r"-+", block[start + 1])] + [None]
+    header = [block[start][a:b].strip() for a, b in zip(cuts, cuts[1:])]
+    rows = []
+    for line in block[start + 2:]:
+        if not line.strip():
+            break
+        rows.append({h: line[a:b].strip() for h, a, b in zip(header, cuts, cuts[1:])})
+    return rows
+
+
+def _row_name(name: str) -> str:
+    """A row's cell as both pages write it: ``point_size=0.04``, ``baseline: category_mean``."""
+    name = re.sub(r" (★|\(tied\))$", "", re.sub(r" \([^)]*\)$", "", name) if name.startswith("baseline") else name)
+    return name.lower().replace("baseline: ", "baseline:").replace(" ", "_").replace("baseline:", "baseline: ")
+
+
+def _column(row: dict[str, str], start: str) -> str:
+    return next(v for h, v in row.items() if h.startswith(start))
+
+
+def _lead(text: str) -> str:
+    """What a cell leads with: its number (``−0.026 [−0.046, −0.006]`` → ``-0.026``), else its first word."""
+    return (re.findall(r"^[-+]?\d+(?:\.\d+)?|^\w+", text.replace("−", "-")) or [""])[0]
+
+
+def copied_differences(readme: str, local: str) -> list[str]:
+    """Each README number (or verdict) of :data:`COPIED_COLUMNS` that differs from docs/local-results.md's."""
+    out = []
+    for readme_section, index, local_section, columns in COPIED_COLUMNS:
+        ours = _markdown_tables(_section(readme, readme_section))[index]
+        body = _section(local, local_section)
+        table = _printed_table(body) if "```" in body else _markdown_tables(body)[0]
+        theirs = {_row_name(r["cell"]): r for r in table}
+        assert len(ours) >= 5 and len(theirs) >= 5  # both tables were found
+        for row in ours:
+            source = theirs.get(_row_name(row["cell"]))
+            for mine, their in columns.items():
+                a = _column(row, mine)
+                b = _column(source, their) if source else "no such row"
+                same = a == b if mine == "verdict" else _lead(a) == _lead(b)
+                if not same:
+                    out.append(f"{readme_section}: {row['cell']} {mine} {a!r}, local-results.md {local_section}: {b!r}")
+    return out
+
+
+def test_the_readme_copies_its_numbers_from_local_results() -> None:
+    differences = copied_differences(README.read_text(encoding="utf-8"), LOCAL_RESULTS.read_text(encoding="utf-8"))
+    assert not differences, "\n".join(differences)
+
+
+def test_a_readme_number_that_drifts_from_local_results_is_found() -> None:
+    readme, local = README.read_text(encoding="utf-8"), LOCAL_RESULTS.read_text(encoding="utf-8")
+    assert "| point_size=0.02 | 0.568 | | 40.82 |" in readme and "−0.026 [−0.046, −0.006], worse |" in readme
+    drifted = readme.replace("| point_size=0.02 | 0.568 | | 40.82 |", "| point_size=0.02 | 0.568 | | 40.28 |").replace(
+        "−0.026 [−0.046, −0.006], worse |", "−0.062 [−0.046, −0.006], worse |"
+    )
+    assert copied_differences(drifted, local) == [
+        "The main job's results: point_size=0.02 eval/cd '40.28', local-results.md The main job on: '40.82'",
+        "Reading an ablation: point_size=0.08 one seed: Δf1 '−0.062 [−0.046, −0.006], worse', "
+        "local-results.md The main job on 2026-12-03: '−0.026 [−0.046, −0.006]'",
+    ]
