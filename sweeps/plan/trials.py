@@ -280,6 +280,35 @@ def _dataset_run(spec: Spec, profile: str, sets: dict[str, Any]) -> DatasetRun |
     return spec.datasets.get(sets["data.kind"])
 
 
+def _shared_values(
+    spec: Spec, profile: str, prof: ResolvedProfile, sets: dict[str, Any]
+) -> tuple[Spec, dict[str, Any]]:
+    """The values every trial shares (the profile's, its data set's, a data-set run's, the budget) checked
+    with ``sets`` on top, and the spec with a data-set run's grid added.
+
+    Raises:
+        SpecError: naming ``--set`` when a ``--set`` value's field is rejected, else the profile.
+    """
+    run = _dataset_run(spec, profile, sets)
+    if run is not None:
+        spec = spec.model_copy(update={"grid": {**spec.grid, **run.grid}})
+    kind = sets.get("data.kind", prof.overrides.get("data.kind"))
+    fixed = {
+        **prof.overrides,
+        **prof.datasets.get(kind, {}),
+        **(run.overrides if run else {}),
+        "train.steps": prof.steps,
+        "train.eval_every": prof.eval_every,
+    }
+    fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
+    try:
+        load_config(None, {**fixed, **sets})
+    except ConfigError as exc:  # a --set value's own field is the --set's error, not the profile's
+        where = "--set" if any(f"{key}:" in str(exc) for key in sets) else f"profile {profile}"
+        raise SpecError(f"{where}: {exc}") from None
+    return spec, fixed
+
+
 def expand(
     spec: Spec,
     profile: str = "local",
@@ -305,23 +334,7 @@ def expand(
             raise SpecError(error)
         if key in spec.grid or key in spec.search.space or any(key in c.set for c in spec.cells):
             raise SpecError(f"--set {key}: this spec sweeps it; change the spec's grid, cells or space instead")
-    run = _dataset_run(spec, profile, sets)
-    if run is not None:
-        spec = spec.model_copy(update={"grid": {**spec.grid, **run.grid}})
-    kind = sets.get("data.kind", prof.overrides.get("data.kind"))
-    fixed = {
-        **prof.overrides,
-        **prof.datasets.get(kind, {}),
-        **(run.overrides if run else {}),
-        "train.steps": prof.steps,
-        "train.eval_every": prof.eval_every,
-    }
-    fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
-    try:
-        load_config(None, {**fixed, **sets})
-    except ConfigError as exc:  # a --set value's own field is the --set's error, not the profile's
-        where = "--set" if any(f"{key}:" in str(exc) for key in sets) else f"profile {profile}"
-        raise SpecError(f"{where}: {exc}") from None
+    spec, fixed = _shared_values(spec, profile, prof, sets)
     rows = spec.paper.rows if spec.paper else []
     cells: list[Cell] = []
     names: set[str] = set()
