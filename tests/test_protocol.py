@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import ast
+import re
 from pathlib import Path
 
 import pytest
 
-from cdm.config import config_field_paths, load_config
+from cdm.config import Config, config_field_paths, load_config
 from cdm.data.shapenet import SYNSETS
 from sweeps import run
 from sweeps.plan import references
@@ -16,7 +18,8 @@ from sweeps.plan.spec import SpecError, load_spec
 from sweeps.plan.trials import expand
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
-SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
+ROOT = Path(__file__).resolve().parent.parent
+SWEEPS = ROOT / "sweeps"
 SPECS = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
 
 
@@ -55,6 +58,67 @@ def test_every_table_of_the_shipped_specs_has_a_record():
     assert tables == set(TABLES)
     with pytest.raises(KeyError, match="'Table 9': no reference record"):
         record("Table 9", "co3d")
+
+
+def _written_twice(source: str) -> list[str]:
+    """Fields whose ``Stated`` value in a record's ``source`` is written out although it equals the config default."""
+    defaults = Config().flat()
+
+    def norm(value):
+        return list(value) if isinstance(value, (list, tuple)) else value
+
+    twice = []
+    for node in ast.walk(ast.parse(source)):
+        for key, entry in zip(node.keys, node.values, strict=True) if isinstance(node, ast.Dict) else ():
+            if not (isinstance(key, ast.Constant) and isinstance(entry, ast.Call) and entry.args):
+                continue
+            if getattr(entry.func, "id", None) != "Stated" or any(k.arg == "accepts" for k in entry.keywords):
+                continue
+            try:
+                value = ast.literal_eval(entry.args[0])
+            except ValueError:  # a name: _DEFAULT, read from the config
+                continue
+            if key.value in defaults and norm(value) == norm(defaults[key.value]):
+                twice.append(key.value)
+    return twice
+
+
+def test_no_paper_value_is_written_both_in_the_config_and_in_the_records():
+    source = Path(references.__file__).read_text()
+    assert _written_twice(source) == []
+    # The check finds a value planted twice: λ's 1.0 written out instead of read from cdm/config.py.
+    planted = source.replace('"priors.lambda_3d": Stated(\n        _DEFAULT,', '"priors.lambda_3d": Stated(\n        1.0,')
+    assert planted != source and _written_twice(planted) == ["priors.lambda_3d"]
+    # The records hold the config's own values, so the card compares with what the config says.
+    defaults = Config().flat()
+    for kind in DATA_SETS:
+        for path in ("priors.lambda_3d", "train.betas", "train.warmup_steps", "train.steps", "eval.f1_threshold"):
+            assert record(None, kind)[path].value == defaults[path]
+    assert (defaults["priors.lambda_3d"], defaults["train.betas"]) == (1.0, [0.95, 0.999])
+    assert (defaults["train.warmup_steps"], defaults["train.steps"]) == (2000, 100_000)
+
+
+@pytest.mark.parametrize(
+    "name, pattern",
+    [
+        ("λ's 1.0", r"lambda_3d\b.*[(:] *1\.0\b|Stated\(1\.0.*[Ee]q\. 6"),
+        ("PC²'s betas", r"0\.95, *0\.999"),
+        ("warm-up 2,000", r"warmup_steps\b.*\b2_?000\b"),
+        ("steps 100,000", r"steps\b.*\b100_?000\b"),
+    ],
+)
+def test_each_paper_value_the_issue_names_is_written_in_one_place(name, pattern):
+    """The bar of issue 45: each of these is written in one file of cdm/ and sweeps/, as its default in
+    cdm/config.py (whose docstrings may repeat it), and read from there by the records and the paper profile."""
+    hits = [
+        f"{path.relative_to(ROOT)}:{n}"
+        for folder in ("cdm", "sweeps")
+        for path in sorted((ROOT / folder).rglob("*"))
+        if path.suffix in (".py", ".yaml")
+        for n, line in enumerate(path.read_text().splitlines(), 1)
+        if re.search(pattern, line)
+    ]
+    assert {h.split(":")[0] for h in hits} == {"cdm/config.py"}, (name, hits)
 
 
 @pytest.mark.parametrize("kind", DATA_SETS)

@@ -170,6 +170,18 @@ def test_resolution_order_profile_base_spec_profile_budget_cell_seed_set():
     assert cfg.train.threads == 1  # = CPUs per worker
 
 
+def test_a_budget_left_out_is_the_configs_default_the_papers_length():
+    """The paper profile writes no budget: its cells train train.steps's default (PC²'s 100,000 steps, scored every
+    5,000), the one home of that value, exactly as when the profile wrote the numbers out."""
+    assert SHARED["paper"].budget.steps is None and SHARED["paper"].budget.eval_every is None
+    cfg = expand(load_spec(SWEEPS / "point_size.yaml"), "paper").cells[0].config
+    assert (cfg.train.steps, cfg.train.eval_every) == (100_000, 5000)
+    spec = _spec(grid={"priors.point_size": [0.04]}, profiles={"p": {"budget": {"eval_every": 9}}})
+    plan = expand(spec, "p", shared=SHARED)
+    assert (plan.profile.steps, plan.profile.eval_every) == (100_000, 9)
+    assert plan.cells[0].config.train.steps == 100_000
+
+
 def test_exclude_and_explicit_cells_and_paper_rows():
     spec = _spec(
         grid={"priors.num_views": [4, 10], "priors.point_size": [0.0075, 0.04]},

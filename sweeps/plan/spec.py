@@ -189,6 +189,9 @@ class Failure(_Strict):
 
 
 class Budget(_Strict):
+    """A profile's training length; a field left out keeps its default in :class:`cdm.config.TrainConfig`,
+    the paper's (PC²'s ``max_steps``), which is that value's one home."""
+
     steps: int | None = Field(None, ge=1)
     eval_every: int | None = Field(None, ge=1)
 
@@ -395,15 +398,13 @@ def load_spec(path: str | Path) -> Spec:
 
 
 def load_profiles(path: str | Path = PROFILES_FILE) -> dict[str, Profile]:
-    """The shared profiles; each must give a full budget."""
+    """The shared profiles, each field checked: known, and not one another section sets."""
     path = Path(path)
     try:
         profiles = {name: Profile.model_validate(body) for name, body in _read_yaml(path).items()}
     except ValidationError as exc:
         raise SpecError(f"{path}: {format_validation_error(exc, Profile)}") from None
     for name, prof in profiles.items():
-        if prof.budget.steps is None or prof.budget.eval_every is None:
-            raise SpecError(f"{path}: {name}.budget: give both steps and eval_every")
         keys = [(f"overrides.{k}", k) for k in prof.overrides]
         keys += [(f"datasets.{d}.{k}", k) for d, fields in prof.datasets.items() for k in fields]
         for where, key in keys:

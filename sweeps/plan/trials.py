@@ -11,8 +11,8 @@ One trial's config is resolved in this order, later wins::
 
 :func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
 the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
-searcher may start has its label and config before Ray starts), validates a sampled search's space at its bounds, and checks
-the metric against :func:`cdm.train.metric_names`, so a typo fails with one
+searcher may start has its label and config before Ray starts), validates a sampled search's space at
+its bounds, and checks the metric against :func:`cdm.train.metric_names`, so a typo fails with one
 :class:`sweeps.plan.spec.SpecError` naming the field.
 """
 
@@ -26,7 +26,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from cdm.config import Config, ConfigError, load_config
+from cdm.config import Config, ConfigError, TrainConfig, load_config
 from sweeps.plan.spec import (
     Budget,
     DatasetRun,
@@ -170,16 +170,15 @@ def resolve_profile(spec: Spec, name: str, shared: dict[str, Profile]) -> Resolv
     base = shared.get(name, Profile())
     local = spec.profiles.get(name, Profile())
     budget = Budget.model_validate(_patch(base.budget, local.budget))
-    if budget.steps is None or budget.eval_every is None:
-        raise SpecError(f"profiles.{name}.budget: give both steps and eval_every")
+    defaults = TrainConfig()
     resources = Resources.model_validate(
         {**_patch(base.resources, spec.resources), **local.resources.model_dump(exclude_unset=True)}
     )
     return ResolvedProfile(
         name=name,
         description=local.description or base.description,
-        steps=budget.steps,
-        eval_every=budget.eval_every,
+        steps=defaults.steps if budget.steps is None else budget.steps,
+        eval_every=defaults.eval_every if budget.eval_every is None else budget.eval_every,
         overrides={**base.overrides, **spec.base, **local.overrides},
         resources=resources,
         num_samples=local.num_samples or base.num_samples,
@@ -218,7 +217,8 @@ def cell_name(values: dict[str, Any]) -> str:
 
 
 def _cell_values(spec: Spec) -> Iterator[tuple[str, dict[str, Any]]]:
-    """(name, swept values) per cell, one at a time: explicit cells crossed with the grid, minus excluded combinations."""
+    """(name, swept values) per cell, one at a time: explicit cells crossed with the grid, minus excluded
+    combinations."""
     keys = list(spec.grid)
     for cell in spec.cells or [ExplicitCell(label="")]:
         for vals in itertools.product(*spec.grid.values()):
