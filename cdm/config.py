@@ -29,6 +29,7 @@ __all__ = [
     "DataConfig",
     "DiffusionConfig",
     "EvalConfig",
+    "F1_THRESHOLD",
     "ModelConfig",
     "PriorsConfig",
     "SamplingConfig",
@@ -39,6 +40,12 @@ __all__ = [
     "load_config",
     "parse_override",
 ]
+
+
+F1_THRESHOLD = 0.01
+"""τ of the F-score, on the squared nearest-neighbour distance (world units²): paper §4 Metrics, F-Score@0.01
+as BDM's ``experiments/evaluation/evaluation_f1.py`` applies it. ``eval.f1_threshold``'s default and
+:func:`cdm.metrics.chamfer_f1`'s."""
 
 
 class ConfigError(ValueError):
@@ -360,8 +367,8 @@ class EvalConfig(_Group):
     """Points drawn from prediction and ground truth before the metrics: BDM scores 4,096 on ShapeNet
     (``dataset.max_points=4096`` in its ``experiments/example_sample.sh``), PC² 16,384 on Co3D (its
     ``max_points``)."""
-    f1_threshold: float = Field(0.01, gt=0.0)
-    """F-score threshold applied to squared nearest-neighbour distance (BDM: 0.01)."""
+    f1_threshold: float = Field(F1_THRESHOLD, gt=0.0)
+    """F-score threshold applied to squared nearest-neighbour distance (paper and BDM: :data:`F1_THRESHOLD`)."""
     seed: int = 1234
     """Sampling seed, identical across runs so cells are compared on the same noise."""
     save_clouds: int = Field(4, ge=0)

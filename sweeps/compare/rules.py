@@ -11,10 +11,12 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from cdm.config import F1_THRESHOLD
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import lambda_source
 
 __all__ = [
+    "F1_AT",
     "F1_UNIT",
     "PROTOCOL_NOTE",
     "Stat",
@@ -60,18 +62,22 @@ def rounded(value: float) -> float:
     return float(number_text(value)) if math.isfinite(value) else value
 
 
-F1_UNIT = ("F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units of the "
-           "other cloud (BDM's definition, cdm/metrics.py); CD is ×1000, in world units²")
+F1_AT = f"F1@{F1_THRESHOLD:g} sq. dist = {math.sqrt(F1_THRESHOLD):g} world"
+"""F1's threshold τ in a few words, on the squared distance and in world units (``F1@τ sq. dist = √τ world``)."""
+
+F1_UNIT = (f"F1 is F1@{F1_THRESHOLD:g} on the squared distance: a point counts when it lies within "
+           f"{math.sqrt(F1_THRESHOLD):g} in world units of the other cloud (BDM's definition, cdm/metrics.py); "
+           "CD is ×1000, in world units²")
 """The unit every F1 in a table, description or plot is read in: a loose threshold (a blob of the right
 size scores high), so the baselines beside it matter."""
 
 
 def metric_label(metric: str) -> str:
-    """``metric`` with its unit, for axes and headings: ``eval/f1`` → ``eval/f1 (F1@0.01 sq. dist = 0.1 world)``,
+    """``metric`` with its unit, for axes and headings: ``eval/f1`` → ``eval/f1 (`` + :data:`F1_AT` + ``)``,
     ``eval/cd/chair`` → ``eval/cd/chair (CD ×1000)``; any other name as is."""
     parts = metric.split("/")
     if len(parts) >= 2 and parts[1] == "f1":
-        return f"{metric} (F1@0.01 sq. dist = 0.1 world)"
+        return f"{metric} ({F1_AT})"
     if len(parts) >= 2 and parts[1] == "cd":
         return f"{metric} (CD ×1000)"
     return metric
