@@ -27,15 +27,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Any
 
-from cdm.config import Config
+from cdm.config import PAPER_DATA_SETS, Config, PaperDataSet
 
 __all__ = ["DATA_SETS", "TABLES", "Entry", "Kind", "NoEffect", "NotStated", "Stated", "record", "show"]
 
-Kind = Literal["shapenet_r2n2", "co3d"]
-DATA_SETS: tuple[Kind, ...] = ("shapenet_r2n2", "co3d")
-"""The data sets the paper reports on; which tables ran on which is the spec's ``datasets:`` section."""
+Kind = PaperDataSet
+DATA_SETS = PAPER_DATA_SETS
+"""The data sets the paper reports on (:data:`cdm.config.PaperDataSet`); which tables ran on which is the spec's
+``datasets:`` section."""
 
 TABLES = ("Table 1", "Table 2", "Table 3", "Table 4", "Table 5", "Table 6", "Supp. Table 7", "Supp. Table 8")
 """Tables with a record, named as a spec's ``paper.table``."""

@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
-from cdm.config import config_field_paths, format_validation_error
+from cdm.config import PaperDataSet, config_field_paths, format_validation_error
 from sweeps.plan.limits import LimitError, load_yaml
 from sweeps.plan.search import SEARCHES, search_kind
 
@@ -205,7 +205,7 @@ class Profile(_Strict):
     resources: Resources = Resources()
     num_samples: int | None = Field(None, ge=1)
     """Optuna trials in this profile (overrides ``search.num_samples``)."""
-    datasets: dict[Literal["shapenet_r2n2", "co3d"], dict[str, Any]] = {}
+    datasets: dict[PaperDataSet, dict[str, Any]] = {}
     """Dotted config fields this profile sets when a run reads that data set (``data.kind``), after its
     ``overrides``: the paper profile's home for each reference's data protocol (BDM on ShapeNet, PC² on Co3D)."""
 
@@ -291,7 +291,7 @@ class Spec(_Strict):
     profiles: dict[str, Profile] = {}
     compare_to: str | None = None
     """Cell every other cell is paired with in the results table (default: the first cell)."""
-    datasets: dict[Literal["shapenet_r2n2", "co3d"], DatasetRun] = {}
+    datasets: dict[PaperDataSet, DatasetRun] = {}
     """The data sets the paper ran this table on; empty = the paper's ShapeNet and Co3D alike."""
     stand_in: str = ""
     """What the procedural data set stands in with for the paper's data (shown on the protocol card)."""
