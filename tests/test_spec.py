@@ -8,11 +8,12 @@ import pytest
 
 from cdm.config import ConfigError
 from sweeps import run
+from sweeps.compare.rules import lambda_source
 from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.estimate import Estimate
 from sweeps.plan.resources import plan_concurrency
 from sweeps.plan.spec import Resources, Spec, SpecError, load_profiles, load_spec
-from sweeps.plan.trials import expand, lambda_source
+from sweeps.plan.trials import expand
 from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
@@ -265,7 +266,8 @@ def test_optuna_trial_from_sampled_values():
             "settle.margin: Input should be greater than 0",
         ),
         (
-            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 2, max: 3, until: settled}\nscheduler: {kind: asha}\n",
+            "name: t\ngrid: {priors.point_size: [0.04]}\nseeds: {min: 2, max: 3, until: settled}\n"
+            "scheduler: {kind: asha}\n",
             "scheduler: seeds until settled compares finished trials",
         ),
     ],

@@ -11,15 +11,15 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from cdm.config import F1_THRESHOLD
+from cdm.config import F1_THRESHOLD, load_config
 from sweeps.plan.spec import Spec
-from sweeps.plan.trials import lambda_source
 
 __all__ = [
     "F1_AT",
     "F1_UNIT",
     "PROTOCOL_NOTE",
     "Stat",
+    "lambda_source",
     "metric_label",
     "number_text",
     "object_column",
@@ -139,12 +139,39 @@ PROTOCOL_NOTE = "protocol: "
 """How a note of the table that is a line of the protocol card begins."""
 
 
-def settings_notes(spec: Spec, profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float],
-                   fixed: dict[str, Any], sets: dict[str, Any], card: Iterable[str]) -> list[str]:
-    """The table's notes on what produced the numbers, the runner's and the report's alike: the
-    :func:`settings_note` (a λ the spec searches is "searched", whatever the trials drew), then the
-    protocol card (:mod:`sweeps.plan.protocol`) a line per note. ``fixed``/``sets``: the plan's fixed
-    overrides and ``--set`` values, where :func:`sweeps.plan.trials.lambda_source` looks for λ."""
+def lambda_source(spec: Spec, profile: str, fixed: dict[str, Any], sets: dict[str, Any]) -> str:
+    """Where a sweep's λ (``priors.lambda_3d``) comes from, for :func:`settings_note`: the spec's search or cells,
+    ``--set``, the spec's base, the profile, or the config default (the levels of :mod:`sweeps.plan.trials`)."""
+    key = "priors.lambda_3d"
+    if key in spec.search.space:
+        return "the spec's search"
+    if key in spec.grid or any(key in c.set for c in spec.cells):
+        return "the spec's cells"
+    if key in sets:
+        return "--set"
+    if key in spec.base:
+        return "the spec's base"
+    if key in fixed:
+        return f"profile {profile}"
+    return "the config default"
+
+
+def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any], sets: dict[str, Any],
+                   card: Iterable[str], trials: Iterable[tuple[str, float]] = ()) -> list[str]:
+    """The table's notes on what produced the numbers, the runner's and the report's alike (the one home of
+    that rule): the :func:`settings_note` (a λ the spec searches is "searched", whatever the trials drew),
+    then the protocol card (:mod:`sweeps.plan.protocol`) a line per note.
+
+    ``fixed``/``sets``: the plan's fixed overrides and ``--set`` values, where :func:`lambda_source` looks for
+    λ. ``trials``: each trial's resolved (``diffusion.prediction``, ``priors.lambda_3d``); none (a sampled
+    search before its trials, a sweep whose trials recorded none) stands for ``fixed`` and ``sets`` resolved
+    by :func:`cdm.config.load_config`, as every trial's config is.
+    """
+    trials = list(trials)
+    if not trials:
+        cfg = load_config(None, {**fixed, **sets})
+        trials = [(cfg.diffusion.prediction, cfg.priors.lambda_3d)]
+    targets, lambdas = [t for t, _ in trials], [lam for _, lam in trials]
     searched = "priors.lambda_3d" in spec.search.space
     return [
         settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),

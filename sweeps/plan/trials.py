@@ -42,8 +42,8 @@ from sweeps.plan.spec import (
 )
 
 __all__ = [
-    "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "lambda_source",
-    "resolve_profile", "split_label", "trial_label",
+    "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "resolve_profile", "split_label",
+    "trial_label",
 ]
 
 # Paper notation for readable cell names; other fields use their last dotted part.
@@ -355,19 +355,3 @@ def expand(
         known = ", ".join(dict.fromkeys(c.name for c in cells))
         raise SpecError(f"compare_to: {spec.compare_to!r} is not a cell of this spec; cells: {known}")
     return SweepPlan(spec, prof, fixed, sets, tuple(cells), _check_metric(spec, names), None if keep is None else count)
-
-
-def lambda_source(spec: Spec, profile: str, fixed: dict[str, Any], sets: dict[str, Any]) -> str:
-    """Where a sweep's λ (``priors.lambda_3d``) comes from, for the results table's settings note."""
-    key = "priors.lambda_3d"
-    if key in spec.search.space:
-        return "the spec's search"
-    if key in spec.grid or any(key in c.set for c in spec.cells):
-        return "the spec's cells"
-    if key in sets:
-        return "--set"
-    if key in spec.base:
-        return "the spec's base"
-    if key in fixed:
-        return f"profile {profile}"
-    return "the config default"
