@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.baseline_names import BASELINES
 from cdm.blend import blended_reconstruction
 from cdm.cameras import Cameras, orbit_cameras, project_points
 from cdm.config import F1_THRESHOLD, Config
@@ -42,7 +43,6 @@ from cdm.model import CDMNetwork
 from cdm.normalise import FRAME_VERSION
 
 __all__ = [
-    "BASELINES",
     "EvalOutput",
     "EvalSet",
     "RetrievalBank",
@@ -54,7 +54,6 @@ __all__ = [
     "write_ply",
 ]
 
-BASELINES = ("sphere", "gaussian", "category_mean", "retrieval")
 RETRIEVAL_SIZE = 32
 """Side of the resampled silhouettes the retrieval baseline compares, in pixels."""
 

@@ -24,6 +24,7 @@ import torch
 import torch.distributed
 from torch.utils.data import DataLoader
 
+from cdm.baseline_names import BASELINES
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import Config
 from cdm.data import build_dataset
@@ -31,7 +32,7 @@ from cdm.data.order import ByRound, StepBatches, batch_indices
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import Batch, collate
 from cdm.diffusion import GaussianDiffusion
-from cdm.evaluate import BASELINES, EvalSet, build_eval_set, run_evaluation
+from cdm.evaluate import EvalSet, build_eval_set, run_evaluation
 from cdm.inputs import check_coverage, check_inputs
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss
@@ -98,7 +99,8 @@ def _check_compatible(state: Checkpoint, config: Config, network: CDMNetwork) ->
     if state.voxel_backend != network.voxel_backend:
         raise ValueError(
             f"resume: checkpoint trained with voxel back-end {state.voxel_backend!r}, this run resolves to "
-            f"{network.voxel_backend!r}; set model.voxel_backend={state.voxel_backend} (the back-ends compute different functions)"
+            f"{network.voxel_backend!r}; set model.voxel_backend={state.voxel_backend} "
+            "(the back-ends compute different functions)"
         )
     saved, now = state.config, config.to_dict()
     # The resolved back-end is compared above; `auto` and its resolution may be written either way.

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import statistics
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -186,6 +188,12 @@ def test_terminal_table_fits_120_columns_at_the_main_jobs_size_and_says_where_th
         assert baseline[table.header.index(column)] == ""
     assert table.rows[3][table.header.index("verdict")] == "better"
     assert table.records[-1]["eval/f1 mean"] == pytest.approx(0.60)
+
+
+def test_the_results_table_reads_the_baselines_names_without_torch_or_the_model():
+    code = "import sys, sweeps.compare.table; print(sorted(m for m in ('torch', 'cdm.evaluate') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SWEEPS.parent)
+    assert out.stdout.strip() == "[]"
 
 
 def test_settings_note_says_lambda_and_where_it_was_set():

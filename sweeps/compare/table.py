@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from cdm.evaluate import BASELINES
+from cdm.baseline_names import BASELINES
 from sweeps.compare.paired import PairedDifference, UnpairedError, compare, per_object_means
 from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode, weighed
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
