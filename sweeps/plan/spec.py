@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
-from cdm.config import PaperDataSet, config_field_paths, format_validation_error
+from cdm.config import ConfigError, PaperDataSet, config_field_paths, format_validation_error, load_config
 from sweeps.plan.limits import LimitError, load_yaml
 from sweeps.plan.search import SEARCHES, search_kind
 
@@ -210,6 +210,36 @@ class Profile(_Strict):
     ``overrides``: the paper profile's home for each reference's data protocol (BDM on ShapeNet, PC² on Co3D)."""
 
 
+class SharedProfile(Profile):
+    """A profile of ``sweeps/profiles.yaml``, which may start from a cdm config file."""
+
+    recipe: str | None = None
+    """A cdm config file (``configs/quick.yaml``; relative to ``profiles.yaml``) whose fields are this
+    profile's first overrides, so a single run and the sweeps share one recipe; ``overrides`` then says where
+    the sweeps differ. Its :data:`RUN_ONLY` fields are the single run's and stay out."""
+
+
+RUN_ONLY = ("train.steps", "train.eval_every", "train.threads", "train.out_dir")
+"""A recipe's fields that a sweep sets per trial instead: the profile's budget and CPUs, the trial's folder."""
+
+
+def _recipe(path: Path) -> dict[str, Any]:
+    """The fields a recipe file writes, dotted, minus :data:`RUN_ONLY`; the file validated as a config."""
+    try:
+        load_config(path)
+    except ConfigError as exc:
+        raise SpecError(f"recipe {path}: {exc}") from None
+    out, todo = {}, [("", _read_yaml(path))]
+    while todo:
+        prefix, tree = todo.pop(0)
+        for key, value in tree.items():
+            if isinstance(value, dict) and f"{prefix}{key}" not in _KNOWN_FIELDS:
+                todo.append((f"{prefix}{key}.", value))
+            elif f"{prefix}{key}" not in RUN_ONLY:
+                out[f"{prefix}{key}"] = value
+    return out
+
+
 class ExplicitCell(_Strict):
     label: str
     set: dict[str, Any] = {}
@@ -398,13 +428,17 @@ def load_spec(path: str | Path) -> Spec:
 
 
 def load_profiles(path: str | Path = PROFILES_FILE) -> dict[str, Profile]:
-    """The shared profiles, each field checked: known, and not one another section sets."""
+    """The shared profiles, a recipe's fields first in its overrides, each field checked: known, and not one
+    another section sets."""
     path = Path(path)
     try:
-        profiles = {name: Profile.model_validate(body) for name, body in _read_yaml(path).items()}
+        profiles = {name: SharedProfile.model_validate(body) for name, body in _read_yaml(path).items()}
     except ValidationError as exc:
-        raise SpecError(f"{path}: {format_validation_error(exc, Profile)}") from None
+        raise SpecError(f"{path}: {format_validation_error(exc, SharedProfile)}") from None
     for name, prof in profiles.items():
+        if prof.recipe is not None:
+            profiles[name] = prof = prof.model_copy(
+                update={"overrides": {**_recipe(path.parent / prof.recipe), **prof.overrides}})
         keys = [(f"overrides.{k}", k) for k in prof.overrides]
         keys += [(f"datasets.{d}.{k}", k) for d, fields in prof.datasets.items() for k in fields]
         for where, key in keys:
