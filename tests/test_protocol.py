@@ -1,4 +1,5 @@
-"""The protocol card: a diff of the whole resolved config against the table's reference record, and where it is shown."""
+"""The protocol card: a diff of the whole resolved config against the table's reference record, and where it is
+shown."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from sweeps import run
 from sweeps.plan import references
 from sweeps.plan.protocol import NO_DEVIATIONS, CardContext, ProtocolCard, plan_card, protocol_card
 from sweeps.plan.references import DATA_SETS, TABLES, Stated, record, show
-from sweeps.plan.spec import SpecError, load_spec
+from sweeps.plan.spec import SpecError, load_profiles, load_spec
 from sweeps.plan.trials import expand
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
@@ -61,8 +62,11 @@ def test_every_table_of_the_shipped_specs_has_a_record():
 
 
 def _written_twice(source: str) -> list[str]:
-    """Fields whose ``Stated`` value in a record's ``source`` is written out although it equals the config default."""
+    """Fields whose ``Stated`` value in a record's ``source`` is written out although it equals the config default
+    or the paper profile's value (on either data set)."""
     defaults = Config().flat()
+    paper = load_profiles()["paper"]
+    ran = [{**paper.overrides, **paper.datasets.get(kind, {})} for kind in DATA_SETS]
 
     def norm(value):
         return list(value) if isinstance(value, (list, tuple)) else value
@@ -76,9 +80,10 @@ def _written_twice(source: str) -> list[str]:
                 continue
             try:
                 value = ast.literal_eval(entry.args[0])
-            except ValueError:  # a name: _DEFAULT, read from the config
+            except ValueError:  # a name: _DEFAULT or _PAPER, read from their home
                 continue
-            if key.value in defaults and norm(value) == norm(defaults[key.value]):
+            homes = [defaults, *ran]
+            if any(key.value in home and norm(value) == norm(home[key.value]) for home in homes):
                 twice.append(key.value)
     return twice
 
@@ -87,8 +92,11 @@ def test_no_paper_value_is_written_both_in_the_config_and_in_the_records():
     source = Path(references.__file__).read_text()
     assert _written_twice(source) == []
     # The check finds a value planted twice: λ's 1.0 written out instead of read from cdm/config.py.
-    planted = source.replace('"priors.lambda_3d": Stated(\n        _DEFAULT,', '"priors.lambda_3d": Stated(\n        1.0,')
+    read = '"priors.lambda_3d": Stated(\n        _DEFAULT,'
+    planted = source.replace(read, '"priors.lambda_3d": Stated(\n        1.0,')
     assert planted != source and _written_twice(planted) == ["priors.lambda_3d"]
+    planted = source.replace('"model.denoiser": Stated(_PAPER,', '"model.denoiser": Stated("pvcnn2",')
+    assert planted != source and _written_twice(planted) == ["model.denoiser"]
     # The records hold the config's own values, so the card compares with what the config says.
     defaults = Config().flat()
     for kind in DATA_SETS:
@@ -96,6 +104,21 @@ def test_no_paper_value_is_written_both_in_the_config_and_in_the_records():
             assert record(None, kind)[path].value == defaults[path]
     assert (defaults["priors.lambda_3d"], defaults["train.betas"]) == (1.0, [0.95, 0.999])
     assert (defaults["train.warmup_steps"], defaults["train.steps"]) == (2000, 100_000)
+    # Where the paper differs from the default, the paper profile is the home, read per data set.
+    assert record(None, "co3d")["data.num_points"].value == 16384
+    assert record(None, "shapenet_r2n2")["data.num_points"].value == defaults["data.num_points"] == 4096
+    assert record(None, "co3d")["model.denoiser"].value == "pvcnn2"
+
+
+def test_the_paper_profile_writes_no_value_the_config_default_already_holds():
+    paper, defaults = load_profiles()["paper"], Config().flat()
+
+    def norm(value):
+        return list(value) if isinstance(value, (list, tuple)) else value
+
+    fields = {**paper.overrides, **{k: v for d in paper.datasets.values() for k, v in d.items()}}
+    assert {k: v for k, v in fields.items() if norm(v) == norm(defaults[k])} == {}
+    assert (paper.budget.steps, paper.budget.eval_every) == (None, None)
 
 
 @pytest.mark.parametrize(
@@ -379,7 +402,8 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     assert finished.protocol_card_lines(record_) == lines
     assert (
         lines[0]
-        == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa stand in for hydrant, teddybear and toytruck"
+        == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa "
+        "stand in for hydrant, teddybear and toytruck"
     )
     theirs = finished.results_table(record_, []).notes
     ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=run._settings(plan)).notes

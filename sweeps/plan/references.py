@@ -25,11 +25,13 @@ A record may name fields the config does not have (yet): the card lists a stated
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 from cdm.config import PAPER_DATA_SETS, Config, PaperDataSet
+from sweeps.plan.spec import load_profiles
 
 __all__ = ["DATA_SETS", "TABLES", "Entry", "Kind", "NoEffect", "NotStated", "Stated", "record", "show"]
 
@@ -108,23 +110,31 @@ Entry = Stated | NotStated | NoEffect
 
 _DEFAULT: Any = object()
 """A :class:`Stated` value that is the field's default in :mod:`cdm.config`, the value's one home (its
-docstring names the source too): :func:`_read_defaults` puts the default in, so no paper value is
-written both there and here."""
+docstring names the source too); :func:`record` puts it in, so no paper value is written both there and here."""
+_PAPER: Any = object()
+"""A :class:`Stated` value that the paper profile of ``sweeps/profiles.yaml`` sets (its ``overrides``, then its
+fields for the record's data set), where the reference differs from the config default: that profile is the
+value's one home."""
 
 
-def _read_defaults(entries: dict[str, Entry]) -> dict[str, Entry]:
-    defaults = Config().flat()
-    return {
-        path: replace(e, value=defaults[path]) if isinstance(e, Stated) and e.value is _DEFAULT else e
-        for path, e in entries.items()
-    }
+@functools.cache
+def _values(kind: Kind) -> dict[str, Any]:
+    """Where :data:`_DEFAULT` and :data:`_PAPER` values live: the config defaults, then the paper profile's."""
+    paper = load_profiles()["paper"]
+    return {"default": Config().flat(), "paper": {**paper.overrides, **paper.datasets.get(kind, {})}}
+
+
+def _read(path: str, entry: Entry, kind: Kind) -> Entry:
+    if not isinstance(entry, Stated) or not (entry.value is _DEFAULT or entry.value is _PAPER):
+        return entry
+    return replace(entry, value=_values(kind)["default" if entry.value is _DEFAULT else "paper"][path])
 
 _PRIOR_3D = {"priors.prior_3d": (True,)}
 _BLEND = {"sampling.blend.enabled": (True,)}
 _PATH = NoEffect("a path on this machine")
 _DRAW = NoEffect("which random draw; the references fix none")
 
-_COMMON: dict[str, Entry] = _read_defaults({
+_COMMON: dict[str, Entry] = {
     # data
     "data.root": _PATH,
     "data.image_size": Stated(_DEFAULT, "paper §4 Implementation Details"),
@@ -139,16 +149,16 @@ _COMMON: dict[str, Entry] = _read_defaults({
     "data.condition_folder": _PATH,
     "data.condition_grey": Stated(_DEFAULT, "paper Supp. Table 8 row 1"),
     # model
-    "model.denoiser": Stated("pvcnn2", "PC² experiments/model/point_cloud_model.py: PVCNN2"),
+    "model.denoiser": Stated(_PAPER, "PC² experiments/model/point_cloud_model.py: PVCNN2"),
     "model.width_multiplier": Stated(
         _DEFAULT, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
     ),
     "model.voxel_resolution_multiplier": Stated(
         _DEFAULT, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
     ),
-    "model.encoder": Stated("vit_s16", f"{_PC2}: image_feature_model vit_small_patch16_224_msn, frozen"),
+    "model.encoder": Stated(_PAPER, f"{_PC2}: image_feature_model vit_small_patch16_224_msn, frozen"),
     "model.encoder_weights": NoEffect("a path; a checkpoint records the weights' SHA-256"),
-    "model.feature_dim": Stated(384, f"{_PC2}: ViT-S/16's channels"),
+    "model.feature_dim": Stated(_PAPER, f"{_PC2}: ViT-S/16's channels"),
     "model.raster_radius": Stated(_DEFAULT, "PC² experiments/model/projection_model.py: raster_point_radius"),
     "model.widths": NotStated("our point-voxel denoiser's shape; PC²'s PVCNN2 fixes its own"),
     "model.voxel_resolutions": NotStated("our point-voxel denoiser's shape; PC²'s PVCNN2 fixes its own"),
@@ -170,7 +180,7 @@ _COMMON: dict[str, Entry] = _read_defaults({
     "diffusion.beta_start": Stated(_DEFAULT, f"{_PC2}: beta_start"),
     "diffusion.beta_end": Stated(_DEFAULT, f"{_PC2}: beta_end"),
     "diffusion.prediction": Stated(_DEFAULT, "paper Eq. 3 and 6: ε-prediction"),
-    "diffusion.sampler": Stated("ddpm", f"{_PC2}: diffusion_scheduler ddpm"),
+    "diffusion.sampler": Stated(_PAPER, f"{_PC2}: diffusion_scheduler ddpm"),
     "diffusion.sample_steps": Stated(1000, f"{_PC2}: num_inference_steps", {"diffusion.sampler": ("ddim",)}),
     "diffusion.ddpm_steps": Stated(
         _DEFAULT, f"{_PC2}: num_inference_steps 1000, every timestep", {"diffusion.sampler": ("ddpm",)}
@@ -178,7 +188,7 @@ _COMMON: dict[str, Entry] = _read_defaults({
     "diffusion.timestep_spacing": NotStated(
         "DDIM's step placement; the references sample with DDPM", noted=True, when={"diffusion.sampler": ("ddim",)}
     ),
-    "diffusion.clip_x0": Stated(None, "PC² experiments/model/model.py: DDPMScheduler(clip_sample=False)"),
+    "diffusion.clip_x0": Stated(_PAPER, "PC² experiments/model/model.py: DDPMScheduler(clip_sample=False)"),
     # priors
     "priors.prior_3d": Stated(_DEFAULT, "paper §3.2: CDM trains with the 3D prior constraint"),
     "priors.lambda_3d": Stated(
@@ -199,7 +209,7 @@ _COMMON: dict[str, Entry] = _read_defaults({
         _PRIOR_3D,
     ),
     "priors.depth_source": Stated(
-        "maps", "paper §3.3: depth estimated from the image (DINOv2)", {"priors.prior_2d": ("depth",)}
+        _PAPER, "paper §3.3: depth estimated from the image (DINOv2)", {"priors.prior_2d": ("depth",)}
     ),
     "priors.depth_maps": _PATH,
     "priors.depth_maps_disparity": NoEffect("the maps' file format, converted on reading"),
@@ -212,7 +222,7 @@ _COMMON: dict[str, Entry] = _read_defaults({
     "train.grad_clip": Stated(_DEFAULT, f"{_PC2}: clip_grad_norm"),
     "train.ema_decay": Stated(_DEFAULT, f"{_PC2}: use_ema False"),
     "train.precision": Stated(
-        "fp16", f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
+        _PAPER, f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
     ),
     "train.eval_every": NoEffect("when to score; the final score is at train.steps"),
     "train.log_every": NoEffect("logging"),
@@ -222,7 +232,7 @@ _COMMON: dict[str, Entry] = _read_defaults({
     "train.out_dir": _PATH,
     # eval
     "eval.protocol": Stated(
-        "paper", "PC² and BDM experiments/config/structured.py: num_sample_batches None, every object of the split"
+        _PAPER, "PC² and BDM experiments/config/structured.py: num_sample_batches None, every object of the split"
     ),
     "eval.num_objects": NotStated("the quick protocol's subset", when={"eval.protocol": ("quick",)}),
     "eval.f1_threshold": Stated(
@@ -253,7 +263,7 @@ _COMMON: dict[str, Entry] = _read_defaults({
     ),
     "sampling.blend.seed": _DRAW,
     "sampling.blend.prior_timestep": Stated(_DEFAULT, "BDM experiments/main_blending.py: prior_milestones", _BLEND),
-})
+}
 
 _SHAPENET_ONLY = {"data.kind": ("shapenet_r2n2",)}
 _CO3D_ONLY = {"data.kind": ("co3d",)}
@@ -264,48 +274,50 @@ def _one_category(categories: list[str]) -> bool:
     return len(categories) == 1
 
 
-_SHAPENET: dict[str, Entry] = _read_defaults({
+_SHAPENET: dict[str, Entry] = {
     "data.kind": Stated("shapenet_r2n2", "paper §4: ShapeNet, R2N2 renderings with PC15k clouds as BDM"),
     "data.categories": Stated("one category per model", f"{_BDM_TRAIN}: dataset.category", accepts=_one_category),
     "data.num_points": Stated(_DEFAULT, "paper §4; BDM experiments/example_train.sh: dataset.max_points"),
     "data.eval_split": Stated(
         "test", "BDM experiments/dataset/shapenet_r2n2.py: R2N2's test split (pc_dict_v2.json)", _SHAPENET_ONLY
     ),
-    "data.train_view": Stated(0, f"{_BDM}: which_view_from24 '00'", _SHAPENET_ONLY),
+    "data.train_view": Stated(_PAPER, f"{_BDM}: which_view_from24 '00'", _SHAPENET_ONLY),
     "data.mask_rgb": NoEffect("Co3D only"),
     "data.drop_outliers": NoEffect("Co3D only"),
     "data.exclude_sequences": NoEffect("Co3D only"),
     "data.frames_per_sequence": NoEffect("Co3D only"),
-    "model.mask_channels": Stated(False, f"{_BDM}: use_mask and use_distance_transform False"),
+    "model.mask_channels": Stated(_PAPER, f"{_BDM}: use_mask and use_distance_transform False"),
     "priors.prior_2d": Stated(_DEFAULT, "paper §4.1 ShapeNet: contour as the 2D prior"),
     "priors.render_kind": Stated("planar", "paper §4.1 ShapeNet: planar point images in the 3D prior", _PRIOR_3D),
-    "train.batch_size": Stated(16, f"{_BDM_TRAIN}: dataloader.batch_size; the paper states none"),
+    "train.batch_size": Stated(_PAPER, f"{_BDM_TRAIN}: dataloader.batch_size; the paper states none"),
     "train.precision": Stated(
-        "fp16", f"{_BDM}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
+        _PAPER, f"{_BDM}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
     ),
     "eval.num_points": Stated(_DEFAULT, "BDM experiments/example_sample.sh: dataset.max_points"),
-})
+}
 
-_CO3D: dict[str, Entry] = _read_defaults({
+_CO3D: dict[str, Entry] = {
     "data.kind": Stated("co3d", "paper §4: Co3D v2 as PC²"),
     "data.categories": Stated("one category per model", f"{_PC2}: CO3DConfig.category", accepts=_one_category),
-    "data.num_points": Stated(16384, f"paper §4; {_PC2}: max_points"),
+    "data.num_points": Stated(_PAPER, f"paper §4; {_PC2}: max_points"),
     "data.eval_split": Stated(_DEFAULT, f"{_PC2}: eval_split val of subset fewview_dev", _CO3D_ONLY),
     "data.train_view": NoEffect("ShapeNet only"),
-    "data.mask_rgb": Stated(True, f"{_PC2}: CO3DConfig.mask_images = use_mask", _CO3D_ONLY),
+    "data.mask_rgb": Stated(_PAPER, f"{_PC2}: CO3DConfig.mask_images = use_mask", _CO3D_ONLY),
     "data.drop_outliers": Stated(
-        False, "PC² experiments/dataset/__init__.py: PyTorch3D's loader, every point", _CO3D_ONLY
+        _PAPER, "PC² experiments/dataset/__init__.py: PyTorch3D's loader, every point", _CO3D_ONLY
     ),
     "data.exclude_sequences": Stated(
-        True, "PC² experiments/dataset/__init__.py: EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE", _CO3D_ONLY
+        _PAPER, "PC² experiments/dataset/__init__.py: EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE", _CO3D_ONLY
     ),
-    "data.frames_per_sequence": Stated(1, "PC² experiments/dataset/__init__.py: n_frames_per_sequence=1", _CO3D_ONLY),
+    "data.frames_per_sequence": Stated(
+        _PAPER, "PC² experiments/dataset/__init__.py: n_frames_per_sequence=1", _CO3D_ONLY
+    ),
     "model.mask_channels": Stated(_DEFAULT, f"{_PC2}: use_mask and use_distance_transform True"),
     "priors.prior_2d": Stated("depth", "paper §1, §3.3: depth estimated from real-world images"),
     "priors.render_kind": Stated(_DEFAULT, "paper §3.2, Fig. 2: depth images of the clouds", _PRIOR_3D),
     "train.batch_size": Stated(_DEFAULT, f"{_PC2}: DataloaderConfig.batch_size; the paper states none"),
-    "eval.num_points": Stated(16384, f"{_PC2}: max_points"),
-})
+    "eval.num_points": Stated(_PAPER, f"{_PC2}: max_points"),
+}
 
 _PC2_ROWS: dict[str, Entry] = {
     "priors.prior_3d": Stated(False, "paper Supp. Tables 7–8: every row is PC² plus its addition"),
@@ -328,4 +340,4 @@ def record(table: str | None, kind: Kind) -> dict[str, Entry]:
     if table is not None and table not in TABLES:
         raise KeyError(f"{table!r}: no reference record; tables with one: {', '.join(TABLES)}")
     per_kind = {"shapenet_r2n2": _SHAPENET, "co3d": _CO3D}[kind]
-    return {**_COMMON, **per_kind, **_TABLES.get(table or "", {})}
+    return {path: _read(path, e, kind) for path, e in {**_COMMON, **per_kind, **_TABLES.get(table or "", {})}.items()}
