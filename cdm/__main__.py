@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cdm.baseline_names import BASELINES
 from cdm.config import Config, config_field_paths, load_config, parse_override
-from cdm.evaluate import BASELINES
 from cdm.inputs import check_inputs
 from cdm.memory import check_memory
 from cdm.optim import TrainingDiverged

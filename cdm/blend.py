@@ -36,12 +36,12 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable, Sequence
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from cdm.config import Config
+from cdm.config import Config, PriorTimestep
 from cdm.data.sample import Batch
 from cdm.diffusion import GaussianDiffusion, ModelFn, SamplerSettings
 from cdm.prior_model import CategoryPrior, load_prior, prior_path
@@ -100,7 +100,7 @@ def matched_timesteps(alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor) -> T
 
 
 def prior_timesteps(
-    alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor, mode: Literal["same_index", "log_snr"]
+    alphas_cumprod: Tensor, prior_alphas_cumprod: Tensor, mode: PriorTimestep
 ) -> Tensor:
     """``(T,)`` long: the prior's timestep for each reconstruction timestep (``sampling.blend.prior_timestep``).
 
@@ -119,6 +119,10 @@ def prior_timesteps(
     return torch.arange(len(alphas_cumprod))
 
 
+_SETTINGS = SamplerSettings()
+"""The plain sampler's settings (the config defaults'), ``blended_sample``'s default."""
+
+
 def blended_sample(
     diffusion: GaussianDiffusion,
     model_fn: ModelFn,
@@ -130,7 +134,7 @@ def blended_sample(
     milestones: Sequence[int],
     window_steps: int,
     select_prob: float,
-    settings: SamplerSettings = SamplerSettings(),
+    settings: SamplerSettings = _SETTINGS,
     device: torch.device | str = "cpu",
     progress: Callable[[int, int], None] | None = None,
 ) -> BlendResult:
@@ -178,7 +182,7 @@ def blended_sample(
 
 
 def _prior_x0_fn(priors: dict[str, CategoryPrior], categories: Sequence[str], diffusion: GaussianDiffusion,
-                 mode: Literal["same_index", "log_snr"]) -> PriorX0Fn:
+                 mode: PriorTimestep) -> PriorX0Fn:
     """x̂₀ of each object's category prior, evaluated at the timestep :func:`prior_timesteps` gives."""
     groups = []
     for category, prior in priors.items():

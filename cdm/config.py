@@ -26,12 +26,23 @@ __all__ = [
     "BlendConfig",
     "Config",
     "ConfigError",
+    "DataKind",
     "DataConfig",
+    "Devoxelize",
     "DiffusionConfig",
     "EvalConfig",
+    "F1_THRESHOLD",
     "ModelConfig",
+    "PAPER_DATA_SETS",
+    "PaperDataSet",
+    "Prediction",
+    "Prior2D",
+    "PriorTimestep",
     "PriorsConfig",
+    "RenderKind",
+    "Sampler",
     "SamplingConfig",
+    "Spacing",
     "TrainConfig",
     "apply_overrides",
     "config_field_paths",
@@ -39,6 +50,31 @@ __all__ = [
     "load_config",
     "parse_override",
 ]
+
+
+F1_THRESHOLD = 0.01
+"""τ of the F-score, on the squared nearest-neighbour distance (world units²): paper §4 Metrics, F-Score@0.01
+as BDM's ``experiments/evaluation/evaluation_f1.py`` applies it. ``eval.f1_threshold``'s default and
+:func:`cdm.metrics.chamfer_f1`'s."""
+
+
+PaperDataSet = Literal["shapenet_r2n2", "co3d"]
+"""The data sets the paper reports on, the captured kinds (photographs with known cameras)."""
+PAPER_DATA_SETS: tuple[PaperDataSet, ...] = typing.get_args(PaperDataSet)
+DataKind = Literal["procedural", "meshes", PaperDataSet]
+"""``data.kind``: a key of ``cdm.data.DATASETS``."""
+Devoxelize = Literal["trilinear", "nearest"]
+Prediction = Literal["eps", "x0", "v"]
+"""What the denoiser predicts (``diffusion.prediction``)."""
+Sampler = Literal["ddim", "ddpm"]
+Spacing = Literal["linspace", "trailing"]
+"""Where DDIM's steps sit (``diffusion.timestep_spacing``)."""
+RenderKind = Literal["depth", "planar"]
+"""What the 3D prior constraint renders (``priors.render_kind``)."""
+Prior2D = Literal["none", "contour", "depth"]
+"""The 2D prior of the input image (``priors.prior_2d``)."""
+PriorTimestep = Literal["same_index", "log_snr"]
+"""How BDM blending picks the prior's timestep (``sampling.blend.prior_timestep``)."""
 
 
 class ConfigError(ValueError):
@@ -54,7 +90,7 @@ class _Group(BaseModel):
 class DataConfig(_Group):
     """What the model trains and evaluates on."""
 
-    kind: Literal["procedural", "meshes", "shapenet_r2n2", "co3d"] = "procedural"
+    kind: DataKind = "procedural"
     """Data-set kind, a key of ``cdm.data.DATASETS``. ``procedural`` is the embedded default (no files)."""
     root: str | None = None
     """Folder of the data set on disk (``meshes``: one sub-folder per category; ``shapenet_r2n2``: holds
@@ -167,7 +203,7 @@ class ModelConfig(_Group):
     """Voxel grid side of each block, same length as ``widths`` (PVCNN: 32/16/8)."""
     voxel_backend: Literal["auto", "dense", "sparse"] = "auto"
     """Voxel branch: dense ``Conv3d`` or submanifold convolution on occupied voxels only."""
-    devoxelize: Literal["trilinear", "nearest"] = "trilinear"
+    devoxelize: Devoxelize = "trilinear"
     """How voxel features return to points."""
     time_embed_dim: int = Field(64, ge=4)
     """Sinusoidal timestep embedding size (PC²: 64)."""
@@ -224,9 +260,9 @@ class DiffusionConfig(_Group):
     """First beta of the linear schedule (PC²: 1e-5)."""
     beta_end: float = Field(8e-3, gt=0.0, lt=1.0)
     """Last beta of the linear schedule (PC²: 8e-3)."""
-    prediction: Literal["eps", "x0", "v"] = "eps"
+    prediction: Prediction = "eps"
     """What the network predicts: ε as in the paper (Eq. 2–3), x₀, or v = √ᾱ ε − √(1−ᾱ) x₀."""
-    sampler: Literal["ddim", "ddpm"] = "ddim"
+    sampler: Sampler = "ddim"
     """Evaluation sampler: DDIM (η=0) over ``sample_steps`` or ancestral DDPM (all T steps, or ``ddpm_steps``)."""
     sample_steps: int = Field(50, ge=1)
     """Steps of the DDIM sampler."""
@@ -234,7 +270,7 @@ class DiffusionConfig(_Group):
     """Steps of the DDPM sampler: null takes all T (PC²'s ``num_inference_steps`` 1,000); fewer take every
     (T // n)-th timestep from 0, as diffusers' ``DDPMScheduler.set_timesteps``, each step drawn from the
     posterior between its two timesteps (β = 1 − ᾱ_t / ᾱ_prev) — quicker, not PC²'s numbers."""
-    timestep_spacing: Literal["linspace", "trailing"] = "linspace"
+    timestep_spacing: Spacing = "linspace"
     """Where the DDIM steps sit: ``linspace`` ends with a prediction at t = 0, ``trailing`` at
     t = T/sample_steps − 1 (Lin et al., 2024; better for x₀-prediction, ``cdm.diffusion``); DDPM ignores it."""
     clip_x0: float | None = Field(1.0, gt=0.0)
@@ -264,7 +300,7 @@ class PriorsConfig(_Group):
     """The paper's point size of the constraint's renderings (0.04), NDC units (one pixel is 2/S): the
     point radius of PyTorch3D's point rasteriser, each point's footprint integrated over the pixels
     (:func:`cdm.render.splat_points`)."""
-    render_kind: Literal["depth", "planar"] = "depth"
+    render_kind: RenderKind = "depth"
     """Constraint images: soft depth maps (Co3D) or planar point images (ShapeNet), Fig. 3."""
     depth_layer: float | None = Field(0.4, gt=0.0)
     """Depth maps only: thickness (view depth in the data set's frame units, ``cdm.normalise``; measured on
@@ -276,7 +312,7 @@ class PriorsConfig(_Group):
     """Side of the constraint renderings in pixels (paper: 224)."""
     target: Literal["x0_hat", "x_t_literal"] = "x0_hat"
     """Cloud compared with x₀: the predicted clean cloud x̂₀ (trainable) or x_t as Eq. 6 is written."""
-    prior_2d: Literal["none", "contour", "depth"] = "contour"
+    prior_2d: Prior2D = "contour"
     """2D prior concatenated with the image features (Eq. 7): contour (ShapeNet) or depth (Co3D)."""
     depth_source: Literal["ground_truth", "maps"] = "ground_truth"
     """Depth of the ``depth`` prior: the data set's own depth map (an **upper bound**: privileged, not
@@ -360,8 +396,8 @@ class EvalConfig(_Group):
     """Points drawn from prediction and ground truth before the metrics: BDM scores 4,096 on ShapeNet
     (``dataset.max_points=4096`` in its ``experiments/example_sample.sh``), PC² 16,384 on Co3D (its
     ``max_points``)."""
-    f1_threshold: float = Field(0.01, gt=0.0)
-    """F-score threshold applied to squared nearest-neighbour distance (BDM: 0.01)."""
+    f1_threshold: float = Field(F1_THRESHOLD, gt=0.0)
+    """F-score threshold applied to squared nearest-neighbour distance (paper and BDM: :data:`F1_THRESHOLD`)."""
     seed: int = 1234
     """Sampling seed, identical across runs so cells are compared on the same noise."""
     save_clouds: int = Field(4, ge=0)
@@ -400,7 +436,7 @@ class BlendConfig(_Group):
     seed: int = 0
     """Seed of the per-point selection and of the prior branch's DDPM noise; apart from the sampling
     seed, so select_prob 0 reproduces the plain sampler exactly."""
-    prior_timestep: Literal["same_index", "log_snr"] = "same_index"
+    prior_timestep: PriorTimestep = "same_index"
     """Timestep the prior is evaluated at for the reconstruction's x_t: ``same_index`` passes the same t, as
     BDM's ``experiments/main_blending.py`` (its ``prior_milestones``), though the two schedules' noise
     levels differ; ``log_snr`` the prior schedule's t of nearest log-SNR (:func:`cdm.blend.matched_timesteps`)."""
@@ -454,7 +490,7 @@ class Config(_Group):
             raise ValueError(
                 f"data.image_size must be a multiple of 16 with model.encoder=vit_s16 (got {data.image_size})"
             )
-        if self.priors.depth_source == "maps" and data.kind not in ("shapenet_r2n2", "co3d"):
+        if self.priors.depth_source == "maps" and data.kind not in PAPER_DATA_SETS:
             raise ValueError(
                 "priors.depth_source=maps needs a captured data set (data.kind shapenet_r2n2 or co3d): rendered "
                 f"kinds ({data.kind}) draw a fresh view every round, which no folder of maps can cover"

@@ -17,17 +17,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from torch import Tensor
 
-from cdm.config import DiffusionConfig
+from cdm.config import DiffusionConfig, Prediction, Sampler, Spacing
 
 __all__ = ["GaussianDiffusion", "Prediction", "SamplerSettings", "Spacing"]
 
-Prediction = Literal["eps", "x0", "v"]
-Spacing = Literal["linspace", "trailing"]
 ModelFn = Callable[[Tensor, Tensor], Tensor]
 """``model_fn(x_t (B, N, 3), t (B,) long) -> raw network output (B, N, 3)``."""
 _DEFAULT = DiffusionConfig()
@@ -48,7 +45,7 @@ class SamplerSettings:
         ddpm_steps: DDPM's number of steps; ``None`` = all T.
     """
 
-    sampler: Literal["ddim", "ddpm"] = _DEFAULT.sampler
+    sampler: Sampler = _DEFAULT.sampler
     steps: int = _DEFAULT.sample_steps
     clip_x0: float | None = _DEFAULT.clip_x0
     spacing: Spacing = _DEFAULT.timestep_spacing

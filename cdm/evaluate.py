@@ -30,9 +30,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.baseline_names import BASELINES
 from cdm.blend import blended_reconstruction
 from cdm.cameras import Cameras, orbit_cameras, project_points
-from cdm.config import Config
+from cdm.config import F1_THRESHOLD, Config
 from cdm.data.sample import Batch, collate
 from cdm.data.views import ObjectDataset
 from cdm.diffusion import GaussianDiffusion, SamplerSettings
@@ -42,7 +43,6 @@ from cdm.model import CDMNetwork
 from cdm.normalise import FRAME_VERSION
 
 __all__ = [
-    "BASELINES",
     "EvalOutput",
     "EvalSet",
     "RetrievalBank",
@@ -54,7 +54,6 @@ __all__ = [
     "write_ply",
 ]
 
-BASELINES = ("sphere", "gaussian", "category_mean", "retrieval")
 RETRIEVAL_SIZE = 32
 """Side of the resampled silhouettes the retrieval baseline compares, in pixels."""
 
@@ -288,7 +287,8 @@ def run_evaluation(
                 files.append(write_ply(out_dir / f"{stem}.gt.ply", batch.points[j]))
                 files += [write_ply(out_dir / f"{stem}.{name}.ply", cloud)
                           for name, cloud in eval_set.baseline_clouds.get(oid, {}).items()]
-                files.append(save_panel(out_dir / f"{stem}.png", batch, j, pred[j], m.cd[j].item(), m.f1[j].item()))
+                files.append(save_panel(out_dir / f"{stem}.png", batch, j, pred[j], m.cd[j].item(), m.f1[j].item(),
+                                        cfg.eval.f1_threshold))
     network.train()
     metrics = _summarise([(r["category"], r["cd"], r["f1"]) for r in rows], "eval")
     metrics.update(eval_set.baseline_metrics)
@@ -317,7 +317,9 @@ def write_ply(path: Path, points: Tensor) -> Path:
     return path
 
 
-def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: float) -> Path:
+def save_panel(
+    path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: float, threshold: float = F1_THRESHOLD
+) -> Path:
     """PNG of one object, two rows: the input image then the prediction from 3 views; the 2D prior then
     the ground truth from the same 3 views.
 
@@ -368,8 +370,9 @@ def save_panel(path: Path, batch: Batch, j: int, pred: Tensor, cd: float, f1: fl
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_aspect("equal")
-    # F1's threshold is on the squared distance (cdm/metrics.py): 0.1 in world units.
-    fig.suptitle(f"{batch.object_id[j]}   CD×1000 {cd:.2f}   F1@0.01 (sq. dist; 0.1 world) {f1:.3f}", fontsize=12)
+    # F1's threshold is on the squared distance (cdm/metrics.py): its root in world units.
+    fig.suptitle(f"{batch.object_id[j]}   CD×1000 {cd:.2f}   F1@{threshold:g} (sq. dist; {threshold ** 0.5:g} world) "
+                 f"{f1:.3f}", fontsize=12)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)

@@ -5,8 +5,8 @@ Euclidean, world units²),
 
 - ``CD = mean_{p∈P} d(p, G) + mean_{g∈G} d(g, P)``, reported ×1000;
 - precision = fraction of predicted points with ``d(p, G) < τ``, recall = fraction of GT points with
-  ``d(g, P) < τ``, ``F1 = 2PR / (P + R)`` (0 when both are 0), with τ = 0.01 applied to the
-  **squared** distance, as BDM does.
+  ``d(g, P) < τ``, ``F1 = 2PR / (P + R)`` (0 when both are 0), with τ (``eval.f1_threshold``, by
+  default :data:`cdm.config.F1_THRESHOLD`) applied to the **squared** distance, as BDM does.
 
 Nearest neighbours come from one of two searches, same results:
 
@@ -25,6 +25,8 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
+
+from cdm.config import F1_THRESHOLD
 
 __all__ = ["ChamferF1", "chamfer_f1", "nearest_sq_dist"]
 
@@ -75,7 +77,7 @@ def _kdtree_sq_dist(src: Tensor, dst: Tensor) -> Tensor:
 
 @torch.no_grad()
 def chamfer_f1(
-    pred: Tensor, gt: Tensor, threshold: float = 0.01, chunk: int = 2048, search: Search = "auto"
+    pred: Tensor, gt: Tensor, threshold: float = F1_THRESHOLD, chunk: int = 2048, search: Search = "auto"
 ) -> ChamferF1:
     """Chamfer distance (×1000) and F1 per shape, BDM's definitions (module docstring).
 

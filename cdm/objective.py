@@ -8,13 +8,13 @@ ground truth from the H prior views (:func:`cdm.render.splat_points`) and their 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
 from cdm.cameras import Cameras
-from cdm.config import PriorsConfig
+from cdm.config import PriorsConfig, RenderKind
 from cdm.data.sample import Batch
 from cdm.diffusion import GaussianDiffusion
 from cdm.model import CDMNetwork
@@ -101,7 +101,7 @@ def prior_3d_loss(
     view_cameras: Cameras,
     render_size: int,
     point_size: float,
-    kind: Literal["depth", "planar"],
+    kind: RenderKind,
     target_images: Tensor | None = None,
     depth_layer: float | None = None,
 ) -> Prior3DLoss:

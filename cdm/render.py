@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from cdm.cameras import Cameras, ndc_to_pixel, project_points
+from cdm.config import RenderKind
 
 __all__ = [
     "SPLAT_DEPTH_EPS",
@@ -290,7 +291,7 @@ def splat_points(
     cameras: Cameras,
     image_size: int,
     point_size: float,
-    kind: Literal["depth", "planar"],
+    kind: RenderKind,
     depth_layer: float | None = None,
 ) -> Tensor:
     """Differentiable soft splatting of points into depth maps or planar point images (Eq. 6, Fig. 3).

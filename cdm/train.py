@@ -24,6 +24,7 @@ import torch
 import torch.distributed
 from torch.utils.data import DataLoader
 
+from cdm.baseline_names import BASELINES
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import Config
 from cdm.data import build_dataset
@@ -31,7 +32,7 @@ from cdm.data.order import ByRound, StepBatches, batch_indices
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import Batch, collate
 from cdm.diffusion import GaussianDiffusion
-from cdm.evaluate import BASELINES, EvalSet, build_eval_set, run_evaluation
+from cdm.evaluate import EvalSet, build_eval_set, run_evaluation
 from cdm.inputs import check_coverage, check_inputs
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss

@@ -128,11 +128,9 @@ def _rule(plan: SweepPlan, budget: SeedBudget | None) -> list[str]:
 
 def _settings(plan: SweepPlan) -> list[str]:
     """What produced the numbers, for the table's notes: budget, the cells' training target and λ, the card."""
-
-    # A sampled search's plan has no cells yet: the fixed settings and --set values stand for every trial.
-    configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs),
-                          (c.priors.lambda_3d for c in configs), plan.fixed, plan.sets, plan_card(plan).lines())
+    trials = ((c.config.diffusion.prediction, c.config.priors.lambda_3d) for c in plan.cells)
+    return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, plan.fixed, plan.sets,
+                          plan_card(plan).lines(), trials)
 
 
 def _ui_hint(uri: str, path: str) -> str:

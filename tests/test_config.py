@@ -1,8 +1,15 @@
 """Loading and validation of cdm.config."""
 
+import ast
+import typing
+from pathlib import Path
+
 import pytest
+from pydantic import BaseModel
 
 from cdm.config import Config, ConfigError, apply_overrides, config_field_paths, load_config, parse_override
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_defaults_are_the_papers():
@@ -109,3 +116,42 @@ def test_a_config_file_that_is_a_fifo_nested_deep_or_not_utf8_is_refused(tmp_pat
         path.write_bytes(b"train: {steps: \xe9}\n")
     with pytest.raises(ConfigError, match=said):
         load_config(path)
+
+
+def _field_literals(model: type[BaseModel] = Config) -> set[frozenset]:
+    """The allowed-value lists of every config field, each as a set of its values."""
+    found = set()
+    for info in model.model_fields.values():
+        if isinstance(info.annotation, type) and issubclass(info.annotation, BaseModel):
+            found |= _field_literals(info.annotation)
+        elif typing.get_origin(info.annotation) is typing.Literal:
+            found.add(frozenset(typing.get_args(info.annotation)))
+    return found
+
+
+def _literals_written(source: str) -> list[frozenset]:
+    """The ``Literal[...]`` lists written out in a module's source."""
+    lists = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Subscript) and getattr(node.value, "id", None) == "Literal":
+            items = node.slice.elts if isinstance(node.slice, ast.Tuple) else [node.slice]
+            if all(isinstance(i, ast.Constant) for i in items):
+                lists.append(frozenset(i.value for i in items))
+    return lists
+
+
+def test_each_allowed_value_list_of_the_config_is_written_once_and_imported_elsewhere():
+    """cdm/config.py's Literals (DataKind, Prediction, RenderKind, Prior2D, ...) are the lists' one home."""
+    lists = _field_literals()
+    assert frozenset({"depth", "planar"}) in lists and frozenset({"eps", "x0", "v"}) in lists
+    again = [
+        (str(path.relative_to(ROOT)), sorted(values))
+        for folder in ("cdm", "sweeps")
+        for path in sorted((ROOT / folder).rglob("*.py"))
+        if path != ROOT / "cdm" / "config.py"
+        for values in _literals_written(path.read_text())
+        if values in lists
+    ]
+    assert again == []
+    planted = 'def splat(kind: Literal["depth", "planar"]) -> None: ...'
+    assert frozenset({"depth", "planar"}) in _literals_written(planted)

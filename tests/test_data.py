@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import typing
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import torch
 import trimesh
 
 from cdm.cameras import ndc_to_pixel, project_points
-from cdm.config import Config, load_config
+from cdm.config import Config, ConfigError, DataKind, load_config
 from cdm.data import DATASETS, build_dataset, collate, list_categories
 from cdm.data.procedural import CATEGORIES, make_shape
 from cdm.data.views import RASTER_RADIUS_PX, Shape, View, draw_palette, render_view, sample_surface
@@ -38,6 +39,14 @@ def _tensors(s) -> list[torch.Tensor]:
 
 
 # --- procedural -----------------------------------------------------------------------------------
+
+
+def test_the_registry_holds_every_kind_the_config_accepts_and_the_config_refuses_others():
+    assert sorted(DATASETS) == sorted(typing.get_args(DataKind))
+    assert all(cls.kind == kind for kind, cls in DATASETS.items())
+    allowed = "'procedural', 'meshes', 'shapenet_r2n2' or 'co3d'"
+    with pytest.raises(ConfigError, match=f"data.kind: Input should be {allowed}"):
+        load_config(None, {"data.kind": "pix3d"})
 
 
 def test_eight_categories_listed():

@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
+from cdm.baseline_names import BASELINES
 from cdm.data import build_dataset
-from cdm.evaluate import BASELINES, RetrievalBank, _category_medoids, baseline_clouds, build_eval_set
+from cdm.evaluate import RetrievalBank, _category_medoids, baseline_clouds, build_eval_set
 from cdm.metrics import chamfer_f1
 from tests.conftest import tiny_config
 

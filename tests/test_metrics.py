@@ -1,11 +1,20 @@
 """Chamfer/F1 against a scipy cKDTree reference of the same definitions (NOTES §4)."""
 
+import inspect
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 from scipy.spatial import cKDTree
 
+from cdm.config import F1_THRESHOLD, EvalConfig
 from cdm.metrics import chamfer_f1, nearest_sq_dist
+from sweeps.compare.rules import F1_AT, F1_UNIT
+from sweeps.plan.references import record
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def reference(pred: np.ndarray, gt: np.ndarray, tau: float) -> tuple[float, float, float, float]:
@@ -76,3 +85,16 @@ def test_nearest_sq_dist_chunking_and_search_agree():
 def test_bad_shapes_are_rejected():
     with pytest.raises(ValueError, match=r"\(B, N, 3\)"):
         chamfer_f1(torch.zeros(10, 3), torch.zeros(10, 3))
+
+
+def test_the_f1_threshold_has_one_home_read_by_the_metric_the_config_the_records_and_the_labels():
+    assert inspect.signature(chamfer_f1).parameters["threshold"].default is F1_THRESHOLD
+    assert EvalConfig.model_fields["f1_threshold"].default is F1_THRESHOLD
+    assert record(None, "co3d")["eval.f1_threshold"].value == F1_THRESHOLD == 0.01
+    assert F1_AT == "F1@0.01 sq. dist = 0.1 world" and "within 0.1 in world units" in F1_UNIT
+    # The paper's value is written once: not as a threshold in the metric, the records or the labels.
+    readers = ["cdm/metrics.py", "cdm/evaluate.py", "sweeps/plan/references.py", "sweeps/compare/rules.py",
+               "sweeps/compare/gallery.py"]
+    pattern = r"F1@0\.01|F-Score@0\.01|threshold: float = 0\.01|Stated\(0\.01|τ = 0\.01"
+    written = [(f, line) for f in readers for line in (ROOT / f).read_text().splitlines() if re.search(pattern, line)]
+    assert written == []

@@ -12,9 +12,9 @@ import torch
 from torch import Tensor, nn
 
 from cdm.cameras import Cameras, look_at_cameras, orbit_cameras
-from cdm.config import PriorsConfig
+from cdm.config import Prediction, PriorsConfig
 from cdm.data.sample import Batch
-from cdm.diffusion import GaussianDiffusion, Prediction
+from cdm.diffusion import GaussianDiffusion
 from cdm.objective import cdm_loss, prior_3d_loss
 
 # x₀, (B, N, 3) = (2, 4, 3) in the normalised world frame: two small tetrahedra around the origin.

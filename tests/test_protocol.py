@@ -1,23 +1,26 @@
-"""The protocol card: a diff of the whole resolved config against the table's reference record, and where it
-is shown."""
+"""The protocol card: a diff of the whole resolved config against the table's reference record, and where it is
+shown."""
 
 from __future__ import annotations
 
+import ast
+import re
 from pathlib import Path
 
 import pytest
 
-from cdm.config import config_field_paths, load_config
+from cdm.config import Config, config_field_paths, load_config
 from cdm.data.shapenet import SYNSETS
 from sweeps import run
 from sweeps.plan import references
 from sweeps.plan.protocol import NO_DEVIATIONS, CardContext, ProtocolCard, plan_card, protocol_card
 from sweeps.plan.references import DATA_SETS, TABLES, Stated, record, show
-from sweeps.plan.spec import SpecError, load_spec
+from sweeps.plan.spec import SpecError, load_profiles, load_spec
 from sweeps.plan.trials import expand
 from tests.datasets_fixtures import make_co3d, make_shapenet
 
-SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
+ROOT = Path(__file__).resolve().parent.parent
+SWEEPS = ROOT / "sweeps"
 SPECS = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
 
 
@@ -56,6 +59,89 @@ def test_every_table_of_the_shipped_specs_has_a_record():
     assert tables == set(TABLES)
     with pytest.raises(KeyError, match="'Table 9': no reference record"):
         record("Table 9", "co3d")
+
+
+def _written_twice(source: str) -> list[str]:
+    """Fields whose ``Stated`` value in a record's ``source`` is written out although it equals the config default
+    or the paper profile's value (on either data set)."""
+    defaults = Config().flat()
+    paper = load_profiles()["paper"]
+    ran = [{**paper.overrides, **paper.datasets.get(kind, {})} for kind in DATA_SETS]
+
+    def norm(value):
+        return list(value) if isinstance(value, (list, tuple)) else value
+
+    twice = []
+    for node in ast.walk(ast.parse(source)):
+        for key, entry in zip(node.keys, node.values, strict=True) if isinstance(node, ast.Dict) else ():
+            if not (isinstance(key, ast.Constant) and isinstance(entry, ast.Call) and entry.args):
+                continue
+            if getattr(entry.func, "id", None) != "Stated" or any(k.arg == "accepts" for k in entry.keywords):
+                continue
+            try:
+                value = ast.literal_eval(entry.args[0])
+            except ValueError:  # a name: _DEFAULT or _PAPER, read from their home
+                continue
+            homes = [defaults, *ran]
+            if any(key.value in home and norm(value) == norm(home[key.value]) for home in homes):
+                twice.append(key.value)
+    return twice
+
+
+def test_no_paper_value_is_written_both_in_the_config_and_in_the_records():
+    source = Path(references.__file__).read_text()
+    assert _written_twice(source) == []
+    # The check finds a value planted twice: λ's 1.0 written out instead of read from cdm/config.py.
+    read = '"priors.lambda_3d": Stated(\n        _DEFAULT,'
+    planted = source.replace(read, '"priors.lambda_3d": Stated(\n        1.0,')
+    assert planted != source and _written_twice(planted) == ["priors.lambda_3d"]
+    planted = source.replace('"model.denoiser": Stated(_PAPER,', '"model.denoiser": Stated("pvcnn2",')
+    assert planted != source and _written_twice(planted) == ["model.denoiser"]
+    # The records hold the config's own values, so the card compares with what the config says.
+    defaults = Config().flat()
+    for kind in DATA_SETS:
+        for path in ("priors.lambda_3d", "train.betas", "train.warmup_steps", "train.steps", "eval.f1_threshold"):
+            assert record(None, kind)[path].value == defaults[path]
+    assert (defaults["priors.lambda_3d"], defaults["train.betas"]) == (1.0, [0.95, 0.999])
+    assert (defaults["train.warmup_steps"], defaults["train.steps"]) == (2000, 100_000)
+    # Where the paper differs from the default, the paper profile is the home, read per data set.
+    assert record(None, "co3d")["data.num_points"].value == 16384
+    assert record(None, "shapenet_r2n2")["data.num_points"].value == defaults["data.num_points"] == 4096
+    assert record(None, "co3d")["model.denoiser"].value == "pvcnn2"
+
+
+def test_the_paper_profile_writes_no_value_the_config_default_already_holds():
+    paper, defaults = load_profiles()["paper"], Config().flat()
+
+    def norm(value):
+        return list(value) if isinstance(value, (list, tuple)) else value
+
+    fields = {**paper.overrides, **{k: v for d in paper.datasets.values() for k, v in d.items()}}
+    assert {k: v for k, v in fields.items() if norm(v) == norm(defaults[k])} == {}
+    assert (paper.budget.steps, paper.budget.eval_every) == (None, None)
+
+
+@pytest.mark.parametrize(
+    "name, pattern",
+    [
+        ("λ's 1.0", r"lambda_3d\b.*[(:] *1\.0\b|Stated\(1\.0.*[Ee]q\. 6"),
+        ("PC²'s betas", r"0\.95, *0\.999"),
+        ("warm-up 2,000", r"warmup_steps\b.*\b2_?000\b"),
+        ("steps 100,000", r"steps\b.*\b100_?000\b"),
+    ],
+)
+def test_each_paper_value_the_issue_names_is_written_in_one_place(name, pattern):
+    """The bar of issue 45: each of these is written in one file of cdm/ and sweeps/, as its default in
+    cdm/config.py (whose docstrings may repeat it), and read from there by the records and the paper profile."""
+    hits = [
+        f"{path.relative_to(ROOT)}:{n}"
+        for folder in ("cdm", "sweeps")
+        for path in sorted((ROOT / folder).rglob("*"))
+        if path.suffix in (".py", ".yaml")
+        for n, line in enumerate(path.read_text().splitlines(), 1)
+        if re.search(pattern, line)
+    ]
+    assert {h.split(":")[0] for h in hits} == {"cdm/config.py"}, (name, hits)
 
 
 @pytest.mark.parametrize("kind", DATA_SETS)

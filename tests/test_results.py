@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import csv
 import statistics
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.rules import metric_label, settings_note
+from sweeps.compare.rules import metric_label, settings_note, settings_notes
 from sweeps.compare.table import build_table
+from sweeps.plan.spec import load_spec
+
+SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
 
 
 def _trial(cell, seed, status="ok", **metrics):
@@ -185,6 +191,12 @@ def test_terminal_table_fits_120_columns_at_the_main_jobs_size_and_says_where_th
     assert table.records[-1]["eval/f1 mean"] == pytest.approx(0.60)
 
 
+def test_the_results_table_reads_the_baselines_names_without_torch_or_the_model():
+    code = "import sys, sweeps.compare.table; print(sorted(m for m in ('torch', 'cdm.evaluate') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SWEEPS.parent)
+    assert out.stdout.strip() == "[]"
+
+
 def test_settings_note_says_lambda_and_where_it_was_set():
     note = settings_note("local", 800, ["x0"], [0.1, 0.1], "profile local")
     assert note == ("profile local: 800 steps per trial; prediction target x0; "
@@ -193,6 +205,21 @@ def test_settings_note_says_lambda_and_where_it_was_set():
         "local", 800, ["x0"], [1.0, 0.01], "the spec's cells"
     )
     assert "λ (priors.lambda_3d, Eq. 6) searched," in settings_note("local", 800, ["x0"], [], "the spec's search")
+
+
+def test_settings_notes_without_trials_resolve_the_fixed_settings_and_sets_as_a_trial_would():
+    """The runner before a sampled search's trials and the report of trials that recorded nothing use one rule:
+    the plan's fixed overrides and --set values resolved by load_config (not the config's defaults by hand)."""
+    spec = load_spec(SWEEPS / "point_size.yaml")
+    fixed = {"diffusion.prediction": "x0", "priors.lambda_3d": 0.1}
+    note, card = settings_notes(spec, "local", 1400, fixed, {}, ["a line"])
+    assert note == ("profile local: 1400 steps per trial; prediction target x0; "
+                    "λ (priors.lambda_3d, Eq. 6) 0.1, from profile local, not from the paper")
+    assert card == "protocol: a line"
+    note = settings_notes(spec, "smoke", 20, {}, {"priors.lambda_3d": 0.5}, [])[0]
+    assert "prediction target eps; λ (priors.lambda_3d, Eq. 6) 0.5, from --set" in note
+    note = settings_notes(spec, "local", 1400, fixed, {}, [], [("v", 0.2), ("x0", 0.2)])[0]
+    assert "prediction target per cell (v, x0); λ (priors.lambda_3d, Eq. 6) 0.2, from profile local" in note
 
 
 REF_F1 = [0.40, 0.50, 0.30, 0.45, 0.35, 0.50]

@@ -6,13 +6,14 @@ from pathlib import Path
 
 import pytest
 
-from cdm.config import ConfigError
+from cdm.config import Config, ConfigError
 from sweeps import run
+from sweeps.compare.rules import lambda_source
 from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.estimate import Estimate
 from sweeps.plan.resources import plan_concurrency
 from sweeps.plan.spec import Resources, Spec, SpecError, load_profiles, load_spec
-from sweeps.plan.trials import expand, lambda_source
+from sweeps.plan.trials import expand
 from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings
 
 SWEEPS = Path(__file__).resolve().parent.parent / "sweeps"
@@ -168,6 +169,18 @@ def test_resolution_order_profile_base_spec_profile_budget_cell_seed_set():
     assert cfg.priors.point_size == 0.04 and cfg.train.seed == 4  # cell and seed
     assert cfg.eval.num_objects == 2  # --set wins
     assert cfg.train.threads == 1  # = CPUs per worker
+
+
+def test_a_budget_left_out_is_the_configs_default_the_papers_length():
+    """The paper profile writes no budget: its cells train train.steps's default (PC²'s 100,000 steps, scored every
+    5,000), the one home of that value, exactly as when the profile wrote the numbers out."""
+    assert SHARED["paper"].budget.steps is None and SHARED["paper"].budget.eval_every is None
+    cfg = expand(load_spec(SWEEPS / "point_size.yaml"), "paper").cells[0].config
+    assert (cfg.train.steps, cfg.train.eval_every) == (100_000, 5000)
+    spec = _spec(grid={"priors.point_size": [0.04]}, profiles={"p": {"budget": {"eval_every": 9}}})
+    plan = expand(spec, "p", shared=SHARED)
+    assert (plan.profile.steps, plan.profile.eval_every) == (100_000, 9)
+    assert plan.cells[0].config.train.steps == 100_000
 
 
 def test_exclude_and_explicit_cells_and_paper_rows():
@@ -430,6 +443,52 @@ def test_a_remote_cluster_that_could_never_fit_a_trial_is_refused():
         plan_concurrency(Resources(**PAPER_RESOURCES), 16, 0, 3)
     with pytest.raises(SpecError, match="could offer at most 16 and 0; .* min_workers: 1"):
         plan_concurrency(Resources(**PAPER_RESOURCES), 16, 0, 3, remote=True)
+
+
+# The local profile's overrides as sweeps/profiles.yaml wrote them out before it named configs/quick.yaml as
+# its recipe (ef8ae6d): the main job's cells must resolve to the same configs.
+LOCAL_BEFORE_THE_RECIPE = {
+    "data.image_size": 64, "data.num_points": 512, "data.train_objects": 256, "data.val_objects": 16,
+    "model.feature_dim": 32, "model.widths": [32, 64, 128], "model.voxel_resolutions": [16, 8, 8],
+    "model.voxel_backend": "sparse", "diffusion.prediction": "x0", "diffusion.sample_steps": 10,
+    "diffusion.timestep_spacing": "trailing", "priors.render_kind": "planar", "priors.lambda_3d": 0.1,
+    "priors.render_size": 64, "train.batch_size": 4, "train.lr": 1.0e-3, "train.betas": [0.9, 0.99],
+    "train.warmup_steps": 150, "train.log_every": 100, "eval.num_objects": 16, "eval.num_points": 512,
+    "eval.save_clouds": 8,
+}
+
+
+def test_the_local_profile_starts_from_the_quick_config_and_resolves_the_main_job_as_before():
+    recipe = SHARED["local"].overrides
+    assert {k: recipe[k] for k in ("data.image_size", "priors.lambda_3d", "model.widths")} == {
+        "data.image_size": 64, "priors.lambda_3d": 0.1, "model.widths": [32, 64, 128]}
+    assert not {"train.steps", "train.eval_every", "train.threads", "train.out_dir"} & set(recipe)
+    for cell in expand(load_spec(SWEEPS / "point_size.yaml"), "local").cells:
+        flat, default = cell.config.flat(), Config().flat()
+        assert {k: flat[k] for k in LOCAL_BEFORE_THE_RECIPE} == LOCAL_BEFORE_THE_RECIPE
+        assert (flat["train.steps"], flat["train.eval_every"], flat["train.threads"]) == (1400, 1400, 1)
+        assert flat["train.out_dir"] == default["train.out_dir"]
+        # Nothing else differs from the defaults: the recipe brought no field the profile did not set before.
+        changed = {k for k in flat if flat[k] != default[k]} - {"priors.point_size"}
+        before = {k for k, v in LOCAL_BEFORE_THE_RECIPE.items() if v != default[k]}
+        assert changed == before | {"train.steps", "train.eval_every", "train.threads"}
+
+
+def test_a_recipe_is_one_home_read_by_the_profile_and_checked_like_a_config(tmp_path):
+    recipe = tmp_path / "configs" / "cpu.yaml"
+    recipe.parent.mkdir()
+    recipe.write_text("priors:\n  lambda_3d: 0.3\ntrain:\n  steps: 9\n  out_dir: runs/x\n")
+    profiles = tmp_path / "sweeps" / "profiles.yaml"
+    profiles.parent.mkdir()
+    profiles.write_text("p:\n  recipe: ../configs/cpu.yaml\n  overrides: {train.lr: 0.01}\n")
+    assert load_profiles(profiles)["p"].overrides == {"priors.lambda_3d": 0.3, "train.lr": 0.01}
+    recipe.write_text("priors:\n  lambda_3d: 0.7\n")  # changed in its one home, changed for the profile
+    assert load_profiles(profiles)["p"].overrides["priors.lambda_3d"] == 0.7
+    recipe.write_text("priors:\n  lambda_3d: -1\n")
+    with pytest.raises(SpecError, match=r"recipe .*cpu.yaml: priors.lambda_3d: Input should be greater than or equal"):
+        load_profiles(profiles)
+    with pytest.raises(ValueError, match=r"profiles\.local\.recipe\s+Extra inputs are not permitted"):
+        _spec(grid={"priors.point_size": [0.04]}, profiles={"local": {"recipe": "../configs/quick.yaml"}})
 
 
 def test_lambda_source_names_the_profile_that_sets_it():

@@ -2,7 +2,8 @@
 
 A data-set kind is one class registered in :data:`DATASETS` under its ``data.kind`` name; it is built
 from the resolved :class:`~cdm.config.Config` and a split and yields :class:`~cdm.data.sample.Sample`.
-Adding a data set (ShapeNet, Co3D) is one module and one entry here (and the name in ``data.kind``).
+Adding a data set (ShapeNet, Co3D) is one module, one entry here and its name in
+:data:`cdm.config.DataKind`, the list of kinds a config accepts (so no other kind reaches this registry).
 """
 
 from __future__ import annotations
@@ -26,22 +27,16 @@ DATASETS: dict[str, type[ObjectDataset]] = {
 """Data-set classes by ``data.kind``."""
 
 
-def _kind(cfg: Config) -> type[ObjectDataset]:
-    if cfg.data.kind not in DATASETS:
-        raise ValueError(f"data.kind: unknown data set {cfg.data.kind!r}; allowed: {', '.join(DATASETS)}")
-    return DATASETS[cfg.data.kind]
-
-
 def build_dataset(cfg: Config, split: Split) -> ObjectDataset:
     """The ``split`` (``"train"`` or ``"val"``) of the data set ``cfg.data`` describes; a ``Dataset[Sample]``.
 
     Raises:
-        ValueError: unknown kind or category, a missing, empty or unreadable ``data.root``, a broken
+        ValueError: unknown category, a missing, empty or unreadable ``data.root``, a broken
             mesh file (named); the message names the config field.
     """
-    return _kind(cfg)(cfg, split)
+    return DATASETS[cfg.data.kind](cfg, split)
 
 
 def list_categories(cfg: Config) -> tuple[str, ...]:
     """Categories the configured data set will use (``data.categories`` or all it has)."""
-    return _kind(cfg).categories(cfg)
+    return DATASETS[cfg.data.kind].categories(cfg)

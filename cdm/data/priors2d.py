@@ -8,12 +8,12 @@ them: they are inputs, like the image.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import cv2
 import numpy as np
 import torch
 from torch import Tensor
+
+from cdm.config import Prior2D
 
 __all__ = ["PRIOR_2D_CHANNELS", "contour_map", "depth_prior_from_map", "prior_2d_channels"]
 
@@ -66,7 +66,7 @@ def depth_prior_from_map(depth: Tensor, mask: Tensor) -> Tensor:
 
 
 def prior_2d_channels(
-    kind: Literal["none", "contour", "depth"], image: Tensor, mask: Tensor, depth: Tensor | None
+    kind: Prior2D, image: Tensor, mask: Tensor, depth: Tensor | None
 ) -> Tensor:
     """The 2D-prior channels of one sample (Eq. 7), ``PRIOR_2D_CHANNELS[kind]`` of them.
 

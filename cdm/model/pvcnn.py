@@ -25,9 +25,9 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from cdm.config import Devoxelize
 from cdm.model.global_features import TOKEN_GRID, PointCrossAttention
 from cdm.model.voxels import (
-    Devoxelize,
     VoxelBackend,
     VoxelBranch,
     VoxelGrid,

@@ -35,11 +35,11 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from cdm.config import Devoxelize
 from cdm.model.pointops import at_least_float32
 
 __all__ = [
     "DenseGrid",
-    "Devoxelize",
     "SparseGrid",
     "VoxelBackend",
     "VoxelBranch",
@@ -51,7 +51,6 @@ __all__ = [
 ]
 
 VoxelBackend = Literal["dense", "sparse"]
-Devoxelize = Literal["trilinear", "nearest"]
 
 _CENTRE = 13  # index of the (0, 0, 0) offset among the 27 of a 3×3×3 kernel
 

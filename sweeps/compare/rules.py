@@ -11,13 +11,15 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from cdm.config import F1_THRESHOLD, load_config
 from sweeps.plan.spec import Spec
-from sweeps.plan.trials import lambda_source
 
 __all__ = [
+    "F1_AT",
     "F1_UNIT",
     "PROTOCOL_NOTE",
     "Stat",
+    "lambda_source",
     "metric_label",
     "number_text",
     "object_column",
@@ -60,18 +62,22 @@ def rounded(value: float) -> float:
     return float(number_text(value)) if math.isfinite(value) else value
 
 
-F1_UNIT = ("F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units of the "
-           "other cloud (BDM's definition, cdm/metrics.py); CD is ×1000, in world units²")
+F1_AT = f"F1@{F1_THRESHOLD:g} sq. dist = {math.sqrt(F1_THRESHOLD):g} world"
+"""F1's threshold τ in a few words, on the squared distance and in world units (``F1@τ sq. dist = √τ world``)."""
+
+F1_UNIT = (f"F1 is F1@{F1_THRESHOLD:g} on the squared distance: a point counts when it lies within "
+           f"{math.sqrt(F1_THRESHOLD):g} in world units of the other cloud (BDM's definition, cdm/metrics.py); "
+           "CD is ×1000, in world units²")
 """The unit every F1 in a table, description or plot is read in: a loose threshold (a blob of the right
 size scores high), so the baselines beside it matter."""
 
 
 def metric_label(metric: str) -> str:
-    """``metric`` with its unit, for axes and headings: ``eval/f1`` → ``eval/f1 (F1@0.01 sq. dist = 0.1 world)``,
+    """``metric`` with its unit, for axes and headings: ``eval/f1`` → ``eval/f1 (`` + :data:`F1_AT` + ``)``,
     ``eval/cd/chair`` → ``eval/cd/chair (CD ×1000)``; any other name as is."""
     parts = metric.split("/")
     if len(parts) >= 2 and parts[1] == "f1":
-        return f"{metric} (F1@0.01 sq. dist = 0.1 world)"
+        return f"{metric} ({F1_AT})"
     if len(parts) >= 2 and parts[1] == "cd":
         return f"{metric} (CD ×1000)"
     return metric
@@ -133,12 +139,39 @@ PROTOCOL_NOTE = "protocol: "
 """How a note of the table that is a line of the protocol card begins."""
 
 
-def settings_notes(spec: Spec, profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float],
-                   fixed: dict[str, Any], sets: dict[str, Any], card: Iterable[str]) -> list[str]:
-    """The table's notes on what produced the numbers, the runner's and the report's alike: the
-    :func:`settings_note` (a λ the spec searches is "searched", whatever the trials drew), then the
-    protocol card (:mod:`sweeps.plan.protocol`) a line per note. ``fixed``/``sets``: the plan's fixed
-    overrides and ``--set`` values, where :func:`sweeps.plan.trials.lambda_source` looks for λ."""
+def lambda_source(spec: Spec, profile: str, fixed: dict[str, Any], sets: dict[str, Any]) -> str:
+    """Where a sweep's λ (``priors.lambda_3d``) comes from, for :func:`settings_note`: the spec's search or cells,
+    ``--set``, the spec's base, the profile, or the config default (the levels of :mod:`sweeps.plan.trials`)."""
+    key = "priors.lambda_3d"
+    if key in spec.search.space:
+        return "the spec's search"
+    if key in spec.grid or any(key in c.set for c in spec.cells):
+        return "the spec's cells"
+    if key in sets:
+        return "--set"
+    if key in spec.base:
+        return "the spec's base"
+    if key in fixed:
+        return f"profile {profile}"
+    return "the config default"
+
+
+def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any], sets: dict[str, Any],
+                   card: Iterable[str], trials: Iterable[tuple[str, float]] = ()) -> list[str]:
+    """The table's notes on what produced the numbers, the runner's and the report's alike (the one home of
+    that rule): the :func:`settings_note` (a λ the spec searches is "searched", whatever the trials drew),
+    then the protocol card (:mod:`sweeps.plan.protocol`) a line per note.
+
+    ``fixed``/``sets``: the plan's fixed overrides and ``--set`` values, where :func:`lambda_source` looks for
+    λ. ``trials``: each trial's resolved (``diffusion.prediction``, ``priors.lambda_3d``); none (a sampled
+    search before its trials, a sweep whose trials recorded none) stands for ``fixed`` and ``sets`` resolved
+    by :func:`cdm.config.load_config`, as every trial's config is.
+    """
+    trials = list(trials)
+    if not trials:
+        cfg = load_config(None, {**fixed, **sets})
+        trials = [(cfg.diffusion.prediction, cfg.priors.lambda_3d)]
+    targets, lambdas = [t for t, _ in trials], [lam for _, lam in trials]
     searched = "priors.lambda_3d" in spec.search.space
     return [
         settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from cdm.evaluate import BASELINES
+from cdm.baseline_names import BASELINES
 from sweeps.compare.outcomes import TrialOutcome, finished
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.pairing import Pairing, lead_difference, paired_record

@@ -25,15 +25,20 @@ A record may name fields the config does not have (yet): the card lists a stated
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+from cdm.config import PAPER_DATA_SETS, Config, PaperDataSet
+from sweeps.plan.spec import load_profiles
 
 __all__ = ["DATA_SETS", "TABLES", "Entry", "Kind", "NoEffect", "NotStated", "Stated", "record", "show"]
 
-Kind = Literal["shapenet_r2n2", "co3d"]
-DATA_SETS: tuple[Kind, ...] = ("shapenet_r2n2", "co3d")
-"""The data sets the paper reports on; which tables ran on which is the spec's ``datasets:`` section."""
+Kind = PaperDataSet
+DATA_SETS = PAPER_DATA_SETS
+"""The data sets the paper reports on (:data:`cdm.config.PaperDataSet`); which tables ran on which is the spec's
+``datasets:`` section."""
 
 TABLES = ("Table 1", "Table 2", "Table 3", "Table 4", "Table 5", "Table 6", "Supp. Table 7", "Supp. Table 8")
 """Tables with a record, named as a spec's ``paper.table``."""
@@ -103,6 +108,27 @@ class NoEffect:
 
 Entry = Stated | NotStated | NoEffect
 
+_DEFAULT: Any = object()
+"""A :class:`Stated` value that is the field's default in :mod:`cdm.config`, the value's one home (its
+docstring names the source too); :func:`record` puts it in, so no paper value is written both there and here."""
+_PAPER: Any = object()
+"""A :class:`Stated` value that the paper profile of ``sweeps/profiles.yaml`` sets (its ``overrides``, then its
+fields for the record's data set), where the reference differs from the config default: that profile is the
+value's one home."""
+
+
+@functools.cache
+def _values(kind: Kind) -> dict[str, Any]:
+    """Where :data:`_DEFAULT` and :data:`_PAPER` values live: the config defaults, then the paper profile's."""
+    paper = load_profiles()["paper"]
+    return {"default": Config().flat(), "paper": {**paper.overrides, **paper.datasets.get(kind, {})}}
+
+
+def _read(path: str, entry: Entry, kind: Kind) -> Entry:
+    if not isinstance(entry, Stated) or not (entry.value is _DEFAULT or entry.value is _PAPER):
+        return entry
+    return replace(entry, value=_values(kind)["default" if entry.value is _DEFAULT else "paper"][path])
+
 _PRIOR_3D = {"priors.prior_3d": (True,)}
 _BLEND = {"sampling.blend.enabled": (True,)}
 _PATH = NoEffect("a path on this machine")
@@ -111,86 +137,92 @@ _DRAW = NoEffect("which random draw; the references fix none")
 _COMMON: dict[str, Entry] = {
     # data
     "data.root": _PATH,
-    "data.image_size": Stated(224, "paper §4 Implementation Details"),
+    "data.image_size": Stated(_DEFAULT, "paper §4 Implementation Details"),
     "data.train_objects": NotStated("the procedural generator's size; published data sets bring their splits"),
     "data.val_objects": NotStated("the procedural generator's size; published data sets bring their splits"),
     "data.seed": _DRAW,
     "data.num_workers": NoEffect("data-loader processes"),
-    "data.condition_views": Stated(0, "paper Supp. Table 8 row 1: the single input image, as PC²"),
-    "data.condition_views_random": Stated(False, "paper Supp. Table 8 row 1"),
-    "data.condition_source": Stated("gt", "paper Supp. Table 8 row 1"),
-    "data.input_source": Stated("gt", "paper Supp. Table 8 row 1: the data set's image"),
+    "data.condition_views": Stated(_DEFAULT, "paper Supp. Table 8 row 1: the single input image, as PC²"),
+    "data.condition_views_random": Stated(_DEFAULT, "paper Supp. Table 8 row 1"),
+    "data.condition_source": Stated(_DEFAULT, "paper Supp. Table 8 row 1"),
+    "data.input_source": Stated(_DEFAULT, "paper Supp. Table 8 row 1: the data set's image"),
     "data.condition_folder": _PATH,
-    "data.condition_grey": Stated(False, "paper Supp. Table 8 row 1"),
+    "data.condition_grey": Stated(_DEFAULT, "paper Supp. Table 8 row 1"),
     # model
-    "model.denoiser": Stated("pvcnn2", "PC² experiments/model/point_cloud_model.py: PVCNN2"),
+    "model.denoiser": Stated(_PAPER, "PC² experiments/model/point_cloud_model.py: PVCNN2"),
     "model.width_multiplier": Stated(
-        1.0, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
+        _DEFAULT, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
     ),
     "model.voxel_resolution_multiplier": Stated(
-        1.0, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
+        _DEFAULT, "PC² experiments/model/point_cloud_model.py", {"model.denoiser": ("pvcnn2",)}
     ),
-    "model.encoder": Stated("vit_s16", f"{_PC2}: image_feature_model vit_small_patch16_224_msn, frozen"),
+    "model.encoder": Stated(_PAPER, f"{_PC2}: image_feature_model vit_small_patch16_224_msn, frozen"),
     "model.encoder_weights": NoEffect("a path; a checkpoint records the weights' SHA-256"),
-    "model.feature_dim": Stated(384, f"{_PC2}: ViT-S/16's channels"),
-    "model.raster_radius": Stated(0.0075, "PC² experiments/model/projection_model.py: raster_point_radius"),
+    "model.feature_dim": Stated(_PAPER, f"{_PC2}: ViT-S/16's channels"),
+    "model.raster_radius": Stated(_DEFAULT, "PC² experiments/model/projection_model.py: raster_point_radius"),
     "model.widths": NotStated("our point-voxel denoiser's shape; PC²'s PVCNN2 fixes its own"),
     "model.voxel_resolutions": NotStated("our point-voxel denoiser's shape; PC²'s PVCNN2 fixes its own"),
     "model.voxel_backend": NotStated("how voxel convolutions are computed"),
     "model.devoxelize": NotStated("our point-voxel denoiser's devoxelisation"),
-    "model.time_embed_dim": Stated(64, f"{_PC2}: point_cloud_model_embed_dim"),
-    "model.global_feature": Stated("none", "paper §3.3: global embeddings gave no gain; PC² use_global_features False"),
+    "model.time_embed_dim": Stated(_DEFAULT, f"{_PC2}: point_cloud_model_embed_dim"),
+    "model.global_feature": Stated(
+        _DEFAULT, "paper §3.3: global embeddings gave no gain; PC² use_global_features False"
+    ),
     "model.global_source": NotStated("read only with model.global_feature (Supp. Table 7 sweeps it)"),
     "model.global_embeddings": _PATH,
     "model.init_from": Stated(
-        None, "PC² experiments/main.py: each table's model trained from scratch by its recipe", {"eval.only": (False,)}
+        _DEFAULT,
+        "PC² experiments/main.py: each table's model trained from scratch by its recipe",
+        {"eval.only": (False,)},
     ),
     # diffusion
-    "diffusion.num_steps": Stated(1000, "PC² experiments/model/model.py: diffusers' 1,000 training timesteps"),
-    "diffusion.beta_start": Stated(1e-5, f"{_PC2}: beta_start"),
-    "diffusion.beta_end": Stated(8e-3, f"{_PC2}: beta_end"),
-    "diffusion.prediction": Stated("eps", "paper Eq. 3 and 6: ε-prediction"),
-    "diffusion.sampler": Stated("ddpm", f"{_PC2}: diffusion_scheduler ddpm"),
+    "diffusion.num_steps": Stated(_DEFAULT, "PC² experiments/model/model.py: diffusers' training timesteps"),
+    "diffusion.beta_start": Stated(_DEFAULT, f"{_PC2}: beta_start"),
+    "diffusion.beta_end": Stated(_DEFAULT, f"{_PC2}: beta_end"),
+    "diffusion.prediction": Stated(_DEFAULT, "paper Eq. 3 and 6: ε-prediction"),
+    "diffusion.sampler": Stated(_PAPER, f"{_PC2}: diffusion_scheduler ddpm"),
     "diffusion.sample_steps": Stated(1000, f"{_PC2}: num_inference_steps", {"diffusion.sampler": ("ddim",)}),
     "diffusion.ddpm_steps": Stated(
-        None, f"{_PC2}: num_inference_steps 1000, every timestep", {"diffusion.sampler": ("ddpm",)}
+        _DEFAULT, f"{_PC2}: num_inference_steps 1000, every timestep", {"diffusion.sampler": ("ddpm",)}
     ),
     "diffusion.timestep_spacing": NotStated(
         "DDIM's step placement; the references sample with DDPM", noted=True, when={"diffusion.sampler": ("ddim",)}
     ),
-    "diffusion.clip_x0": Stated(None, "PC² experiments/model/model.py: DDPMScheduler(clip_sample=False)"),
+    "diffusion.clip_x0": Stated(_PAPER, "PC² experiments/model/model.py: DDPMScheduler(clip_sample=False)"),
     # priors
-    "priors.prior_3d": Stated(True, "paper §3.2: CDM trains with the 3D prior constraint"),
-    "priors.lambda_3d": Stated(1.0, "paper Eq. 6: the prior term has unit weight (Eq. 5's λ is the ELBO's)", _PRIOR_3D),
-    "priors.num_views": Stated(10, "paper Table 5: H = 10 (the F1 of Table 3's CDM, teddybear)", _PRIOR_3D),
-    "priors.point_size": Stated(0.04, "paper §4 Implementation Details", _PRIOR_3D),
+    "priors.prior_3d": Stated(_DEFAULT, "paper §3.2: CDM trains with the 3D prior constraint"),
+    "priors.lambda_3d": Stated(
+        _DEFAULT, "paper Eq. 6: the prior term has unit weight (Eq. 5's λ is the ELBO's)", _PRIOR_3D
+    ),
+    "priors.num_views": Stated(_DEFAULT, "paper Table 5: the best H (the F1 of Table 3's CDM, teddybear)", _PRIOR_3D),
+    "priors.point_size": Stated(_DEFAULT, "paper §4 Implementation Details", _PRIOR_3D),
     "priors.depth_layer": Stated(
         "a front layer (PyTorch3D's z-buffer keeps the nearest point)",
         "paper §4: PyTorch3D renders the 3D prior images",
         {**_PRIOR_3D, "priors.render_kind": ("depth",)},
         accepts=lambda v: v is not None,
     ),
-    "priors.render_size": Stated(224, "paper §4 Implementation Details", _PRIOR_3D),
+    "priors.render_size": Stated(_DEFAULT, "paper §4 Implementation Details", _PRIOR_3D),
     "priors.target": Stated(
-        "x0_hat",
+        _DEFAULT,
         "paper §3.2: the term is back-propagated as a regulariser; x_t as Eq. 6 writes it carries no gradient",
         _PRIOR_3D,
     ),
     "priors.depth_source": Stated(
-        "maps", "paper §3.3: depth estimated from the image (DINOv2)", {"priors.prior_2d": ("depth",)}
+        _PAPER, "paper §3.3: depth estimated from the image (DINOv2)", {"priors.prior_2d": ("depth",)}
     ),
     "priors.depth_maps": _PATH,
     "priors.depth_maps_disparity": NoEffect("the maps' file format, converted on reading"),
     # train
-    "train.steps": Stated(100_000, f"{_PC2}: max_steps"),
-    "train.lr": Stated(1e-3, f"{_PC2}: OptimizerConfig.lr"),
-    "train.weight_decay": Stated(1e-6, f"{_PC2}: AdamOptimizerConfig.weight_decay"),
-    "train.betas": Stated([0.95, 0.999], f"{_PC2}: AdamOptimizerConfig betas"),
-    "train.warmup_steps": Stated(2000, f"{_PC2}: CosineSchedulerConfig num_warmup_steps"),
-    "train.grad_clip": Stated(50.0, f"{_PC2}: clip_grad_norm"),
-    "train.ema_decay": Stated(None, f"{_PC2}: use_ema False"),
+    "train.steps": Stated(_DEFAULT, f"{_PC2}: max_steps"),
+    "train.lr": Stated(_DEFAULT, f"{_PC2}: OptimizerConfig.lr"),
+    "train.weight_decay": Stated(_DEFAULT, f"{_PC2}: AdamOptimizerConfig.weight_decay"),
+    "train.betas": Stated(_DEFAULT, f"{_PC2}: AdamOptimizerConfig betas"),
+    "train.warmup_steps": Stated(_DEFAULT, f"{_PC2}: CosineSchedulerConfig num_warmup_steps"),
+    "train.grad_clip": Stated(_DEFAULT, f"{_PC2}: clip_grad_norm"),
+    "train.ema_decay": Stated(_DEFAULT, f"{_PC2}: use_ema False"),
     "train.precision": Stated(
-        "fp16", f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
+        _PAPER, f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
     ),
     "train.eval_every": NoEffect("when to score; the final score is at train.steps"),
     "train.log_every": NoEffect("logging"),
@@ -200,10 +232,12 @@ _COMMON: dict[str, Entry] = {
     "train.out_dir": _PATH,
     # eval
     "eval.protocol": Stated(
-        "paper", "PC² and BDM experiments/config/structured.py: num_sample_batches None, every object of the split"
+        _PAPER, "PC² and BDM experiments/config/structured.py: num_sample_batches None, every object of the split"
     ),
     "eval.num_objects": NotStated("the quick protocol's subset", when={"eval.protocol": ("quick",)}),
-    "eval.f1_threshold": Stated(0.01, "paper §4 Metrics: F-Score@0.01; BDM experiments/evaluation/evaluation_f1.py"),
+    "eval.f1_threshold": Stated(
+        _DEFAULT, "paper §4 Metrics: the F-Score's threshold; BDM experiments/evaluation/evaluation_f1.py"
+    ),
     "eval.seed": _DRAW,
     "eval.save_clouds": NoEffect("drawings; no score changes"),
     "eval.retrieval_bank": NoEffect("a baseline's search, not the model's score"),
@@ -214,7 +248,7 @@ _COMMON: dict[str, Entry] = {
     ),
     # sampling.blend
     "sampling.blend.enabled": Stated(
-        False, "paper Tables 1, 3–6: sampled without BDM (only Table 2's +BDM rows blend)"
+        _DEFAULT, "paper Tables 1, 3–6: sampled without BDM (only Table 2's +BDM rows blend)"
     ),
     "sampling.blend.prior_checkpoint": Stated(
         "PVD's checkpoint from BDM's repository",
@@ -222,13 +256,13 @@ _COMMON: dict[str, Entry] = {
         _BLEND,
         accepts=lambda v: str(v).endswith(".pth"),
     ),  # cdm.prior_model.load_prior
-    "sampling.blend.milestones": Stated([936, 872, 128, 64, 32], "BDM experiments/example_sample_blending.sh", _BLEND),
-    "sampling.blend.window_steps": Stated(16, "BDM experiments/example_sample_blending.sh: roll_step", _BLEND),
+    "sampling.blend.milestones": Stated(_DEFAULT, "BDM experiments/example_sample_blending.sh", _BLEND),
+    "sampling.blend.window_steps": Stated(_DEFAULT, "BDM experiments/example_sample_blending.sh: roll_step", _BLEND),
     "sampling.blend.select_prob": Stated(
-        0.5, "BDM experiments/main_blending.py: torch.randint(0, 2) per point", _BLEND
+        _DEFAULT, "BDM experiments/main_blending.py: torch.randint(0, 2) per point", _BLEND
     ),
     "sampling.blend.seed": _DRAW,
-    "sampling.blend.prior_timestep": Stated("same_index", "BDM experiments/main_blending.py: prior_milestones", _BLEND),
+    "sampling.blend.prior_timestep": Stated(_DEFAULT, "BDM experiments/main_blending.py: prior_milestones", _BLEND),
 }
 
 _SHAPENET_ONLY = {"data.kind": ("shapenet_r2n2",)}
@@ -243,44 +277,46 @@ def _one_category(categories: list[str]) -> bool:
 _SHAPENET: dict[str, Entry] = {
     "data.kind": Stated("shapenet_r2n2", "paper §4: ShapeNet, R2N2 renderings with PC15k clouds as BDM"),
     "data.categories": Stated("one category per model", f"{_BDM_TRAIN}: dataset.category", accepts=_one_category),
-    "data.num_points": Stated(4096, "paper §4; BDM experiments/example_train.sh: dataset.max_points"),
+    "data.num_points": Stated(_DEFAULT, "paper §4; BDM experiments/example_train.sh: dataset.max_points"),
     "data.eval_split": Stated(
         "test", "BDM experiments/dataset/shapenet_r2n2.py: R2N2's test split (pc_dict_v2.json)", _SHAPENET_ONLY
     ),
-    "data.train_view": Stated(0, f"{_BDM}: which_view_from24 '00'", _SHAPENET_ONLY),
+    "data.train_view": Stated(_PAPER, f"{_BDM}: which_view_from24 '00'", _SHAPENET_ONLY),
     "data.mask_rgb": NoEffect("Co3D only"),
     "data.drop_outliers": NoEffect("Co3D only"),
     "data.exclude_sequences": NoEffect("Co3D only"),
     "data.frames_per_sequence": NoEffect("Co3D only"),
-    "model.mask_channels": Stated(False, f"{_BDM}: use_mask and use_distance_transform False"),
-    "priors.prior_2d": Stated("contour", "paper §4.1 ShapeNet: contour as the 2D prior"),
+    "model.mask_channels": Stated(_PAPER, f"{_BDM}: use_mask and use_distance_transform False"),
+    "priors.prior_2d": Stated(_DEFAULT, "paper §4.1 ShapeNet: contour as the 2D prior"),
     "priors.render_kind": Stated("planar", "paper §4.1 ShapeNet: planar point images in the 3D prior", _PRIOR_3D),
-    "train.batch_size": Stated(16, f"{_BDM_TRAIN}: dataloader.batch_size; the paper states none"),
+    "train.batch_size": Stated(_PAPER, f"{_BDM_TRAIN}: dataloader.batch_size; the paper states none"),
     "train.precision": Stated(
-        "fp16", f"{_BDM}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
+        _PAPER, f"{_BDM}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
     ),
-    "eval.num_points": Stated(4096, "BDM experiments/example_sample.sh: dataset.max_points"),
+    "eval.num_points": Stated(_DEFAULT, "BDM experiments/example_sample.sh: dataset.max_points"),
 }
 
 _CO3D: dict[str, Entry] = {
     "data.kind": Stated("co3d", "paper §4: Co3D v2 as PC²"),
     "data.categories": Stated("one category per model", f"{_PC2}: CO3DConfig.category", accepts=_one_category),
-    "data.num_points": Stated(16384, f"paper §4; {_PC2}: max_points"),
-    "data.eval_split": Stated("val", f"{_PC2}: eval_split val of subset fewview_dev", _CO3D_ONLY),
+    "data.num_points": Stated(_PAPER, f"paper §4; {_PC2}: max_points"),
+    "data.eval_split": Stated(_DEFAULT, f"{_PC2}: eval_split val of subset fewview_dev", _CO3D_ONLY),
     "data.train_view": NoEffect("ShapeNet only"),
-    "data.mask_rgb": Stated(True, f"{_PC2}: CO3DConfig.mask_images = use_mask", _CO3D_ONLY),
+    "data.mask_rgb": Stated(_PAPER, f"{_PC2}: CO3DConfig.mask_images = use_mask", _CO3D_ONLY),
     "data.drop_outliers": Stated(
-        False, "PC² experiments/dataset/__init__.py: PyTorch3D's loader, every point", _CO3D_ONLY
+        _PAPER, "PC² experiments/dataset/__init__.py: PyTorch3D's loader, every point", _CO3D_ONLY
     ),
     "data.exclude_sequences": Stated(
-        True, "PC² experiments/dataset/__init__.py: EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE", _CO3D_ONLY
+        _PAPER, "PC² experiments/dataset/__init__.py: EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE", _CO3D_ONLY
     ),
-    "data.frames_per_sequence": Stated(1, "PC² experiments/dataset/__init__.py: n_frames_per_sequence=1", _CO3D_ONLY),
-    "model.mask_channels": Stated(True, f"{_PC2}: use_mask and use_distance_transform True"),
+    "data.frames_per_sequence": Stated(
+        _PAPER, "PC² experiments/dataset/__init__.py: n_frames_per_sequence=1", _CO3D_ONLY
+    ),
+    "model.mask_channels": Stated(_DEFAULT, f"{_PC2}: use_mask and use_distance_transform True"),
     "priors.prior_2d": Stated("depth", "paper §1, §3.3: depth estimated from real-world images"),
-    "priors.render_kind": Stated("depth", "paper §3.2, Fig. 2: depth images of the clouds", _PRIOR_3D),
-    "train.batch_size": Stated(8, f"{_PC2}: DataloaderConfig.batch_size; the paper states none"),
-    "eval.num_points": Stated(16384, f"{_PC2}: max_points"),
+    "priors.render_kind": Stated(_DEFAULT, "paper §3.2, Fig. 2: depth images of the clouds", _PRIOR_3D),
+    "train.batch_size": Stated(_DEFAULT, f"{_PC2}: DataloaderConfig.batch_size; the paper states none"),
+    "eval.num_points": Stated(_PAPER, f"{_PC2}: max_points"),
 }
 
 _PC2_ROWS: dict[str, Entry] = {
@@ -304,4 +340,4 @@ def record(table: str | None, kind: Kind) -> dict[str, Entry]:
     if table is not None and table not in TABLES:
         raise KeyError(f"{table!r}: no reference record; tables with one: {', '.join(TABLES)}")
     per_kind = {"shapenet_r2n2": _SHAPENET, "co3d": _CO3D}[kind]
-    return {**_COMMON, **per_kind, **_TABLES.get(table or "", {})}
+    return {path: _read(path, e, kind) for path, e in {**_COMMON, **per_kind, **_TABLES.get(table or "", {})}.items()}

@@ -18,7 +18,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
-from cdm.config import config_field_paths, format_validation_error
+from cdm.config import ConfigError, PaperDataSet, config_field_paths, format_validation_error, load_config
 from sweeps.plan.limits import LimitError, load_yaml
 from sweeps.plan.search import SEARCHES, search_kind
 
@@ -189,6 +189,9 @@ class Failure(_Strict):
 
 
 class Budget(_Strict):
+    """A profile's training length; a field left out keeps its default in :class:`cdm.config.TrainConfig`,
+    the paper's (PC²'s ``max_steps``), which is that value's one home."""
+
     steps: int | None = Field(None, ge=1)
     eval_every: int | None = Field(None, ge=1)
 
@@ -202,9 +205,39 @@ class Profile(_Strict):
     resources: Resources = Resources()
     num_samples: int | None = Field(None, ge=1)
     """Optuna trials in this profile (overrides ``search.num_samples``)."""
-    datasets: dict[Literal["shapenet_r2n2", "co3d"], dict[str, Any]] = {}
+    datasets: dict[PaperDataSet, dict[str, Any]] = {}
     """Dotted config fields this profile sets when a run reads that data set (``data.kind``), after its
     ``overrides``: the paper profile's home for each reference's data protocol (BDM on ShapeNet, PC² on Co3D)."""
+
+
+class SharedProfile(Profile):
+    """A profile of ``sweeps/profiles.yaml``, which may start from a cdm config file."""
+
+    recipe: str | None = None
+    """A cdm config file (``configs/quick.yaml``; relative to ``profiles.yaml``) whose fields are this
+    profile's first overrides, so a single run and the sweeps share one recipe; ``overrides`` then says where
+    the sweeps differ. Its :data:`RUN_ONLY` fields are the single run's and stay out."""
+
+
+RUN_ONLY = ("train.steps", "train.eval_every", "train.threads", "train.out_dir")
+"""A recipe's fields that a sweep sets per trial instead: the profile's budget and CPUs, the trial's folder."""
+
+
+def _recipe(path: Path) -> dict[str, Any]:
+    """The fields a recipe file writes, dotted, minus :data:`RUN_ONLY`; the file validated as a config."""
+    try:
+        load_config(path)
+    except ConfigError as exc:
+        raise SpecError(f"recipe {path}: {exc}") from None
+    out, todo = {}, [("", _read_yaml(path))]
+    while todo:
+        prefix, tree = todo.pop(0)
+        for key, value in tree.items():
+            if isinstance(value, dict) and f"{prefix}{key}" not in _KNOWN_FIELDS:
+                todo.append((f"{prefix}{key}.", value))
+            elif f"{prefix}{key}" not in RUN_ONLY:
+                out[f"{prefix}{key}"] = value
+    return out
 
 
 class ExplicitCell(_Strict):
@@ -288,7 +321,7 @@ class Spec(_Strict):
     profiles: dict[str, Profile] = {}
     compare_to: str | None = None
     """Cell every other cell is paired with in the results table (default: the first cell)."""
-    datasets: dict[Literal["shapenet_r2n2", "co3d"], DatasetRun] = {}
+    datasets: dict[PaperDataSet, DatasetRun] = {}
     """The data sets the paper ran this table on; empty = the paper's ShapeNet and Co3D alike."""
     stand_in: str = ""
     """What the procedural data set stands in with for the paper's data (shown on the protocol card)."""
@@ -395,15 +428,17 @@ def load_spec(path: str | Path) -> Spec:
 
 
 def load_profiles(path: str | Path = PROFILES_FILE) -> dict[str, Profile]:
-    """The shared profiles; each must give a full budget."""
+    """The shared profiles, a recipe's fields first in its overrides, each field checked: known, and not one
+    another section sets."""
     path = Path(path)
     try:
-        profiles = {name: Profile.model_validate(body) for name, body in _read_yaml(path).items()}
+        profiles = {name: SharedProfile.model_validate(body) for name, body in _read_yaml(path).items()}
     except ValidationError as exc:
-        raise SpecError(f"{path}: {format_validation_error(exc, Profile)}") from None
+        raise SpecError(f"{path}: {format_validation_error(exc, SharedProfile)}") from None
     for name, prof in profiles.items():
-        if prof.budget.steps is None or prof.budget.eval_every is None:
-            raise SpecError(f"{path}: {name}.budget: give both steps and eval_every")
+        if prof.recipe is not None:
+            profiles[name] = prof = prof.model_copy(
+                update={"overrides": {**_recipe(path.parent / prof.recipe), **prof.overrides}})
         keys = [(f"overrides.{k}", k) for k in prof.overrides]
         keys += [(f"datasets.{d}.{k}", k) for d, fields in prof.datasets.items() for k in fields]
         for where, key in keys:

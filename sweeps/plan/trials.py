@@ -26,7 +26,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from cdm.config import Config, ConfigError, load_config
+from cdm.config import Config, ConfigError, TrainConfig, load_config
 from sweeps.plan.spec import (
     Budget,
     DatasetRun,
@@ -42,8 +42,8 @@ from sweeps.plan.spec import (
 )
 
 __all__ = [
-    "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "lambda_source",
-    "resolve_profile", "split_label", "trial_label",
+    "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "resolve_profile", "split_label",
+    "trial_label",
 ]
 
 # Paper notation for readable cell names; other fields use their last dotted part.
@@ -170,16 +170,15 @@ def resolve_profile(spec: Spec, name: str, shared: dict[str, Profile]) -> Resolv
     base = shared.get(name, Profile())
     local = spec.profiles.get(name, Profile())
     budget = Budget.model_validate(_patch(base.budget, local.budget))
-    if budget.steps is None or budget.eval_every is None:
-        raise SpecError(f"profiles.{name}.budget: give both steps and eval_every")
+    defaults = TrainConfig()
     resources = Resources.model_validate(
         {**_patch(base.resources, spec.resources), **local.resources.model_dump(exclude_unset=True)}
     )
     return ResolvedProfile(
         name=name,
         description=local.description or base.description,
-        steps=budget.steps,
-        eval_every=budget.eval_every,
+        steps=defaults.steps if budget.steps is None else budget.steps,
+        eval_every=defaults.eval_every if budget.eval_every is None else budget.eval_every,
         overrides={**base.overrides, **spec.base, **local.overrides},
         resources=resources,
         num_samples=local.num_samples or base.num_samples,
@@ -369,19 +368,3 @@ def expand(
         known = ", ".join(dict.fromkeys(c.name for c in cells))
         raise SpecError(f"compare_to: {spec.compare_to!r} is not a cell of this spec; cells: {known}")
     return SweepPlan(spec, prof, fixed, sets, tuple(cells), _check_metric(spec, names), None if keep is None else count)
-
-
-def lambda_source(spec: Spec, profile: str, fixed: dict[str, Any], sets: dict[str, Any]) -> str:
-    """Where a sweep's λ (``priors.lambda_3d``) comes from, for the results table's settings note."""
-    key = "priors.lambda_3d"
-    if key in spec.search.space:
-        return "the spec's search"
-    if key in spec.grid or any(key in c.set for c in spec.cells):
-        return "the spec's cells"
-    if key in sets:
-        return "--set"
-    if key in spec.base:
-        return "the spec's base"
-    if key in fixed:
-        return f"profile {profile}"
-    return "the config default"

@@ -20,7 +20,6 @@ from typing import Any
 from mlflow import MlflowClient
 from mlflow.entities import Run
 
-from cdm.config import DiffusionConfig, PriorsConfig
 from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
@@ -195,22 +194,10 @@ def _settings(record: SweepRecord) -> list[str]:
     """The runner's notes (:func:`sweeps.compare.rules.settings_notes`) from what MLflow recorded: the
     profile's budget on the parent run and each trial's resolved prediction target and λ in its params."""
     plan = record.plan
-    fixed, sets = plan.get("fixed", {}), plan.get("sets", {})
-    targets = {
-        r.data.params["diffusion.prediction"] for r in record.children if "diffusion.prediction" in r.data.params
-    }
-    lambdas = {float(r.data.params["priors.lambda_3d"]) for r in record.children if "priors.lambda_3d" in r.data.params}
-    return settings_notes(
-        record.spec,
-        record.profile,
-        record.parent.data.params.get("steps", "?"),
-        targets
-        or [sets.get("diffusion.prediction") or fixed.get("diffusion.prediction", DiffusionConfig().prediction)],
-        lambdas or [float({**fixed, **sets}.get("priors.lambda_3d", PriorsConfig().lambda_3d))],
-        fixed,
-        sets,
-        protocol_card_lines(record),
-    )
+    trials = [(r.data.params["diffusion.prediction"], float(r.data.params["priors.lambda_3d"]))
+              for r in record.children if {"diffusion.prediction", "priors.lambda_3d"} <= r.data.params.keys()]
+    return settings_notes(record.spec, record.profile, record.parent.data.params.get("steps", "?"),
+                          plan.get("fixed", {}), plan.get("sets", {}), protocol_card_lines(record), trials)
 
 
 def protocol_card_lines(record: SweepRecord) -> list[str]:

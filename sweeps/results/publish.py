@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdm.evaluate import BASELINES
+from cdm.baseline_names import BASELINES
 from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
