@@ -33,7 +33,7 @@ from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, q
 from sweeps.execute.seed_search import check_searcher_state
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
 from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, resolve_tracking_uri, ui_command, ui_link
-from sweeps.execute.trial import run_sweep
+from sweeps.execute.tuner import run_sweep
 from sweeps.plan.preflight import estimate_line
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.request import STATE_FILE, SweepRequest

@@ -145,20 +145,6 @@ class SweepPlan:
         name = cell_name({k: tune_config[k] for k in self.spec.search.space})
         return name, trial_label(name, self.spec.seed_values[0])
 
-    def trial(self, tune_config: dict[str, Any]) -> Cell:
-        """The trial a Tune config stands for: ``{"cell": label}`` (grid) or sampled values (Optuna).
-
-        A grid cell's config was resolved by :func:`expand`; an Optuna trial's is resolved here, once,
-        in the trial that runs it.
-        """
-        if not self.spec.search.sampled:
-            return self.grid_cell(tune_config["cell"])
-        values = {k: tune_config[k] for k in self.spec.search.space}
-        seed = self.spec.seed_values[0]
-        overrides = {**self.fixed, **values, "train.seed": seed, **self.sets}
-        name, label = self.names(tune_config)
-        return Cell(name, label, values, seed, load_config(None, overrides))
-
 
 def _patch(model: BaseModel, patch: BaseModel) -> dict[str, Any]:
     return {**model.model_dump(exclude_unset=True), **patch.model_dump(exclude_unset=True)}
