@@ -89,7 +89,12 @@ def plan_request(args: argparse.Namespace) -> SweepRequest:
             spec = spec.until_settled()
         budget = budget_option(state.get("budget") if state is not None else args.budget)
         check_trials(spec, args.max_cells)
-        plan = _expand(spec, profile, sets, args.dry_run)
+        # The spec goes straight to expand: no helper here receives it (docs/ARCHITECTURE.md, "The walk").
+        if args.dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and not spec.search.sampled:
+            print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
+            plan = expand(spec, profile, sets, keep=LISTED_TRIALS, each=check_progress(count))
+        else:
+            plan = expand(spec, profile, sets)
         check_budget(plan, budget)
         if not remote:  # a cluster's nodes have their own memory; this machine's says nothing of them
             check_memory([c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})],
@@ -118,14 +123,6 @@ def _resumed(args: argparse.Namespace, sweep_dir: str, sets: dict[str, Any]) -> 
         raise RequestError(
             f"--resume: {state_file} is damaged ({' '.join(str(exc).split())}); remove the folder to start over"
         ) from None
-
-
-def _expand(spec: Spec, profile: str, sets: dict[str, Any], dry_run: bool) -> SweepPlan:
-    """:func:`sweeps.plan.trials.expand`; a dry run of a large grid checks every trial, listing the first few."""
-    if dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and not spec.search.sampled:
-        print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
-        return expand(spec, profile, sets, keep=LISTED_TRIALS, each=check_progress(count))
-    return expand(spec, profile, sets)
 
 
 def _local_concurrency(plan: SweepPlan) -> int:

@@ -77,12 +77,13 @@ class Cell:
     """The trial's validated config: every override resolved, in the order this module's docstring gives."""
     paper_label: str | None = None
     paper: dict[str, float] = field(default_factory=dict)
+    group: str = field(init=False)
+    """The swept values alone (``0.04``, ``10 · 0.02``): the short name MLflow's runs view groups the
+    seeds of this cell under, narrow enough for its name column. Set here, with the cell, so a trial reads
+    it without calling back into the plan."""
 
-    @property
-    def group(self) -> str:
-        """The swept values alone (``0.04``, ``10 · 0.02``): the short name MLflow's runs view groups the
-        seeds of this cell under, narrow enough for its name column."""
-        return " · ".join(_fmt_value(v) for v in self.values.values()) or self.name
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "group", " · ".join(_fmt_value(v) for v in self.values.values()) or self.name)
 
 
 @dataclass(frozen=True)
