@@ -99,14 +99,12 @@ def _tracking_uri(args: argparse.Namespace) -> str:
 def _report(args: argparse.Namespace) -> int:
     from sweeps.results import report
 
-    _tracking_uri(args)
     return report.main([args.report, *(["--tracking-uri", args.tracking_uri] if args.tracking_uri else [])])
 
 
-def _rerun(args: argparse.Namespace) -> int:
+def _rerun(args: argparse.Namespace, uri: str) -> int:
     from sweeps.results.rerun import RerunError, rerun
 
-    uri = _tracking_uri(args)
     if is_uri(args.storage):
         return _fail("--rerun trains in this process and writes its files here: give --storage a local folder, "
                      f"not {args.storage}")
@@ -140,16 +138,19 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         check_mode(args)
-        if args.report is not None:
-            return _report(args)
-        if args.rerun is not None:
-            return _rerun(args)
-        request = plan_request(args)
-        plan = request.plan
-        print(wrapped(f"spec {plan.spec.name} ({args.spec}): {plan.spec.description}"), flush=True)
-        missing = missing_inputs(plan, request.remote, args.dry_run)
+        if args.spec is None:  # --report or --rerun: a finished sweep, read back from its MLflow store
+            uri = _tracking_uri(args)
+        else:
+            request = plan_request(args)
+            plan = request.plan
+            print(wrapped(f"spec {plan.spec.name} ({args.spec}): {plan.spec.description}"), flush=True)
+            missing = missing_inputs(plan, request.remote, args.dry_run)
     except (RequestError, StoreError) as exc:
         return _fail(str(exc))
+    if args.report is not None:
+        return _report(args)
+    if args.rerun is not None:
+        return _rerun(args, uri)
     if args.dry_run:
         shared = shared_root(request.sweep_dir, request.remote) is not None and bool(plan.cells)
         return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate, shared, missing)
