@@ -107,10 +107,11 @@ class TrialProgress(Callback):
 
 @dataclass(frozen=True)
 class TrialJob:
-    """One trial's input to :func:`train_loop`, built once by :func:`run_trial` from its cell."""
+    """One trial's input to :func:`train_loop`, built once by :func:`trial_job` from its cell."""
 
     config: Config
-    """The trial's validated config (resolved once, by :mod:`sweeps.plan.trials`), writing into the trial's folder."""
+    """The trial's validated config (a grid cell's built by :func:`sweeps.plan.trials.expand`, a sampled one's by
+    :func:`sampled_cell`), writing into the trial's folder."""
     local: bool
     """Train's local mode: the loop runs in the trial's own actor (``resources.workers_per_trial == 0``)."""
     label: str
