@@ -88,10 +88,10 @@ def test_trial_cap_counts_without_building_and_is_raised_by_the_flag(tmp_path):
 def test_a_dry_run_past_the_listed_trials_checks_each_cell_in_small_memory(tmp_path, monkeypatch, capsys):
     import torch  # noqa: F401  (imported before measuring: the dry-run's own allocations are what counts)
 
-    from sweeps.plan import limits
+    from sweeps.plan import limits, request
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(run, "LISTED_TRIALS", 20)
+    monkeypatch.setattr(request, "LISTED_TRIALS", 20)
     monkeypatch.setattr(limits, "PROGRESS_EVERY", 250)
     (tmp_path / "big.yaml").write_text(_grid(10, keys=3))  # 1,000 cells: 10⁶ held 2.9 GB at about 3 kB each
     spec = load_spec(tmp_path / "big.yaml")

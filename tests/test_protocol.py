@@ -12,6 +12,7 @@ import pytest
 from cdm.config import Config, config_field_paths, load_config
 from cdm.data.shapenet import SYNSETS
 from sweeps import run
+from sweeps.execute.driver import table_settings
 from sweeps.plan import references
 from sweeps.plan.protocol import NO_DEVIATIONS, CardContext, ProtocolCard, plan_card, protocol_card
 from sweeps.plan.references import DATA_SETS, TABLES, Stated, record, show
@@ -406,6 +407,6 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
         "stand in for hydrant, teddybear and toytruck"
     )
     theirs = finished.results_table(record_, []).notes
-    ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=run._settings(plan)).notes
+    ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=table_settings(plan)).notes
     assert [n for n in theirs if n.startswith("protocol: ")] == [n for n in ours if n.startswith("protocol: ")] == [
         f"protocol: {line}" for line in lines]

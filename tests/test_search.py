@@ -12,7 +12,8 @@ from ray.tune.search import Searcher
 from ray.tune.search.optuna import OptunaSearch
 
 from sweeps import run
-from sweeps.execute import trial
+from sweeps.execute import tuner
+from sweeps.execute.trial import sampled_cell
 from sweeps.plan.describe import describe
 from sweeps.plan.search import SEARCHES, SearchKind, SearchSettings, optuna_distributions, search_kind
 from sweeps.plan.spec import SpaceParam, Spec, SpecError, load_spec
@@ -74,12 +75,12 @@ def test_a_registered_kind_is_planned_described_and_handed_to_tune(monkeypatch):
     plan = expand(spec, "smoke")
     assert plan.cells == () and plan.num_trials == 3
     assert "search: the low bounds, 3 trials, seed 0, over:" in describe(plan, cpus=2.0, gpus=0.0)
-    param_space, searcher, samples = trial._search(plan, sweep_run=None, budget=None)
+    param_space, searcher, samples = tuner._search(plan, sweep_run=None, budget=None)
     assert param_space == {} and samples == 3 and isinstance(searcher, _LowBounds)
     assert (searcher.metric, searcher.mode) == ("eval/f1", "max")
     proposed = searcher.suggest("t1")
     assert proposed == {"priors.lambda_3d": 1e-3}
-    assert plan.trial(proposed).config.priors.lambda_3d == 1e-3
+    assert sampled_cell(plan, proposed).config.priors.lambda_3d == 1e-3
 
 
 def test_the_optuna_kind_samples_the_typed_space():

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.settle import check_budget, describe_rule, next_round, object_scores, outcome_results
-from sweeps.plan.budget import SeedBudget, parse_budget
+from sweeps.compare.settle import describe_rule, next_round, object_scores, outcome_results
+from sweeps.plan.budget import SeedBudget, check_budget, parse_budget
 from sweeps.plan.spec import Spec, SpecError
 from sweeps.plan.trials import SweepPlan, expand
 
@@ -140,6 +140,7 @@ def test_a_budget_must_fit_round_1_and_needs_seeds_until_settled(tmp_path):
     fixed = expand(Spec.model_validate({"name": "t", "cells": REFERENCE_NULL_LARGE, "seeds": [0, 1]}), "smoke")
     with pytest.raises(SpecError, match="--budget: only seeds run until settled spend a budget; add --until-settled"):
         check_budget(fixed, SeedBudget(seconds=60.0))
+    assert describe_rule(fixed, None) == []
     lines = describe_rule(plan, SeedBudget(seconds=2700.0))
     assert lines[0] == (
         "search: grid, seeds until settled: round 1 = 3 cells × 2 seeds = 6 trials; worst case 12 trials "

@@ -9,6 +9,7 @@ import pytest
 from cdm.config import Config, ConfigError
 from sweeps import run
 from sweeps.compare.rules import lambda_source
+from sweeps.execute.trial import sampled_cell
 from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.estimate import Estimate
 from sweeps.plan.resources import plan_concurrency
@@ -204,14 +205,14 @@ def test_optuna_trial_from_sampled_values():
                          "space": {"priors.lambda_3d": {"type": "log_float", "low": 1e-3, "high": 10}}})
     plan = expand(spec, "smoke", shared=SHARED)
     assert plan.cells == () and plan.num_trials == 3
-    cell = plan.trial({"priors.lambda_3d": 0.0123456})
+    cell = sampled_cell(plan, {"priors.lambda_3d": 0.0123456})
     assert cell.label == "λ=0.01235 · seed 0"
     assert cell.config.priors.lambda_3d == 0.0123456 and cell.config.train.steps == 20
     assert plan.names({"priors.lambda_3d": 0.0123456}) == (cell.name, cell.label)
     # Naming a trial (the driver's callbacks) resolves no config: a value the config rejects still has a name.
     assert plan.names({"priors.lambda_3d": -1.0}) == ("λ=-1", "λ=-1 · seed 0")
     with pytest.raises(ConfigError, match="priors.lambda_3d"):
-        plan.trial({"priors.lambda_3d": -1.0})
+        sampled_cell(plan, {"priors.lambda_3d": -1.0})
 
 
 @pytest.mark.parametrize(

@@ -32,7 +32,7 @@ from mlflow import MlflowClient
 from cdm.config import load_config
 from cdm.data.images import read_image
 from sweeps import run, store_retry
-from sweeps.execute import local_cluster, stopping
+from sweeps.execute import driver, local_cluster, stopping
 from sweeps.execute.claim import ClaimError, claim, claims_folder
 from sweeps.execute.tracking import SweepRun, TrialRun
 from sweeps.plan.spec import load_spec
@@ -114,7 +114,7 @@ def test_a_planted_state_file_link_is_not_written_through(in_tmp):
     folder.mkdir(parents=True)
     (folder / "sweep.json").symlink_to(victim)
     with pytest.raises(OSError):
-        run._write_new(folder / "sweep.json", "{}")
+        driver._write_new(folder / "sweep.json", "{}")
     assert victim.read_text() == "precious\n"
 
 

@@ -31,14 +31,12 @@ from sweeps.compare.paired import UnpairedError
 from sweeps.compare.rules import object_column
 from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
 from sweeps.plan.budget import SeedBudget
-from sweeps.plan.spec import SpecError
 from sweeps.plan.trials import Cell, SweepPlan
 from sweeps.storage import write_file
 
 __all__ = [
     "BUDGET_TAG",
     "Round",
-    "check_budget",
     "describe_rule",
     "final_round",
     "next_round",
@@ -176,26 +174,12 @@ def write_settle_json(path: Path, records: Mapping[str, SettleRecord], budget: S
     return path
 
 
-def check_budget(plan: SweepPlan, budget: SeedBudget | None) -> None:
-    """Refuse a ``--budget`` the plan cannot spend: without seeds until settled, or a trial count below round 1's.
-
-    Raises:
-        SpecError: naming ``--budget`` and the fix.
-    """
-    if budget is None:
-        return
-    if plan.sequential is None:
-        raise SpecError("--budget: only seeds run until settled spend a budget; add --until-settled "
-                        "(or give the spec seeds: {min: 2, max: 5, until: settled})")
-    first = len(plan.first_round)
-    if budget.trials is not None and budget.trials < first:
-        raise SpecError(f"--budget {budget.trials}: round 1 alone runs {first} trials (every cell at "
-                        f"{plan.sequential.min} seeds); give at least {first}")
-
-
 def describe_rule(plan: SweepPlan, budget: SeedBudget | None) -> list[str]:
-    """The dry-run lines of a sequential sweep: round 1, the worst case, the rule and the budget."""
+    """The dry-run lines of a sequential sweep: round 1, the worst case, the rule and the budget; none for
+    a sweep of fixed seeds."""
     rule, spec = plan.sequential, plan.spec
+    if rule is None:
+        return []
     cells = len(_by_cell(plan))
     reference = spec.compare_to or plan.cells[0].name
     level = (f" or lies inside ±{spec.settle.margin:g} (level)" if spec.settle.margin

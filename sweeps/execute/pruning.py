@@ -11,7 +11,7 @@ smoke profile, whose checkpoints come every half second).
 So Tune keeps every checkpoint (``num_to_keep=None``) and :class:`CheckpointPruner` deletes a
 trial's old ones itself, lagging: a checkpoint goes only once the one after it has been registered
 for :data:`SYNC_LAG_S`, long after the state naming that newer one was uploaded (snapshots go out
-every second, ``sweeps.execute.trial.run_sweep``), and :func:`prune_finished` trims every trial after
+every second, ``sweeps.execute.tuner.run_sweep``), and :func:`prune_finished` trims every trial after
 ``Tuner.fit`` returns, when Tune has uploaded its final state and waited for it.
 """
 

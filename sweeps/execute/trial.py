@@ -1,4 +1,4 @@
-"""Ray glue of a sweep: the Tune trainable, the Ray Train loop around ``cdm.train.fit``, and the Tuner.
+"""One trial on Ray: the Tune trainable and the Ray Train loop around ``cdm.train.fit``.
 
 Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pattern;
 ``Tuner(trainer)`` is deprecated) whose loop is :func:`train_loop`, given the trial's
@@ -11,17 +11,15 @@ Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pat
 
 Local mode only accepts ``ray.tune.report``/``ray.tune.get_checkpoint`` and real workers only
 ``ray.train.report``/``ray.train.get_checkpoint``; :class:`_RayReporter` picks the pair once.
-Concurrency comes from the cluster's resources (:func:`sweeps.plan.resources.plan_concurrency`, sized
-once by the runner), so trials never wait on each other for CPUs.
+A trial's config was built once by the plan (:func:`sweeps.plan.trials.expand`) and reaches it in
+:class:`TrialSetup`: the trial looks its own up and never asks the plan again (docs/ARCHITECTURE.md,
+"The walk of one hyperparameter"). The Tuner that starts the trials is :mod:`sweeps.execute.tuner`.
 """
 
 from __future__ import annotations
 
 import functools
-import os
-import shutil
-import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,23 +30,19 @@ import ray.train
 import ray.tune
 from ray.train.torch import TorchTrainer
 
-from cdm.config import Config
+from cdm.config import Config, load_config
 from cdm.prior_model import ensure_priors
-from cdm.provenance import code_version
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
-from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
-from sweeps.execute.cores import CoreLease, lease_cores
-from sweeps.execute.precompute import precompute, shared_root
+from sweeps.execute.pruning import KEEP
+from sweeps.execute.cores import CoreLease
 from sweeps.execute.progress import StepReporter, quiet_loggers
-from sweeps.execute.pruning import KEEP, CheckpointPruner, prune_finished
-from sweeps.execute.tracking import SweepRun, TrialRun, finished_trial_metrics
-from sweeps.plan.budget import SeedBudget
-from sweeps.plan.resources import Concurrency
-from sweeps.plan.search import search_kind
-from sweeps.plan.trials import SweepPlan
+from sweeps.execute.tracking import TrialRun, finished_trial_metrics
+from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
 
-__all__ = ["TrialJob", "TrialProgress", "TrialSetup", "error_summary", "run_sweep", "run_trial", "train_loop"]
+__all__ = [
+    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "sampled_cell", "train_loop", "trial_job",
+]
 
 
 @dataclass(frozen=True)
@@ -56,6 +50,9 @@ class TrialSetup:
     """Everything a trial needs besides its Tune config; shipped once with ``tune.with_parameters``."""
 
     plan: SweepPlan
+    cells: Mapping[str, Cell]
+    """The grid's trials by label, each with the config the plan built: a trial looks its own up, it never
+    asks the plan again (docs/ARCHITECTURE.md, "The walk of one hyperparameter")."""
     sweep_dir: str
     tracking_uri: str
     experiment_id: str
@@ -110,10 +107,11 @@ class TrialProgress(Callback):
 
 @dataclass(frozen=True)
 class TrialJob:
-    """One trial's input to :func:`train_loop`, built once by :func:`run_trial` from its cell."""
+    """One trial's input to :func:`train_loop`, built once by :func:`trial_job` from its cell."""
 
     config: Config
-    """The trial's validated config (resolved once, by :mod:`sweeps.plan.trials`), writing into the trial's folder."""
+    """The trial's validated config (a grid cell's built by :func:`sweeps.plan.trials.expand`, a sampled one's by
+    :func:`sampled_cell`), writing into the trial's folder."""
     local: bool
     """Train's local mode: the loop runs in the trial's own actor (``resources.workers_per_trial == 0``)."""
     label: str
@@ -130,6 +128,27 @@ def train_loop(job: TrialJob) -> None:
     """Ray Train loop (local mode or each worker): resume if Ray has a checkpoint, fit."""
     quiet_loggers()
     rank = 0 if job.local else ray.train.get_context().get_world_rank()
+    checkpoint = ray.tune.get_checkpoint() if job.local else ray.train.get_checkpoint()
+    with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
+        if resume_from is not None:
+            print(f"[{job.label}] resuming from {resume_from}", flush=True)
+        fit_trial(job, rank, functools.partial(_trackers, job), resume_from)
+
+
+def _trackers(job: TrialJob, config: Config) -> list[Callback]:
+    """Rank 0's links to the sweep: the driver's step counter and the trial's MLflow child run."""
+    setup = job.setup
+    return [
+        StepReporter(setup.parent_run_id, job.label),
+        TrialRun(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, job.trial_id, job.label, job.tags,
+                 config, job.metric),
+    ]
+
+
+def fit_trial(job: TrialJob, rank: int, trackers: Callable[[Config], list[Callback]],
+              resume_from: str | None = None) -> None:
+    """``cdm.train.fit`` of the trial's handed-down config on one worker: its rank's folder, its category
+    priors, Ray's reporter, the core lease and, on rank 0, the progress lines and ``trackers(config)``."""
     config = job.config
     if rank > 0:  # workers on one node must not overwrite rank 0's checkpoints and evaluation files
         config = config.replace(**{"train.out_dir": str(Path(config.train.out_dir) / f"rank_{rank}")})
@@ -142,48 +161,30 @@ def train_loop(job: TrialJob) -> None:
     if lease is not None:
         callbacks.append(lease)
     if rank == 0:
-        callbacks += [
-            TrialProgress(job.label, config.train.steps, job.metric),
-            StepReporter(setup.parent_run_id, job.label),
-            TrialRun(
-                setup.tracking_uri,
-                setup.experiment_id,
-                setup.parent_run_id,
-                job.trial_id,
-                job.label,
-                job.tags,
-                config,
-                job.metric,
-            ),
-        ]
-    checkpoint = ray.tune.get_checkpoint() if job.local else ray.train.get_checkpoint()
-    with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
-        if resume_from is not None:
-            print(f"[{job.label}] resuming from {resume_from}", flush=True)
-        shared = None if setup.shared_root is None else SharedStore(setup.shared_root)
-        try:
-            fit(config, callbacks, resume_from=resume_from, shared=shared)
-        finally:
-            if lease is not None:  # reused actors outlive the trial: the next one must find the core free
-                lease.release()
+        callbacks += [TrialProgress(job.label, config.train.steps, job.metric), *trackers(config)]
+    shared = None if setup.shared_root is None else SharedStore(setup.shared_root)
+    try:
+        fit(config, callbacks, resume_from=resume_from, shared=shared)
+    finally:
+        if lease is not None:  # reused actors outlive the trial: the next one must find the core free
+            lease.release()
 
 
-def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
-    """Tune function trainable: one trial = one ``TorchTrainer.fit`` of :func:`train_loop`."""
-    quiet_loggers()  # "Running in local mode …" and the like, logged in this process
+def sampled_cell(plan: SweepPlan, tune_config: dict[str, Any]) -> Cell:
+    """The trial of a sampled search's values (``{"priors.lambda_3d": 0.012}``), its config built here, once,
+    in the trial that runs it (the values come from the searcher, not the plan)."""
+    values = {k: tune_config[k] for k in plan.spec.search.space}
+    seed = plan.spec.seed_values[0]
+    name = cell_name(values)
+    config = load_config(None, {**plan.fixed, **values, "train.seed": seed, **plan.sets})
+    return Cell(name, trial_label(name, seed), values, seed, config)
+
+
+def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, trial_dir: str, node_id: str) -> TrialJob:
+    """The trial a Tune config stands for (``{"cell": label}``: a grid cell as the plan built it; sampled
+    values: :func:`sampled_cell`), writing into ``trial_dir``."""
     plan = setup.plan
-    cell = plan.trial(tune_config)
-    ctx = ray.tune.get_context()
-    trial_id = ctx.get_trial_id()
-    done = finished_trial_metrics(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, trial_id)
-    if done is not None:
-        print(
-            f"[{cell.label}] already finished before the driver stopped (its MLflow run says so): not re-run",
-            flush=True,
-        )
-        ray.tune.report(done)
-        return
-    r = plan.profile.resources
+    cell = sampled_cell(plan, tune_config) if plan.spec.search.sampled else setup.cells[tune_config["cell"]]
     categories = ",".join(cell.config.data.categories) or "all"
     tags = {
         "cell": cell.name,
@@ -194,20 +195,37 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
         # `category` is the short name the UI's search box is documented with (docs/mlflow.md, Search box).
         "categories": categories,
         "category": categories,
-        "tune_trial_dir": ctx.get_trial_dir(),
-        "ray_node_id": ray.get_runtime_context().get_node_id(),
+        "tune_trial_dir": trial_dir,
+        "ray_node_id": node_id,
         **{f"repro.{k}": v for k, v in setup.code.items()},
     }
-    job = TrialJob(
-        config=cell.config.replace(**{"train.out_dir": str(Path(ctx.get_trial_dir()) / "cdm")}),
-        local=r.workers_per_trial == 0,
+    return TrialJob(
+        config=cell.config.replace(**{"train.out_dir": str(Path(trial_dir) / "cdm")}),
+        local=plan.profile.resources.workers_per_trial == 0,
         label=cell.label,
         trial_id=trial_id,
         metric=plan.spec.metric.name,
         tags=tags,
-        prior_dir=_prior_dir(setup.sweep_dir, ctx.get_trial_dir()),
+        prior_dir=_prior_dir(setup.sweep_dir, trial_dir),
         setup=setup,
     )
+
+
+def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
+    """Tune function trainable: one trial = one ``TorchTrainer.fit`` of :func:`train_loop`."""
+    quiet_loggers()  # "Running in local mode …" and the like, logged in this process
+    ctx = ray.tune.get_context()
+    trial_id = ctx.get_trial_id()
+    job = trial_job(setup, tune_config, trial_id, ctx.get_trial_dir(), ray.get_runtime_context().get_node_id())
+    done = finished_trial_metrics(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, trial_id)
+    if done is not None:
+        print(
+            f"[{job.label}] already finished before the driver stopped (its MLflow run says so): not re-run",
+            flush=True,
+        )
+        ray.tune.report(done)
+        return
+    r = setup.plan.profile.resources
     per_worker = {"CPU": r.cpus_per_worker, **({"GPU": r.gpus_per_worker} if r.gpus_per_worker else {})}
     trainer = TorchTrainer(
         # Bound, not passed as train_loop_config: Train hands that on as a plain dict.
@@ -221,7 +239,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
             # Named after the trial so a restored trial resumes its own Train run.
             name=f"trial_{trial_id}",
             storage_path=f"{setup.sweep_dir}/train",
-            failure_config=ray.train.FailureConfig(max_failures=plan.spec.failure.max_retries),
+            failure_config=ray.train.FailureConfig(max_failures=setup.plan.spec.failure.max_retries),
             # Safe here, unlike Tune's (sweeps/execute/pruning.py): Train writes the state naming its newest
             # checkpoints before deleting older ones (ray/train/v2/.../checkpoint_manager.py).
             checkpoint_config=ray.train.CheckpointConfig(num_to_keep=KEEP),
@@ -246,196 +264,3 @@ def _tune_report_callbacks() -> list:
     from ray.tune.integration.ray_train import TuneReportCallback
 
     return [TuneReportCallback()]
-
-
-def error_summary(text: str) -> str:
-    """The exception line of a (Ray-wrapped) traceback, e.g. ``TrainingDiverged: loss became nan …``."""
-    lines = [ln.strip() for ln in text.strip().splitlines() if ln.strip()]
-    for line in reversed(lines):
-        if "Error" in line.split(":")[0] or "Diverged" in line.split(":")[0]:
-            return line
-    return lines[-1] if lines else text
-
-
-class _TrialCloser(ray.tune.Callback):
-    """Driver side: closes each child MLflow run with Tune's verdict and prints one line per trial."""
-
-    def __init__(self, plan: SweepPlan, sweep_run: SweepRun):
-        self.plan, self.sweep_run = plan, sweep_run
-
-    def _label(self, trial) -> str:
-        return self.plan.names(trial.config)[1]
-
-    def _count(self, trials, ending=None) -> str:
-        # Counted from Tune's trial list, so trials finished before a resume count too.
-        done = {t.trial_id for t in trials if t.status in ("TERMINATED", "ERROR")} | (
-            {ending.trial_id} if ending else set()
-        )
-        at_most = "≤" if self.plan.sequential else ""  # a sequential sweep's count is its worst case
-        return f"{len(done)}/{at_most}{self.plan.num_trials} trials done"
-
-    def on_trial_start(self, iteration, trials, trial, **info) -> None:
-        print(f"▶ started [{self._label(trial)}] ({self._count(trials)})", flush=True)
-
-    def on_trial_complete(self, iteration, trials, trial, **info) -> None:
-        label = self._label(trial)
-        step = trial.last_result.get("step", 0)
-        early = step < self.plan.last_step(label)
-        self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result)
-        value = trial.last_result.get(self.plan.spec.metric.name)
-        shown = "no evaluation" if value is None else f"{self.plan.spec.metric.name} {value:.4g}"
-        print(f"{'■ stopped early' if early else '✓ finished'} [{label}] at step {step}: {shown} "
-              f"({self._count(trials, trial)})", flush=True)
-
-    def on_trial_error(self, iteration, trials, trial, **info) -> None:
-        label = self._label(trial)
-        # Tune has just written the traceback to the trial's local error file (before syncing it).
-        reason = error_summary(Path(trial.error_file).read_text()) if trial.error_file else "unknown error"
-        self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason)
-        print(f"✗ failed [{label}]: {reason} ({self._count(trials, trial)})", flush=True)
-
-
-def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> tuple[dict[str, Any], Any, int]:
-    """Tune param space, search algorithm and sample count: grid cells by label, seeds until settled
-    (:class:`sweeps.execute.seed_search.SeedSearcher`, at most every cell at ``max`` seeds), or the searcher
-    of a kind that samples ``search.space`` (:data:`sweeps.plan.search.SEARCHES`)."""
-    s = plan.spec.search
-    if plan.sequential is not None:
-        from sweeps.execute.seed_search import SeedSearcher
-
-        return {}, SeedSearcher(plan, sweep_run, budget), plan.num_trials
-    if not s.sampled:
-        return {"cell": ray.tune.grid_search([c.label for c in plan.cells])}, None, 1
-    study = (
-        f"{plan.spec.name}-{plan.profile.name}-{uuid.uuid4().hex[:8]}"  # e.g. Optuna's study names are unique per sweep
-    )
-    searcher = search_kind(s.kind).tune_searcher(s, plan.spec.metric.name, plan.spec.metric.mode, study)
-    return {}, searcher, plan.num_trials
-
-
-def _scheduler(plan: SweepPlan):
-    sch = plan.spec.scheduler
-    if sch.kind == "none":
-        return None
-    from ray.tune.schedulers import ASHAScheduler
-
-    # Time axis = the trainer's step (reported with every evaluation), which survives a resume.
-    return ASHAScheduler(
-        time_attr="step",
-        max_t=plan.profile.steps,
-        grace_period=sch.grace_evals * plan.profile.eval_every,
-        reduction_factor=sch.reduction_factor,
-        brackets=1,
-    )
-
-
-def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
-    name, label = plan.names(result.config)
-    cell = plan.grid_cell(label)
-    trial_id = (result.metrics or {}).get("trial_id")
-    metrics = {k: float(v) for k, v in (result.metrics or {}).items() if "/" in k and isinstance(v, (int, float))}
-    if result.error is not None:
-        status, error = "failed", error_summary(str(result.error))
-    else:
-        error = None
-        step = (result.metrics or {}).get("step")
-        status = "pending" if step is None else ("stopped" if step < plan.last_step(label) else "ok")
-    objects = tuple(sweep_run.trial_objects(trial_id)) if trial_id and status != "failed" else ()
-    paper_label, paper = (cell.paper_label, cell.paper) if cell else (None, {})
-    return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects)
-
-
-def run_sweep(
-    plan: SweepPlan,
-    conc: Concurrency,
-    sweep_dir: str,
-    sweep_run: SweepRun,
-    resume: bool,
-    remote: bool = False,
-    callbacks: Sequence[ray.tune.Callback] = (),
-    budget: SeedBudget | None = None,
-) -> list[TrialOutcome]:
-    """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
-
-    ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
-    (``s3://…``, ``file://…``). Resume re-runs only unfinished trials, each from its last
-    checkpoint; errored trials stay failed. ``conc``: how trials fit the cluster
-    (:func:`sweeps.plan.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
-    joined by address and may autoscale. ``callbacks`` (e.g. the
-    progress line, :class:`sweeps.execute.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
-    started with. ``budget``: a sequential sweep's ``--budget`` (a resumed one keeps its searcher's).
-    """
-    # Snapshot the experiment state every second (and sync it to storage as often, below), so a
-    # killed driver resumes trials from their checkpoints instead of from step 0 (with
-    # Tune's default period the snapshot a kill found was still the initial one).
-    os.environ["TUNE_GLOBAL_CHECKPOINT_S"] = "1"
-    os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
-    root = shared_root(sweep_dir, remote)
-    if root is not None and plan.cells:
-        done = precompute(plan, root, int(conc.cpus))
-        print(f"shared by every cell: {done.rounds} view rounds of {done.view_sets} training set(s), "
-              f"{done.eval_sets} evaluation set(s) with baselines, in {done.seconds:.1f} s", flush=True)
-    r = plan.profile.resources
-    cores = 0 if "://" in sweep_dir else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
-    setup = TrialSetup(
-        plan, sweep_dir, sweep_run.uri, sweep_run.experiment_id, sweep_run.run_id, code_version(), root, cores
-    )
-    trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
-    print(
-        f"cluster{' (at most)' if remote else ''}: {conc.cpus:g} CPUs, {conc.gpus:g} GPUs → up to {conc.max_concurrent} "
-        f"concurrent trials ({conc.cpus_per_trial:g} CPUs each)"
-        + (f", taking turns on {cores} cores (one computing trial per core)" if cores else ""),
-        flush=True,
-    )
-    if resume:
-        tuner = ray.tune.Tuner.restore(sweep_dir, trainable=trainable, resume_unfinished=True,
-                                       resume_errored=False, restart_errored=False)
-    else:
-        param_space, search_alg, num_samples = _search(plan, sweep_run, budget)
-        tuner = ray.tune.Tuner(
-            trainable,
-            param_space=param_space,
-            tune_config=ray.tune.TuneConfig(
-                metric=plan.spec.metric.name,
-                mode=plan.spec.metric.mode,
-                search_alg=search_alg,
-                scheduler=_scheduler(plan),
-                num_samples=num_samples,
-                max_concurrent_trials=conc.max_concurrent,
-                reuse_actors=True,
-                trial_name_creator=lambda t: plan.names(t.config)[1],
-                trial_dirname_creator=lambda t: f"trial_{t.trial_id}",
-            ),
-            run_config=ray.tune.RunConfig(
-                # Split as a string: a URI is no Path (Path("s3://b/x") collapses the "//").
-                name=sweep_dir.rsplit("/", 1)[1],
-                storage_path=sweep_dir.rsplit("/", 1)[0],
-                failure_config=ray.tune.FailureConfig(max_failures=plan.spec.failure.max_retries),
-                # Every checkpoint stays until CheckpointPruner (sweeps/execute/pruning.py) deletes it
-                # safely: Tune's num_to_keep deletes before the state naming the newer one is uploaded.
-                checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=None),
-                sync_config=ray.tune.SyncConfig(sync_period=1),
-                callbacks=[_TrialCloser(plan, sweep_run), CheckpointPruner(), *callbacks],
-                # Tune's own tables list every reported metric (dozens, per category); the trials'
-                # step/eval lines and _TrialCloser's lines are the progress display instead.
-                verbose=0,
-            ),
-        )
-    grid = tuner.fit()
-    prune_finished(grid)  # fit() has uploaded Tune's final state: no trial's older checkpoints are needed
-    if root is not None:
-        # A cache, gigabytes at the local profile: kept only while trials may still read it (a killed
-        # driver leaves it for --resume; a resumed sweep that finds it gone renders it again).
-        shutil.rmtree(root, ignore_errors=True)
-    # A trial whose worker never started has no config; grid sweeps list it as pending below.
-    outcomes = [_outcome(plan, r, sweep_run) for r in grid if r.config is not None]
-    if not plan.spec.search.sampled:  # trials Tune had not created when the sweep was interrupted get their row
-        next_round = None
-        if plan.sequential is not None:
-            from sweeps.compare.settle import final_round
-
-            next_round = final_round(plan, outcomes, budget, sweep_run.client.get_run(sweep_run.run_id).data.tags).start
-        for cell in map(plan.grid_cell, unstarted([c.label for c in plan.cells], outcomes, next_round)):
-            outcomes.append(TrialOutcome(cell.label, cell.name, "pending", {}, cell.paper_label, cell.paper))
-    labels = [c.label for c in plan.cells] if not plan.spec.search.sampled else None
-    return sorted(outcomes, key=sweep_order(labels, plan.spec.metric.name, plan.spec.metric.mode))

@@ -11,8 +11,10 @@ import re
 from dataclasses import dataclass
 
 from sweeps.plan.limits import LimitError
+from sweeps.plan.spec import SpecError
+from sweeps.plan.trials import SweepPlan
 
-__all__ = ["MAX_BUDGET_SECONDS", "MAX_BUDGET_TRIALS", "SeedBudget", "budget_option", "parse_budget"]
+__all__ = ["MAX_BUDGET_SECONDS", "MAX_BUDGET_TRIALS", "SeedBudget", "budget_option", "check_budget", "parse_budget"]
 
 
 @dataclass(frozen=True)
@@ -64,3 +66,20 @@ def parse_budget(text: str) -> SeedBudget:
 def budget_option(text: str | None) -> SeedBudget | None:
     """``--budget`` as given (None: not given; an empty ``--budget=`` is refused, not taken as none)."""
     return None if text is None else parse_budget(text)
+
+
+def check_budget(plan: SweepPlan, budget: SeedBudget | None) -> None:
+    """Refuse a ``--budget`` the plan cannot spend: without seeds until settled, or a trial count below round 1's.
+
+    Raises:
+        SpecError: naming ``--budget`` and the fix.
+    """
+    if budget is None:
+        return
+    if plan.sequential is None:
+        raise SpecError("--budget: only seeds run until settled spend a budget; add --until-settled "
+                        "(or give the spec seeds: {min: 2, max: 5, until: settled})")
+    first = len(plan.first_round)
+    if budget.trials is not None and budget.trials < first:
+        raise SpecError(f"--budget {budget.trials}: round 1 alone runs {first} trials (every cell at "
+                        f"{plan.sequential.min} seeds); give at least {first}")

@@ -5,7 +5,7 @@ trials from the spec's typed ``search.space`` with a Ray Tune searcher it builds
 
 Adding one (Ray Tune also wraps HyperOpt, Ax, BayesOpt, Nevergrad, …) is a :class:`SearchKind` subclass
 here and one entry in :data:`SEARCHES`: ``search.kind`` then accepts its name, ``--dry-run`` and the
-trial count treat it as a sampled search, and :func:`sweeps.execute.trial.run_sweep` hands Tune the
+trial count treat it as a sampled search, and :func:`sweeps.execute.tuner.run_sweep` hands Tune the
 searcher it builds.
 """
 

@@ -77,12 +77,13 @@ class Cell:
     """The trial's validated config: every override resolved, in the order this module's docstring gives."""
     paper_label: str | None = None
     paper: dict[str, float] = field(default_factory=dict)
+    group: str = field(init=False)
+    """The swept values alone (``0.04``, ``10 · 0.02``): the short name MLflow's runs view groups the
+    seeds of this cell under, narrow enough for its name column. Set here, with the cell, so a trial reads
+    it without calling back into the plan."""
 
-    @property
-    def group(self) -> str:
-        """The swept values alone (``0.04``, ``10 · 0.02``): the short name MLflow's runs view groups the
-        seeds of this cell under, narrow enough for its name column."""
-        return " · ".join(_fmt_value(v) for v in self.values.values()) or self.name
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "group", " · ".join(_fmt_value(v) for v in self.values.values()) or self.name)
 
 
 @dataclass(frozen=True)
@@ -144,20 +145,6 @@ class SweepPlan:
             return cell.name, cell.label
         name = cell_name({k: tune_config[k] for k in self.spec.search.space})
         return name, trial_label(name, self.spec.seed_values[0])
-
-    def trial(self, tune_config: dict[str, Any]) -> Cell:
-        """The trial a Tune config stands for: ``{"cell": label}`` (grid) or sampled values (Optuna).
-
-        A grid cell's config was resolved by :func:`expand`; an Optuna trial's is resolved here, once,
-        in the trial that runs it.
-        """
-        if not self.spec.search.sampled:
-            return self.grid_cell(tune_config["cell"])
-        values = {k: tune_config[k] for k in self.spec.search.space}
-        seed = self.spec.seed_values[0]
-        overrides = {**self.fixed, **values, "train.seed": seed, **self.sets}
-        name, label = self.names(tune_config)
-        return Cell(name, label, values, seed, load_config(None, overrides))
 
 
 def _patch(model: BaseModel, patch: BaseModel) -> dict[str, Any]:

@@ -229,12 +229,12 @@ def test_progress_line_counts_steps_across_trials_in_place_on_a_terminal(cluster
 def test_a_crash_after_the_parent_run_exists_marks_it_failed(cluster, tmp_path, monkeypatch):
     """An unexpected error once the parent run is open (here: the trials' runner itself raising) reaches
     the user as it is, and leaves the parent run FAILED, not RUNNING forever in the UI."""
-    import sweeps.execute.trial
+    import sweeps.execute.driver
 
     def broken(*args, **kwargs):
         raise RuntimeError("the trials' runner broke")
 
-    monkeypatch.setattr(sweeps.execute.trial, "run_sweep", broken)
+    monkeypatch.setattr(sweeps.execute.driver, "run_sweep", broken)
     argv, uri = _sweep(tmp_path, "name: crash\ngrid: {priors.point_size: [0.02]}\n")
     with pytest.raises(RuntimeError, match="runner broke"):
         run.main(argv)

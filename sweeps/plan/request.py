@@ -1,0 +1,145 @@
+"""The command line's sweep request checked and turned into its plan, before Ray starts.
+
+Every check of the arguments of a sweep (``--profile``/``--smoke``, ``--storage`` on a cluster, ``--set``,
+``--resume`` against ``sweep.json``, ``--budget``, the trial cap, the machine's memory) lives here; each
+refusal is one :class:`RequestError` that ``sweeps/run.py`` prints as ``error: …`` with exit code 2,
+having started and written nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from cdm.config import ConfigError, load_config, parse_override
+from cdm.memory import check_memory
+from sweeps.plan.budget import SeedBudget, budget_option, check_budget
+from sweeps.plan.limits import LISTED_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
+from sweeps.plan.preflight import check_inputs
+from sweeps.plan.resources import plan_concurrency
+from sweeps.plan.spec import Spec, SpecError, load_spec
+from sweeps.plan.trials import SweepPlan, expand
+from sweeps.storage import StoreError, exists, is_uri, parse_state, read_text, sweep_location
+
+__all__ = ["STATE_FILE", "RequestError", "SweepRequest", "check_mode", "missing_inputs", "plan_request"]
+
+STATE_FILE = "sweep.json"
+"""What ``--resume`` reads in the sweep folder: the spec, ``--set`` values, budget and MLflow run it started with."""
+
+
+class RequestError(Exception):
+    """A request refused before anything starts; the message names the argument or file and what is allowed."""
+
+
+@dataclass(frozen=True)
+class SweepRequest:
+    """A checked sweep request: its plan (every trial's config built), where it is kept, how it resumes."""
+
+    plan: SweepPlan
+    sweep_dir: str
+    """``<storage>/<spec name>/<profile>``: a path or an object-store URI."""
+    sets: dict[str, Any]
+    """``--set`` values (a resumed sweep's: those it started with)."""
+    budget: SeedBudget | None
+    remote: bool
+    """Trials run on a cluster joined by address (``--address`` or ``RAY_ADDRESS``)."""
+    state: dict[str, Any] | None = None
+    """A resumed sweep's ``sweep.json``, read and checked once; None for a new sweep."""
+
+    @property
+    def state_file(self) -> str:
+        return f"{self.sweep_dir}/{STATE_FILE}"
+
+
+def check_mode(args: argparse.Namespace) -> None:
+    """Exactly one of a spec, ``--rerun`` and ``--report``."""
+    if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
+        raise RequestError(
+            "give one of a sweep spec (e.g. sweeps/point_size.yaml), --rerun RUN_ID or --report EXPERIMENT"
+        )
+
+
+def plan_request(args: argparse.Namespace) -> SweepRequest:
+    """The sweep ``args`` ask for, every trial's config built and checked; :class:`RequestError` otherwise."""
+    if args.smoke and args.profile not in (None, "smoke"):
+        raise RequestError(f"--smoke means --profile smoke; got --profile {args.profile} too")
+    profile = "smoke" if args.smoke else (args.profile or "local")
+    remote = args.address is not None or "RAY_ADDRESS" in os.environ
+    if remote and not args.dry_run and not is_uri(args.storage) and not Path(args.storage).is_absolute():
+        # Under `ray job submit` the driver's working directory is the job's temporary copy of the
+        # repository: checkpoints there vanish with the job and other nodes never see them.
+        raise RequestError(f"--storage {args.storage}: on a cluster give an absolute path that every node shares "
+                           "(e.g. /mnt/shared/results) or an object-store URI (s3://bucket/results)")
+    try:
+        spec = load_spec(args.spec)
+        sweep_dir = sweep_location(args.storage, spec.name, profile)
+        for text in args.set:
+            check_set_text(text)
+        sets = dict(parse_override(text) for text in args.set)
+        state = None
+        if args.resume:
+            state, spec = _resumed(args, sweep_dir, sets)
+            sets = state["sets"]
+        if args.until_settled:
+            spec = spec.until_settled()
+        budget = budget_option(state.get("budget") if state is not None else args.budget)
+        check_trials(spec, args.max_cells)
+        # The spec goes straight to expand: no helper here receives it (docs/ARCHITECTURE.md, "The walk").
+        if args.dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and not spec.search.sampled:
+            print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
+            plan = expand(spec, profile, sets, keep=LISTED_TRIALS, each=check_progress(count))
+        else:
+            plan = expand(spec, profile, sets)
+        check_budget(plan, budget)
+        if not remote:  # a cluster's nodes have their own memory; this machine's says nothing of them
+            check_memory([c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})],
+                         _local_concurrency(plan))
+    except (SpecError, ConfigError, LimitError, StoreError) as exc:
+        raise RequestError(str(exc)) from None
+    return SweepRequest(plan, sweep_dir, sets, budget, remote, state)
+
+
+def _resumed(args: argparse.Namespace, sweep_dir: str, sets: dict[str, Any]) -> tuple[dict[str, Any], Spec]:
+    """The ``sweep.json`` of the sweep ``--resume`` continues: its spec as it started (even if the file was
+    edited since: trials must stay the same), checked to validate."""
+    state_file = f"{sweep_dir}/{STATE_FILE}"
+    if not exists(state_file):
+        raise RequestError(f"--resume: {sweep_dir} holds no sweep to resume (no {STATE_FILE})")
+    if sets:
+        raise RequestError("--resume continues a sweep with the spec and --set values it started with; drop --set")
+    if args.until_settled or args.budget is not None:
+        raise RequestError(
+            "--resume continues a sweep with the seeds and budget it started with; drop --until-settled and --budget"
+        )
+    state = parse_state(read_text(state_file), state_file)
+    try:
+        return state, Spec.model_validate(state["spec"])
+    except ValidationError as exc:
+        raise RequestError(
+            f"--resume: {state_file} is damaged ({' '.join(str(exc).split())}); remove the folder to start over"
+        ) from None
+
+
+def _local_concurrency(plan: SweepPlan) -> int:
+    """Trials this machine runs at once (GPUs not counted: the memory check is about host RAM)."""
+    try:
+        return plan_concurrency(plan.profile.resources, os.cpu_count() or 1, 1e9, plan.num_trials).max_concurrent
+    except SpecError:
+        return 1
+
+
+def missing_inputs(plan: SweepPlan, remote: bool, dry_run: bool) -> str | None:
+    """:func:`sweeps.plan.preflight.check_inputs`: a sweep refuses absent inputs (:class:`RequestError`), a dry
+    run still plans (the card, the plan, the estimate) and returns what is missing, said at its end."""
+    try:
+        check_inputs(plan, remote)
+    except ValueError as exc:
+        if not dry_run:
+            raise RequestError(str(exc)) from None
+        return str(exc)
+    return None

@@ -1,0 +1,48 @@
+"""The sweep request: the command line's arguments checked and turned into the plan before Ray starts."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from sweeps import run
+from sweeps.plan.request import RequestError, check_mode, plan_request
+
+SPEC = "name: s\ngrid: {priors.point_size: [0.02, 0.04]}\n"
+
+
+def _args(tmp_path, *extra):
+    (tmp_path / "s.yaml").write_text(SPEC)
+    return run._parser().parse_args([str(tmp_path / "s.yaml"), "--smoke", "--storage", str(tmp_path / "r"), *extra])
+
+
+def test_a_request_plans_every_trial_and_says_where_the_sweep_is_kept(tmp_path):
+    request = plan_request(_args(tmp_path, "--set", "priors.num_views=3"))
+    assert request.sweep_dir == str(tmp_path / "r" / "s" / "smoke")
+    assert request.state_file == f"{request.sweep_dir}/sweep.json" and request.state is None
+    assert [c.config.priors.point_size for c in request.plan.cells] == [0.02, 0.04]
+    assert {c.config.priors.num_views for c in request.plan.cells} == {3} and request.sets == {"priors.num_views": 3}
+    assert (request.budget, request.remote) == (None, False)
+    assert not (tmp_path / "r").exists()  # a plan writes nothing
+
+
+def test_resume_plans_the_spec_and_sets_the_sweep_started_with_and_names_a_damaged_state(tmp_path):
+    folder = tmp_path / "r" / "s" / "smoke"
+    folder.mkdir(parents=True)
+    started = {"spec": {"name": "s", "grid": {"priors.point_size": [0.08]}}, "sets": {"priors.num_views": 2},
+               "profile": "smoke", "budget": None, "tracking_uri": "sqlite:///x.db", "parent_run_id": "p"}
+    (folder / "sweep.json").write_text(json.dumps(started))
+    request = plan_request(_args(tmp_path, "--resume"))  # the file says 0.02 and 0.04 now: the sweep keeps 0.08
+    assert [(c.config.priors.point_size, c.config.priors.num_views) for c in request.plan.cells] == [(0.08, 2)]
+    assert request.state == started
+    (folder / "sweep.json").write_text(json.dumps({**started, "spec": {"name": "s", "grid": {"priors.nope": [1]}}}))
+    with pytest.raises(RequestError, match=r"--resume: .*sweep.json is damaged \(.*\); remove the folder"):
+        plan_request(_args(tmp_path, "--resume"))
+
+
+def test_exactly_one_of_a_spec_a_rerun_and_a_report(tmp_path):
+    check_mode(run._parser().parse_args(["--report", "s"]))
+    for argv in ([], ["spec.yaml", "--report", "s"], ["--rerun", "r", "--report", "s"]):
+        with pytest.raises(RequestError, match="give one of a sweep spec"):
+            check_mode(run._parser().parse_args(argv))
