@@ -22,10 +22,9 @@ from pathlib import Path
 
 import ray
 
-from cdm.config import load_config
+from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.rules import PROTOCOL_NOTE, settings_notes
 from sweeps.compare.settle import final_round, write_settle_json
-from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
@@ -72,10 +71,9 @@ class Publisher:
 
 def table_settings(plan: SweepPlan) -> list[str]:
     """What produced the numbers, for the table's notes: budget, the cells' training target and λ, the card."""
-    # A sampled search's plan has no cells yet: the fixed settings and --set values stand for every trial.
-    configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, (c.diffusion.prediction for c in configs),
-                          (c.priors.lambda_3d for c in configs), plan.fixed, plan.sets, plan_card(plan).lines())
+    trials = ((c.config.diffusion.prediction, c.config.priors.lambda_3d) for c in plan.cells)
+    return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, plan.fixed, plan.sets,
+                          plan_card(plan).lines(), trials)
 
 
 def _ui_hint(uri: str, path: str) -> str:

@@ -34,9 +34,9 @@ from cdm.config import Config, load_config
 from cdm.prior_model import ensure_priors
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
-from sweeps.execute.pruning import KEEP
 from sweeps.execute.cores import CoreLease
 from sweeps.execute.progress import StepReporter, quiet_loggers
+from sweeps.execute.pruning import KEEP
 from sweeps.execute.tracking import TrialRun, finished_trial_metrics
 from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
 

@@ -20,9 +20,9 @@ import ray.tune
 
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
-from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.cores import lease_cores
 from sweeps.execute.precompute import precompute, shared_root
+from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.tracking import SweepRun
 from sweeps.execute.trial import TrialSetup, run_trial
 from sweeps.plan.budget import SeedBudget
