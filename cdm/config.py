@@ -99,9 +99,9 @@ class DataConfig(_Group):
     categories: tuple[str, ...] = ()
     """Categories to use; empty = every category the data set has."""
     num_points: int = Field(4096, ge=16)
-    """Points per ground-truth cloud (paper: 4,096 on ShapeNet, 16,384 on Co3D)."""
+    """Points per ground-truth cloud (default: the paper's on ShapeNet; Co3D's is in the paper profile)."""
     image_size: int = Field(224, ge=16, le=1024)
-    """Side of the square input image and of every rendering, in pixels (paper: 224)."""
+    """Side of the square input image and of every rendering, in pixels (default: the paper's)."""
     train_objects: int = Field(512, ge=1)
     """Objects per category in the training split (procedural; meshes use what is on disk)."""
     val_objects: int = Field(16, ge=1)
@@ -186,7 +186,7 @@ class ModelConfig(_Group):
     feature_dim: int = Field(32, ge=1)
     """Channels of the per-pixel image feature map projected onto points (PC² ViT-S: 384)."""
     raster_radius: float = Field(0.0075, gt=0.0, le=1.0)
-    """Point radius in NDC units of the hard rasterizer used for projection conditioning (PC²: 0.0075)."""
+    """Point radius in NDC units of the hard rasterizer used for projection conditioning (default: PC²'s)."""
     denoiser: Literal["pvcnn2", "pointvoxel"] = "pointvoxel"
     """The denoiser network. ``pvcnn2`` is the paper's (PC²'s PVCNN2 layer for layer, ``cdm.model.pvcnn2``:
     set abstraction, attention, feature propagation; 28.0 M parameters at PC²'s inputs); the paper profile
@@ -206,7 +206,7 @@ class ModelConfig(_Group):
     devoxelize: Devoxelize = "trilinear"
     """How voxel features return to points."""
     time_embed_dim: int = Field(64, ge=4)
-    """Sinusoidal timestep embedding size (PC²: 64)."""
+    """Sinusoidal timestep embedding size (default: PC²'s)."""
     global_feature: Literal["none", "concat", "cross_attention"] = "none"
     """Global image embedding added to every point (supplementary Table 7); ``none`` in the paper's CDM."""
     global_source: Literal["image_features", "embeddings"] = "image_features"
@@ -255,11 +255,11 @@ class DiffusionConfig(_Group):
     """Forward process, training target and sampler (DDPM as in PC²)."""
 
     num_steps: int = Field(1000, ge=2)
-    """Diffusion steps T (PC²: 1000)."""
+    """Diffusion steps T (default: PC²'s)."""
     beta_start: float = Field(1e-5, gt=0.0, lt=1.0)
-    """First beta of the linear schedule (PC²: 1e-5)."""
+    """First beta of the linear schedule (default: PC²'s)."""
     beta_end: float = Field(8e-3, gt=0.0, lt=1.0)
-    """Last beta of the linear schedule (PC²: 8e-3)."""
+    """Last beta of the linear schedule (default: PC²'s)."""
     prediction: Prediction = "eps"
     """What the network predicts: ε as in the paper (Eq. 2–3), x₀, or v = √ᾱ ε − √(1−ᾱ) x₀."""
     sampler: Sampler = "ddim"
@@ -297,7 +297,7 @@ class PriorsConfig(_Group):
     num_views: int = Field(10, ge=0)
     """H, views rendered for the constraint, evenly spaced from the input view (Table 5: 10 best)."""
     point_size: float = Field(0.04, gt=0.0, le=1.0)
-    """The paper's point size of the constraint's renderings (0.04), NDC units (one pixel is 2/S): the
+    """The point size of the constraint's renderings (default: the paper's, §4), NDC units (one pixel is 2/S): the
     point radius of PyTorch3D's point rasteriser, each point's footprint integrated over the pixels
     (:func:`cdm.render.splat_points`)."""
     render_kind: RenderKind = "depth"
@@ -309,7 +309,7 @@ class PriorsConfig(_Group):
     (:func:`cdm.render.splat_points`). 0.4 came nearest a naive z-buffered reference of the ones measured
     (``benchmarks/RESULTS.md``, "Depth renders")."""
     render_size: int = Field(224, ge=8, le=1024)
-    """Side of the constraint renderings in pixels (paper: 224)."""
+    """Side of the constraint renderings in pixels (default: the paper's)."""
     target: Literal["x0_hat", "x_t_literal"] = "x0_hat"
     """Cloud compared with x₀: the predicted clean cloud x̂₀ (trainable) or x_t as Eq. 6 is written."""
     prior_2d: Prior2D = "contour"
@@ -332,22 +332,22 @@ class PriorsConfig(_Group):
 
 
 class TrainConfig(_Group):
-    """Optimiser and loop (PC²: AdamW 1e-3, cosine with 2k warm-up, 100k steps, clip 50, batch 8)."""
+    """Optimiser and loop: PC²'s AdamW with linear warm-up and cosine decay; every default is PC²'s."""
 
     steps: int = Field(100_000, ge=1)
-    """Optimiser steps (PC²: 100k)."""
+    """Optimiser steps (default: PC²'s ``max_steps``)."""
     batch_size: int = Field(8, ge=1)
-    """Objects per step (paper: 8)."""
+    """Objects per step (default: the paper's)."""
     lr: float = Field(1e-3, gt=0.0)
-    """Peak AdamW learning rate, reached after ``warmup_steps`` (PC²: 1e-3)."""
+    """Peak AdamW learning rate, reached after ``warmup_steps`` (default: PC²'s)."""
     weight_decay: float = Field(1e-6, ge=0.0)
     """AdamW weight decay."""
     betas: tuple[float, float] = (0.95, 0.999)
-    """AdamW betas (PC²: 0.95, 0.999)."""
+    """AdamW betas (default: PC²'s)."""
     warmup_steps: int = Field(2000, ge=0)
-    """Steps of linear warm-up before the cosine decay to zero at ``steps`` (PC²: 2,000)."""
+    """Steps of linear warm-up before the cosine decay to zero at ``steps`` (default: PC²'s)."""
     grad_clip: float = Field(50.0, gt=0.0)
-    """Largest global L2 norm of the gradient; larger gradients are scaled down to it (PC²: 50)."""
+    """Largest global L2 norm of the gradient; larger gradients are scaled down to it (default: PC²'s)."""
     precision: Literal["fp32", "fp16", "bf16"] = "fp32"
     """Arithmetic of the network's forward and backward (PC²: ``fp16``, ``RunConfig.mixed_precision`` in
     ``experiments/config/structured.py``, through Accelerate; the paper profile sets it). ``fp16``: torch

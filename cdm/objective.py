@@ -121,7 +121,7 @@ def prior_3d_loss(
         gt_points: ``(B, M, 3)`` world coordinates of the ground truth x₀.
         view_cameras: batch ``(B, H)``, the H prior views per sample.
         render_size: ``S`` in pixels (paper: 224).
-        point_size: the paper's point size (0.04): the point radius in NDC units, as PyTorch3D's
+        point_size: the point radius (``priors.point_size``) in NDC units, as PyTorch3D's
             point rasteriser (:func:`cdm.render.splat_points`).
         kind: ``"depth"`` (Co3D) or ``"planar"`` (ShapeNet) renderings (Fig. 3).
         target_images: optional cached ``(B, H, S, S)`` renderings of ``gt_points``.

@@ -319,7 +319,7 @@ def splat_points(
         points: ``(B, N, 3)`` world coordinates.
         cameras: batch ``(B,)``.
         image_size: ``S``, side of the square image in pixels.
-        point_size: the paper's point size (0.04): the point radius, NDC units (one pixel is ``2/S``).
+        point_size: the point radius (``priors.point_size``), NDC units (one pixel is ``2/S``).
         kind: ``"depth"`` or ``"planar"``.
         depth_layer: ``"depth"`` only: thickness ``δ`` (view depth, world units) of the front layer
             drawn; ``None`` averages every point.

@@ -34,6 +34,7 @@ __all__ = [
     "counter_name",
     "is_tty",
     "plain_log_handlers",
+    "quiet_actor_exit",
     "quiet_environment",
     "quiet_loggers",
 ]
@@ -67,6 +68,26 @@ def quiet_loggers() -> None:
     """INFO of :data:`QUIET_LOGGERS` off in this process (the driver, and each trial's process)."""
     for name in QUIET_LOGGERS:
         logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def quiet_actor_exit() -> None:
+    """An exit Ray asks of this trial's process is not printed as an error; every other one still is.
+
+    Tune stops an idle trial actor with SIGTERM, and Ray's handler raises ``SystemExit`` wherever the
+    process stands. Raised inside a garbage-collection callback (a ``WeakSet``'s), it cannot propagate, and
+    Python's ``sys.unraisablehook`` would print "Exception ignored … SystemExit: 1" with its traceback into
+    the sweep's output after the trial finished well. Installed once per process.
+    """
+    hook = sys.unraisablehook
+    if getattr(hook, "drops_exit", False):
+        return
+
+    def unraisable(info) -> None:
+        if not isinstance(info.exc_value, SystemExit):
+            hook(info)
+
+    unraisable.drops_exit = True
+    sys.unraisablehook = unraisable
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")

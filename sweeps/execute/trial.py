@@ -35,7 +35,7 @@ from cdm.prior_model import ensure_priors
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
 from sweeps.execute.cores import CoreLease
-from sweeps.execute.progress import StepReporter, quiet_loggers
+from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_loggers
 from sweeps.execute.pruning import KEEP
 from sweeps.execute.tracking import TrialRun, finished_trial_metrics
 from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
@@ -214,6 +214,7 @@ def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, tri
 def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     """Tune function trainable: one trial = one ``TorchTrainer.fit`` of :func:`train_loop`."""
     quiet_loggers()  # "Running in local mode …" and the like, logged in this process
+    quiet_actor_exit()
     ctx = ray.tune.get_context()
     trial_id = ctx.get_trial_id()
     job = trial_job(setup, tune_config, trial_id, ctx.get_trial_dir(), ray.get_runtime_context().get_node_id())
