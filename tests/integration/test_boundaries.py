@@ -143,16 +143,8 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
                     "profiles: {smoke: {budget: {steps: 60, eval_every: 10}}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = f"s3://{BUCKET}/results"
-    argv = [
-        sys.executable,
-        str(ROOT / "sweeps" / "run.py"),
-        str(spec),
-        "--smoke",
-        "--storage",
-        storage,
-        "--tracking-uri",
-        uri,
-    ]
+    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", storage,
+            "--tracking-uri", uri]
     env = {**os.environ, **s3, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
     env.pop("RAY_ADDRESS", None)
     logs = [tmp_path / "a.log", tmp_path / "b.log"]
@@ -276,16 +268,8 @@ def test_a_stopped_driver_closes_the_interrupted_child_as_killed_and_the_hint_ke
                     "profiles: {smoke: {budget: {steps: 400, eval_every: 10}}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = tmp_path / "my results"
-    argv = [
-        sys.executable,
-        str(ROOT / "sweeps" / "run.py"),
-        str(spec),
-        "--smoke",
-        "--storage",
-        str(storage),
-        "--tracking-uri",
-        uri,
-    ]
+    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", str(storage),
+            "--tracking-uri", uri]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
     env.pop("RAY_ADDRESS", None)
     log = tmp_path / "driver.log"
