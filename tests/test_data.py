@@ -13,7 +13,7 @@ import trimesh
 from cdm.cameras import ndc_to_pixel, project_points
 from cdm.config import Config, ConfigError, DataKind, load_config
 from cdm.data import DATASETS, build_dataset, collate, list_categories
-from cdm.data.procedural import CATEGORIES, make_shape
+from cdm.data.procedural_shapes import CATEGORIES, make_shape
 from cdm.data.views import RASTER_RADIUS_PX, Shape, View, draw_palette, render_view, sample_surface
 from cdm.normalise import IDENTITY, Frame
 

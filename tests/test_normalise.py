@@ -18,7 +18,8 @@ import trimesh
 from cdm.config import load_config
 from cdm.data import build_dataset
 from cdm.data.meshes import MeshFolderDataset
-from cdm.data.procedural import CATEGORIES, FRAMES, ProceduralDataset, make_shape
+from cdm.data.procedural import FRAMES, ProceduralDataset
+from cdm.data.procedural_shapes import CATEGORIES, make_shape
 from cdm.data.sample import Sample
 from cdm.evaluate import _score
 from cdm.normalise import Frame, bdm_frame, bdm_moments, box_frame
