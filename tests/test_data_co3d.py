@@ -21,7 +21,8 @@ from cdm.cameras import select_sequence_views
 from cdm.config import ConfigError, load_config
 from cdm.data import build_dataset, list_categories
 from cdm.data.checks import inside_mask
-from cdm.data.co3d import centred_box, crop_camera, load_category
+from cdm.data.co3d import centred_box, crop_camera
+from cdm.data.co3d_annotations import load_category
 from cdm.data.co3d_lists import EXCLUDE_SEQUENCE, LOW_QUALITY_SEQUENCE, excluded_sequences
 from sweeps import run
 from sweeps.plan.spec import load_spec
