@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from sweeps import run
-from sweeps.plan.spec import load_profiles
+from sweeps.plan.profiles import load_profiles
 from tests.input_fixtures import paper_inputs
 
 ROOT = Path(__file__).resolve().parents[1]

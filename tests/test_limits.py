@@ -21,7 +21,8 @@ from cdm.memory import check_memory, estimate_train_bytes
 from sweeps import run
 from sweeps.execute.claim import ClaimError, claim
 from sweeps.plan.limits import LimitError, check_trials, load_yaml
-from sweeps.plan.spec import Spec, SpecError, load_spec
+from sweeps.plan.schema_base import SpecError
+from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import expand
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
 

@@ -14,9 +14,11 @@ from cdm.data.shapenet import SYNSETS
 from sweeps import run
 from sweeps.execute.driver import table_settings
 from sweeps.plan import references
+from sweeps.plan.profiles import load_profiles
 from sweeps.plan.protocol import NO_DEVIATIONS, CardContext, ProtocolCard, plan_card, protocol_card
 from sweeps.plan.references import DATA_SETS, TABLES, Stated, record, show
-from sweeps.plan.spec import SpecError, load_profiles, load_spec
+from sweeps.plan.schema_base import SpecError
+from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
 from tests.datasets_fixtures import make_co3d, make_shapenet
 

@@ -6,7 +6,9 @@ from __future__ import annotations
 from mlflow import MlflowClient
 
 from cdm.config import load_config
-from sweeps.execute.tracking import SweepRun, TrialRun, finished_trial_metrics
+from sweeps.execute.logged_runs import finished_trial_metrics
+from sweeps.execute.tracking import SweepRun
+from sweeps.execute.trial_run import TrialRun
 
 
 def test_finished_trial_is_recognised_and_its_final_metrics_logged_once(tmp_path):

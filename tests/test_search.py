@@ -15,8 +15,9 @@ from sweeps import run
 from sweeps.execute import tuner
 from sweeps.execute.trial import sampled_cell
 from sweeps.plan.describe import describe
+from sweeps.plan.schema_base import SpecError
 from sweeps.plan.search import SEARCHES, SearchKind, SearchSettings, optuna_distributions, search_kind
-from sweeps.plan.spec import SpaceParam, Spec, SpecError, load_spec
+from sweeps.plan.spec import SpaceParam, Spec, load_spec
 from sweeps.plan.trials import expand
 
 SPACE = {"priors.lambda_3d": {"type": "log_float", "low": 1e-3, "high": 10.0}}

@@ -8,7 +8,8 @@ import pytest
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.settle import describe_rule, next_round, object_scores, outcome_results
 from sweeps.plan.budget import SeedBudget, check_budget, parse_budget
-from sweeps.plan.spec import Spec, SpecError
+from sweeps.plan.schema_base import SpecError
+from sweeps.plan.spec import Spec
 from sweeps.plan.trials import SweepPlan, expand
 
 OBJECTS = [f"obj{i:02d}" for i in range(20)]

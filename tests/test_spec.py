@@ -12,8 +12,10 @@ from sweeps.compare.rules import lambda_source
 from sweeps.execute.trial import sampled_cell
 from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.estimate import Estimate
+from sweeps.plan.profiles import Resources, load_profiles
 from sweeps.plan.resources import plan_concurrency
-from sweeps.plan.spec import Resources, Spec, SpecError, load_profiles, load_spec
+from sweeps.plan.schema_base import SpecError
+from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import expand
 from tests.input_fixtures import object_ids, paper_inputs, write_condition_images, write_embeddings
 

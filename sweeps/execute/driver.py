@@ -38,7 +38,8 @@ from sweeps.plan.preflight import estimate_line
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.request import STATE_FILE, SweepRequest
 from sweeps.plan.resources import Concurrency, plan_concurrency
-from sweeps.plan.spec import Spec, SpecError
+from sweeps.plan.schema_base import SpecError
+from sweeps.plan.spec import Spec
 from sweeps.plan.trials import SweepPlan
 from sweeps.storage import (
     StoreError,

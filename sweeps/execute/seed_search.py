@@ -23,7 +23,8 @@ from ray.tune.search import Searcher
 
 from cdm.safe_io import parse_json
 from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
-from sweeps.execute.tracking import SweepRun, last_objects
+from sweeps.execute.logged_runs import last_objects
+from sweeps.execute.tracking import SweepRun
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import SweepPlan
 from sweeps.storage import StoreError

@@ -35,9 +35,10 @@ from cdm.prior_model import ensure_priors
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
 from sweeps.execute.cores import CoreLease
+from sweeps.execute.logged_runs import finished_trial_metrics
 from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_loggers
 from sweeps.execute.pruning import KEEP
-from sweeps.execute.tracking import TrialRun, finished_trial_metrics
+from sweeps.execute.trial_run import TrialRun
 from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
 
 __all__ = [

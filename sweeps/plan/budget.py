@@ -11,7 +11,7 @@ import re
 from dataclasses import dataclass
 
 from sweeps.plan.limits import LimitError
-from sweeps.plan.spec import SpecError
+from sweeps.plan.schema_base import SpecError
 from sweeps.plan.trials import SweepPlan
 
 __all__ = ["MAX_BUDGET_SECONDS", "MAX_BUDGET_TRIALS", "SeedBudget", "budget_option", "check_budget", "parse_budget"]

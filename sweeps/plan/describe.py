@@ -8,8 +8,8 @@ from collections.abc import Sequence
 
 from sweeps.plan.protocol import plan_card
 from sweeps.plan.resources import plan_concurrency
+from sweeps.plan.schema_base import SpecError
 from sweeps.plan.search import search_kind
-from sweeps.plan.spec import SpecError
 from sweeps.plan.trials import SweepPlan
 
 __all__ = ["describe", "wrapped"]

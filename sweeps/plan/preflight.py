@@ -15,7 +15,7 @@ from cdm.config import load_config
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import LISTED_TRIALS
 from sweeps.plan.resources import plan_concurrency
-from sweeps.plan.spec import SpecError
+from sweeps.plan.schema_base import SpecError
 from sweeps.plan.trials import SweepPlan
 
 __all__ = ["check_inputs", "dry_run", "estimate_line"]

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from cdm.config import PAPER_DATA_SETS, Config, PaperDataSet
-from sweeps.plan.spec import load_profiles
+from sweeps.plan.profiles import load_profiles
 
 __all__ = ["DATA_SETS", "TABLES", "Entry", "Kind", "NoEffect", "NotStated", "Stated", "record", "show"]
 

@@ -22,7 +22,8 @@ from sweeps.plan.budget import SeedBudget, budget_option, check_budget
 from sweeps.plan.limits import LISTED_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
 from sweeps.plan.preflight import check_inputs
 from sweeps.plan.resources import plan_concurrency
-from sweeps.plan.spec import Spec, SpecError, load_spec
+from sweeps.plan.schema_base import SpecError
+from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import SweepPlan, expand
 from sweeps.storage import StoreError, exists, is_uri, parse_state, read_text, sweep_location
 

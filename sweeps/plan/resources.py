@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sweeps.plan.spec import Resources, SpecError
+from sweeps.plan.profiles import Resources
+from sweeps.plan.schema_base import SpecError
 
 __all__ = ["Concurrency", "plan_concurrency"]
 

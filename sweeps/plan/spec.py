@@ -1,11 +1,10 @@
-"""Sweep spec schema: the pydantic models of a spec file (``sweeps/*.yaml``) and of the shared profiles.
+"""Sweep spec schema: the pydantic models of a spec file (``sweeps/*.yaml``).
 
 A spec describes one ablation: fixed ``base`` overrides, a cartesian ``grid`` and/or explicit
 ``cells`` of dotted :mod:`cdm.config` fields (``exclude`` drops combinations), ``seeds``, a
 ``search`` (the grid itself, or Optuna over a typed ``space``), the ``metric`` reported and
 optimised, an optional ASHA ``scheduler``, ``resources``, ``failure`` handling, the ``paper``'s
-numbers per cell, and per-spec patches of the shared profiles in ``sweeps/profiles.yaml``
-(``smoke``, ``local``, ``paper``; a profile holds sizes, the ``budget`` and resources).
+numbers per cell, and per-spec patches of the shared profiles (:mod:`sweeps.plan.profiles`).
 
 This module only reads and validates files; :mod:`sweeps.plan.trials` expands a spec into trials and
 :mod:`sweeps.plan.resources` sizes them onto a Ray cluster.
@@ -16,68 +15,31 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
+from pydantic import Field, TypeAdapter, ValidationError, field_validator, model_validator
 
-from cdm.config import ConfigError, PaperDataSet, config_field_paths, format_validation_error, load_config
-from sweeps.plan.limits import LimitError, load_yaml
+from cdm.config import PaperDataSet, format_validation_error
+from sweeps.plan.profiles import Profile, Resources
+from sweeps.plan.schema_base import OWNED_FIELDS, SpecError, Strict, field_error, read_yaml
 from sweeps.plan.search import SEARCHES, search_kind
 
 __all__ = [
-    "OWNED_FIELDS",
-    "PROFILES_FILE",
-    "Budget",
     "DatasetRun",
     "ExplicitCell",
     "Failure",
     "Metric",
     "Paper",
     "PaperRow",
-    "Profile",
-    "Resources",
     "Scheduler",
     "Search",
     "SequentialSeeds",
     "Settle",
     "SpaceParam",
     "Spec",
-    "SpecError",
-    "field_error",
-    "load_profiles",
     "load_spec",
 ]
 
-PROFILES_FILE = Path(__file__).resolve().parents[1] / "profiles.yaml"
-"""Shared profiles every spec inherits; a spec's ``profiles:`` section patches them."""
 
-_KNOWN_FIELDS = frozenset(config_field_paths())
-
-# Fields a spec sets through its own sections, so each has one home.
-OWNED_FIELDS = {
-    "train.steps": "the profile's budget.steps",
-    "train.eval_every": "the profile's budget.eval_every",
-    "train.seed": "the spec's seeds",
-}
-
-
-class SpecError(ValueError):
-    """A sweep spec, profile or ``--set`` value is invalid; the message names the field."""
-
-
-def field_error(where: str, key: str) -> str | None:
-    """Why the dotted config field ``key`` cannot be set at ``where`` (unknown, or set by another
-    section: :data:`OWNED_FIELDS`), as ``<where>: <reason>``; None when it can."""
-    if key not in _KNOWN_FIELDS:
-        return f"{where}: unknown config field (see `python -m cdm fields`)"
-    if key in OWNED_FIELDS:
-        return f"{where}: set it through {OWNED_FIELDS[key]} instead"
-    return None
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-class PaperRow(_Strict):
+class PaperRow(Strict):
     """The paper's numbers for the cells whose resolved config matches every ``when`` entry."""
 
     label: str
@@ -86,13 +48,13 @@ class PaperRow(_Strict):
     """Metric name (as the trainer reports it, e.g. ``eval/f1``, ``eval/cd/teddybear``) → paper value."""
 
 
-class Paper(_Strict):
+class Paper(Strict):
     table: str
     note: str = ""
     rows: list[PaperRow] = []
 
 
-class SpaceParam(_Strict):
+class SpaceParam(Strict):
     """One Optuna dimension: ``float``/``log_float``/``int`` in [low, high], or ``categorical`` choices."""
 
     type: Literal["float", "log_float", "int", "categorical"]
@@ -129,7 +91,7 @@ class SpaceParam(_Strict):
         return [cast(self.low), cast(self.high)]
 
 
-class Search(_Strict):
+class Search(Strict):
     """How trials are chosen: ``kind`` names a registered algorithm (:data:`sweeps.plan.search.SEARCHES`)."""
 
     kind: str = "grid"
@@ -160,12 +122,12 @@ class Search(_Strict):
         return self
 
 
-class Metric(_Strict):
+class Metric(Strict):
     name: str = "eval/f1"
     mode: Literal["min", "max"] = "max"
 
 
-class Scheduler(_Strict):
+class Scheduler(Strict):
     """``asha`` stops weak trials at rungs of ``grace_evals`` × eval_every steps (time axis: train step)."""
 
     kind: Literal["none", "asha"] = "none"
@@ -173,79 +135,17 @@ class Scheduler(_Strict):
     reduction_factor: float = Field(2.0, gt=1.0)
 
 
-class Resources(_Strict):
-    """Per trial: ``workers_per_trial`` Ray Train workers (0 = Train's local mode in the trial's own process)."""
-
-    workers_per_trial: int = Field(0, ge=0)
-    cpus_per_worker: float = Field(1.0, gt=0)
-    gpus_per_worker: float = Field(0.0, ge=0)
-    max_concurrent_trials: int | None = Field(None, ge=1)
-    """Cap on concurrent trials; null = as many as the cluster's CPUs/GPUs fit."""
-
-
-class Failure(_Strict):
+class Failure(Strict):
     max_retries: int = Field(0, ge=0)
     """Restarts of a failed trial (Tune) and of its crashed workers (Train) from the last checkpoint."""
 
 
-class Budget(_Strict):
-    """A profile's training length; a field left out keeps its default in :class:`cdm.config.TrainConfig`,
-    the paper's (PC²'s ``max_steps``), which is that value's one home."""
-
-    steps: int | None = Field(None, ge=1)
-    eval_every: int | None = Field(None, ge=1)
-
-
-class Profile(_Strict):
-    """A named override set; in a spec every part is a patch of the shared profile of that name."""
-
-    description: str = ""
-    budget: Budget = Budget()
-    overrides: dict[str, Any] = {}
-    resources: Resources = Resources()
-    num_samples: int | None = Field(None, ge=1)
-    """Optuna trials in this profile (overrides ``search.num_samples``)."""
-    datasets: dict[PaperDataSet, dict[str, Any]] = {}
-    """Dotted config fields this profile sets when a run reads that data set (``data.kind``), after its
-    ``overrides``: the paper profile's home for each reference's data protocol (BDM on ShapeNet, PC² on Co3D)."""
-
-
-class SharedProfile(Profile):
-    """A profile of ``sweeps/profiles.yaml``, which may start from a cdm config file."""
-
-    recipe: str | None = None
-    """A cdm config file (``configs/quick.yaml``; relative to ``profiles.yaml``) whose fields are this
-    profile's first overrides, so a single run and the sweeps share one recipe; ``overrides`` then says where
-    the sweeps differ. Its :data:`RUN_ONLY` fields are the single run's and stay out."""
-
-
-RUN_ONLY = ("train.steps", "train.eval_every", "train.threads", "train.out_dir")
-"""A recipe's fields that a sweep sets per trial instead: the profile's budget and CPUs, the trial's folder."""
-
-
-def _recipe(path: Path) -> dict[str, Any]:
-    """The fields a recipe file writes, dotted, minus :data:`RUN_ONLY`; the file validated as a config."""
-    try:
-        load_config(path)
-    except ConfigError as exc:
-        raise SpecError(f"recipe {path}: {exc}") from None
-    out, todo = {}, [("", _read_yaml(path))]
-    while todo:
-        prefix, tree = todo.pop(0)
-        for key, value in tree.items():
-            if isinstance(value, dict) and f"{prefix}{key}" not in _KNOWN_FIELDS:
-                todo.append((f"{prefix}{key}.", value))
-            elif f"{prefix}{key}" not in RUN_ONLY:
-                out[f"{prefix}{key}"] = value
-    return out
-
-
-class ExplicitCell(_Strict):
+class ExplicitCell(Strict):
     label: str
     set: dict[str, Any] = {}
 
 
-class DatasetRun(_Strict):
+class DatasetRun(Strict):
     """How the paper ran a spec's table on one data set; used by ``--profile paper`` once ``--set
     data.root=...`` names where that data set is (``--set data.kind=...`` picks one of several)."""
 
@@ -256,7 +156,7 @@ class DatasetRun(_Strict):
     one model per Co3D class)."""
 
 
-class SequentialSeeds(_Strict):
+class SequentialSeeds(Strict):
     """``seeds: {min: 2, max: 5, until: settled}``: seeds ``0, 1, …, max − 1`` run in rounds until each
     cell's comparison with its reference settles (:mod:`sweeps.execute.seed_search`, :mod:`sweeps.compare.sequential`).
 
@@ -296,13 +196,13 @@ two seeds, the fewest whose interval covers seed variance, up to five, where a c
 is unlikely to settle within a sweep's budget."""
 
 
-class Settle(_Strict):
+class Settle(Strict):
     margin: float | None = Field(None, gt=0)
     """Equivalence margin in the metric's units: a cell whose interval against the reference lies inside
     ±margin is settled as ``level`` (a TOST-style verdict); null = only better/worse settle."""
 
 
-class Spec(_Strict):
+class Spec(Strict):
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
     description: str = ""
     paper: Paper | None = None
@@ -408,40 +308,11 @@ class Spec(_Strict):
             raise SpecError(f"--until-settled: {format_validation_error(exc, Spec)}") from None
 
 
-def _read_yaml(path: Path) -> dict[str, Any]:
-    try:
-        tree = load_yaml(path)
-    except LimitError as exc:
-        raise SpecError(str(exc)) from None
-    if not isinstance(tree, dict):
-        raise SpecError(f"{path}: top level must be a mapping")
-    return tree
-
-
 def load_spec(path: str | Path) -> Spec:
     """Read and validate a spec file; :class:`SpecError` names the first bad field."""
     path = Path(path)
     try:
-        return Spec.model_validate(_read_yaml(path))
+        return Spec.model_validate(read_yaml(path))
     except ValidationError as exc:
         raise SpecError(f"{path}: {format_validation_error(exc, Spec)}") from None
 
-
-def load_profiles(path: str | Path = PROFILES_FILE) -> dict[str, Profile]:
-    """The shared profiles, a recipe's fields first in its overrides, each field checked: known, and not one
-    another section sets."""
-    path = Path(path)
-    try:
-        profiles = {name: SharedProfile.model_validate(body) for name, body in _read_yaml(path).items()}
-    except ValidationError as exc:
-        raise SpecError(f"{path}: {format_validation_error(exc, SharedProfile)}") from None
-    for name, prof in profiles.items():
-        if prof.recipe is not None:
-            profiles[name] = prof = prof.model_copy(
-                update={"overrides": {**_recipe(path.parent / prof.recipe), **prof.overrides}})
-        keys = [(f"overrides.{k}", k) for k in prof.overrides]
-        keys += [(f"datasets.{d}.{k}", k) for d, fields in prof.datasets.items() for k in fields]
-        for where, key in keys:
-            if error := field_error(f"{path}: {name}.{where}", key):
-                raise SpecError(error)
-    return profiles

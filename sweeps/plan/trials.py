@@ -13,7 +13,7 @@ One trial's config is resolved in this order, later wins::
 the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
 searcher may start has its label and config before Ray starts), validates a sampled search's space at
 its bounds, and checks the metric against :func:`cdm.train.metric_names`, so a typo fails with one
-:class:`sweeps.plan.spec.SpecError` naming the field.
+:class:`sweeps.plan.schema_base.SpecError` naming the field.
 """
 
 from __future__ import annotations
@@ -27,19 +27,9 @@ from typing import Any
 from pydantic import BaseModel
 
 from cdm.config import Config, ConfigError, TrainConfig, load_config
-from sweeps.plan.spec import (
-    Budget,
-    DatasetRun,
-    ExplicitCell,
-    PaperRow,
-    Profile,
-    Resources,
-    SequentialSeeds,
-    Spec,
-    SpecError,
-    field_error,
-    load_profiles,
-)
+from sweeps.plan.profiles import Budget, Profile, Resources, load_profiles
+from sweeps.plan.schema_base import SpecError, field_error
+from sweeps.plan.spec import DatasetRun, ExplicitCell, PaperRow, SequentialSeeds, Spec
 
 __all__ = [
     "SEED_MARK", "Cell", "ResolvedProfile", "SweepPlan", "cell_name", "expand", "resolve_profile", "split_label",
@@ -60,7 +50,7 @@ class ResolvedProfile:
     resources: Resources
     num_samples: int | None
     datasets: dict[str, dict[str, Any]] = field(default_factory=dict)
-    """Fields set when a run reads one of these data sets (:attr:`sweeps.plan.spec.Profile.datasets`)."""
+    """Fields set when a run reads one of these data sets (:attr:`sweeps.plan.profiles.Profile.datasets`)."""
 
 
 @dataclass(frozen=True)

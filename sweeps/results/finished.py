@@ -24,7 +24,7 @@ from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstart
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
 from sweeps.compare.table import ResultsTable, build_table
-from sweeps.execute.tracking import last_objects, parent_baselines, trial_metrics
+from sweeps.execute.logged_runs import last_objects, parent_baselines, trial_metrics
 from sweeps.plan.budget import parse_budget
 from sweeps.plan.protocol import CARD_TAG
 from sweeps.plan.spec import SpaceParam, Spec, load_spec

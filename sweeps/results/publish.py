@@ -31,7 +31,8 @@ from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.compare.rules import PROTOCOL_NOTE, metric_label, partner, rounded
 from sweeps.compare.table import ResultsTable
-from sweeps.execute.tracking import last_eval_files, last_objects, metric_histories, resolve_tracking_uri, ui_link
+from sweeps.execute.logged_runs import last_eval_files, last_objects, metric_histories
+from sweeps.execute.tracking import resolve_tracking_uri, ui_link
 from sweeps.plan.search import optuna_distributions
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import split_label

@@ -26,7 +26,7 @@ from nbclient import NotebookClient
 from docs import screenshots
 from sweeps import run
 from sweeps.compare.rules import rounded
-from sweeps.execute.tracking import last_eval_files, last_objects
+from sweeps.execute.logged_runs import last_eval_files, last_objects
 from sweeps.results import publish
 from tests.integration.local_ray import local_ray
 from tests.test_publish import _overlap, panel_views

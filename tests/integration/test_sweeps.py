@@ -19,7 +19,7 @@ import ray
 from mlflow import MlflowClient
 
 from sweeps import run
-from sweeps.execute.tracking import last_eval_files
+from sweeps.execute.logged_runs import last_eval_files
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 

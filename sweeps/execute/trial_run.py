@@ -1,0 +1,148 @@
+"""MLflow tracking of one trial: its child run under the sweep's parent run, written from exactly one place.
+
+The trial's rank-0 training process feeds it as a :class:`cdm.train.Callback`, because SQLite locks under
+many writers. A child is found again by its ``trial_id`` tag, so a resumed trial continues its own run and
+skips steps it had already logged: no duplicates. The driver closes it with Tune's verdict
+(:meth:`sweeps.execute.tracking.SweepRun.close_trial`).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from pathlib import Path
+
+import yaml
+from mlflow import MlflowClient
+from mlflow.entities import Metric, RunTag
+
+from cdm.config import Config
+from cdm.train import Callback
+from sweeps.compare.rules import rounded
+from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
+from sweeps.execute.tracking import as_params, log_params
+from sweeps.store_retry import PatientClient
+
+__all__ = ["EVAL_FOLDERS", "PER_TRIAL_PARAMS", "SYSTEM_METRICS", "TrialRun", "learning_curve_png"]
+
+PER_TRIAL_PARAMS = ("train.out_dir",)
+"""Config fields that differ in every trial by construction (its own folder): not params, so the
+compare view shows only what the cells set."""
+
+
+SYSTEM_METRICS = ("train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
+"""Training-loop timings a child logs as ``system/<name>``: MLflow's UI shows that prefix apart, under
+"System metrics", so the model charts hold what a reader compares (metric, partner, loss terms)."""
+
+
+def _shown(key: str, value: float) -> float:
+    """``value`` as a reader sees it in the UI's tables: scores at the results table's precision, losses
+    and timings at 4 significant digits (a learning rate of 1e-4 keeps its digits)."""
+    if key.startswith("eval/"):
+        return rounded(value)
+    return float(f"{value:.4g}") if math.isfinite(value) else value
+
+
+EVAL_FOLDERS = {".png": "panels", ".ply": "clouds"}
+"""Sub-folder of ``eval/step_<N>/`` per file suffix (``objects.csv`` stays at the top): a reader finds the
+panels apart from the dozens of clouds."""
+
+
+def learning_curve_png(
+    client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = ""
+) -> Path | None:
+    """The run's training curves (:func:`sweeps.compare.plots.training_curves` for this one trial: the loss terms
+    apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``;
+    None while the run holds no curve (no loss logged, fewer than two evaluations).
+
+    Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
+    """
+    from sweeps.compare.plots import has_curve, training_curves
+
+    keys = ("train/loss", "train/loss_diffusion", metric)
+    history = metric_histories(client, run_id, keys)
+    if not has_curve(history, metric):
+        return None
+    return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png")
+
+
+class TrialRun(Callback):
+    """The child run of one trial, fed by :func:`cdm.train.fit`'s callbacks (rank 0 only).
+
+    Opens the run on construction — or reopens the trial's earlier run after a resume, logging only
+    steps past what that run already holds.
+    """
+
+    def __init__(
+        self,
+        uri: str,
+        experiment_id: str,
+        parent_run_id: str,
+        trial_id: str,
+        run_name: str,
+        tags: dict[str, str],
+        config: Config,
+        metric: str = "eval/cd",
+    ):
+        self.client = PatientClient(uri)
+        self.run_name, self.metric = run_name, metric
+        self.last_step = 0 if config.eval.only else config.train.steps
+        found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
+        # Last step already in the run, per kind: a crash between a step's log and its evaluation
+        # must not make the re-run evaluation look logged.
+        self.logged_until = {"train": -1, "eval": -1}
+        self.eval_set_tagged = False
+        if found is None:
+            run = self.client.create_run(
+                experiment_id, run_name=run_name,
+                tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, **tags})
+            self.run_id = run.info.run_id
+            kept = {k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}
+            log_params(self.client, self.run_id, as_params(kept))
+            self.client.log_text(self.run_id, yaml.safe_dump(config.to_dict(), sort_keys=False), "config.yaml")
+        else:
+            self.run_id = found
+            self.client.update_run(found, status="RUNNING")
+            for kind, key in (("train", "train/loss"), ("eval", "eval/cd")):
+                self.logged_until[kind] = max((m.step for m in self.client.get_metric_history(found, key)), default=-1)
+
+    def _log(self, step: int, metrics: dict[str, float]) -> None:
+        now = int(time.time() * 1000)
+        named = {("system/" + k.removeprefix("train/") if k in SYSTEM_METRICS else k): v for k, v in metrics.items()}
+        self.client.log_batch(
+            self.run_id, metrics=[Metric(k, _shown(k, float(v)), now, step) for k, v in named.items()]
+        )
+
+    def on_start(self, record: dict[str, str]) -> None:
+        self.client.log_batch(self.run_id, tags=[RunTag(f"repro.{k}", v) for k, v in record.items()])
+
+    def on_step(self, step: int, metrics: dict[str, float]) -> None:
+        if step > self.logged_until["train"]:
+            self._log(step, metrics)
+
+    def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
+        if step <= self.logged_until["eval"]:
+            return
+        # Baselines depend on the evaluation set only: the driver logs them once on the parent run; the
+        # per-category scores become final/… when the driver closes the run (SweepRun._log_final).
+        self._log(step, {k: v for k, v in metrics.items() if not k.startswith("baseline/") and not is_per_category(k)})
+        if not self.eval_set_tagged:  # every evaluation of a run scores the same evaluation set
+            for path in (p for p in files if p.name == "objects.csv"):
+                with path.open(newline="") as fh:
+                    first = next(csv.DictReader(fh), None)
+                if first is not None:
+                    self.client.set_tag(self.run_id, "eval_set", first["eval_set"])
+                    self.eval_set_tagged = True
+        for path in files:
+            sub = EVAL_FOLDERS.get(path.suffix)
+            self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}" + (f"/{sub}" if sub else ""))
+        # The curve at the last evaluation only: MLflow charts the metrics live, and drawing it took ~0.7 s
+        # per evaluation (benchmarks/RESULTS.md).
+        if files and step >= self.last_step:
+            curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name)
+            if curve is not None:
+                self.client.log_artifact(self.run_id, str(curve), "curves")
+
+    def on_checkpoint(self, step: int, path: Path) -> None:
+        self.client.set_tag(self.run_id, "checkpoint", str(path))
