@@ -342,3 +342,11 @@ def test_no_function_is_over_80_lines():
         for function, n in _long_functions(path, LONG_FUNCTION).items()
     }
     assert not long, f"split these into steps: {long}"
+
+
+def test_the_front_door_stays_thin():
+    """sweeps/run.py parses the arguments and calls one function per stage (docs/ARCHITECTURE.md): at most
+    200 lines, no function over 60; a check or a step that grows it belongs to its stage."""
+    run = ROOT / "sweeps" / "run.py"
+    assert len(run.read_text().splitlines()) <= 200
+    assert _long_functions(run, 60) == {}
