@@ -216,22 +216,18 @@ def _time_figures(text: str) -> list[str]:
     return re.findall(r"(?<!≤ )\b\d+(?:\.\d+)? ?(?:min|minutes)\b", text)
 
 
-def _whole_section(text: str, heading: str) -> str:
-    return text.split(f"\n{heading}\n", 1)[1].split("\n## ", 1)[0]
-
-
 def test_the_main_jobs_time_is_measured_in_one_place_that_the_others_cite():
     """docs/local-results.md holds the main job's measured time; the README's sections on the main job and the
     quick config, configs/quick.yaml and the local profile cite it and write no figure of their own."""
     results = ROOT / "docs" / "local-results.md"
     assert "the-main-jobs-time" in anchors(results)
-    assert _time_figures(_whole_section(results.read_text(encoding="utf-8"), "## The main job's time"))
+    assert _time_figures(_section(results.read_text(encoding="utf-8"), "The main job's time"))
     readme = README.read_text(encoding="utf-8")
     quick = (ROOT / "configs" / "quick.yaml").read_text(encoding="utf-8")
     local = (ROOT / "sweeps" / "profiles.yaml").read_text(encoding="utf-8").split("\nlocal:", 1)[1].split("\npaper:")[0]
     citing = {
-        "README.md, The main job's results": _whole_section(readme, "## The main job's results"),
-        "README.md, Train one model": _whole_section(readme, "## Train one model"),
+        "README.md, The main job's results": _section(readme, "The main job's results"),
+        "README.md, Train one model": _section(readme, "Train one model"),
         "configs/quick.yaml": quick,
         "sweeps/profiles.yaml, local": local,
     }
