@@ -48,6 +48,7 @@ __all__ = [
     "config_field_paths",
     "format_validation_error",
     "load_config",
+    "read_config_file",
     "parse_override",
 ]
 
@@ -649,6 +650,34 @@ def apply_overrides(tree: dict[str, Any], overrides: dict[str, Any]) -> dict[str
     return out
 
 
+def read_config_file(path: str | Path) -> Any:
+    """The YAML tree of a config file, read within the caps of :mod:`cdm.safe_io` (not yet validated).
+
+    Raises:
+        ConfigError: missing, unreadable, too large, too deeply nested or not YAML; the message names the file.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"config file {path}: cannot read (no such file)")
+    try:
+        raw = read_bounded(path, "config file")
+        if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
+            raise ConfigError(f"config file {path}: nested {depth} deep; at most {MAX_JSON_DEPTH}")
+        return yaml.safe_load(raw.decode("utf-8")) or {}
+    except OSError as exc:
+        raise ConfigError(f"config file {path}: cannot read ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start})") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path}: not valid YAML: {exc}") from None
+    except RecursionError:  # PyYAML composes recursively: a planted file nests past Python's stack
+        raise ConfigError(f"config file {path}: nested too deeply to be a config") from None
+    except ConfigError:
+        raise
+    except ValueError as exc:  # not a regular file, or over the size cap (cdm.safe_io)
+        raise ConfigError(str(exc)) from None
+
+
 def load_config(source: str | Path | dict[str, Any] | None = None, overrides: dict[str, Any] | None = None) -> Config:
     """Build a validated :class:`Config` from a YAML path or nested dict plus dotted overrides.
 
@@ -660,26 +689,7 @@ def load_config(source: str | Path | dict[str, Any] | None = None, overrides: di
     elif isinstance(source, dict):
         tree = source
     else:
-        path = Path(source)
-        if not path.exists():
-            raise ConfigError(f"config file {path}: cannot read (no such file)")
-        try:
-            raw = read_bounded(path, "config file")
-            if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
-                raise ConfigError(f"config file {path}: nested {depth} deep; at most {MAX_JSON_DEPTH}")
-            tree = yaml.safe_load(raw.decode("utf-8")) or {}
-        except OSError as exc:
-            raise ConfigError(f"config file {path}: cannot read ({exc.strerror})") from None
-        except UnicodeDecodeError as exc:
-            raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start})") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"config file {path}: not valid YAML: {exc}") from None
-        except RecursionError:  # PyYAML composes recursively: a planted file nests past Python's stack
-            raise ConfigError(f"config file {path}: nested too deeply to be a config") from None
-        except ConfigError:
-            raise
-        except ValueError as exc:  # not a regular file, or over the size cap (cdm.safe_io)
-            raise ConfigError(str(exc)) from None
+        tree = read_config_file(source)
     if not isinstance(tree, dict):
         raise ConfigError("config: top level must be a mapping of groups (data, model, ...)")
     tree = apply_overrides(tree, overrides or {})

@@ -12,7 +12,7 @@ from typing import Any
 
 from pydantic import Field, ValidationError
 
-from cdm.config import ConfigError, PaperDataSet, format_validation_error, load_config
+from cdm.config import ConfigError, PaperDataSet, format_validation_error, load_config, read_config_file
 from sweeps.plan.schema_base import KNOWN_FIELDS, SpecError, Strict, field_error, read_yaml
 
 __all__ = ["PROFILES_FILE", "RUN_ONLY", "Budget", "Profile", "Resources", "SharedProfile", "load_profiles"]
@@ -69,10 +69,11 @@ RUN_ONLY = ("train.steps", "train.eval_every", "train.threads", "train.out_dir")
 def _recipe(path: Path) -> dict[str, Any]:
     """The fields a recipe file writes, dotted, minus :data:`RUN_ONLY`; the file validated as a config."""
     try:
-        load_config(path)
+        tree = read_config_file(path)
+        load_config(tree)
     except ConfigError as exc:
         raise SpecError(f"recipe {path}: {exc}") from None
-    out, todo = {}, [("", read_yaml(path))]
+    out, todo = {}, [("", tree)]
     while todo:
         prefix, tree = todo.pop(0)
         for key, value in tree.items():
