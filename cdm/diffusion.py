@@ -23,7 +23,7 @@ from torch import Tensor
 
 from cdm.config import DiffusionConfig, Prediction, Sampler, Spacing
 
-__all__ = ["GaussianDiffusion", "Prediction", "SamplerSettings", "Spacing"]
+__all__ = ["GaussianDiffusion", "SamplerSettings"]
 
 ModelFn = Callable[[Tensor, Tensor], Tensor]
 """``model_fn(x_t (B, N, 3), t (B,) long) -> raw network output (B, N, 3)``."""

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import math
+import typing
 from typing import NamedTuple
 
 import torch
@@ -261,8 +262,8 @@ def _validate_splat(
     _validate(points, cameras, image_size, point_size, "point_size")
     if point_size <= 0.0:
         raise ValueError(f"point_size must be > 0 (the point radius, NDC units), got {point_size}")
-    if kind not in ("depth", "planar"):
-        raise ValueError(f"kind must be 'depth' or 'planar', got {kind!r}")
+    if kind not in typing.get_args(RenderKind):
+        raise ValueError(f"kind must be {' or '.join(map(repr, typing.get_args(RenderKind)))}, got {kind!r}")
     if depth_layer is not None and (kind != "depth" or not depth_layer > 0.0):
         raise ValueError(
             f"depth_layer must be None or > 0 and only with kind='depth', got {depth_layer!r} with {kind!r}"
