@@ -219,7 +219,7 @@ def _time_figures(text: str) -> list[str]:
 def test_the_main_jobs_time_is_measured_in_one_place_that_the_others_cite():
     """docs/local-results.md holds the main job's measured time; the README's sections on the main job and the
     quick config, configs/quick.yaml and the local profile cite it and write no figure of their own."""
-    results = ROOT / "docs" / "local-results.md"
+    results = LOCAL_RESULTS
     assert "the-main-jobs-time" in anchors(results)
     assert _time_figures(_section(results.read_text(encoding="utf-8"), "The main job's time"))
     readme = README.read_text(encoding="utf-8")

@@ -9,9 +9,9 @@ the input frame (the paper's procedure).
 PC²'s protocol (its ``experiments/dataset/__init__.py``, through PyTorch3D 0.7's ``JsonIndexDataset``)
 is four switches here, all set by the paper profile on Co3D: ``data.exclude_sequences`` leaves out its
 listed sequences (:mod:`cdm.data.co3d_lists`); ``data.frames_per_sequence`` (PC²: 1) keeps the frames
-PyTorch3D keeps (:func:`kept_frames`), so each sequence has one fixed input frame in every split it
-is still in; ``data.mask_rgb`` blacks out the background; ``data.drop_outliers: false`` keeps every
-point of the published cloud.
+PyTorch3D keeps (:func:`cdm.data.co3d_annotations.kept_frames`), so each sequence has one fixed input
+frame in every split it is still in; ``data.mask_rgb`` blacks out the background;
+``data.drop_outliers: false`` keeps every point of the published cloud.
 
 Units and frames. Depth PNGs are 16-bit images whose bits are float16 values; × ``scale_adjustment``
 they are view depths in the sequence's world units, like its cameras and point cloud. Cloud, cameras
