@@ -96,10 +96,10 @@ def _tracking_uri(args: argparse.Namespace) -> str:
     return uri
 
 
-def _report(args: argparse.Namespace) -> int:
+def _report(args: argparse.Namespace, uri: str) -> int:
     from sweeps.results import publish
 
-    return publish.main([args.report, *(["--tracking-uri", args.tracking_uri] if args.tracking_uri else [])])
+    return publish.main([args.report, "--tracking-uri", uri])
 
 
 def _rerun(args: argparse.Namespace, uri: str) -> int:
@@ -148,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     except (RequestError, StoreError) as exc:
         return _fail(str(exc))
     if args.report is not None:
-        return _report(args)
+        return _report(args, uri)
     if args.rerun is not None:
         return _rerun(args, uri)
     if args.dry_run:
