@@ -60,20 +60,22 @@ as BDM's ``experiments/evaluation/evaluation_f1.py`` applies it. ``eval.f1_thres
 
 
 PaperDataSet = Literal["shapenet_r2n2", "co3d"]
-"""The data sets the paper reports on, the captured kinds (photographs with known cameras)."""
+"""The data sets the paper reports on, the captured kinds (photographs with known cameras): the kinds whose
+entry in :data:`cdm.registry.DATA_SETS` says ``paper``."""
 PAPER_DATA_SETS: tuple[PaperDataSet, ...] = typing.get_args(PaperDataSet)
 DataKind = Literal["procedural", "meshes", PaperDataSet]
-"""``data.kind``: a key of ``cdm.data.DATASETS``."""
+"""``data.kind``: a key of :data:`cdm.registry.DATA_SETS` (the entry holds its class and facts)."""
 Devoxelize = Literal["trilinear", "nearest"]
 Prediction = Literal["eps", "x0", "v"]
 """What the denoiser predicts (``diffusion.prediction``)."""
 Sampler = Literal["ddim", "ddpm"]
+"""``diffusion.sampler``: a key of :data:`cdm.registry.SAMPLERS`."""
 Spacing = Literal["linspace", "trailing"]
 """Where DDIM's steps sit (``diffusion.timestep_spacing``)."""
 RenderKind = Literal["depth", "planar"]
-"""What the 3D prior constraint renders (``priors.render_kind``)."""
+"""What the 3D prior constraint renders (``priors.render_kind``): a key of :data:`cdm.registry.RENDER_KINDS`."""
 Prior2D = Literal["none", "contour", "depth"]
-"""The 2D prior of the input image (``priors.prior_2d``)."""
+"""The 2D prior of the input image (``priors.prior_2d``): a key of :data:`cdm.registry.PRIORS_2D`."""
 PriorTimestep = Literal["same_index", "log_snr"]
 """How BDM blending picks the prior's timestep (``sampling.blend.prior_timestep``)."""
 
@@ -92,7 +94,7 @@ class DataConfig(_Group):
     """What the model trains and evaluates on."""
 
     kind: DataKind = "procedural"
-    """Data-set kind, a key of ``cdm.data.DATASETS``. ``procedural`` is the embedded default (no files)."""
+    """Data-set kind, a key of ``cdm.registry.DATA_SETS``. ``procedural`` is the embedded default (no files)."""
     root: str | None = None
     """Folder of the data set on disk (``meshes``: one sub-folder per category; ``shapenet_r2n2``: holds
     ShapeNetRendering/ and ShapeNetCore.v2.PC15k/; ``co3d``: one folder per category), or a folder
@@ -493,8 +495,8 @@ class Config(_Group):
             )
         if self.priors.depth_source == "maps" and data.kind not in PAPER_DATA_SETS:
             raise ValueError(
-                "priors.depth_source=maps needs a captured data set (data.kind shapenet_r2n2 or co3d): rendered "
-                f"kinds ({data.kind}) draw a fresh view every round, which no folder of maps can cover"
+                f"priors.depth_source=maps needs a captured data set (data.kind {' or '.join(PAPER_DATA_SETS)}): "
+                f"rendered kinds ({data.kind}) draw a fresh view every round, which no folder of maps can cover"
             )
         return self
 

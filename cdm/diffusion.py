@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from cdm.config import DiffusionConfig, Prediction, Sampler, Spacing
+from cdm.registry import SAMPLERS
 
 __all__ = ["GaussianDiffusion", "SamplerSettings"]
 
@@ -156,9 +157,10 @@ class GaussianDiffusion:
         """
         if settings.clip_x0 is not None:
             x0_hat = x0_hat.clamp(-settings.clip_x0, settings.clip_x0)
-        if settings.sampler == "ddim":
-            return self._ddim_step(x_t, t, x0_hat, timesteps[i + 1] if i + 1 < len(timesteps) else -1)
-        return self._ddpm_step(x_t, timesteps[i], timesteps[i + 1] if i + 1 < len(timesteps) else -1, x0_hat, generator)
+        t_next = timesteps[i + 1] if i + 1 < len(timesteps) else -1
+        if SAMPLERS[settings.sampler].ancestral:
+            return self._ddpm_step(x_t, timesteps[i], t_next, x0_hat, generator)
+        return self._ddim_step(x_t, t, x0_hat, t_next)
 
     def timesteps(self, settings: SamplerSettings) -> list[int]:
         """The sampler's timesteps, noisiest first. ``ddpm``: all T, or with ``ddpm_steps`` = n the
@@ -173,7 +175,7 @@ class GaussianDiffusion:
           on the local profile's point size 0.04 cell (1,800 steps), 25 DDIM steps scored CD×1000
           63.2 with ``linspace`` and 59.9 with t = 0 left out (``benchmarks/RESULTS.md``).
         """
-        if settings.sampler == "ddpm":
+        if SAMPLERS[settings.sampler].ancestral:
             n = settings.ddpm_steps or self.num_steps
             return [i * (self.num_steps // n) for i in range(n)][::-1]
         if settings.spacing == "trailing":

@@ -24,6 +24,7 @@ from typing import Literal, NamedTuple
 
 from cdm.config import Config
 from cdm.paths import input_path
+from cdm.registry import PRIORS_2D
 
 __all__ = [
     "MSN_URL",
@@ -79,7 +80,8 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
                                  "per-object global embeddings (.npz)", "file",
                                  f"{export}, then python -m cdm.tools.openclip_embeddings --views views/ "
                                  f"--kind text|image|depth --out {cfg.model.global_embeddings}"))
-    if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source == "maps" and cfg.priors.depth_maps is not None:
+    reads_maps = PRIORS_2D[cfg.priors.prior_2d].reads_depth and cfg.priors.depth_source == "maps"
+    if reads_maps and cfg.priors.depth_maps is not None:
         out.append(
             ExternalInput(
                 "priors.depth_maps",

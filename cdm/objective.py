@@ -18,6 +18,7 @@ from cdm.config import PriorsConfig, RenderKind
 from cdm.data.sample import Batch
 from cdm.diffusion import GaussianDiffusion
 from cdm.model import CDMNetwork
+from cdm.registry import RENDER_KINDS
 from cdm.render import splat_points
 
 __all__ = ["LossTerms", "Prior3DLoss", "cdm_loss", "prior_3d_loss"]
@@ -144,7 +145,7 @@ def prior_3d_loss(
     cameras = view_cameras.flatten()
 
     def render(points: Tensor) -> Tensor:
-        layer = depth_layer if kind == "depth" else None
+        layer = depth_layer if RENDER_KINDS[kind].depth else None
         return splat_points(points.repeat_interleave(h, 0), cameras, s, point_size, kind, layer).view(b, h, s, s)
 
     pred_images = render(pred_points)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import functools
 import math
-import typing
 from typing import NamedTuple
 
 import torch
@@ -25,6 +24,7 @@ from torch import Tensor
 
 from cdm.cameras import Cameras, ndc_to_pixel, project_points
 from cdm.config import RenderKind
+from cdm.registry import RENDER_KINDS
 
 __all__ = [
     "SPLAT_DEPTH_EPS",
@@ -262,9 +262,9 @@ def _validate_splat(
     _validate(points, cameras, image_size, point_size, "point_size")
     if point_size <= 0.0:
         raise ValueError(f"point_size must be > 0 (the point radius, NDC units), got {point_size}")
-    if kind not in typing.get_args(RenderKind):
-        raise ValueError(f"kind must be {' or '.join(map(repr, typing.get_args(RenderKind)))}, got {kind!r}")
-    if depth_layer is not None and (kind != "depth" or not depth_layer > 0.0):
+    if kind not in RENDER_KINDS:
+        raise ValueError(f"kind must be {' or '.join(map(repr, RENDER_KINDS))}, got {kind!r}")
+    if depth_layer is not None and (not RENDER_KINDS[kind].depth or not depth_layer > 0.0):
         raise ValueError(
             f"depth_layer must be None or > 0 and only with kind='depth', got {depth_layer!r} with {kind!r}"
         )
@@ -343,10 +343,11 @@ def splat_points(
     if depth_layer is not None:
         front = front * _front_layer(z.detach(), col.detach(), row.detach(), front, side, half, depth_layer)
     w, flat = _bilinear_deposit(col, row, front, side)
-    deposits = torch.stack([w * z.repeat(1, 4), w], dim=1) if kind == "depth" else w[:, None]  # planar needs no Σwz
+    depth = RENDER_KINDS[kind].depth
+    deposits = torch.stack([w * z.repeat(1, 4), w], dim=1) if depth else w[:, None]  # planar needs no Σwz
     c = deposits.shape[1]
     canvas = points.new_zeros(b, c, side * side).scatter_add(2, flat[:, None, :].expand(b, c, 4 * n), deposits)
     acc = _filter_and_crop(canvas.view(b, c, side, side), footprint)
-    if kind == "depth":
+    if depth:
         return acc[:, 0] / (acc[:, 1] + SPLAT_DEPTH_EPS)
     return 1.0 - torch.exp(-acc[:, 0])

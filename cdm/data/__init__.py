@@ -1,30 +1,22 @@
 """Data sets: the common sample format and a registry of data-set kinds.
 
-A data-set kind is one class registered in :data:`DATASETS` under its ``data.kind`` name; it is built
-from the resolved :class:`~cdm.config.Config` and a split and yields :class:`~cdm.data.sample.Sample`.
-Adding a data set (ShapeNet, Co3D) is one module, one entry here and its name in
-:data:`cdm.config.DataKind`, the list of kinds a config accepts (so no other kind reaches this registry).
+A data-set kind is one class named by its entry in :data:`cdm.registry.DATA_SETS` under its ``data.kind``
+name; it is built from the resolved :class:`~cdm.config.Config` and a split and yields
+:class:`~cdm.data.sample.Sample`. Adding a data set is one module, its entry there and its name in
+:data:`cdm.config.DataKind`, the list of kinds a config accepts (docs/ARCHITECTURE.md, "Where a change goes").
 """
 
 from __future__ import annotations
 
 from cdm.config import Config
-from cdm.data.co3d import Co3DDataset
-from cdm.data.meshes import MeshFolderDataset
-from cdm.data.procedural import ProceduralDataset
 from cdm.data.sample import Batch, Sample, collate
-from cdm.data.shapenet import ShapeNetR2N2Dataset
 from cdm.data.views import ObjectDataset, Split
+from cdm.registry import DATA_SETS, load
 
 __all__ = ["DATASETS", "Batch", "Sample", "build_dataset", "collate", "list_categories"]
 
-DATASETS: dict[str, type[ObjectDataset]] = {
-    ProceduralDataset.kind: ProceduralDataset,
-    MeshFolderDataset.kind: MeshFolderDataset,
-    ShapeNetR2N2Dataset.kind: ShapeNetR2N2Dataset,
-    Co3DDataset.kind: Co3DDataset,
-}
-"""Data-set classes by ``data.kind``."""
+DATASETS: dict[str, type[ObjectDataset]] = {kind: load(entry.builder) for kind, entry in DATA_SETS.items()}
+"""Data-set classes by ``data.kind``: each entry's builder in :data:`cdm.registry.DATA_SETS`."""
 
 
 def build_dataset(cfg: Config, split: Split) -> ObjectDataset:

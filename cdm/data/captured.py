@@ -38,6 +38,7 @@ from cdm.data.lru import ByteLRU
 from cdm.data.priors2d import prior_2d_channels
 from cdm.data.sample import ConditionViews, Sample
 from cdm.data.views import ObjectDataset, Rendering, Shape, Split, select_categories
+from cdm.registry import PRIORS_2D
 
 __all__ = [
     "MAX_CLOUD_POINTS",
@@ -125,7 +126,7 @@ class CapturedDataset(ObjectDataset):
             )
         super().__init__(cfg, split, cache_bytes)
         p = cfg.priors
-        estimated = p.prior_2d == "depth" and p.depth_source == "maps"
+        estimated = PRIORS_2D[p.prior_2d].reads_depth and p.depth_source == "maps"
         self.depth_maps = (
             DepthMaps(p.depth_maps, p.depth_maps_disparity) if estimated and p.depth_maps is not None else None
         )

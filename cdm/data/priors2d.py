@@ -14,11 +14,16 @@ import torch
 from torch import Tensor
 
 from cdm.config import Prior2D
+from cdm.registry import PRIORS_2D, load
 
-__all__ = ["PRIOR_2D_CHANNELS", "contour_map", "depth_prior_from_map", "prior_2d_channels"]
+__all__ = [
+    "PRIOR_2D_CHANNELS", "contour_map", "contour_prior", "depth_prior", "depth_prior_from_map", "no_prior",
+    "prior_2d_channels",
+]
 
-PRIOR_2D_CHANNELS = {"none": 0, "contour": 1, "depth": 1}
-"""Channels each ``priors.prior_2d`` kind adds to the conditioning image features (Eq. 7)."""
+PRIOR_2D_CHANNELS = {kind: entry.channels for kind, entry in PRIORS_2D.items()}
+"""Channels each ``priors.prior_2d`` kind adds to the conditioning image features (Eq. 7), from
+:data:`cdm.registry.PRIORS_2D`."""
 
 
 def contour_map(image: Tensor, low_threshold: float = 100.0, high_threshold: float = 200.0) -> Tensor:
@@ -65,14 +70,34 @@ def depth_prior_from_map(depth: Tensor, mask: Tensor) -> Tensor:
     return torch.where(fg, nearness, torch.zeros_like(depth))
 
 
+def no_prior(image: Tensor, mask: Tensor, depth: Tensor | None) -> Tensor:
+    """``priors.prior_2d=none``: ``(0, S, S)``, no channel."""
+    return image.new_zeros(0, *image.shape[1:])
+
+
+def contour_prior(image: Tensor, mask: Tensor, depth: Tensor | None) -> Tensor:
+    """``priors.prior_2d=contour`` (ShapeNet in the paper): :func:`contour_map` of the image, ``(1, S, S)``."""
+    return contour_map(image)
+
+
+def depth_prior(image: Tensor, mask: Tensor, depth: Tensor | None) -> Tensor:
+    """``priors.prior_2d=depth`` (Co3D in the paper): :func:`depth_prior_from_map` of the sample's depth map.
+
+    That map comes from the data (a renderer or a sensor), not from a monocular estimate of the image as
+    in the paper (DINOv2), so it is a cleaner, privileged prior: results with it are an upper bound.
+    """
+    if depth is None:
+        raise ValueError(
+            "priors.prior_2d='depth' needs a depth map: this sample has none; use a data set that provides "
+            "depth or set priors.prior_2d='contour'"
+        )
+    return depth_prior_from_map(depth.to(image.dtype), mask)
+
+
 def prior_2d_channels(
     kind: Prior2D, image: Tensor, mask: Tensor, depth: Tensor | None
 ) -> Tensor:
-    """The 2D-prior channels of one sample (Eq. 7), ``PRIOR_2D_CHANNELS[kind]`` of them.
-
-    ``"depth"`` uses the sample's own depth map. That map comes from the data (a renderer or a
-    sensor), not from a monocular estimate of the image as in the paper (DINOv2), so it is a cleaner,
-    privileged prior: results with it are an upper bound.
+    """The 2D-prior channels of one sample (Eq. 7) by the maker :data:`cdm.registry.PRIORS_2D` names for ``kind``.
 
     Args:
         kind: ``priors.prior_2d``.
@@ -82,15 +107,6 @@ def prior_2d_channels(
     Returns:
         ``(C, S, S)`` with ``C = PRIOR_2D_CHANNELS[kind]``, dtype and device of ``image``.
     """
-    if kind not in PRIOR_2D_CHANNELS:
-        raise ValueError(f"priors.prior_2d must be one of {sorted(PRIOR_2D_CHANNELS)}, got {kind!r}")
-    if kind == "none":
-        return image.new_zeros(0, *image.shape[1:])
-    if kind == "contour":
-        return contour_map(image)
-    if depth is None:
-        raise ValueError(
-            "priors.prior_2d='depth' needs a depth map: this sample has none; use a data set that provides "
-            "depth or set priors.prior_2d='contour'"
-        )
-    return depth_prior_from_map(depth.to(image.dtype), mask)
+    if kind not in PRIORS_2D:
+        raise ValueError(f"priors.prior_2d must be one of {sorted(PRIORS_2D)}, got {kind!r}")
+    return load(PRIORS_2D[kind].builder)(image, mask, depth)

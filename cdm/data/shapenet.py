@@ -58,6 +58,7 @@ from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
 from cdm.normalise import Frame, bdm_frame
+from cdm.registry import PRIORS_2D
 from cdm.safe_io import PLAIN_NAME, load_npy, plain_name, read_bounded, read_json
 
 __all__ = [
@@ -146,10 +147,10 @@ class ShapeNetR2N2Dataset(CapturedDataset):
     layout = f"<root>/{_RENDERINGS}/<synset>/<model>/rendering/ and <root>/{_CLOUDS}/<synset>/<split>/<model>.npy"
 
     def __init__(self, cfg: Config, split: Split, cache_bytes: int = 512 * 2**20):
-        if cfg.priors.prior_2d == "depth" and cfg.priors.depth_source != "maps":
+        if PRIORS_2D[cfg.priors.prior_2d].reads_depth and cfg.priors.depth_source != "maps":
             raise ValueError(
-                "priors.prior_2d: 'depth' on ShapeNet needs estimated maps (R2N2 renderings have no depth): "
-                "set priors.depth_source=maps and priors.depth_maps, or use 'contour' or 'none'"
+                f"priors.prior_2d: {cfg.priors.prior_2d!r} on ShapeNet needs estimated maps (R2N2 renderings have no "
+                "depth): set priors.depth_source=maps and priors.depth_maps, or use 'contour' or 'none'"
             )
         self._models: dict[str, tuple[str, str, str]] = {}
         """object id → (synset, model, PC15k folder)."""

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from cdm.config import Config, config_field_paths, load_config
+from cdm.registry import DATA_SETS as DATA_SETS_BY_KIND
 from sweeps.plan.references import DATA_SETS, TABLES, Entry, Kind, NotStated, Stated, record, show
 
 if TYPE_CHECKING:
@@ -33,8 +34,6 @@ CARD_TAG = "protocol_card"
 """Tag of the parent MLflow run holding the card's lines, one per line."""
 
 NO_DEVIATIONS = "Paper protocol, no deviations"
-_NAMES = {"shapenet_r2n2": "ShapeNet-R2N2 + PC15k", "co3d": "Co3D v2", "procedural": "the procedural data set",
-          "meshes": "a mesh folder"}
 _PRIOR_SCALE = ("3D prior: each view's term is the mean over its pixels of the squared difference (Eq. 6's ‖·‖² "
                 "sums them), a free choice that scales the term by 1/render_size²")
 
@@ -85,9 +84,9 @@ def _data_protocol(cfg: Config, ctx: CardContext) -> list[str]:
     """What the config cannot say about the data the trial reads: a stand-in, BDM's split file."""
     kind = cfg.data.kind
     if kind not in ctx.datasets:
-        paper = " or ".join(_NAMES[d] for d in ctx.datasets)
+        paper = " or ".join(DATA_SETS_BY_KIND[d].title for d in ctx.datasets)
         note = f"; {ctx.stand_in}" if ctx.stand_in and kind == "procedural" else ""
-        return [f"data set: {_NAMES[kind]} stands in for {paper}{note}"]
+        return [f"data set: {DATA_SETS_BY_KIND[kind].title} stands in for {paper}{note}"]
     if kind == "shapenet_r2n2" and not (cfg.data.root and (Path(cfg.data.root) / "pc_dict_v2.json").is_file()):
         return ["split: PC15k's test folders, not BDM's R2N2 test split (put BDM's pc_dict_v2.json in data.root)"]
     return []

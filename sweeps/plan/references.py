@@ -33,7 +33,7 @@ from typing import Any
 from cdm.config import PAPER_DATA_SETS, Config, PaperDataSet
 from sweeps.plan.profiles import load_profiles
 
-__all__ = ["DATA_SETS", "TABLES", "Entry", "Kind", "NoEffect", "NotStated", "Stated", "record", "show"]
+__all__ = ["DATA_SETS", "RECORDS", "TABLES", "Entry", "Kind", "NoEffect", "NotStated", "Stated", "record", "show"]
 
 Kind = PaperDataSet
 DATA_SETS = PAPER_DATA_SETS
@@ -319,6 +319,10 @@ _CO3D: dict[str, Entry] = {
     "eval.num_points": Stated(_PAPER, f"{_PC2}: max_points"),
 }
 
+RECORDS: dict[Kind, dict[str, Entry]] = {"shapenet_r2n2": _SHAPENET, "co3d": _CO3D}
+"""Each paper data set's own entries (:data:`cdm.config.PaperDataSet`; ``tests/test_registry.py`` holds it
+complete against the ``paper`` entries of :data:`cdm.registry.DATA_SETS`)."""
+
 _PC2_ROWS: dict[str, Entry] = {
     "priors.prior_3d": Stated(False, "paper Supp. Tables 7–8: every row is PC² plus its addition"),
     "priors.prior_2d": Stated("none", "paper Supp. Tables 7–8: every row is PC² plus its addition"),
@@ -339,5 +343,5 @@ def record(table: str | None, kind: Kind) -> dict[str, Entry]:
     """
     if table is not None and table not in TABLES:
         raise KeyError(f"{table!r}: no reference record; tables with one: {', '.join(TABLES)}")
-    per_kind = {"shapenet_r2n2": _SHAPENET, "co3d": _CO3D}[kind]
-    return {path: _read(path, e, kind) for path, e in {**_COMMON, **per_kind, **_TABLES.get(table or "", {})}.items()}
+    entries = {**_COMMON, **RECORDS[kind], **_TABLES.get(table or "", {})}
+    return {path: _read(path, e, kind) for path, e in entries.items()}
