@@ -28,7 +28,7 @@ from cdm.config import load_config, parse_override
 from cdm.data import DATASETS
 from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import start
-from cdm.inputs import MSN_URL
+from cdm.external_inputs import MSN_URL
 from cdm.model.encoder import load_msn_state_dict, sha256_file
 from cdm.safe_io import read_json
 from cdm.tools.estimate_depth import find_views

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from cdm.data.depth_maps import DepthMaps
-from cdm.inputs import check_coverage
+from cdm.external_inputs import check_coverage
 from cdm.tools.estimate_depth import estimate, load_estimator
 from cdm.tools.estimate_depth import main as estimate_main
 from cdm.tools.export_views import main as export_main
