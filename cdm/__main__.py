@@ -15,7 +15,7 @@ import torch
 
 from cdm.baseline_names import BASELINES
 from cdm.config import Config, config_field_paths, load_config, parse_override
-from cdm.inputs import check_inputs
+from cdm.external_inputs import check_inputs
 from cdm.memory import check_memory
 from cdm.optim import TrainingDiverged
 from cdm.train import Callback, fit

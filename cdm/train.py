@@ -33,7 +33,7 @@ from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.data.sample import Batch, collate
 from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import EvalSet, build_eval_set, run_evaluation
-from cdm.inputs import check_coverage, check_inputs
+from cdm.external_inputs import check_coverage, check_inputs
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss
 from cdm.optim import MAX_SKIPPED_IN_A_ROW, Optimiser, TrainingDiverged

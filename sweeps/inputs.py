@@ -28,7 +28,7 @@ from cdm.config import load_config, parse_override
 from cdm.data import DATASETS
 from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import start
-from cdm.inputs import MSN_URL
+from cdm.external_inputs import MSN_URL
 from cdm.model.encoder import load_msn_state_dict, sha256_file
 from cdm.safe_io import read_json
 from cdm.tools.estimate_depth import find_views
@@ -76,10 +76,10 @@ def _depth(views: Path, args: argparse.Namespace) -> list:
     from sweeps.execute.fanout import estimate_depth
 
     found = find_views(views)
-    probe = load_estimator(args.model, "cpu", args.output)  # the model loads, and what it outputs, before Ray starts
+    probe = load_estimator(args.model, "cpu", args.predicts)  # the model loads, and what it predicts, before Ray starts
     write_manifest(Path(args.depth_out), args.model, probe.disparity)
     cpus, gpus = _connect(args.address)
-    written, before, failures = estimate_depth(args.model, args.output, found, Path(args.depth_out), args.batch_size,
+    written, before, failures = estimate_depth(args.model, args.predicts, found, Path(args.depth_out), args.batch_size,
                                                cpus, gpus)
     print(f"depth maps {args.depth_out}: {written} written, {before} already there; run with "
           f"--set priors.depth_maps_disparity={str(probe.disparity).lower()}")
@@ -144,7 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
     model.add_argument(
         "--model", required=True, help="depth model: a local folder, or a hub id where the hub is reachable"
     )
-    model.add_argument("--output", choices=("depth", "disparity"), help="what the model outputs, where not known")
+    model.add_argument("--predicts", choices=("depth", "disparity"),
+                       help="what the model predicts, where its config does not tell (disparity: larger = nearer)")
     model.add_argument("--batch-size", type=int, default=8, help="crops per forward pass (default 8)")
     ray_ = argparse.ArgumentParser(add_help=False)
     ray_.add_argument(

@@ -25,6 +25,7 @@ MAX_LINE = 200  # characters of one printed line (issue 36)
 PURPOSE = {
     "sweeps/run.py": "Run a sweep: train every trial of a spec on Ray",
     "sweeps/inputs.py": "Make a data set's inputs for the paper profile on Ray",
+    "sweeps/cdm_lab.py": "One command line for CDM Lab",
     "sweeps/report.py": "Rebuild a finished sweep's comparison straight from MLflow",
     "cdm/__main__.py": "Train, evaluate and use a CDM model without a sweep",
     "cdm/tools/export_views.py": "Write the images a config's data set shows the model",

@@ -12,7 +12,7 @@ from cdm.data import build_dataset
 from cdm.data.condition_images import grey
 from cdm.data.sample import collate
 from cdm.data.views import render_view
-from cdm.inputs import check_coverage, check_inputs
+from cdm.external_inputs import check_coverage, check_inputs
 from cdm.model import CDMNetwork, project_conditioning
 from cdm.model.conditioning import conditioning_channels, conditioning_map, project_views
 from cdm.render import rasterize_points

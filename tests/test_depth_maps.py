@@ -10,7 +10,7 @@ import torch
 
 from cdm.config import ConfigError, load_config
 from cdm.data import build_dataset
-from cdm.inputs import check_coverage, check_inputs
+from cdm.external_inputs import check_coverage, check_inputs
 from tests.datasets_fixtures import make_co3d
 
 

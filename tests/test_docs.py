@@ -235,3 +235,18 @@ def test_the_main_jobs_time_is_measured_in_one_place_that_the_others_cite():
     assert all("local-results.md" in text for text in citing.values())
     planted = "the sweep took 16.7 min (17 min 43 s); ~8 minutes; ≤ 15 min"
     assert _time_figures(planted) == ["16.7 min", "17 min", "8 minutes"]
+
+
+QUICK_START = [
+    "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e . && "
+    "python sweeps/run.py sweeps/point_size.yaml",
+    "python3 -m venv .venv && . .venv/bin/activate && pip install torch==2.13.0 && pip install -e \".[test]\" && "
+    "python -m pytest",
+]
+"""The README's two quick-start commands, the main job and the test suite: what a newcomer copies first, so a
+new command line (``cdm-lab``) adds a section and leaves these as they are."""
+
+
+def test_the_quick_start_keeps_its_two_commands() -> None:
+    section = _section(README.read_text(encoding="utf-8"), "Quick start")
+    assert re.findall(r"^```bash\n(.+)\n```$", section, re.M) == QUICK_START

@@ -13,10 +13,11 @@ import pytest
 import torch
 
 from cdm.data.depth_maps import DepthMaps
-from cdm.inputs import check_coverage
+from cdm.external_inputs import check_coverage
 from cdm.tools.estimate_depth import estimate, load_estimator
 from cdm.tools.estimate_depth import main as estimate_main
 from cdm.tools.export_views import main as export_main
+from sweeps.inputs import main as inputs_main
 from tests.conftest import tiny_config
 from tests.datasets_fixtures import make_co3d
 
@@ -178,3 +179,27 @@ def test_bad_arguments_give_one_line(co3d, dpt, depth_anything, tmp_path, capsys
     assert estimate_main(["--views", str(views), "--model", dpt, "--out", str(tmp_path / "mixed")]) == 0
     assert estimate_main(["--views", str(views), "--model", depth_anything, "--out", str(tmp_path / "mixed")]) == 2
     assert "holds maps of" in capsys.readouterr().err
+
+
+def test_predicts_says_what_a_model_predicts_where_its_config_does_not(co3d, dpt, tmp_path, capsys):
+    """GLPN's config does not say whether it predicts depth or disparity: the tool refuses to guess until
+    ``--predicts`` says; ``--predicts`` also overrides the guess made for a known model (DINOv2's DPT: depth)."""
+    _, views, _ = co3d
+    torch.manual_seed(0)
+    glpn = transformers.GLPNConfig(num_encoder_blocks=4, depths=[1, 1, 1, 1], sr_ratios=[8, 4, 2, 1],
+                                   hidden_sizes=[8, 16, 32, 64], num_attention_heads=[1, 1, 2, 2],
+                                   mlp_ratios=[2, 2, 2, 2], decoder_hidden_size=16)
+    unknown = _save(transformers.GLPNForDepthEstimation(glpn), tmp_path / "glpn")
+    capsys.readouterr()  # saving's progress bar
+    assert estimate_main(["--views", str(views), "--model", unknown, "--out", str(tmp_path / "refused")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: --predicts: ") and "'glpn' model" in err
+    assert "say which: --predicts depth or --predicts disparity" in err and not (tmp_path / "refused").exists()
+    # The cluster's command (python sweeps/inputs.py depth) loads the model the same way, before Ray starts.
+    assert inputs_main(["depth", "--views", str(views), "--model", unknown, "--out", str(tmp_path / "refused")]) == 2
+    assert capsys.readouterr().err == err and not (tmp_path / "refused").exists()
+    assert load_estimator(unknown, predicts="disparity").disparity
+    out = tmp_path / "as_disparity"
+    assert estimate_main(["--views", str(views), "--model", dpt, "--out", str(out), "--predicts", "disparity"]) == 0
+    assert json.loads((out / "estimator.json").read_text()) == {"model": dpt, "disparity": True}
+    assert "--set priors.depth_maps_disparity=true" in capsys.readouterr().out

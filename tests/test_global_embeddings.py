@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from cdm.config import ConfigError
-from cdm.inputs import check_coverage, check_inputs
+from cdm.external_inputs import check_coverage, check_inputs
 from cdm.model import CDMNetwork
 from cdm.model.embeddings import load_embeddings
 from tests.conftest import tiny_config

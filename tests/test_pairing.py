@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.paired import PairedDifference
 from sweeps.compare.pairing import Pairing, lead_difference, paired_record
 
 SHOWN = ["eval/f1", "eval/cd"]

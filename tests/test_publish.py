@@ -26,7 +26,7 @@ from cdm.data.sample import collate
 from cdm.evaluate import save_panel
 from sweeps.compare import rules
 from sweeps.execute.tracking import SweepRun
-from sweeps.execute.trial_run import TrialRun
+from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
 from sweeps.results import finished, publish

@@ -8,7 +8,7 @@ from mlflow import MlflowClient
 from cdm.config import load_config
 from sweeps.execute.logged_runs import finished_trial_metrics
 from sweeps.execute.tracking import SweepRun
-from sweeps.execute.trial_run import TrialRun
+from sweeps.execute.trial_tracking import TrialRun
 
 
 def test_finished_trial_is_recognised_and_its_final_metrics_logged_once(tmp_path):

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from sweeps.compare.paired import UnpairedError, paired_bootstrap
+from sweeps.compare.bootstrap import UnpairedError, paired_bootstrap
 from sweeps.compare.sequential import FOOTNOTE, Decision, SeedInterval, SettleRecord, decide
 
 MIN_SEEDS, MAX_SEEDS, OBJECTS = 2, 5, 40

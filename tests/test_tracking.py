@@ -9,7 +9,7 @@ from mlflow import MlflowClient
 from cdm.config import load_config
 from sweeps.execute.logged_runs import find_trial_run, last_eval_files
 from sweeps.execute.tracking import SweepRun, resolve_tracking_uri, ui_command, ui_link
-from sweeps.execute.trial_run import TrialRun, learning_curve_png
+from sweeps.execute.trial_tracking import TrialRun, learning_curve_png
 
 
 def test_tracking_uri_is_absolute_and_overridable(tmp_path, monkeypatch):

@@ -35,7 +35,7 @@ from sweeps import run, store_retry
 from sweeps.execute import driver, local_cluster, stopping
 from sweeps.execute.claim import ClaimError, claim, claims_folder
 from sweeps.execute.tracking import SweepRun
-from sweeps.execute.trial_run import TrialRun
+from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
 from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location

@@ -19,7 +19,7 @@ naming the model and whether its maps hold **disparity** (larger = nearer). :cla
 refuses a folder whose ``estimator.json`` disagrees with ``priors.depth_maps_disparity``. Which models
 output what: Depth Anything's relative models and MiDaS-style DPT models output relative disparity;
 DPT heads on a DINOv2 backbone (trained on NYU / KITTI) and Depth Anything's ``metric`` models output
-depth. ``--output`` overrides the guess for other models. Maps already written are kept (resumable).
+depth. ``--predicts depth|disparity`` says it for other models. Maps already written are kept (resumable).
 """
 
 from __future__ import annotations
@@ -72,12 +72,12 @@ def output_kind(config) -> Literal["depth", "disparity"] | None:
     return None
 
 
-def load_estimator(model: str, device: str = "cpu", output: Literal["depth", "disparity"] | None = None) -> Estimator:
+def load_estimator(model: str, device: str = "cpu", predicts: Literal["depth", "disparity"] | None = None) -> Estimator:
     """Load ``model`` (a local folder or a hub id) for inference on ``device``.
 
     Raises:
-        ValueError: ``transformers`` missing, the model not loadable, or its output kind unknown and
-            ``output`` not given.
+        ValueError: ``transformers`` missing, the model not loadable, or what it predicts unknown and
+            ``predicts`` not given.
     """
     try:
         from transformers import AutoImageProcessor, AutoModelForDepthEstimation
@@ -94,10 +94,10 @@ def load_estimator(model: str, device: str = "cpu", output: Literal["depth", "di
         processor = AutoImageProcessor.from_pretrained(model)
     except (OSError, ValueError) as exc:
         raise ValueError(f"--model: {model} is not a loadable depth model ({str(exc).splitlines()[0]})") from None
-    kind = output or output_kind(net.config)
+    kind = predicts or output_kind(net.config)
     if kind is None:
-        raise ValueError(f"--output: {model} is a {net.config.model_type!r} model, whose output kind is unknown; "
-                         "say --output depth or --output disparity")
+        raise ValueError(f"--predicts: {model} is a {net.config.model_type!r} model, which may predict depth or "
+                         "disparity; say which: --predicts depth or --predicts disparity")
     return Estimator(model, net.to(device).eval(), processor, kind == "disparity", torch.device(device))
 
 
@@ -191,13 +191,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, type=Path, help="folder of maps to write (priors.depth_maps)")
     p.add_argument("--batch-size", type=int, default=8, help="crops per forward pass (default 8)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--output", choices=("depth", "disparity"), help="what the model outputs, where not known")
+    p.add_argument("--predicts", choices=("depth", "disparity"),
+                   help="what the model predicts, where its config does not tell (disparity: larger = nearer)")
     args = p.parse_args(argv)
     try:
         if args.batch_size < 1:
             raise ValueError("--batch-size must be >= 1")
         views = find_views(args.views)
-        estimator = load_estimator(args.model, args.device, args.output)
+        estimator = load_estimator(args.model, args.device, args.predicts)
         write_manifest(args.out, args.model, estimator.disparity)
         written = write_maps(estimator, views, args.out, args.batch_size)
     except ValueError as exc:

@@ -2,7 +2,7 @@
 
 For each shown metric (the table's metric and its partner), a cell's per-object scores, seeds averaged
 per object, are compared with the reference cell's and with each trivial baseline's on that cell's own
-objects (:mod:`sweeps.compare.paired`: mean difference, 95% bootstrap interval, verdict); a verdict
+objects (:mod:`sweeps.compare.bootstrap`: mean difference, 95% bootstrap interval, verdict); a verdict
 weighs the metric and its partner (:func:`sweeps.compare.rules.weighed`). A cell that ran until its
 comparison settled (:mod:`sweeps.compare.sequential`) keeps its interval over seeds and objects and its
 verdict. :mod:`sweeps.compare.table` lays the results out as columns.
@@ -14,8 +14,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+from sweeps.compare.bootstrap import PairedDifference, UnpairedError, compare, per_object_means
 from sweeps.compare.outcomes import TrialOutcome, finished
-from sweeps.compare.paired import PairedDifference, UnpairedError, compare, per_object_means
 from sweeps.compare.rules import object_column, partner_mode, weighed
 from sweeps.compare.sequential import SettleRecord
 

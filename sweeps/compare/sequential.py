@@ -30,7 +30,7 @@ whatever the dependence between looks, which Pocock's or O'Brien–Fleming's bou
 normal statistics with a known variance) do not promise at one degree of freedom.
 
 **One seed settles nothing.** With one seed the only interval is today's bootstrap over objects
-(:func:`sweeps.compare.paired.paired_bootstrap`, at ``level``), labelled ``covers="objects"``; it leaves out
+(:func:`sweeps.compare.bootstrap.paired_bootstrap`, at ``level``), labelled ``covers="objects"``; it leaves out
 σ_a, so it is shown but its verdict stays ``open``.
 
 **Two seeds settle only large effects.** At S = 2 the seed term's quantile is t₁(1 − α'/2), 51 for four
@@ -63,7 +63,7 @@ from typing import Literal
 import numpy as np
 from scipy import stats
 
-from sweeps.compare.paired import PairedDifference, UnpairedError, interval_text, paired_bootstrap
+from sweeps.compare.bootstrap import PairedDifference, UnpairedError, interval_text, paired_bootstrap
 
 __all__ = ["FOOTNOTE", "Decision", "Scores", "SeedInterval", "SettleRecord", "decide", "two_way_interval"]
 

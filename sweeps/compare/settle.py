@@ -26,8 +26,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from sweeps.compare.bootstrap import UnpairedError
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.paired import UnpairedError
 from sweeps.compare.rules import object_column
 from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
 from sweeps.plan.budget import SeedBudget

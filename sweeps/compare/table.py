@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import Literal
 
 from cdm.baseline_names import BASELINES
+from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.outcomes import TrialOutcome, finished
-from sweeps.compare.paired import PairedDifference
 from sweeps.compare.pairing import Pairing, lead_difference, paired_record
 from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE

@@ -2,7 +2,7 @@
 metrics and evaluation files, its metric histories, the baselines its parent run holds.
 
 The driver's parent run (:class:`sweeps.execute.tracking.SweepRun`), the trial's child run
-(:class:`sweeps.execute.trial_run.TrialRun`), a resumed trial and the results stage read runs through here.
+(:class:`sweeps.execute.trial_tracking.TrialRun`), a resumed trial and the results stage read runs through here.
 """
 
 from __future__ import annotations

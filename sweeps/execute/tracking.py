@@ -2,7 +2,7 @@
 
 The driver opens the parent run (spec, expanded grid and results table as artifacts) and closes
 each child with Tune's verdict (finished, stopped early, failed + reason). The child run itself is
-written by the trial (:class:`sweeps.execute.trial_run.TrialRun`); runs are read back through
+written by the trial (:class:`sweeps.execute.trial_tracking.TrialRun`); runs are read back through
 :mod:`sweeps.execute.logged_runs`.
 
 All calls go through an explicit :class:`mlflow.MlflowClient` (no global active run), so a Ray actor

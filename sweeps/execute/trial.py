@@ -38,7 +38,7 @@ from sweeps.execute.cores import CoreLease
 from sweeps.execute.logged_runs import finished_trial_metrics
 from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_loggers
 from sweeps.execute.pruning import KEEP
-from sweeps.execute.trial_run import TrialRun
+from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
 
 __all__ = [

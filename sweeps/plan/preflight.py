@@ -27,8 +27,8 @@ def check_inputs(plan: SweepPlan, remote: bool) -> None:
     starts. On this machine each distinct config's data sets are also indexed to check that every object
     has its entry; a cluster driver may not see the data, so there the trials check it (``cdm.train.Trainer``)."""
     from cdm.data import build_dataset
-    from cdm.inputs import check_coverage, describe_inputs, required_inputs
-    from cdm.inputs import check_inputs as check_present
+    from cdm.external_inputs import check_coverage, describe_inputs, required_inputs
+    from cdm.external_inputs import check_inputs as check_present
 
     configs = [cell.config for cell in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
     names = [c.label for c in plan.cells] or ["every trial"]

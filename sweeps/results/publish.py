@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from cdm.baseline_names import BASELINES
+from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.gallery import grid_png, panel_input, viewer_html
-from sweeps.compare.paired import PairedDifference
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.compare.rules import PROTOCOL_NOTE, metric_label, partner, rounded
 from sweeps.compare.table import ResultsTable

@@ -20,7 +20,7 @@ from collections import Counter
 
 from mlflow.entities import Metric
 
-from sweeps.compare.paired import interval_text
+from sweeps.compare.bootstrap import interval_text
 from sweeps.compare.rules import partner
 from sweeps.compare.table import ResultsTable
 from sweeps.results.finished import SweepRecord

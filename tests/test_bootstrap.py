@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sweeps.compare.paired import PairedDifference, UnpairedError, compare, paired_bootstrap, per_object_means
+from sweeps.compare.bootstrap import PairedDifference, UnpairedError, compare, paired_bootstrap, per_object_means
 
 A = [10.13, 12.57, 9.02, 14.31, 11.0, 8.46, 13.09, 10.55]
 B = [11.0, 13.0, 9.5, 15.5, 11.0, 9.0, 14.5, 11.5]

@@ -1,0 +1,94 @@
+"""One command line for CDM Lab: cdm-lab COMMAND [ARGUMENTS], each command one the project already has.
+
+Each command hands its arguments, unchanged, to the ``main(argv)`` of the module it names: its help, its
+messages and its exit codes are that command's own (``cdm-lab run SPEC`` is ``python sweeps/run.py SPEC``,
+``cdm-lab train …`` is ``python -m cdm train …``). A module is imported only when its command runs, so
+``cdm-lab --help`` answers without importing torch, Ray or MLflow.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import NamedTuple
+
+__all__ = ["COMMANDS", "Command", "main"]
+
+
+class Command(NamedTuple):
+    """A command of ``cdm-lab``: the module whose ``main(argv)`` runs it, and what it does in a line."""
+
+    module: str
+    summary: str
+    subcommand: str | None = None
+    """The subcommand of ``python -m cdm`` it is, put before the user's arguments; None for a module's own main."""
+
+    def old_form(self) -> str:
+        """How a user typed this command before ``cdm-lab``: still works, and still what its help shows."""
+        if self.subcommand is not None:
+            return f"python -m {self.module.removesuffix('.__main__')} {self.subcommand}"
+        if self.module.startswith("sweeps."):
+            return f"python {self.module.replace('.', '/')}.py"
+        return f"python -m {self.module}"
+
+
+_SWEEPS = "sweeps: Ray, Optuna and MLflow around the model"
+_MODEL = "one model, without a sweep"
+_TOOLS = "external inputs, written once"
+COMMANDS: dict[str, tuple[str, Command]] = {
+    "run": (_SWEEPS, Command("sweeps.run", "run a sweep spec: its trials on Ray, tracked in MLflow, a results table")),
+    "report": (_SWEEPS, Command("sweeps.report", "rebuild a finished sweep's table, plots and panels from MLflow")),
+    "inputs": (_SWEEPS, Command("sweeps.inputs", "a data set's inputs for the paper profile, made as Ray tasks")),
+    "train": (_MODEL, Command("cdm.__main__", "train a model from a config file", "train")),
+    "train-prior": (_MODEL, Command("cdm.__main__", "train a category prior for BDM blending", "train-prior")),
+    "evaluate": (_MODEL, Command("cdm.__main__", "score a checkpoint on the held-out split", "evaluate")),
+    "reconstruct": (_MODEL, Command("cdm.__main__", "reconstruct a point cloud from one image", "reconstruct")),
+    "prepare": (_MODEL, Command("cdm.__main__", "convert a data set once into shards that load fast", "prepare")),
+    "check-data": (_MODEL, Command("cdm.__main__", "check that ground-truth clouds project into their masks",
+                                   "check-data")),
+    "fields": (_MODEL, Command("cdm.__main__", "list every config field with its default", "fields")),
+    "export-views": (_TOOLS, Command("cdm.tools.export_views", "write the images a config's data set shows the model")),
+    "estimate-depth": (_TOOLS, Command("cdm.tools.estimate_depth",
+                                       "write depth maps with DINOv2's DPT head or Depth Anything")),
+    "openclip-embeddings": (_TOOLS, Command("cdm.tools.openclip_embeddings",
+                                            "write Table 7's per-object OpenCLIP embeddings")),
+}
+"""Every command, under the heading ``cdm-lab --help`` lists it beneath, in the order listed."""
+
+
+def _listing() -> str:
+    """The commands by heading, each with its line and the command it is."""
+    width = max(map(len, COMMANDS))
+    lines, heading = [], None
+    for name, (group, command) in COMMANDS.items():
+        if group != heading:
+            lines += ["", f"{group}:"] if heading else [f"{group}:"]
+            heading = group
+        lines.append(f"  {name:{width}}  {command.summary} ({command.old_form()})")
+    return "\n".join(lines)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cdm-lab",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=_listing() + "\n\ncdm-lab COMMAND --help shows a command's arguments.",
+    )
+    parser.add_argument("command", choices=COMMANDS, metavar="COMMAND", help="one of the commands below")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run ``argv``'s command (``sys.argv[1:]`` when None) with the arguments after it; its exit code."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] not in COMMANDS:
+        _parser().parse_args(argv[:1])  # --help exits 0; a missing or unknown command exits 2, naming the choices
+    _, command = COMMANDS[argv[0]]
+    prefix = [command.subcommand] if command.subcommand is not None else []
+    return importlib.import_module(command.module).main(prefix + argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())
