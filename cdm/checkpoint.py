@@ -21,7 +21,7 @@ from cdm.config import Config, load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
 from cdm.model import CDMNetwork, check_encoder_record
-from cdm.model.state_dicts import checked_state_dict
+from cdm.model.state_dicts import checked_state_dict, load_into
 from cdm.runtime import AUTOCAST_DTYPES, resolve_device, resolve_precision
 from cdm.torch_files import load_tensors
 
@@ -158,9 +158,5 @@ def load_network(path: str | Path | None, overrides: dict[str, Any] | None = Non
     network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device=device, autocast=autocast)
     if checkpoint is not None:
         check_encoder_record(checkpoint.encoder, network.encoder.record)
-        try:
-            network.load_state_dict(checkpoint.weights)
-        except RuntimeError as exc:  # keys or shapes its own config does not build; torch lists each on a line
-            first = [*str(exc).splitlines(), ""][1].strip() or str(exc)
-            raise ValueError(f"checkpoint: {path} holds weights its config's network cannot take: {first}") from None
+        load_into(network, checkpoint.weights, f"checkpoint: {path}")
     return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)

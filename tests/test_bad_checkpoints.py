@@ -145,3 +145,23 @@ def test_a_dry_run_plans_init_from_per_category_on_co3d_and_refuses_an_unreadabl
     assert_refused(refused, "error: the cost estimate could not read an input: model.init_from: "
                             f"{tmp_path}/pc2/bottle/checkpoint-latest.pth is not a readable torch file")
     assert not (tmp_path / "results").exists() and not (tmp_path / "mlruns").exists()
+
+
+def test_a_prior_whose_weights_its_config_cannot_build_and_a_pvd_file_with_nan_are_named(tmp_path):
+    from cdm.config import ModelConfig
+    from cdm.prior_model import PRIOR_KIND, PriorNetwork, load_prior
+
+    cfg = load_config(None, {})
+    model = {k: v for k, v in PriorNetwork(cfg.model).state_dict().items() if not k.endswith(".bias")}
+    save_checkpoint(Checkpoint(cfg.to_dict(), 1, "dense", model, kind=PRIOR_KIND, category="chair"), tmp_path / "p")
+    with pytest.raises(ValueError, match=rf"^sampling.blend.prior_checkpoint: {tmp_path / 'p'} holds weights its "
+                                         r"config's network cannot take: Missing key\(s\)"):
+        load_prior(tmp_path / "p")
+    pvd = {f"model.module.{k}": v for k, v in
+           PriorNetwork(ModelConfig(denoiser="pvcnn2", time_embed_dim=64)).denoiser.state_dict().items()}
+    first = next(iter(pvd))
+    pvd[first] = torch.full_like(pvd[first], float("inf"))
+    torch.save({"model_state": pvd}, tmp_path / "prior.pth")
+    with pytest.raises(ValueError, match=rf"not a PVD checkpoint we can read \(.*prior\.pth holds inf in weight "
+                                         rf"'{re.escape(first)}'"):
+        load_prior(tmp_path / "prior.pth")

@@ -1,5 +1,5 @@
 """A state dict read from a file, checked before a network takes it: every name a string, every weight a
-tensor, every floating-point weight finite.
+tensor, every floating-point weight finite; then loaded, a misfit named in one line.
 
 A file read as data may hold anything a pickle can: an integer key, a list where a tensor belongs, or a
 NaN. Left in, those fail far from the file (``'int' object has no attribute 'startswith'``), or worse,
@@ -14,9 +14,9 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
-__all__ = ["checked_state_dict"]
+__all__ = ["checked_state_dict", "load_into"]
 
 
 def checked_state_dict(state: Mapping[Any, Any], label: str) -> dict[str, Tensor]:
@@ -40,3 +40,17 @@ def checked_state_dict(state: Mapping[Any, Any], label: str) -> dict[str, Tensor
             bad = "NaN" if bool(torch.isnan(value).any()) else "inf"
             raise ValueError(f"{label} holds {bad} in weight {name!r}; a network computes nothing with it")
     return dict(state)
+
+
+def load_into(module: nn.Module, state: Mapping[str, Tensor], label: str) -> None:
+    """``module.load_state_dict(state)``, strictly.
+
+    Raises:
+        ValueError: ``label`` (the file), then the first of torch's complaints: missing or unexpected
+            keys, or a weight of another shape than the network its config builds.
+    """
+    try:
+        module.load_state_dict(state)
+    except RuntimeError as exc:  # torch lists every complaint on its own line, after a heading
+        first = [*str(exc).splitlines(), ""][1].strip() or str(exc)
+        raise ValueError(f"{label} holds weights its config's network cannot take: {first}") from None
