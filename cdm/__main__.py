@@ -57,9 +57,12 @@ def cmd_train(args: argparse.Namespace) -> int:
     pc2 = None
     if args.init_from is not None:
         from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
+        from cdm.safe_io import open_regular
 
-        if not Path(args.init_from).is_file():
-            raise ValueError(f"--init-from: {args.init_from} does not exist; pass PC²'s checkpoint-latest.pth")
+        try:  # says what the path is (missing, a folder, a device, a FIFO) rather than guessing it is missing
+            open_regular(Path(args.init_from), "--init-from").close()
+        except ValueError as exc:
+            raise ValueError(f"{exc}; pass PC²'s checkpoint-latest.pth") from None
         if not is_pc2_checkpoint(args.init_from):
             raise ValueError(f"--init-from: {args.init_from} is not PC²'s checkpoint (no point_cloud_model.model.* "
                              "weights); continue a CDM run with --resume")

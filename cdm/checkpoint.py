@@ -21,6 +21,7 @@ from cdm.config import Config, load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
 from cdm.model import CDMNetwork, check_encoder_record
+from cdm.model.state_dicts import checked_state_dict, load_into
 from cdm.runtime import AUTOCAST_DTYPES, resolve_device, resolve_precision
 from cdm.torch_files import load_tensors
 
@@ -94,8 +95,9 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     """Read a checkpoint file or its folder safely (``weights_only=True``).
 
     Raises:
-        ValueError: missing file, unreadable file, or not a CDM checkpoint; the message starts with
-            ``checkpoint:`` and names the file.
+        ValueError: missing file, unreadable file, not a CDM checkpoint, or weights (``model``, ``ema``)
+            that are not finite tensors under string names; the message starts with ``checkpoint:`` and
+            names the file.
     """
     path = Path(path)
     file = path / CHECKPOINT_FILE if path.is_dir() else path
@@ -105,6 +107,12 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     missing = set(_REQUIRED) - set(state if isinstance(state, dict) else ())
     if missing:
         raise ValueError(f"checkpoint: {file} is not a CDM checkpoint (missing {', '.join(sorted(missing))})")
+    for name in ("model", "ema"):
+        if state.get(name) is not None:
+            if not isinstance(state[name], dict):
+                raise ValueError(f"checkpoint: {file} holds a {type(state[name]).__name__} as {name!r}, not a "
+                                 "state dict")
+            state[name] = checked_state_dict(state[name], f"checkpoint: {file} ({name!r})")
     return Checkpoint(**{f.name: state[f.name] for f in fields(Checkpoint) if f.name in state})
 
 
@@ -150,5 +158,5 @@ def load_network(path: str | Path | None, overrides: dict[str, Any] | None = Non
     network = CDMNetwork(cfg.model, PRIOR_2D_CHANNELS[cfg.priors.prior_2d], device=device, autocast=autocast)
     if checkpoint is not None:
         check_encoder_record(checkpoint.encoder, network.encoder.record)
-        network.load_state_dict(checkpoint.weights)
+        load_into(network, checkpoint.weights, f"checkpoint: {path}")
     return LoadedNetwork(cfg, network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), device)

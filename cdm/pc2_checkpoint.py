@@ -18,13 +18,15 @@ on a linear β schedule over 1,000 steps, sampled by DDPM over all of them with 
 
 from __future__ import annotations
 
+import math
 import re
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from cdm.config import Config, load_config
+from cdm.config import Config, ConfigError, load_config
+from cdm.model.state_dicts import checked_state_dict
 from cdm.paths import input_path
 from cdm.torch_files import Pickled, load_inert
 
@@ -170,15 +172,16 @@ def _checked_values(tree: Mapping, label: str) -> dict[str, object]:
     )
     for key in (*numbers, "model.beta_start", "model.beta_end"):
         kind = int if key in numbers else float
+        # Finite first: int() of inf overflows and of NaN raises, neither naming the file.
         if (
             isinstance(value[key], bool)
             or not isinstance(value[key], int | float)
+            or isinstance(value[key], float) and not math.isfinite(value[key])
             or kind is int
             and value[key] != int(value[key])
         ):
-            raise ValueError(
-                f"{label}: its cfg's {key} is {value[key]!r}, not {'an integer' if kind is int else 'a number'}"
-            )
+            raise ValueError(f"{label}: its cfg's {key} is {value[key]!r}, not "
+                             f"{'an integer' if kind is int else 'a finite number'}")
     wrong = [f"{k}={value[k]!r}" for k, want in _REQUIRED.items() if value[k] != want]
     if value["model.use_mask"] != value["model.use_distance_transform"]:
         wrong.append("model.use_mask differs from model.use_distance_transform")
@@ -194,8 +197,10 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     """The config fields that rebuild ``path``'s network and PC²'s sampler (:class:`PC2File`).
 
     Raises:
-        ValueError: the file could run code while loading, holds no PC² model, or its ``cfg`` asks for a
-            network this one cannot be (another image model, global features, colour, a scale factor);
+        ValueError: the file could run code while loading, holds no PC² model, its ``model`` is no state dict
+            of finite tensors (:func:`cdm.model.state_dicts.checked_state_dict`), or its ``cfg`` holds a
+            value that is no finite number where one belongs, or asks for a network this one cannot be
+            (another image model, global features, colour, a scale factor) or a value the config refuses;
             the message starts with ``flag`` (the option that named the file) and the path.
     """
     file = input_path(path)
@@ -203,6 +208,7 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     raw = load_inert(file, label, "PC² checkpoint")
     if not isinstance(raw, Mapping) or not isinstance(raw.get("model", raw), Mapping):
         raise ValueError(f"{label} holds no model state dict")
+    checked_state_dict(raw.get("model", raw), label)  # refused here in the option's name, not in the network's
     tree = config_data(raw.get("cfg")) or {}
     if not isinstance(tree, Mapping):
         raise ValueError(
@@ -244,5 +250,9 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
     step = raw.get("step", raw.get("steps"))
     co3d = {"data.mask_rgb": bool(value["dataset.mask_images"]), "data.exclude_sequences": True,
             "data.frames_per_sequence": 1, "data.drop_outliers": False}
+    try:  # what the file asks for must make a config by itself: --set comes later, and names no file
+        load_config(None, overrides)
+    except ConfigError as exc:
+        raise ValueError(f"{label}: its cfg asks for a value this code refuses ({exc})") from None
     return PC2File(overrides, co3d, step if isinstance(step, int) else None,
                    "the file's cfg" if tree else "PC²'s defaults: the file has no cfg", trained_on)

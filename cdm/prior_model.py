@@ -39,6 +39,7 @@ from cdm.digest import json_digest
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.pvcnn2 import PVCNN2Denoiser
 from cdm.model.reference_weights import load_reference_checkpoint, load_reference_weights
+from cdm.model.state_dicts import load_into
 from cdm.model.voxels import VoxelBackend, resolve_voxel_backend
 from cdm.optim import Optimiser, TrainingDiverged
 from cdm.runtime import start_run
@@ -218,7 +219,7 @@ def load_prior(path: str | Path, device: torch.device | str = "cpu", category: s
         )
     cfg = network_config(state)
     network = PriorNetwork(cfg.model)
-    network.load_state_dict(state.model)
+    load_into(network, state.model, f"{_FIELD}: {path}")
     return CategoryPrior(network.to(device).eval(), GaussianDiffusion.from_config(cfg.diffusion), state.category)
 
 

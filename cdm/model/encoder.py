@@ -33,6 +33,7 @@ from torch import Tensor
 
 from cdm.config import ModelConfig
 from cdm.data.lru import ByteLRU
+from cdm.model.state_dicts import checked_state_dict
 from cdm.model.voxels import norm_groups
 from cdm.paths import input_path
 from cdm.safe_io import open_regular
@@ -205,7 +206,8 @@ def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -
     (timm's names, which are MSN's; its pickled config is read as data, :func:`cdm.torch_files.load_inert`).
 
     Raises:
-        ValueError: missing file, unreadable file, missing/unexpected keys or wrong shapes; the
+        ValueError: missing file, unreadable file, a key that is not a string, a weight that is not a finite
+            tensor (:func:`cdm.model.state_dicts.checked_state_dict`), missing/unexpected keys or wrong shapes; the
             message names the config field ``name`` that gave the file.
     """
     path = input_path(path)
@@ -218,7 +220,7 @@ def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -
         raise ValueError(
             f"{field}: expected a state dict, MSN's checkpoint with 'target_encoder' or PC²'s with 'model'"
         )
-    state = {k.removeprefix("module."): v for k, v in state.items() if isinstance(k, str)}
+    state = {k.removeprefix("module."): v for k, v in checked_state_dict(state, field).items()}
     if any(k.startswith(_PC2_PREFIX) for k in state):
         state = {k.removeprefix(_PC2_PREFIX): v for k, v in state.items() if k.startswith(_PC2_PREFIX)}
     state = {k: v for k, v in state.items() if not k.startswith("fc.")}
@@ -229,7 +231,7 @@ def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -
             f"{field}: not MSN's ViT-S/16 key layout (missing {missing[:3]}{'…' if len(missing) > 3 else ''}, "
             f"unexpected {unexpected[:3]}{'…' if len(unexpected) > 3 else ''})"
         )
-    wrong = [k for k, shape in expected.items() if not isinstance(state[k], Tensor) or state[k].shape != shape]
+    wrong = [k for k, shape in expected.items() if state[k].shape != shape]
     if wrong:
         raise ValueError(
             f"{field}: {wrong[0]} has shape {tuple(state[wrong[0]].shape)}, ViT-S/16 needs {tuple(expected[wrong[0]])}"

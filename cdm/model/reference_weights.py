@@ -30,6 +30,7 @@ from typing import Any, Literal
 from torch import Tensor
 
 from cdm.model.pvcnn2 import PVCNN2Denoiser
+from cdm.model.state_dicts import checked_state_dict
 from cdm.torch_files import load_inert
 
 __all__ = [
@@ -53,26 +54,35 @@ _PREFIXES: dict[str, tuple[str, ...]] = {
 _FIRST_LAYER = "sa_layers.0.0.point_features.layers.0.weight"  # (32, 3 + S, 1): present in every PVCNN2
 
 
-def reference_state_dict(checkpoint: Mapping[str, Any], reference: Reference) -> dict[str, Tensor]:
+def reference_state_dict(
+    checkpoint: Mapping[str, Any], reference: Reference, label: str = "the checkpoint"
+) -> dict[str, Tensor]:
     """The PVCNN2 weights of a loaded reference checkpoint, under our (= PVCNN2's) key names.
 
     Args:
         checkpoint: what the reference saved (the whole dict), its model state dict, or a bare PVCNN2
             state dict.
         reference: ``pc2`` or ``pvd`` (PVD's unconditional PVCNN2, also BDM's category prior).
+        label: the file, as a refusal names it.
     Raises:
-        ValueError: no PVCNN2 weights under any of the reference's prefixes.
+        ValueError: no PVCNN2 weights under any of the reference's prefixes, or where they are, a key that
+            is not a string, a value that is not a tensor or a weight that is not finite
+            (:func:`cdm.model.state_dicts.checked_state_dict`).
     """
     if reference not in _CONTAINERS:
         raise ValueError(f"reference must be 'pc2' or 'pvd', got {reference!r}")
-    state: Mapping[str, Any] = checkpoint
+    state: Mapping[Any, Any] = checkpoint
     for container in _CONTAINERS[reference]:
         if isinstance(checkpoint.get(container), Mapping):
             state = checkpoint[container]
             break
     for prefix in _PREFIXES[reference]:
         if prefix + _FIRST_LAYER in state:
-            return {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}
+            # Checked before the prefix is cut, so a refusal names the key as the file spells it; a key that
+            # is no string has no prefix to test and is refused.
+            kept = {k: v for k, v in state.items() if not isinstance(k, str) or k.startswith(prefix)}
+            weights = checked_state_dict(kept, label)
+            return {k[len(prefix) :]: v for k, v in weights.items() if k.startswith(prefix)}
     raise ValueError(
         f"no {reference} PVCNN2 weights found: expected a key '<prefix>{_FIRST_LAYER}' with a prefix in "
         f"{list(_PREFIXES[reference])} inside {list(_CONTAINERS[reference])} or at the top level"
@@ -118,7 +128,7 @@ def load_reference_checkpoint(path: str | Path, reference: Reference) -> dict[st
     checkpoint = load_inert(Path(path), str(path), "torch file")
     if not isinstance(checkpoint, Mapping):
         raise ValueError(f"{path} holds a {type(checkpoint).__name__}, not a checkpoint dict or state dict")
-    return reference_state_dict(checkpoint, reference)
+    return reference_state_dict(checkpoint, reference, str(path))
 
 
 def denoiser_from_reference(path: str | Path, reference: Reference) -> PVCNN2Denoiser:

@@ -67,7 +67,8 @@ def estimate_line(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
 def dry_run(plan: SweepPlan, remote: bool, rule: list[str], calibrate: bool, shared: bool, missing: str | None) -> int:
     """Print the plan and the card (``rule``: the until-settled lines), the paper profile's GPU-hours and,
     where ``calibrate`` and this machine allow, the calibrated estimate; return the exit code: 2 with one
-    ``error:`` line when inputs are ``missing`` (the calibration, which would read them, is skipped)."""
+    ``error:`` line when inputs are ``missing`` (the calibration, which would read them, is skipped) or
+    one the calibration reads is refused (a checkpoint that is no PC² file, holds NaN weights, …)."""
     import torch
 
     cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
@@ -95,5 +96,9 @@ def dry_run(plan: SweepPlan, remote: bool, rule: list[str], calibrate: bool, sha
     except SpecError:
         return 0  # describe() has said why this machine cannot run it
     print("calibrating (a few training steps and one evaluation) ...", flush=True)
-    estimate_line(plan, cpus, concurrent, shared)
+    try:
+        estimate_line(plan, cpus, concurrent, shared)
+    except (ValueError, OSError) as exc:  # an input present but unreadable (model.init_from): every trial fails on it
+        print(f"error: the cost estimate could not read an input: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
     return 0

@@ -280,9 +280,22 @@ def _shared_values(
     try:
         load_config(None, {**fixed, **sets})
     except ConfigError as exc:  # a --set value's own field is the --set's error, not the profile's
-        where = "--set" if any(f"{key}:" in str(exc) for key in sets) else f"profile {profile}"
-        raise SpecError(f"{where}: {exc}") from None
+        # A shared value may need what the cells give (model.init_from's {category}, the data.categories of
+        # each cell): checked with the first cell's values, it stands; every cell is checked on its own later.
+        if not _holds_with_a_cell(spec, {**fixed, **sets}):
+            where = "--set" if any(f"{key}:" in str(exc) for key in sets) else f"profile {profile}"
+            raise SpecError(f"{where}: {exc}") from None
     return spec, fixed
+
+
+def _holds_with_a_cell(spec: Spec, shared: dict[str, Any]) -> bool:
+    """Whether ``shared`` makes a config with the first grid cell's values (cells win, as in a trial)."""
+    values = next(_cell_values(spec), ("", {}))[1] if not spec.search.sampled else {}
+    try:
+        load_config(None, {**shared, **values})
+    except ConfigError:
+        return False
+    return bool(values)
 
 
 def expand(
