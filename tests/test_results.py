@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from cdm.metric_names import label as metric_label
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.rules import metric_label, settings_note, settings_notes
+from sweeps.compare.rules import settings_note, settings_notes
 from sweeps.compare.table import build_table
 from sweeps.plan.spec import load_spec
 
@@ -351,11 +352,11 @@ def test_every_f1_label_names_its_threshold_in_world_units():
             "F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units"
             in " ".join(text.split())
         )
-    assert metric_label("eval/f1") == "eval/f1 (F1@0.01 sq. dist = 0.1 world)"
+    assert metric_label("eval/f1", 0.01) == "eval/f1 (F1@0.01 sq. dist = 0.1 world)"
     assert (
-        metric_label("eval/f1/chair").endswith("(F1@0.01 sq. dist = 0.1 world)")
-        and metric_label("eval/cd") == "eval/cd (CD ×1000)"
+        metric_label("eval/f1/chair", 0.01).endswith("(F1@0.01 sq. dist = 0.1 world)")
+        and metric_label("eval/cd", 0.01) == "eval/cd (CD ×1000)"
     )
-    assert metric_label("train/loss") == "train/loss"
+    assert metric_label("train/loss", 0.01) == "train/loss"
     no_f1 = build_table([_trial("a", 0, train__loss=0.5)], "train/loss", "min", "t")  # no F1 shown: no footnote
     assert not any(n.startswith("F1 is") for n in no_f1.notes)

@@ -25,10 +25,11 @@ from pathlib import Path
 from typing import Literal
 
 from cdm.baseline_names import BASELINES
+from cdm.metric_names import f1_unit
 from sweeps.compare.outcomes import TrialOutcome, finished
 from sweeps.compare.paired import PairedDifference
 from sweeps.compare.pairing import Pairing, lead_difference, paired_record
-from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode
+from sweeps.compare.rules import Stat, number_text, object_column, partner, partner_mode
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
@@ -55,6 +56,8 @@ class ResultsTable:
     """Columns the terminal drops first, in this order, until the table fits its width."""
     answer: tuple[str, ...] = ()
     """The narrow table's columns (cell, metric, partner, Δ metric, verdict): the run page's first table."""
+    f1_thresholds: tuple[float, ...] = ()
+    """The trials' ``eval.f1_threshold`` values (distinct, sorted): what every F1 label of the sweep names."""
 
     def _filled(self, names: Sequence[str] | None = None) -> list[int]:
         """Indices of the columns named (default: all) that some row fills; the first column always."""
@@ -219,6 +222,7 @@ def build_table(
         frozenset(columns.per_category + ["beats baselines"]),
         tuple(narrowing),
         answer,
+        tuple(sorted({o.f1_threshold for o in outcomes})),
     )
 
 
@@ -286,7 +290,8 @@ def _notes(
     """The notes under the table: units, the paper's source, what the star and the Δ columns mean, failures."""
     metric, shown, pairing = columns.metric, columns.shown, columns.pairing
     second = shown[1] if len(shown) > 1 else None
-    notes = [F1_UNIT] if any(m.split("/")[1:2] == ["f1"] for m in shown) else []
+    has_f1 = outcomes and any(m.split("/")[1:2] == ["f1"] for m in shown)
+    notes = [f1_unit(o.f1_threshold for o in outcomes)] if has_f1 else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
     if any(c in o.paper for o in outcomes for c in columns.per_category):
