@@ -39,13 +39,17 @@ def _distinct(thresholds: float | Iterable[float]) -> list[float]:
     return sorted({float(thresholds)} if isinstance(thresholds, (int, float)) else {float(t) for t in thresholds})
 
 
+def _at(values: list[float]) -> str:
+    return "F1@" + " / ".join(f"{v:g}" for v in values)
+
+
 def f1_at(thresholds: float | Iterable[float]) -> str:
     """F1's threshold τ (``eval.f1_threshold``) in a few words, on the squared distance and in world units:
     ``F1@0.02 sq. dist = 0.141421 world``; runs at several thresholds name each (``F1@0.01 / 0.25 sq. dist``)."""
     values = _distinct(thresholds)
     if len(values) == 1:
-        return f"F1@{values[0]:g} sq. dist = {math.sqrt(values[0]):g} world"
-    return "F1@" + " / ".join(f"{v:g}" for v in values) + " sq. dist (per cell)"
+        return f"{_at(values)} sq. dist = {math.sqrt(values[0]):g} world"
+    return f"{_at(values)} sq. dist (per cell)"
 
 
 def f1_unit(thresholds: float | Iterable[float]) -> str:
@@ -53,9 +57,8 @@ def f1_unit(thresholds: float | Iterable[float]) -> str:
     scores high), so the baselines beside it matter."""
     values = _distinct(thresholds)
     world = " / ".join(f"{math.sqrt(v):g}" for v in values)
-    return (f"F1 is {f1_at(values).removesuffix(' (per cell)').split(' sq. dist')[0]} on the squared distance: "
-            f"a point counts when it lies within {world} in world units of the other cloud (BDM's definition, "
-            "cdm/metrics.py); CD is ×1000, in world units²")
+    return (f"F1 is {_at(values)} on the squared distance: a point counts when it lies within {world} in world "
+            "units of the other cloud (BDM's definition, cdm/metrics.py); CD is ×1000, in world units²")
 
 
 def label(metric: str, thresholds: float | Iterable[float]) -> str:

@@ -132,7 +132,7 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
                         _f1_threshold(plan, cell, result.config or {}))
 
 
-def _f1_threshold(plan: SweepPlan, cell: Cell | None, tune_config: dict) -> float:
+def _f1_threshold(plan: SweepPlan, cell: Cell | None, tune_config: dict[str, Any]) -> float:
     """The trial's ``eval.f1_threshold``: its cell's config, else (a sampled trial) what it drew or the plan's."""
     if cell is not None:
         return cell.config.eval.f1_threshold
