@@ -24,7 +24,6 @@ import torch
 import torch.distributed
 from torch.utils.data import DataLoader
 
-from cdm.baseline_names import BASELINES
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import Config
 from cdm.data import build_dataset
@@ -34,6 +33,7 @@ from cdm.data.sample import Batch, collate
 from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import EvalSet, build_eval_set, run_evaluation
 from cdm.external_inputs import check_coverage, check_inputs
+from cdm.metric_names import TRAIN_METRICS
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss
 from cdm.optim import MAX_SKIPPED_IN_A_ROW, Optimiser, TrainingDiverged
@@ -41,7 +41,7 @@ from cdm.provenance import run_record
 from cdm.runtime import AUTOCAST_DTYPES, resolve_precision, start_run
 from cdm.shared import SharedStore, SharedViews
 
-__all__ = ["Callback", "FitResult", "StepLosses", "Trainer", "TrainingDiverged", "fit", "metric_names"]
+__all__ = ["Callback", "FitResult", "StepLosses", "Trainer", "TrainingDiverged", "fit"]
 
 log = logging.getLogger(__name__)
 
@@ -82,16 +82,6 @@ class FitResult:
     step: int
     metrics: dict[str, float]
     checkpoint_dir: Path | None
-
-
-def metric_names(config: Config, categories: Sequence[str] = ()) -> list[str]:
-    """Every metric name :func:`fit` can report (per-category names for the given categories)."""
-    names = ["train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/skipped_steps",
-             "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s"]
-    for prefix in ["eval"] + [f"baseline/{b}" for b in BASELINES]:
-        names += [f"{prefix}/cd", f"{prefix}/f1"]
-        names += [f"{prefix}/{m}/{c}" for c in categories for m in ("cd", "f1")]
-    return names
 
 
 def _check_compatible(state: Checkpoint, config: Config, network: CDMNetwork) -> None:
@@ -339,18 +329,12 @@ def fit(
         stop = any(cb.should_stop() for cb in callbacks)
         if trainer.step % t_cfg.log_every == 0 or trainer.step == t_cfg.steps:
             now, cpu_now = time.perf_counter(), time.process_time()
-            logged = {
-                "train/loss": sums[0] / window,
-                "train/loss_diffusion": sums[1] / window,
-                "train/loss_prior_3d": sums[2] / window,
-                "train/lr": trainer.optimiser.lr,
-                "train/skipped_steps": float(skipped),  # in this window (train.precision fp16, bf16)
-                "train/steps_per_s": window / max(now - window_start, 1e-9),
-                # This process's CPU time (all its threads) per step: what a step costs inside a sweep,
-                # beside other trials, compared with benchmarks' isolated step (benchmarks/RESULTS.md).
-                "train/cpu_s_per_step": (cpu_now - cpu_start) / window,
-                "train/elapsed_s": now - start,
-            }
+            # This process's CPU time (all its threads) per step: what a step costs inside a sweep,
+            # beside other trials, compared with benchmarks' isolated step (benchmarks/RESULTS.md).
+            # train/skipped_steps counts this window's skipped steps (train.precision fp16, bf16).
+            values = (sums[0] / window, sums[1] / window, sums[2] / window, trainer.optimiser.lr, float(skipped),
+                      window / max(now - window_start, 1e-9), (cpu_now - cpu_start) / window, now - start)
+            logged = dict(zip(TRAIN_METRICS, values, strict=True))
             for cb in callbacks:
                 cb.on_step(trainer.step, logged)
             sums, window, skipped, window_start, cpu_start = [0.0, 0.0, 0.0], 0, 0, now, cpu_now

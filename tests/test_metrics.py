@@ -10,8 +10,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from cdm.config import F1_THRESHOLD, EvalConfig
+from cdm.metric_names import f1_at, f1_unit
 from cdm.metrics import chamfer_f1, nearest_sq_dist
-from sweeps.compare.rules import F1_AT, F1_UNIT
 from sweeps.plan.references import record
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -91,7 +91,7 @@ def test_the_f1_threshold_has_one_home_read_by_the_metric_the_config_the_records
     assert inspect.signature(chamfer_f1).parameters["threshold"].default is F1_THRESHOLD
     assert EvalConfig.model_fields["f1_threshold"].default is F1_THRESHOLD
     assert record(None, "co3d")["eval.f1_threshold"].value == F1_THRESHOLD == 0.01
-    assert F1_AT == "F1@0.01 sq. dist = 0.1 world" and "within 0.1 in world units" in F1_UNIT
+    assert f1_at(F1_THRESHOLD) == "F1@0.01 sq. dist = 0.1 world" and "within 0.1 in world units" in f1_unit(0.01)
     # The paper's value is written once: not as a threshold in the metric, the records or the labels.
     readers = ["cdm/metrics.py", "cdm/evaluate.py", "sweeps/plan/references.py", "sweeps/compare/rules.py",
                "sweeps/compare/gallery.py"]

@@ -248,8 +248,9 @@ def test_training_curves_split_the_loss_and_draw_the_evaluations(tmp_path):
     from sweeps.compare.plots import training_curves
 
     loss = {"train/loss": [(5, 3.0), (10, 2.0)], "train/loss_diffusion": [(5, 1.0), (10, 0.5)]}
-    none = training_curves({"a": loss}, {"a": "a"}, "eval/f1", "t", tmp_path / "none.png")
-    once = training_curves({"a": loss | {"eval/f1": [(10, 0.4)]}}, {"a": "a"}, "eval/f1", "t", tmp_path / "once.png")
+    none = training_curves({"a": loss}, {"a": "a"}, "eval/f1", "t", tmp_path / "none.png", f1_thresholds=0.01)
+    once = training_curves({"a": loss | {"eval/f1": [(10, 0.4)]}}, {"a": "a"}, "eval/f1", "t", tmp_path / "once.png",
+                           f1_thresholds=0.01)
     # Diffusion, λ × prior and total side by side; the evaluations in a fourth panel, even a single one.
     (w0, h0), (w1, h1) = Image.open(none).size, Image.open(once).size
     assert 2.5 < w0 / h0 < 3.5 and 3.4 < w1 / h1 < 4.8
@@ -400,12 +401,13 @@ def test_metric_vs_value_log_axis_baseline_lines_and_resolution(tmp_path):
         )
         for v in (0.0075, 0.01, 0.02, 0.04, 0.08)
     ]
-    with_baseline = metric_vs_value(points, "eval/f1", "t", tmp_path / "a.png", "Table 5")
+    with_baseline = metric_vs_value(points, "eval/f1", "t", tmp_path / "a.png", "Table 5", f1_thresholds=0.01)
     without = metric_vs_value(
         [PlotPoint(p.cell, p.values, {k: v for k, v in p.metrics.items() if k.startswith("eval/")}) for p in points],
         "eval/f1",
         "t",
         tmp_path / "b.png",
+        f1_thresholds=0.01,
     )
     image = Image.open(with_baseline)
     assert image.info["dpi"][0] == pytest.approx(150, abs=1)

@@ -11,8 +11,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from cdm.metric_names import label as metric_label
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.rules import metric_label, settings_note, settings_notes
+from sweeps.compare.rules import settings_note, settings_notes
 from sweeps.compare.table import build_table
 from sweeps.plan.spec import load_spec
 
@@ -191,6 +192,46 @@ def test_terminal_table_fits_120_columns_at_the_main_jobs_size_and_says_where_th
     assert table.records[-1]["eval/f1 mean"] == pytest.approx(0.60)
 
 
+SHIPPED_SPECS = sorted(p for p in SWEEPS.glob("*.yaml") if p.name != "profiles.yaml")
+
+
+@pytest.mark.parametrize("path", SHIPPED_SPECS, ids=lambda p: p.stem)
+def test_every_printed_line_fits_120_columns_for_each_shipped_specs_cells_and_metric(path):
+    """The main job's shape (sweeps/point_size.yaml) and every other spec's: its longest cell names (up to 38
+    characters, prior_type.yaml), its metric, the paper rows, the driver's notes; each line as wide as a
+    terminal shows it (★ and Δ one column each, three and two bytes in UTF-8)."""
+    from dataclasses import replace
+
+    from sweeps.compare.rules import PROTOCOL_NOTE
+    from sweeps.compare.table import display_width
+    from sweeps.plan.trials import expand
+
+    spec = load_spec(path)
+    names = [c.name for c in expand(spec, "local", {}).cells] if spec.grid or spec.cells else []
+    searched = [f"priors.lambda_3d={v:g}" for v in (0.0316228, 0.00177828)]  # lambda.yaml: an Optuna search
+    names = sorted(dict.fromkeys(names), key=len, reverse=True)[:5] or searched
+    outcomes = [replace(o, label=f"{name} · seed 0", cell=name)
+                for o, name in zip(_main_job_outcomes(), names * 5)]
+    paper = f"{spec.paper.table}: {spec.paper.note}" if spec.paper else ""
+    table = build_table(outcomes, spec.metric.name, spec.metric.mode, f"{spec.name} — profile local", paper,
+                        settings=["profile local: 1400 steps per trial; prediction target x0; λ (priors.lambda_3d, "
+                                  "Eq. 6) 0.1, from profile local, not from the paper"])
+    printed = replace(table, notes=[n for n in table.notes if not n.startswith(PROTOCOL_NOTE)]
+                      + ["protocol card: printed above, and in results.md"]).text()
+    widest = max(printed.splitlines(), key=display_width)
+    assert display_width(widest) <= 120, widest
+    assert all(len(line) <= 120 for line in printed.splitlines())
+    header = printed.split("\n---", 1)[0].split("\n---", 1)[0]
+    assert "verdict" in header and "[95% CI]" in header  # the answer's columns stay in the terminal's table
+
+
+def test_display_width_counts_terminal_columns_not_bytes():
+    from sweeps.compare.table import display_width
+
+    assert display_width("point_size=0.04 ★") == 17 and len("point_size=0.04 ★".encode()) == 19
+    assert display_width("Δf1 ±") == 5 and display_width("表") == 2 and display_width("e\u0301") == 1
+
+
 def test_the_results_table_reads_the_baselines_names_without_torch_or_the_model():
     code = "import sys, sweeps.compare.table; print(sorted(m for m in ('torch', 'cdm.evaluate') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=SWEEPS.parent)
@@ -351,11 +392,11 @@ def test_every_f1_label_names_its_threshold_in_world_units():
             "F1 is F1@0.01 on the squared distance: a point counts when it lies within 0.1 in world units"
             in " ".join(text.split())
         )
-    assert metric_label("eval/f1") == "eval/f1 (F1@0.01 sq. dist = 0.1 world)"
+    assert metric_label("eval/f1", 0.01) == "eval/f1 (F1@0.01 sq. dist = 0.1 world)"
     assert (
-        metric_label("eval/f1/chair").endswith("(F1@0.01 sq. dist = 0.1 world)")
-        and metric_label("eval/cd") == "eval/cd (CD ×1000)"
+        metric_label("eval/f1/chair", 0.01).endswith("(F1@0.01 sq. dist = 0.1 world)")
+        and metric_label("eval/cd", 0.01) == "eval/cd (CD ×1000)"
     )
-    assert metric_label("train/loss") == "train/loss"
+    assert metric_label("train/loss", 0.01) == "train/loss"
     no_f1 = build_table([_trial("a", 0, train__loss=0.5)], "train/loss", "min", "t")  # no F1 shown: no footnote
     assert not any(n.startswith("F1 is") for n in no_f1.notes)

@@ -153,7 +153,7 @@ def test_settle_json_plots_and_the_viewer_are_never_written_through_a_planted_li
     victim.write_text("precious\n")
     clouds = {"o1": {"a": np.zeros((8, 3))}}
     write = {"settle.json": lambda path: write_settle_json(path, {}, None),
-             "plot": lambda path: grid_png(clouds, ["a"], "t", path),
+             "plot": lambda path: grid_png(clouds, ["a"], "t", path, f1_thresholds=0.01),
              "viewer": lambda path: viewer_html(clouds, ["a"], "t", path)}[kind]
     clean = tmp_path / "clean" / "out"
     clean.parent.mkdir()

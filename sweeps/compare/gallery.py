@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sweeps.compare.rules import F1_AT
+from cdm.metric_names import f1_at
 from sweeps.storage import write_file
 
 __all__ = ["Gallery", "Scores", "grid_png", "panel_input", "viewer_html"]
@@ -59,9 +59,9 @@ def panel_input(png: Path) -> np.ndarray | None:
 
 
 def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, scores: Scores | None = None,
-             inputs: Mapping[str, np.ndarray] | None = None) -> Path:
+             inputs: Mapping[str, np.ndarray] | None = None, *, f1_thresholds: float | Sequence[float]) -> Path:
     """One row per object, one column per label in ``columns`` (missing clouds: an empty square), each
-    cloud titled with its ``scores`` (CD ×1000, F1 at :data:`cdm.config.F1_THRESHOLD`); with ``inputs``
+    cloud titled with its ``scores`` (CD ×1000, F1 at the trials' ``f1_thresholds``); with ``inputs``
     (object id → its input image), the image the model saw first."""
     from sweeps.compare.plots import FONT, _pyplot, _save
 
@@ -95,7 +95,7 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, s
             if c == 0:
                 ax.set_ylabel(oid, fontsize=FONT - 1)
     fig.suptitle(
-        f"{title}\nCD ×1000 (lower is better) · {F1_AT} (higher is better)",
+        f"{title}\nCD ×1000 (lower is better) · {f1_at(f1_thresholds)} (higher is better)",
         fontsize=FONT + 1,
     )
     fig.tight_layout()

@@ -12,6 +12,8 @@ from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
+from cdm.config import F1_THRESHOLD
+
 __all__ = ["FINISHED", "Status", "TrialOutcome", "finished", "sweep_order", "unstarted"]
 
 Status = Literal["ok", "stopped", "failed", "pending"]
@@ -35,6 +37,8 @@ class TrialOutcome:
     error: str | None = None
     objects: tuple[dict[str, object], ...] = ()
     """Per-object rows of the last evaluation (``object_id``, ``category``, ``cd``, ``f1``, ``baseline/…``)."""
+    f1_threshold: float = F1_THRESHOLD
+    """The trial's ``eval.f1_threshold``: what its F1 is labelled with (:func:`cdm.metric_names.label`)."""
 
     @property
     def finished(self) -> bool:

@@ -17,7 +17,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from sweeps.compare.rules import metric_label, partner
+from cdm.metric_names import label as metric_label
+from sweeps.compare.rules import partner
 from sweeps.storage import write_file
 
 __all__ = [
@@ -95,13 +96,15 @@ def _baseline_label(name: str) -> str:
 
 
 def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: Path, paper_table: str = "paper",
-                    intervals: Mapping[str, tuple[float, float]] | None = None) -> Path:
+                    intervals: Mapping[str, tuple[float, float]] | None = None, *,
+                    f1_thresholds: float | Sequence[float]) -> Path:
     """``metric`` (and its CD/F1 partner) against the swept value: mean per cell, one line for all objects
     and one per category; bars: the cell's 95 % paired interval against the reference cell
     (``intervals``: cell → Δ interval ``(low, high)`` of ``metric``, drawn around the cell's mean by its
     distance to Δ's bounds), else ± std over seeds; the baselines (``baseline/<name>/…`` in the points'
     metrics) as dashed horizontal lines; the paper's numbers as stars, each labelled with its
-    ``paper_table`` row. Legends sit below the axes, outside the data; a log axis says so."""
+    ``paper_table`` row. Legends sit below the axes, outside the data; a log axis says so. F1's axis names the
+    trials' ``f1_thresholds`` (their ``eval.f1_threshold``)."""
     plt = _pyplot()
     shown = [m for m in (metric, partner(metric)) if m is not None]
     cells, x, xlabel = _axis(points)
@@ -129,7 +132,7 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
                 )
             _paper_stars(ax, points, x, key, colour, paper_table)
         _baseline_lines(ax, points, baselines, m.removeprefix("eval/"))
-        _value_axes(ax, m, cells, x, xlabel)
+        _value_axes(ax, m, cells, x, xlabel, f1_thresholds)
     fig.suptitle(title, fontsize=FONT + 2)
     fig.tight_layout()
     return _save(fig, path)
@@ -189,9 +192,10 @@ def _baseline_lines(ax, points: Sequence[PlotPoint], baselines: list[str], short
             )
 
 
-def _value_axes(ax, m: str, cells: list[str], x: Mapping[str, float], xlabel: str | None) -> None:
-    """The swept value on x (cell names, or numbers on a log axis when log-spaced), ``m`` on y, the legend
-    below the axes."""
+def _value_axes(ax, m: str, cells: list[str], x: Mapping[str, float], xlabel: str | None,
+                f1_thresholds: float | Sequence[float]) -> None:
+    """The swept value on x (cell names, or numbers on a log axis when log-spaced), ``m`` on y (F1 labelled at
+    ``f1_thresholds``), the legend below the axes."""
     if xlabel is None:
         ax.set_xticks([x[c] for c in cells], cells, rotation=20, ha="right", fontsize=FONT)
     else:
@@ -202,7 +206,8 @@ def _value_axes(ax, m: str, cells: list[str], x: Mapping[str, float], xlabel: st
             ax.minorticks_off()
         ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
     ax.set_ylabel(
-        metric_label(m) + (", lower is better" if m.endswith("cd") else ", higher is better"), fontsize=FONT + 1
+        metric_label(m, f1_thresholds) + (", lower is better" if m.endswith("cd") else ", higher is better"),
+        fontsize=FONT + 1
     )
     ax.tick_params(labelsize=FONT)
     ax.grid(alpha=0.3)
@@ -221,6 +226,8 @@ def training_curves(
     metric: str,
     title: str,
     path: Path,
+    *,
+    f1_thresholds: float | Sequence[float],
 ) -> Path:
     """The loss against the training step, its terms apart: the diffusion term, the λ × 3D-prior term
     (``train/loss − train/loss_diffusion``, Eq. 6) and their sum, one line per trial, one colour per cell
@@ -232,6 +239,7 @@ def training_curves(
         curves: trial label → metric name (``train/loss``, ``train/loss_diffusion``, ``metric``) →
             ``(step, value)`` pairs (any order).
         cells: trial label → cell name.
+        f1_thresholds: the trials' ``eval.f1_threshold``, which F1's axis names.
     """
     plt = _pyplot()
 
@@ -260,7 +268,8 @@ def training_curves(
         labelled.add(cell)
     for ax, key in zip(axes[0], keys):
         ax.set_xlabel("training step", fontsize=FONT)
-        ax.set_ylabel(metric_label(key) + " at evaluations" if key == metric else "loss (Eq. 6)", fontsize=FONT)
+        shown = metric_label(key, f1_thresholds) + " at evaluations" if key == metric else "loss (Eq. 6)"
+        ax.set_ylabel(shown, fontsize=FONT)
         ax.set_title(key, fontsize=FONT + 1)
         ax.tick_params(labelsize=FONT)
         ax.grid(alpha=0.3)

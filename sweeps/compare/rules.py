@@ -11,16 +11,13 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from cdm.config import F1_THRESHOLD, load_config
+from cdm.config import load_config
 from sweeps.plan.spec import Spec
 
 __all__ = [
-    "F1_AT",
-    "F1_UNIT",
     "PROTOCOL_NOTE",
     "Stat",
     "lambda_source",
-    "metric_label",
     "number_text",
     "object_column",
     "partner",
@@ -60,27 +57,6 @@ def rounded(value: float) -> float:
     """``value`` at the precision the tables print it (3 decimals below 10, else 2): what MLflow
     shows a reader, so the UI's columns and the tables agree digit for digit."""
     return float(number_text(value)) if math.isfinite(value) else value
-
-
-F1_AT = f"F1@{F1_THRESHOLD:g} sq. dist = {math.sqrt(F1_THRESHOLD):g} world"
-"""F1's threshold τ in a few words, on the squared distance and in world units (``F1@τ sq. dist = √τ world``)."""
-
-F1_UNIT = (f"F1 is F1@{F1_THRESHOLD:g} on the squared distance: a point counts when it lies within "
-           f"{math.sqrt(F1_THRESHOLD):g} in world units of the other cloud (BDM's definition, cdm/metrics.py); "
-           "CD is ×1000, in world units²")
-"""The unit every F1 in a table, description or plot is read in: a loose threshold (a blob of the right
-size scores high), so the baselines beside it matter."""
-
-
-def metric_label(metric: str) -> str:
-    """``metric`` with its unit, for axes and headings: ``eval/f1`` → ``eval/f1 (`` + :data:`F1_AT` + ``)``,
-    ``eval/cd/chair`` → ``eval/cd/chair (CD ×1000)``; any other name as is."""
-    parts = metric.split("/")
-    if len(parts) >= 2 and parts[1] == "f1":
-        return f"{metric} ({F1_AT})"
-    if len(parts) >= 2 and parts[1] == "cd":
-        return f"{metric} (CD ×1000)"
-    return metric
 
 
 def partner(metric: str) -> str | None:

@@ -19,21 +19,29 @@ from __future__ import annotations
 import csv
 import io
 import textwrap
+import unicodedata
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from cdm.baseline_names import BASELINES
+from cdm.metric_names import f1_unit
 from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.outcomes import TrialOutcome, finished
 from sweeps.compare.pairing import Pairing, lead_difference, paired_record
-from sweeps.compare.rules import F1_UNIT, Stat, number_text, object_column, partner, partner_mode
+from sweeps.compare.rules import Stat, number_text, object_column, partner, partner_mode
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
 
-__all__ = ["ResultsTable", "build_table"]
+__all__ = ["ResultsTable", "build_table", "display_width"]
+
+
+def display_width(text: str) -> int:
+    """Terminal columns ``text`` takes: a wide (CJK) character two, a combining mark none, any other one
+    (★, Δ, ±, λ: one column, though two or three bytes in UTF-8)."""
+    return sum(0 if unicodedata.combining(c) else 2 if unicodedata.east_asian_width(c) in "WF" else 1 for c in text)
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,8 @@ class ResultsTable:
     """Columns the terminal drops first, in this order, until the table fits its width."""
     answer: tuple[str, ...] = ()
     """The narrow table's columns (cell, metric, partner, Δ metric, verdict): the run page's first table."""
+    f1_thresholds: tuple[float, ...] = ()
+    """The trials' ``eval.f1_threshold`` values (distinct, sorted): what every F1 label of the sweep names."""
 
     def _filled(self, names: Sequence[str] | None = None) -> list[int]:
         """Indices of the columns named (default: all) that some row fills; the first column always."""
@@ -63,22 +73,30 @@ class ResultsTable:
 
     def text(self, width: int = 120) -> str:
         """The table for a terminal, at most ``width`` columns: the wide columns stay in ``results.md``,
-        empty ones are left out, then ``narrowing`` columns until it fits; notes are wrapped."""
+        empty ones are left out, then ``narrowing`` columns until it fits, then headers wider than their
+        column's values wrap over several lines (long cell names make the Δ header long); notes are wrapped."""
         keep = [i for i in self._filled() if self.header[i] not in self.wide_only]
 
         def widths(columns: list[int]) -> list[int]:
-            return [max(len(r[i]) for r in [self.header, *self.rows]) for i in columns]
+            return [max(display_width(r[i]) for r in [self.header, *self.rows]) for i in columns]
 
         for name in self.narrowing:
             if sum(widths(keep)) + 2 * (len(keep) - 1) <= width:
                 break
             keep = [i for i in keep if self.header[i] != name]
         sizes = widths(keep)
+        if sum(sizes) + 2 * (len(keep) - 1) > width:
+            sizes = [max([display_width(r[i]) for r in self.rows] + [display_width(w) for w in self.header[i].split()])
+                     for i in keep]
+        wrapped = {i: textwrap.wrap(self.header[i], w) or [""] for i, w in zip(keep, sizes)}
+        depth = max(len(lines) for lines in wrapped.values())
+        # A wrapped header sits on the bottom lines, next to the one-line headers.
+        heads = [{i: ([""] * (depth - len(lines)) + lines)[k] for i, lines in wrapped.items()} for k in range(depth)]
 
-        def line(cells: list[str]) -> str:
-            return "  ".join(cells[i].ljust(w) for i, w in zip(keep, sizes)).rstrip()
+        def line(cells: Sequence[str] | Mapping[int, str]) -> str:
+            return "  ".join(cells[i] + " " * (w - display_width(cells[i])) for i, w in zip(keep, sizes)).rstrip()
 
-        out = [self.title, line(self.header), "  ".join("-" * w for w in sizes)] + [line(r) for r in self.rows]
+        out = [self.title, *map(line, heads), "  ".join("-" * w for w in sizes)] + [line(r) for r in self.rows]
         dropped = [h for i, h in enumerate(self.header) if i not in keep and any(r[i] for r in self.rows)]
         categories = [h for h in dropped if h.count("/") == 2]
         if categories:  # eval/f1/chair, eval/f1/lamp, … → eval/f1/<category>
@@ -219,6 +237,7 @@ def build_table(
         frozenset(columns.per_category + ["beats baselines"]),
         tuple(narrowing),
         answer,
+        tuple(sorted({o.f1_threshold for o in outcomes})),
     )
 
 
@@ -286,7 +305,8 @@ def _notes(
     """The notes under the table: units, the paper's source, what the star and the Δ columns mean, failures."""
     metric, shown, pairing = columns.metric, columns.shown, columns.pairing
     second = shown[1] if len(shown) > 1 else None
-    notes = [F1_UNIT] if any(m.split("/")[1:2] == ["f1"] for m in shown) else []
+    has_f1 = outcomes and any(m.split("/")[1:2] == ["f1"] for m in shown)
+    notes = [f1_unit(o.f1_threshold for o in outcomes)] if has_f1 else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
     if any(c in o.paper for o in outcomes for c in columns.per_category):

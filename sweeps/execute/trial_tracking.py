@@ -17,14 +17,19 @@ import yaml
 from mlflow import MlflowClient
 from mlflow.entities import Metric, RunTag
 
-from cdm.config import Config
+from cdm.config import F1_THRESHOLD, Config
+from cdm.metric_names import f1_at
 from cdm.train import Callback
 from sweeps.compare.rules import rounded
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
 from sweeps.execute.tracking import as_params, log_params
 from sweeps.store_retry import PatientClient
 
-__all__ = ["EVAL_FOLDERS", "PER_TRIAL_PARAMS", "SYSTEM_METRICS", "TrialRun", "learning_curve_png"]
+__all__ = ["EVAL_FOLDERS", "F1_TAG", "PER_TRIAL_PARAMS", "SYSTEM_METRICS", "TrialRun", "learning_curve_png"]
+
+F1_TAG = "f1"
+"""The tag naming what a trial's ``eval/f1`` and ``final/f1`` mean (:func:`cdm.metric_names.f1_at` of its
+``eval.f1_threshold``): the keys stay the same at every threshold, so runs compare by name."""
 
 PER_TRIAL_PARAMS = ("train.out_dir",)
 """Config fields that differ in every trial by construction (its own folder): not params, so the
@@ -50,11 +55,13 @@ panels apart from the dozens of clouds."""
 
 
 def learning_curve_png(
-    client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = ""
+    client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "",
+    f1_threshold: float = F1_THRESHOLD,
 ) -> Path | None:
     """The run's training curves (:func:`sweeps.compare.plots.training_curves` for this one trial: the loss terms
-    apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``;
-    None while the run holds no curve (no loss logged, fewer than two evaluations).
+    apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``, F1
+    labelled at the run's ``f1_threshold`` (``eval.f1_threshold``); None while the run holds no curve (no
+    loss logged, fewer than two evaluations).
 
     Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
     """
@@ -64,7 +71,8 @@ def learning_curve_png(
     history = metric_histories(client, run_id, keys)
     if not has_curve(history, metric):
         return None
-    return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png")
+    return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png",
+                           f1_thresholds=f1_threshold)
 
 
 class TrialRun(Callback):
@@ -88,6 +96,7 @@ class TrialRun(Callback):
         self.client = PatientClient(uri)
         self.run_name, self.metric = run_name, metric
         self.last_step = 0 if config.eval.only else config.train.steps
+        self.f1_threshold = config.eval.f1_threshold
         found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
         # Last step already in the run, per kind: a crash between a step's log and its evaluation
         # must not make the re-run evaluation look logged.
@@ -96,7 +105,8 @@ class TrialRun(Callback):
         if found is None:
             run = self.client.create_run(
                 experiment_id, run_name=run_name,
-                tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, **tags})
+                tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, F1_TAG: f1_at(self.f1_threshold),
+                      **tags})
             self.run_id = run.info.run_id
             kept = {k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}
             log_params(self.client, self.run_id, as_params(kept))
@@ -140,7 +150,8 @@ class TrialRun(Callback):
         # The curve at the last evaluation only: MLflow charts the metrics live, and drawing it took ~0.7 s
         # per evaluation (benchmarks/RESULTS.md).
         if files and step >= self.last_step:
-            curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name)
+            curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name,
+                                       self.f1_threshold)
             if curve is not None:
                 self.client.log_artifact(self.run_id, str(curve), "curves")
 

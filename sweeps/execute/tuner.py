@@ -18,6 +18,7 @@ from typing import Any
 import ray
 import ray.tune
 
+from cdm.config import load_config
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import lease_cores
@@ -28,7 +29,7 @@ from sweeps.execute.trial import TrialSetup, run_trial
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
-from sweeps.plan.trials import SweepPlan
+from sweeps.plan.trials import Cell, SweepPlan
 
 __all__ = ["error_summary", "run_sweep"]
 
@@ -127,7 +128,17 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
         status = "pending" if step is None else ("stopped" if step < plan.last_step(label) else "ok")
     objects = tuple(sweep_run.trial_objects(trial_id)) if trial_id and status != "failed" else ()
     paper_label, paper = (cell.paper_label, cell.paper) if cell else (None, {})
-    return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects)
+    return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects,
+                        _f1_threshold(plan, cell, result.config or {}))
+
+
+def _f1_threshold(plan: SweepPlan, cell: Cell | None, tune_config: dict[str, Any]) -> float:
+    """The trial's ``eval.f1_threshold``: its cell's config, else (a sampled trial) what it drew or the plan's."""
+    if cell is not None:
+        return cell.config.eval.f1_threshold
+    if "eval.f1_threshold" in tune_config:
+        return float(tune_config["eval.f1_threshold"])
+    return load_config(None, {**plan.fixed, **plan.sets}).eval.f1_threshold
 
 
 def _tuner(plan: SweepPlan, trainable, conc: Concurrency, sweep_dir: str, sweep_run: SweepRun, resume: bool,
@@ -180,7 +191,8 @@ def _outcomes(plan: SweepPlan, grid, sweep_run: SweepRun, budget: SeedBudget | N
             tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
             next_round = final_round(plan, outcomes, budget, tags).start
         for cell in map(plan.grid_cell, unstarted([c.label for c in plan.cells], outcomes, next_round)):
-            outcomes.append(TrialOutcome(cell.label, cell.name, "pending", {}, cell.paper_label, cell.paper))
+            outcomes.append(TrialOutcome(cell.label, cell.name, "pending", {}, cell.paper_label, cell.paper,
+                                         f1_threshold=cell.config.eval.f1_threshold))
     labels = [c.label for c in plan.cells] if not plan.spec.search.sampled else None
     return sorted(outcomes, key=sweep_order(labels, plan.spec.metric.name, plan.spec.metric.mode))
 

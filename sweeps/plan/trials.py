@@ -12,7 +12,7 @@ One trial's config is resolved in this order, later wins::
 :func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
 the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
 searcher may start has its label and config before Ray starts), validates a sampled search's space at
-its bounds, and checks the metric against :func:`cdm.train.metric_names`, so a typo fails with one
+its bounds, and checks the metric against :func:`cdm.metric_names.metric_names`, so a typo fails with one
 :class:`sweeps.plan.schema_base.SpecError` naming the field.
 """
 
@@ -27,6 +27,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from cdm.config import Config, ConfigError, TrainConfig, load_config
+from cdm.metric_names import metric_names
 from sweeps.plan.profiles import Budget, Profile, Resources, load_profiles
 from sweeps.plan.schema_base import SpecError, field_error
 from sweeps.plan.spec import DatasetRun, ExplicitCell, PaperRow, SequentialSeeds, Spec
@@ -226,10 +227,9 @@ def _same(actual: Any, wanted: Any) -> bool:
 
 def _metric_names(cfg: Config) -> set[str]:
     from cdm.data import list_categories
-    from cdm.train import metric_names
 
     try:
-        return set(metric_names(cfg, list_categories(cfg)))
+        return set(metric_names(list_categories(cfg)))
     except ValueError as exc:
         raise SpecError(str(exc)) from None
 

@@ -20,6 +20,7 @@ from typing import Any
 from mlflow import MlflowClient
 from mlflow.entities import Run
 
+from cdm.config import load_config
 from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
@@ -169,7 +170,8 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
             k: v for k, v in trial_metrics(run.data.metrics, run.data.params).items() if "/" in k}
         rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in FINISHED else ()
         outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
-                               tags.get("error") if status == "failed" else None, rows)
+                               tags.get("error") if status == "failed" else None, rows,
+                               _f1_threshold(record, label, run))
         out.append(TrialRecord(outcome, values, run.info.run_id))
     if not record.spec.search.sampled:
         outcomes = [t.outcome for t in out]
@@ -177,9 +179,21 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         for label in unstarted(list(cells), outcomes, next_round):
             c = cells[label]
             out.append(TrialRecord(TrialOutcome(label, split_label(label)[0], "pending", {}, _paper_label(record, c),
-                                                c.get("paper") or {}), c["values"], None))
+                                                c.get("paper") or {}, f1_threshold=_f1_threshold(record, label, None)),
+                                   c["values"], None))
     key = sweep_order(list(cells) if not record.spec.search.sampled else None, metric, mode)
     return sorted(out, key=lambda t: key(t.outcome))
+
+
+def _f1_threshold(record: SweepRecord, label: str, run: Run | None) -> float:
+    """A trial's ``eval.f1_threshold``: the param its run logged; for a trial that logged none, its planned
+    cell's, else the plan's (what :func:`sweeps.plan.trials.expand` resolves)."""
+    text = run.data.params.get("eval.f1_threshold") if run is not None else None
+    if text is not None:
+        return float(text)
+    plan = record.expanded
+    cell = plan.grid_cell(label)
+    return (cell.config if cell else load_config(None, {**plan.fixed, **plan.sets})).eval.f1_threshold
 
 
 def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:

@@ -26,10 +26,11 @@ from pathlib import Path
 import numpy as np
 
 from cdm.baseline_names import BASELINES
+from cdm.metric_names import label as metric_label
 from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
-from sweeps.compare.rules import PROTOCOL_NOTE, metric_label, partner, rounded
+from sweeps.compare.rules import PROTOCOL_NOTE, partner, rounded
 from sweeps.compare.table import ResultsTable
 from sweeps.execute.logged_runs import last_eval_files, last_objects, metric_histories
 from sweeps.execute.tracking import resolve_tracking_uri, ui_link
@@ -80,7 +81,8 @@ def write_plots(
     paths = []
     if points:
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
-                                     spec.paper.table if spec.paper else "paper", intervals))
+                                     spec.paper.table if spec.paper else "paper", intervals,
+                                     f1_thresholds=[t.outcome.f1_threshold for t in done]))
     curves = {
         label: history
         for label, history in _histories(record, trials, ("train/loss", "train/loss_diffusion", metric)).items()
@@ -88,7 +90,9 @@ def write_plots(
     }
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
-        paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png"))
+        thresholds = [t.outcome.f1_threshold for t in trials if t.outcome.label in curves]
+        paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png",
+                                     f1_thresholds=thresholds))
     if spec.search.sampled:
         searched = [(t.values, t.outcome.metrics.get(metric) if t.outcome.finished else None)
                     for t in trials if set(t.values) == set(spec.search.space)]
@@ -231,7 +235,8 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
     columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
     title = f"{record.title}: reconstructions at the last evaluation"
     scores = _object_scores(record, firsts, best)
-    return [grid_png(gallery, columns, title, folder / "reconstructions.png", scores, inputs),
+    thresholds = [t.outcome.f1_threshold for t in firsts.values()]
+    return [grid_png(gallery, columns, title, folder / "reconstructions.png", scores, inputs, f1_thresholds=thresholds),
             viewer_html(gallery, columns, title, folder / "reconstructions.html", scores=scores)]
 
 
@@ -265,7 +270,8 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
     else:
         shown = [m for m in (spec.metric.name, partner(spec.metric.name)) if m and m in o.metrics]
         out.append(
-            "At its last evaluation " + ", ".join(f"{metric_label(m)} {rounded(o.metrics[m])}" for m in shown) + "."
+            "At its last evaluation "
+            + ", ".join(f"{metric_label(m, o.f1_threshold)} {rounded(o.metrics[m])}" for m in shown) + "."
         )
         cell = next((r for r in table.records if r["cell"] == o.cell), {})
         delta = cell.get(f"{spec.metric.name} delta")

@@ -240,3 +240,31 @@ def test_a_crash_after_the_parent_run_exists_marks_it_failed(cluster, tmp_path, 
         run.main(argv)
     _, parents, children = _children(uri, "crash")
     assert [p.info.status for p in parents] == ["FAILED"] and children == []
+
+
+def test_a_sweep_at_another_f1_threshold_labels_f1_so_in_its_table_store_and_report(cluster, tmp_path):
+    """``--set eval.f1_threshold=0.02``: the printed table, results.md, each child's tag, param and description,
+    the parent's description and the report's table say F1@0.02; F1@0.01 appears nowhere; the keys stay eval/f1."""
+    from sweeps.results.finished import open_sweep, results_table, trial_records
+
+    argv, uri = _sweep(tmp_path, "name: tau\ngrid: {priors.point_size: [0.02]}\n", "--set", "eval.f1_threshold=0.02")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert run.main(argv) == 0
+    client, parents, children = _children(uri, "tau")
+    record = open_sweep(uri, "tau")
+    texts = {
+        "printed": printed.getvalue(),
+        "results.md": next((tmp_path / "results").rglob("results.md")).read_text(),
+        "parent description": parents[0].data.tags["mlflow.note.content"],
+        "child description": children[0].data.tags["mlflow.note.content"],
+        "report": results_table(record, trial_records(record)).text(),
+    }
+    for name, text in texts.items():
+        flat = " ".join(text.split())
+        assert "F1@0.01" not in flat, name
+        assert "F1@0.02" in flat or name == "parent description", name
+    assert "F1 is F1@0.02 on the squared distance" in " ".join(texts["printed"].split())
+    assert children[0].data.tags["f1"] == "F1@0.02 sq. dist = 0.141421 world"
+    assert children[0].data.params["eval.f1_threshold"] == "0.02"
+    assert "eval/f1" in client.get_run(children[0].info.run_id).data.metrics
