@@ -12,6 +12,7 @@ names the file and the cap. The caps (also in docs/security.md):
 - :func:`annotation_cap`: a decompressed annotation file (``CDM_MAX_ANNOTATION_MIB``, default 256 MiB:
   ~320,000 Co3D frame entries of ~830 bytes);
 - :data:`MAX_JSON_DEPTH`: nesting of any JSON read (Co3D's annotations nest 4 deep);
+- :data:`MAX_INT_DIGITS`: digits of an integer in any JSON read (a 5,001-digit one is named, field and file);
 - :data:`MAX_ARRAY_BYTES`: one ``.npy`` array or ``.npz`` member, from its header before allocation,
   and :data:`MAX_NPZ_BYTES` all members of an ``.npz`` together.
 """
@@ -32,6 +33,7 @@ import numpy as np
 
 __all__ = [
     "MAX_ARRAY_BYTES",
+    "MAX_INT_DIGITS",
     "MAX_JSON_DEPTH",
     "MAX_NPZ_BYTES",
     "MAX_TEXT_BYTES",
@@ -54,6 +56,8 @@ MAX_TEXT_BYTES = 64 * 2**20
 """Most bytes of a JSON or text file read whole (Co3D's largest set list is a few MB)."""
 MAX_JSON_DEPTH = 64
 """Most nesting of ``[`` and ``{`` in any JSON read."""
+MAX_INT_DIGITS = 1000
+"""Most digits of an integer in any JSON read (Python's own ``int()`` stops at 4300, naming nothing)."""
 MAX_ARRAY_BYTES = 512 * 2**20
 """Most bytes of one array read from ``.npy`` or one ``.npz`` member (an 8,192² float64 depth map)."""
 MAX_NPZ_BYTES = 512 * 2**20
@@ -150,9 +154,28 @@ def parse_json(raw: bytes | bytearray, label: str, path: Path) -> Any:
     if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
         raise ValueError(f"{label}: {path} nests {depth} levels deep; JSON read here may nest at most {MAX_JSON_DEPTH}")
     try:
-        return json.loads(raw)
+        return json.loads(raw, parse_int=_bounded_int)
+    except _LongNumber:
+        key = _LONG_NUMBER_KEY.search(raw)
+        field = f"field {key[1].decode(errors='replace')!r}" if key else "a number"
+        raise ValueError(f"{label}: {path}: {field} has more than {MAX_INT_DIGITS} digits; "
+                         f"numbers read here have at most {MAX_INT_DIGITS}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{label}: {path} is not JSON ({exc})") from None
+
+
+class _LongNumber(Exception):
+    """An integer past :data:`MAX_INT_DIGITS` digits in a JSON text."""
+
+
+_LONG_NUMBER_KEY = re.compile(rb'"([^"\\]{1,80})"\s*:\s*-?[0-9]{%d}' % (MAX_INT_DIGITS + 1))
+
+
+def _bounded_int(text: str) -> int:
+    # Python refuses int() past 4300 digits with a message naming neither file nor field.
+    if len(text.lstrip("-")) > MAX_INT_DIGITS:
+        raise _LongNumber
+    return int(text)
 
 
 def read_json(path: Path, label: str, gzipped: bool = False) -> Any:
