@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+import yaml
 
 __all__ = [
     "MAX_ARRAY_BYTES",
@@ -38,6 +39,7 @@ __all__ = [
     "MAX_NPZ_BYTES",
     "MAX_TEXT_BYTES",
     "PLAIN_NAME",
+    "BoundedYamlLoader",
     "annotation_cap",
     "bracket_depth",
     "inside",
@@ -176,6 +178,34 @@ def _bounded_int(text: str) -> int:
     if len(text.lstrip("-")) > MAX_INT_DIGITS:
         raise _LongNumber
     return int(text)
+
+
+class BoundedYamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader whose integers and dates fail as a ``yaml.YAMLError`` at their line and
+    column: an integer of more than :data:`MAX_INT_DIGITS` digits (Python's ``int()`` stops at 4300
+    naming nothing) or a date that does not exist (``2026-02-30``: a bare ``ValueError`` otherwise).
+    Every reader of a YAML file or value (configs, ``--set``, sweep specs) loads with it."""
+
+
+def _bounded_yaml_int(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> int:
+    digits = sum(c.isdigit() for c in str(node.value))
+    if digits > MAX_INT_DIGITS:
+        raise yaml.constructor.ConstructorError(
+            None, None, f"an integer of {digits} digits; numbers read here have at most {MAX_INT_DIGITS}",
+            node.start_mark)
+    return loader.construct_yaml_int(node)
+
+
+def _checked_yaml_timestamp(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> Any:
+    try:
+        return loader.construct_yaml_timestamp(node)
+    except ValueError as exc:
+        raise yaml.constructor.ConstructorError(None, None, f"{node.value!r} is no date ({exc})",
+                                                node.start_mark) from None
+
+
+BoundedYamlLoader.add_constructor("tag:yaml.org,2002:int", _bounded_yaml_int)
+BoundedYamlLoader.add_constructor("tag:yaml.org,2002:timestamp", _checked_yaml_timestamp)
 
 
 def read_json(path: Path, label: str, gzipped: bool = False) -> Any:

@@ -3,7 +3,10 @@ command a user types: ``prepare`` fills only a new, empty or its own ``--out`` a
 scratch files; every tool writes through :func:`cdm.safe_write.write_atomic`, so a link planted where it
 writes is refused and its target left as it was.
 
-Each subprocess costs ~3 s of interpreter start: three cases run in the fast tier, the rest are marked
+Also from section 4, numbers and names read back: a 5,001-digit integer in a config or spec file, and a
+crop named ``².png``, are named in one line.
+
+Each subprocess costs ~3 s of interpreter start: four cases run in the fast tier, the rest are marked
 slow; the depth tool's cases need ``transformers``."""
 
 from __future__ import annotations
@@ -181,3 +184,18 @@ def test_the_depth_tool_refuses_a_folder_link_below_out_and_an_out_that_is_a_fil
     file.write_text("mine")
     assert_refused(run_command([*command, str(file)], tmp_path), f"--out: {file} is a file, not a folder")
     assert file.read_text() == "mine"
+
+
+@pytest.mark.parametrize("kind", ["config", pytest.param("spec", marks=pytest.mark.slow)])
+def test_a_5001_digit_integer_in_a_yaml_file_is_named(tmp_path, kind):
+    huge = "9" * 5001
+    if kind == "config":
+        path = tmp_path / "c.yaml"
+        path.write_text(f"train:\n  steps: {huge}\n")
+        command, said = ["-m", "cdm", "train", "--config", str(path)], f"config file {path}: "
+    else:
+        path = tmp_path / "s.yaml"
+        path.write_text((ROOT / "sweeps" / "point_size.yaml").read_text() + f"\nextra: {huge}\n")
+        command, said = [str(ROOT / "sweeps" / "run.py"), str(path), "--dry-run"], f"{path}: "
+    line = assert_refused(run_command(command, tmp_path), said, "an integer of 5001 digits", "at most 1000")
+    assert huge not in line
