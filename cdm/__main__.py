@@ -205,7 +205,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     bar.close()
     if out_folder is not None:
         print(f"creating folder {out_folder}")
-    out = write_ply(Path(args.out), cloud[0])
+    out = write_ply(Path(args.out), cloud[0], "--out")
     print(f"wrote {cloud.shape[1]} points to {out} (extent {cloud[0].abs().max().item():.3f})")
     return 0
 

@@ -9,7 +9,6 @@ schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Fil
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -23,6 +22,7 @@ from cdm.diffusion import GaussianDiffusion
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.model.state_dicts import checked_state_dict, load_into
 from cdm.runtime import AUTOCAST_DTYPES, resolve_device, resolve_precision
+from cdm.safe_write import make_folder, write_atomic
 from cdm.torch_files import load_tensors
 
 __all__ = [
@@ -82,12 +82,9 @@ class Checkpoint:
 def save_checkpoint(checkpoint: Checkpoint, folder: str | Path) -> Path:
     """Write ``folder/checkpoint.pt`` through a temporary file renamed when complete, so a reader sees
     a whole checkpoint or none; returns the file."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    file = folder / CHECKPOINT_FILE
-    tmp = folder / f".{CHECKPOINT_FILE}.tmp"
-    torch.save({f.name: getattr(checkpoint, f.name) for f in fields(checkpoint)}, tmp)
-    os.replace(tmp, file)
+    file = make_folder(Path(folder), "train.out_dir") / CHECKPOINT_FILE
+    write_atomic(file, lambda out: torch.save({f.name: getattr(checkpoint, f.name) for f in fields(checkpoint)}, out),
+                 "train.out_dir")
     return file
 
 

@@ -20,7 +20,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from cdm.safe_io import MAX_JSON_DEPTH, bracket_depth, read_bounded
+from cdm.safe_io import MAX_JSON_DEPTH, BoundedYamlLoader, bracket_depth, read_bounded
 
 __all__ = [
     "BlendConfig",
@@ -623,14 +623,14 @@ def parse_override(text: str) -> tuple[str, Any]:
         # An alias chain of a few hundred bytes can expand to gigabytes: a value has no need of one.
         if any(isinstance(event, yaml.AliasEvent) for event in yaml.parse(raw, Loader=yaml.SafeLoader)):
             raise ConfigError(f"{key}: YAML aliases (*name) are not allowed in a value; write the value out")
-        value = yaml.safe_load(raw)
+        value = yaml.load(raw, Loader=BoundedYamlLoader)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{key}: cannot parse value {raw!r}: {' '.join(str(exc).split())}") from None
+        raise ConfigError(f"{key}: cannot parse value {raw[:80]!r}: {' '.join(str(exc).split())}") from None
     except RecursionError:  # brackets nested thousands deep; sweeps/run.py refuses them earlier by count
         raise ConfigError(f"{key}: the value is nested too deeply") from None
     except ConfigError:
         raise
-    except ValueError as exc:  # an integer of more digits than Python converts
+    except ValueError as exc:  # a value PyYAML builds but Python refuses
         raise ConfigError(f"{key}: cannot parse value {raw[:40]!r}…: {exc}") from None
     return key.strip(), value
 
@@ -665,13 +665,13 @@ def read_config_file(path: str | Path) -> Any:
         raw = read_bounded(path, "config file")
         if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
             raise ConfigError(f"config file {path}: nested {depth} deep; at most {MAX_JSON_DEPTH}")
-        return yaml.safe_load(raw.decode("utf-8")) or {}
+        return yaml.load(raw.decode("utf-8"), Loader=BoundedYamlLoader) or {}
     except OSError as exc:
         raise ConfigError(f"config file {path}: cannot read ({exc.strerror})") from None
     except UnicodeDecodeError as exc:
         raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start})") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path}: not valid YAML: {exc}") from None
+        raise ConfigError(f"config file {path}: not valid YAML: {' '.join(str(exc).split())}") from None
     except RecursionError:  # PyYAML composes recursively: a planted file nests past Python's stack
         raise ConfigError(f"config file {path}: nested too deeply to be a config") from None
     except ConfigError:

@@ -22,6 +22,7 @@ rescales a prediction before it is scored.
 from __future__ import annotations
 
 import csv
+import io
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -41,6 +42,7 @@ from cdm.digest import json_digest
 from cdm.metrics import ChamferF1, chamfer_f1
 from cdm.model import CDMNetwork
 from cdm.normalise import FRAME_VERSION
+from cdm.safe_write import make_folder, write_atomic
 
 __all__ = [
     "EvalOutput",
@@ -293,27 +295,31 @@ def run_evaluation(
     metrics = _summarise([(r["category"], r["cd"], r["f1"]) for r in rows], "eval")
     metrics.update(eval_set.baseline_metrics)
     if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        table = out_dir / "objects.csv"
-        with table.open("w", newline="") as fh:
-            writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
+        text = io.StringIO(newline="")
+        writer = csv.DictWriter(text, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+        table = make_folder(out_dir, "train.out_dir") / "objects.csv"
+        write_atomic(table, text.getvalue(), "train.out_dir")
         files.append(table)
     return EvalOutput(metrics, rows, files)
 
 
-def write_ply(path: Path, points: Tensor) -> Path:
-    """Write an ``(N, 3)`` cloud as ASCII PLY."""
-    path.parent.mkdir(parents=True, exist_ok=True)
+def write_ply(path: Path, points: Tensor, label: str = "train.out_dir") -> Path:
+    """Write an ``(N, 3)`` cloud as ASCII PLY (:func:`cdm.safe_write.write_atomic`; ``label`` names the
+    option that chose ``path`` in a refusal)."""
+    make_folder(path.parent, label)
     pts = points.detach().cpu().numpy()
     header = (
         f"ply\nformat ascii 1.0\nelement vertex {len(pts)}\n"
         "property float x\nproperty float y\nproperty float z\nend_header\n"
     )
-    with path.open("w") as fh:
-        fh.write(header)
+
+    def write(fh) -> None:
+        fh.write(header.encode())
         np.savetxt(fh, pts, fmt="%.6f")
+
+    write_atomic(path, write, label)
     return path
 
 
@@ -373,7 +379,7 @@ def save_panel(
     # F1's threshold is on the squared distance (cdm/metrics.py): its root in world units.
     fig.suptitle(f"{batch.object_id[j]}   CD×1000 {cd:.2f}   F1@{threshold:g} (sq. dist; {threshold ** 0.5:g} world) "
                  f"{f1:.3f}", fontsize=12)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
+    make_folder(path.parent, "train.out_dir")
+    write_atomic(path, lambda fh: fig.savefig(fh, format="png", dpi=100, bbox_inches="tight"), "train.out_dir")
     plt.close(fig)
     return path

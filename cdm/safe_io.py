@@ -12,6 +12,7 @@ names the file and the cap. The caps (also in docs/security.md):
 - :func:`annotation_cap`: a decompressed annotation file (``CDM_MAX_ANNOTATION_MIB``, default 256 MiB:
   ~320,000 Co3D frame entries of ~830 bytes);
 - :data:`MAX_JSON_DEPTH`: nesting of any JSON read (Co3D's annotations nest 4 deep);
+- :data:`MAX_INT_DIGITS`: digits of an integer in any JSON read (a 5,001-digit one is named, field and file);
 - :data:`MAX_ARRAY_BYTES`: one ``.npy`` array or ``.npz`` member, from its header before allocation,
   and :data:`MAX_NPZ_BYTES` all members of an ``.npz`` together.
 """
@@ -29,13 +30,16 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+import yaml
 
 __all__ = [
     "MAX_ARRAY_BYTES",
+    "MAX_INT_DIGITS",
     "MAX_JSON_DEPTH",
     "MAX_NPZ_BYTES",
     "MAX_TEXT_BYTES",
     "PLAIN_NAME",
+    "BoundedYamlLoader",
     "annotation_cap",
     "bracket_depth",
     "inside",
@@ -54,6 +58,8 @@ MAX_TEXT_BYTES = 64 * 2**20
 """Most bytes of a JSON or text file read whole (Co3D's largest set list is a few MB)."""
 MAX_JSON_DEPTH = 64
 """Most nesting of ``[`` and ``{`` in any JSON read."""
+MAX_INT_DIGITS = 1000
+"""Most digits of an integer in any JSON read (Python's own ``int()`` stops at 4300, naming nothing)."""
 MAX_ARRAY_BYTES = 512 * 2**20
 """Most bytes of one array read from ``.npy`` or one ``.npz`` member (an 8,192² float64 depth map)."""
 MAX_NPZ_BYTES = 512 * 2**20
@@ -150,9 +156,56 @@ def parse_json(raw: bytes | bytearray, label: str, path: Path) -> Any:
     if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
         raise ValueError(f"{label}: {path} nests {depth} levels deep; JSON read here may nest at most {MAX_JSON_DEPTH}")
     try:
-        return json.loads(raw)
+        return json.loads(raw, parse_int=_bounded_int)
+    except _LongNumber:
+        key = _LONG_NUMBER_KEY.search(raw)
+        field = f"field {key[1].decode(errors='replace')!r}" if key else "a number"
+        raise ValueError(f"{label}: {path}: {field} has more than {MAX_INT_DIGITS} digits; "
+                         f"numbers read here have at most {MAX_INT_DIGITS}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{label}: {path} is not JSON ({exc})") from None
+
+
+class _LongNumber(Exception):
+    """An integer past :data:`MAX_INT_DIGITS` digits in a JSON text."""
+
+
+_LONG_NUMBER_KEY = re.compile(rb'"([^"\\]{1,80})"\s*:\s*-?[0-9]{%d}' % (MAX_INT_DIGITS + 1))
+
+
+def _bounded_int(text: str) -> int:
+    # Python refuses int() past 4300 digits with a message naming neither file nor field.
+    if len(text.lstrip("-")) > MAX_INT_DIGITS:
+        raise _LongNumber
+    return int(text)
+
+
+class BoundedYamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader whose integers and dates fail as a ``yaml.YAMLError`` at their line and
+    column: an integer of more than :data:`MAX_INT_DIGITS` digits (Python's ``int()`` stops at 4300
+    naming nothing) or a date that does not exist (``2026-02-30``: a bare ``ValueError`` otherwise).
+    Every reader of a YAML file or value (configs, ``--set``, sweep specs) loads with it."""
+
+
+def _bounded_yaml_int(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> int:
+    digits = sum(c.isdigit() for c in str(node.value))
+    if digits > MAX_INT_DIGITS:
+        raise yaml.constructor.ConstructorError(
+            None, None, f"an integer of {digits} digits; numbers read here have at most {MAX_INT_DIGITS}",
+            node.start_mark)
+    return loader.construct_yaml_int(node)
+
+
+def _checked_yaml_timestamp(loader: yaml.SafeLoader, node: yaml.ScalarNode) -> Any:
+    try:
+        return loader.construct_yaml_timestamp(node)
+    except ValueError as exc:
+        raise yaml.constructor.ConstructorError(None, None, f"{node.value!r} is no date ({exc})",
+                                                node.start_mark) from None
+
+
+BoundedYamlLoader.add_constructor("tag:yaml.org,2002:int", _bounded_yaml_int)
+BoundedYamlLoader.add_constructor("tag:yaml.org,2002:timestamp", _checked_yaml_timestamp)
 
 
 def read_json(path: Path, label: str, gzipped: bool = False) -> Any:

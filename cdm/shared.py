@@ -17,7 +17,6 @@ them), so one set of round files serves every seed.
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import torch
@@ -29,6 +28,7 @@ from cdm.data.sample import Batch, ConditionViews, Sample, collate
 from cdm.data.views import ObjectDataset
 from cdm.digest import json_digest
 from cdm.evaluate import EvalSet, build_eval_set
+from cdm.safe_write import make_folder, write_atomic
 
 __all__ = ["SharedStore", "SharedViews", "eval_key", "rounds_needed", "views_key"]
 
@@ -102,10 +102,8 @@ def _batch(d: dict) -> Batch:
 
 
 def _save(obj: object, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)  # atomic: readers see the whole file or none
+    # Atomic (cdm.safe_write): the runs reading it see the whole file or none.
+    write_atomic(make_folder(path.parent, "shared cache") / path.name, lambda f: torch.save(obj, f), "shared cache")
 
 
 class SharedStore:

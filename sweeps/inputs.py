@@ -27,10 +27,11 @@ if __package__ in (None, ""):  # `python sweeps/inputs.py` puts sweeps/ first on
 from cdm.config import load_config, parse_override
 from cdm.data import DATASETS
 from cdm.data.captured import CapturedDataset
-from cdm.data.prepare import start
+from cdm.data.prepare import check_out, start
 from cdm.external_inputs import MSN_URL
 from cdm.model.encoder import load_msn_state_dict, sha256_file
 from cdm.safe_io import read_json
+from cdm.safe_write import write_atomic
 from cdm.tools.estimate_depth import find_views
 from cdm.tools.export_views import export_views
 
@@ -99,7 +100,7 @@ def _msn(inputs: Path) -> str | None:
         load_msn_state_dict(path)
     if seen.setdefault("msn_sha256", digest) != digest:
         return f"{path} changed since it was first checked (sha256 {seen['msn_sha256']}, now {digest})"
-    record.write_text(json.dumps(seen, indent=1))
+    write_atomic(record, json.dumps(seen, indent=1), "--inputs")
     print(f"MSN ViT-S/16 weights: {path}, sha256 {digest}")
     return None
 
@@ -119,6 +120,7 @@ def _all(args: argparse.Namespace) -> tuple[list, str | None]:
     inputs = Path(args.inputs)
     views = inputs / "views" / args.data_kind
     args.depth_out = str(inputs / "depth_maps")
+    check_out(Path(args.out).expanduser())  # before the status walks it
     _status(args, views, Path(args.out))
     missing = _msn(inputs)
     failures = _shards(args)

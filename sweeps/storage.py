@@ -23,7 +23,6 @@ Each refusal is a :class:`StoreError` of one line naming the URI or file and wha
 
 from __future__ import annotations
 
-import errno
 import hashlib
 import json
 import os
@@ -36,6 +35,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from cdm.safe_write import write_atomic
 from sweeps.store_retry import StoreBusy, check_not_locked
 
 __all__ = [
@@ -285,30 +285,17 @@ def private_folder(path: Path) -> Path:
 
 
 def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
-    """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent), never through a link standing
-    at ``path``: a symbolic link (``O_NOFOLLOW``) or a second name of another file (a hard link) is refused,
-    its target untouched.
+    """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent) through the one no-follow atomic
+    writer (:func:`cdm.safe_write.write_atomic`): a symbolic link or a second name of another file (a hard
+    link) standing at ``path`` is refused, its target untouched.
 
     Raises:
         StoreError: naming ``path``.
     """
     try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, mode)
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            raise StoreError(
-                f"{path}: a symbolic link where this sweep writes a file; remove it (a write never follows one)"
-            ) from None
-        raise
-    with os.fdopen(fd, "wb" if isinstance(text, bytes) else "w") as out:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
-            raise StoreError(
-                f"{path}: not a plain file with one name ({info.st_nlink} links) where this sweep writes a file; "
-                "remove it"
-            )
-        os.ftruncate(fd, 0)
-        out.write(text)
+        write_atomic(path, text, "sweep", mode=mode)
+    except ValueError as exc:
+        raise StoreError(str(exc)) from None
 
 
 def write_private(path: Path, text: str) -> None:
@@ -399,8 +386,7 @@ def record_digest(sweep_dir: str) -> None:
     """Note, where only this user writes, the digests of an object-store sweep's Tune state as this driver
     leaves it, so the next ``--resume`` can tell it untouched (:func:`check_resume_trust`)."""
     record = _digest_file(sweep_dir)
-    write_private(record.with_suffix(".tmp"), json.dumps(_tune_state_digests(sweep_dir)))
-    record.with_suffix(".tmp").replace(record)
+    write_private(record, json.dumps(_tune_state_digests(sweep_dir)))
 
 
 def check_resume_trust(sweep_dir: str) -> None:

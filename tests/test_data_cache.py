@@ -10,7 +10,7 @@ import torch
 from cdm.__main__ import main
 from cdm.config import load_config
 from cdm.data import build_dataset
-from cdm.data.cache import DECODED, MANIFEST, read_shard
+from cdm.data.cache import DECODED, MANIFEST, SCRATCH, read_shard
 from cdm.train import Trainer
 from tests.conftest import tiny_config
 from tests.datasets_fixtures import make_co3d, make_shapenet
@@ -94,12 +94,15 @@ def test_prepare_resumes_and_never_leaves_partial_files(trees, tmp_path, capsys)
     assert len(shards) == 6 and (out / MANIFEST).is_file()  # 2 categories × (2 train + 1 val)
     stamps = {p: p.stat().st_mtime_ns for p in shards}
     shards[0].unlink()
-    stale = shards[1].with_name(f".{shards[1].name}.tmp-99999")  # what a killed run leaves behind
+    stale = out / SCRATCH / f".{shards[1].name}.tmp-0123456789abcdef"  # what a killed run leaves behind
     stale.write_bytes(b"half")
+    foreign = shards[1].with_name(".notes.tmp-2026")  # another program's file: not prepare's to remove
+    foreign.write_bytes(b"mine")
     capsys.readouterr()
     assert _prepare("shapenet_r2n2", trees["shapenet_r2n2"], out) == 0
     assert "1 shards written, 5 already complete" in capsys.readouterr().out
-    assert shards[0].is_file() and not stale.exists()
+    assert shards[0].is_file() and not stale.exists() and foreign.read_bytes() == b"mine"
+    assert not list((out / SCRATCH).iterdir())
     assert all(p.stat().st_mtime_ns == t for p, t in stamps.items() if p != shards[0])
     # Another preparation into the same folder is refused rather than mixed in.
     assert _prepare("shapenet_r2n2", trees["shapenet_r2n2"], out, size=32) == 2

@@ -138,6 +138,7 @@ def _state_folder(tmp_path, text: str | bytes, name: str = "seed-searcher-2026-1
         ),
         ('{"proposed": {}, "spent_s": NaN}', "spent_s nan is not a finite number"),
         ('{"proposed": [], "spent_s": 1}', 'expected {"proposed"'),
+        ('{"proposed": {}, "spent_s": ' + "9" * 5001 + "}", "field 'spent_s' has more than 1000 digits"),
     ],
 )
 def test_a_damaged_or_oversized_searcher_state_is_refused_before_tune_restores_it(tmp_path, text, said):
@@ -189,7 +190,7 @@ def test_restore_asks_mlflow_a_bounded_number_of_times_whatever_the_file_says(tm
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("damage", ["truncated", "a million entries"])
+@pytest.mark.parametrize("damage", ["truncated", "a million entries", "a 5,001-digit number"])
 def test_resume_with_a_damaged_searcher_state_exits_2_and_runs_no_seed_again(tmp_path, damage):
     """Through the command a user types: `python sweeps/run.py SPEC --resume`, a sweep folder whose searcher
     state was damaged after seed 0 finished. Tune would have restored a fresh searcher and run seed 0
@@ -215,8 +216,9 @@ def test_resume_with_a_damaged_searcher_state_exits_2_and_runs_no_seed_again(tmp
             }
         )
     )
-    text = ('{"proposed": {"t0": "' if damage == "truncated"
-            else json.dumps({"proposed": {f"t{i}": str(i) for i in range(10**6)}, "spent_s": 1.0}))
+    text = {"truncated": '{"proposed": {"t0": "',
+            "a million entries": json.dumps({"proposed": {f"t{i}": str(i) for i in range(10**6)}, "spent_s": 1.0}),
+            "a 5,001-digit number": '{"proposed": {}, "spent_s": ' + "9" * 5001 + "}"}[damage]
     (folder / "seed-searcher-2026-12-04_20-00-00.json").write_text(text)
     outcome = run_command(
         [
@@ -233,7 +235,8 @@ def test_resume_with_a_damaged_searcher_state_exits_2_and_runs_no_seed_again(tmp
         timeout=300,
     )
     assert_refused(
-        outcome, "--resume: ", "seed-searcher-2026-12-04_20-00-00.json", "without it a finished seed could run again"
+        outcome, "--resume: ", "seed-searcher-2026-12-04_20-00-00.json", "without it a finished seed could run again",
+        *(["field 'spent_s' has more than 1000 digits"] if damage == "a 5,001-digit number" else []),
     )
     children = sweep_run.client.search_runs(
         [sweep_run.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{sweep_run.run_id}'"

@@ -134,7 +134,7 @@ def test_results_files_are_never_written_through_a_planted_link(tmp_path, plant)
     victim = tmp_path / "victim.txt"
     victim.write_text("precious\n")
     (folder / "results.md").symlink_to(victim) if plant == "symlink" else os.link(victim, folder / "results.md")
-    with pytest.raises(StoreError, match="symbolic link where this sweep writes" if plant == "symlink" else "2 links"):
+    with pytest.raises(StoreError, match="symbolic link where this command" if plant == "symlink" else "2 links"):
         table.write(folder)
     assert victim.read_text() == "precious\n"
 
@@ -161,7 +161,7 @@ def test_settle_json_plots_and_the_viewer_are_never_written_through_a_planted_li
     assert clean.stat().st_size > 0
     planted = tmp_path / "planted"
     planted.symlink_to(victim)
-    with pytest.raises(StoreError, match="symbolic link where this sweep writes"):
+    with pytest.raises(StoreError, match="symbolic link where this command writes"):
         write(planted)
     assert victim.read_text() == "precious\n"
 

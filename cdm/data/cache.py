@@ -7,22 +7,22 @@ object of the training split and of ``data.eval_split`` once and writes
   frame (:mod:`cdm.normalise`) and every input view of the split already cropped and resized
   (``--image-size``, 224 by default):
   RGB and mask as uint8, depth as the published float16 values with their scale, and the crop camera;
-- ``OUT/cdm_prepared.json``: the manifest (kind, image size, categories, objects per split).
+- ``OUT/cdm_prepared.json``: the manifest (kind, image size, categories, objects per split);
+- ``OUT/.cdm_prepare_scratch/``: the temporary files of shards being written (:data:`SCRATCH`).
 
 A shard is one file: 8 magic bytes, a little-endian uint64 header length, a JSON header (``meta`` and
 each array's dtype, shape and offset), then the arrays, each aligned to 64 bytes. Reading maps the
 file and copies only the view asked for, so a sample costs one small read instead of decoding a
 JPEG, a PNG mask, a 16-bit depth PNG and a PLY. Every file is written under a temporary name and
 renamed when complete (a crash leaves no half-written shard); preparing again skips finished
-shards, so an interrupted run resumes. Point ``data.root`` at ``OUT`` to train from it.
+shards and empties the scratch folder of what a killed run left, so an interrupted run resumes.
+Point ``data.root`` at ``OUT`` to train from it.
 """
 
 from __future__ import annotations
 
 import json
 import mmap
-import os
-from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 from typing import NamedTuple
@@ -35,16 +35,17 @@ from cdm.cameras import Cameras
 from cdm.data.lru import ByteLRU
 from cdm.data.views import interleave
 from cdm.safe_io import MAX_TEXT_BYTES, object_id_parts, open_regular, parse_json, read_json
+from cdm.safe_write import write_atomic
 
 __all__ = [
     "DECODED",
     "ESTIMATED_DEPTHS",
     "FORMAT",
     "MANIFEST",
+    "SCRATCH",
     "ObjectRecord",
     "PreparedRoot",
     "ViewImages",
-    "atomic_write",
     "is_prepared",
     "read_shard",
     "write_shard",
@@ -55,6 +56,9 @@ MANIFEST = "cdm_prepared.json"
 FORMAT = 2
 """Version of the manifest and shards; 2: clouds and cameras in the data set's frame, not the object's box
 (roots of format 1 are refused: prepare them again)."""
+SCRATCH = ".cdm_prepare_scratch"
+"""Folder in a prepared root holding the temporary files of shards being written: the only place
+``prepare`` removes files it finds (:data:`cdm.safe_write.TEMP_NAME` names only)."""
 ESTIMATED_DEPTHS = "estimated_depths"
 """Shard array (and manifest key) of the estimated depth maps stored by ``prepare --depth-maps``."""
 _MAGIC = b"CDMSHRD1"
@@ -112,19 +116,9 @@ and the decoding (data set, root, object, view, size). A sweep runs its cells on
 reused worker processes, so later cells find their images here."""
 
 
-def atomic_write(path: Path, write: Callable[[object], None]) -> None:
-    """Write ``path`` through a temporary sibling renamed when complete; nothing half-written remains."""
-    temp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(temp, "wb") as f:
-            write(f)
-        os.replace(temp, path)
-    finally:
-        temp.unlink(missing_ok=True)
-
-
-def write_shard(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
-    """Write one shard (format in the module docstring) atomically."""
+def write_shard(path: Path, arrays: dict[str, np.ndarray], meta: dict, scratch: Path) -> None:
+    """Write one shard (format in the module docstring) atomically, its temporary file in ``scratch``
+    (:func:`cdm.safe_write.write_atomic`)."""
     layout, offset = {}, 0
     for name, array in arrays.items():
         layout[name] = {"dtype": array.dtype.str, "shape": list(array.shape), "offset": offset}
@@ -139,7 +133,7 @@ def write_shard(path: Path, arrays: dict[str, np.ndarray], meta: dict) -> None:
             f.write(np.ascontiguousarray(array).tobytes())
         f.truncate(start + offset)
 
-    atomic_write(path, write)
+    write_atomic(path, write, "--out", scratch=scratch)
 
 
 class Shard(NamedTuple):

@@ -9,6 +9,7 @@ this process, or :func:`start` once and :func:`write_object` per object wherever
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import NamedTuple
 
@@ -20,17 +21,18 @@ from cdm.data.cache import (
     ESTIMATED_DEPTHS,
     FORMAT,
     MANIFEST,
+    SCRATCH,
     ObjectRecord,
     ViewImages,
-    atomic_write,
     is_prepared,
     write_shard,
 )
 from cdm.data.captured import CapturedDataset
 from cdm.data.depth_maps import DepthMaps
 from cdm.safe_io import read_json
+from cdm.safe_write import TEMP_NAME, make_folder, write_atomic
 
-__all__ = ["PrepareReport", "Preparation", "prepare", "shard_path", "start", "write_object"]
+__all__ = ["PrepareReport", "Preparation", "check_out", "prepare", "shard_path", "start", "write_object"]
 
 
 class PrepareReport(NamedTuple):
@@ -61,6 +63,51 @@ def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, n
     return arrays
 
 
+_PROJECT = Path(__file__).resolve().parents[2]
+
+
+def check_out(out: Path) -> None:
+    """Refuse an ``--out`` that ``prepare`` may not fill: the file system's root, the home folder, this
+    project's folder, a file, or a folder holding anything but a root ``prepare`` made (its manifest).
+    Filling a folder of other files would mix them into a data root."""
+    where = out.resolve()
+    for forbidden, what in ((Path(where.anchor), "the file system's root"), (Path.home().resolve(), "the home folder"),
+                            (_PROJECT, "this project's folder")):
+        if where == forbidden:
+            raise ValueError(f"--out: {out} is {what}; prepare into a new folder")
+    if not where.exists():
+        return
+    if not where.is_dir():
+        raise ValueError(f"--out: {out} is a file, not a folder; give a new or empty folder")
+    try:
+        with os.scandir(where) as entries:
+            occupied = next(entries, None) is not None
+    except OSError as exc:
+        raise ValueError(f"--out: cannot read the folder {out}: {exc.strerror}") from None
+    if occupied and not is_prepared(where):
+        raise ValueError(f"--out: {out} holds files and no {MANIFEST} (not a root `prepare` made); "
+                         "give a new or empty folder, or the --out of an earlier prepare to resume it")
+
+
+def _clear_scratch(out: Path) -> Path:
+    """``out``'s scratch folder (:data:`cdm.data.cache.SCRATCH`), emptied of the temporary files a killed
+    run left: they were never renamed, so never complete. Nothing else is removed, and nothing is
+    followed: the folder is opened without following a link, and only names it made are unlinked."""
+    scratch = make_folder(out / SCRATCH, "--out")
+    try:
+        fd = os.open(scratch, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError as exc:
+        raise ValueError(f"--out: {scratch} is not the folder prepare keeps temporary files in "
+                         f"({exc.strerror}); remove it") from None
+    try:
+        for entry in os.scandir(fd):
+            if TEMP_NAME.fullmatch(entry.name) and not entry.is_dir(follow_symlinks=False):
+                os.unlink(entry.name, dir_fd=fd)
+    finally:
+        os.close(fd)
+    return scratch
+
+
 class Preparation(NamedTuple):
     """A checked preparation (:func:`start`): both splits indexed, the manifest written into ``out``.
 
@@ -72,6 +119,7 @@ class Preparation(NamedTuple):
     splits: list[CapturedDataset]
     maps: DepthMaps | None
     image_size: int
+    scratch: Path
 
 
 def start(dataset: type[CapturedDataset], cfg: Config, out: Path, depth_maps: Path | None = None) -> Preparation:
@@ -82,12 +130,16 @@ def start(dataset: type[CapturedDataset], cfg: Config, out: Path, depth_maps: Pa
     which ``priors.depth_source: maps`` reads when ``priors.depth_maps`` is not set.
 
     Reads the training split and ``data.eval_split`` of ``data.categories`` at ``data.image_size``.
-    Both splits are indexed (and every path checked) before anything is written. Shards already in
-    ``out`` from an interrupted run of the same command are kept; temporary files it left are removed.
+    Both splits are indexed (and every path checked) before anything is written. ``out`` must be new,
+    empty or a root ``prepare`` made (:func:`check_out`). Shards already in it from an interrupted run
+    of the same command are kept; the temporary files it left in its scratch folder are removed.
 
     Raises:
-        ValueError: bad root, annotation, category or image (named), or ``out`` prepared differently.
+        ValueError: bad root, annotation, category or image (named), ``out`` refused by :func:`check_out`,
+            prepared differently, or not writable.
     """
+    out = out.expanduser()
+    check_out(out)
     root = Path(cfg.data.root).expanduser() if cfg.data.root is not None else None
     if root is not None and is_prepared(root):
         raise ValueError(f"--root: {root} is already a prepared root; point --root at the published data set")
@@ -103,7 +155,6 @@ def start(dataset: type[CapturedDataset], cfg: Config, out: Path, depth_maps: Pa
         maps = DepthMaps(depth_maps, cfg.priors.depth_maps_disparity)
         maps.require(ref.object_id for ds in splits for ref in ds.objects)
         manifest[ESTIMATED_DEPTHS] = str(maps.folder)
-    out = out.expanduser()
     if is_prepared(out):
         earlier = read_json(out / MANIFEST, "--out")
         if earlier != manifest:
@@ -112,11 +163,9 @@ def start(dataset: type[CapturedDataset], cfg: Config, out: Path, depth_maps: Pa
                 f"--out: {out} holds a different preparation (kind {said.get('kind')}, image size "
                 f"{said.get('image_size')}, {said.get('categories')}); choose another --out"
             )
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in out.rglob(".*.tmp-*"):  # left by a killed run: never renamed, so never complete
-        stale.unlink()
-    atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(manifest, indent=1).encode()))
-    return Preparation(out, splits, maps, cfg.data.image_size)
+    make_folder(out, "--out")
+    write_atomic(out / MANIFEST, json.dumps(manifest, indent=1), "--out")
+    return Preparation(out, splits, maps, cfg.data.image_size, _clear_scratch(out))
 
 
 def shard_path(prep: Preparation, split: int, index: int) -> Path:
@@ -139,14 +188,14 @@ def write_object(prep: Preparation, split: int, index: int) -> bool:
     if path.is_file():
         return False
     ds, ref = prep.splits[split], prep.splits[split].objects[index]
-    path.parent.mkdir(parents=True, exist_ok=True)
+    make_folder(path.parent, "--out")
     record, views = ds.export(index)
     arrays = _object_arrays(record, views)
     if prep.maps is not None:
         arrays[ESTIMATED_DEPTHS] = np.stack(
             [prep.maps.read(ref.object_id, p, prep.image_size)[0].numpy() for p in record.views.tolist()])
     write_shard(path, arrays, {"object_id": ref.object_id, "category": ref.category, "scale": record.scale,
-                               "image_size": prep.image_size})
+                               "image_size": prep.image_size}, prep.scratch)
     return True
 
 

@@ -35,10 +35,11 @@ import cv2
 import numpy as np
 import torch
 
-from cdm.data.cache import atomic_write
 from cdm.data.depth_maps import ESTIMATOR_FILE
 from cdm.data.images import read_image
 from cdm.safe_io import read_json
+from cdm.safe_write import make_folder, write_atomic
+from cdm.tools.export_views import crops
 
 __all__ = ["Estimator", "View", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"]
 
@@ -120,8 +121,7 @@ def find_views(views: Path) -> list[View]:
         folder = views / object_id
         if not folder.resolve().is_relative_to(views.resolve()):
             raise ValueError(f"--views: {index} names object {object_id!r}, a path outside {views}")
-        found += sorted((View(object_id, int(p.stem), p) for p in folder.glob("*.png") if p.stem.isdigit()),
-                        key=lambda v: v.position)
+        found += [View(object_id, position, path) for position, path in crops(folder, "--views")]
     if not found:
         raise ValueError(f"--views: {views} holds no <object_id>/<position>.png crops; export_views writes them "
                          "for captured data sets (shapenet_r2n2, co3d)")
@@ -149,24 +149,23 @@ def estimate(estimator: Estimator, images: Sequence[np.ndarray]) -> list[np.ndar
     return maps
 
 
-def _save(path: Path, array: np.ndarray) -> None:
+def _save(out: Path, view: View, array: np.ndarray) -> None:
     """Write atomically, so a killed run leaves no half-written map under the final name."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda f: np.save(f, array.astype(np.float32)))
+    path = make_folder(out / view.object_id, "--out") / f"{view.position}.npy"
+    write_atomic(path, lambda f: np.save(f, array.astype(np.float32)), "--out", within=out)
 
 
 def write_manifest(out: Path, name: str, disparity: bool) -> None:
     """``<out>/estimator.json``; ``ValueError`` if ``out`` already holds maps of another model or kind."""
     record = {"model": name, "disparity": disparity}
-    path = out / ESTIMATOR_FILE
-    if path.is_file():
+    path = make_folder(out, "--out") / ESTIMATOR_FILE
+    if path.is_file() and not path.is_symlink():
         earlier = read_json(path, "--out")
         if earlier != record:
             earlier = earlier if isinstance(earlier, dict) else {}
             raise ValueError(f"--out: {out} holds maps of {earlier.get('model')!r} (disparity "
                              f"{earlier.get('disparity')}); choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(record, indent=1))
+    write_atomic(path, json.dumps(record, indent=1), "--out")
 
 
 def write_maps(estimator: Estimator, views: Sequence[View], out: Path, batch_size: int = 8,
@@ -179,7 +178,7 @@ def write_maps(estimator: Estimator, views: Sequence[View], out: Path, batch_siz
         for start in range(0, len(todo), batch_size):
             batch = todo[start:start + batch_size]
             for view, depth in zip(batch, estimate(estimator, [_read_rgb(v.image) for v in batch])):
-                _save(out / view.object_id / f"{view.position}.npy", depth)
+                _save(out, view, depth)
             bar.update(len(batch))
     return len(todo)
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import partial
 from pathlib import Path
 
 import cv2
@@ -28,14 +29,35 @@ import torch
 from torch import Tensor
 
 from cdm.config import load_config, parse_override
+from cdm.safe_write import make_folder, write_atomic
 
-__all__ = ["export_views", "main"]
+__all__ = ["crops", "export_views", "main"]
 
 
-def _png(path: Path, image: Tensor) -> None:
+def crops(folder: Path, label: str) -> list[tuple[int, Path]]:
+    """``(position, path)`` of the crops ``<position>.png`` in ``folder``, by position; other names are
+    not crops. A name of digits from another script (``².png``: ``str.isdigit`` takes it, ``int``
+    refuses it) is refused, naming the file."""
+    found = []
+    for path in folder.glob("*.png"):
+        if path.stem.isascii() and path.stem.isdigit():
+            found.append((int(path.stem), path))
+        elif path.stem.isdigit():
+            raise ValueError(f"{label}: {path} is named with digits other than 0-9; crops are named "
+                             "<position>.png with ASCII digits")
+    return sorted(found)
+
+
+def _write_png(path: Path, array: np.ndarray, out: Path) -> None:
+    """``(S, S, 3)`` RGB or ``(S, S)`` uint8 as a PNG at ``path``, through the no-follow writer."""
+    encoded = cv2.imencode(".png", cv2.cvtColor(array, cv2.COLOR_RGB2BGR) if array.ndim == 3 else array)[1]
+    write_atomic(path, encoded.tobytes(), "--out", within=out)
+
+
+def _png(path: Path, image: Tensor, out: Path) -> None:
     """``(C, S, S)`` in [0, 1] → 8-bit PNG (C = 1 or 3)."""
     array = (image.clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
-    cv2.imwrite(str(path), cv2.cvtColor(array, cv2.COLOR_RGB2BGR) if array.shape[-1] == 3 else array)
+    _write_png(path, array if array.shape[-1] == 3 else array[..., 0], out)
 
 
 def export_views(cfg, out: Path, rounds: int = 1) -> int:
@@ -54,29 +76,29 @@ def export_views(cfg, out: Path, rounds: int = 1) -> int:
             folder = out / ref.object_id
             if isinstance(ds, CapturedDataset):
                 record = ds.surface(index)
-                folder.mkdir(parents=True, exist_ok=True)
+                make_folder(folder, "--out")
                 for v, position in enumerate(record.views.tolist()):
                     view = ds.view(index, v)
-                    cv2.imwrite(str(folder / f"{position}.png"), cv2.cvtColor(view.image, cv2.COLOR_RGB2BGR))
-                    cv2.imwrite(str(folder / f"{position}.mask.png"), view.mask)
+                    _write_png(folder / f"{position}.png", view.image, out)
+                    _write_png(folder / f"{position}.mask.png", view.mask, out)
                     written += 1
                 continue
             surface = ds.surface(index)
             k = cfg.data.condition_views
             for r in range(rounds if split == "train" else 1):
                 base = ds.drawn_view(index, r)
-                (folder / str(r)).mkdir(parents=True, exist_ok=True)
+                make_folder(folder / str(r), "--out")
                 for j in range(k + 1):
                     shot = render_view(surface, base._replace(azim=base.azim + 360.0 * j / (k + 1)), size, 1)
                     stem = folder / str(r) / str(j)
-                    _png(stem.with_suffix(".png"), shot.image)
-                    _png(stem.with_name(f"{j}.mask.png"), shot.mask)
-                    np.save(stem.with_name(f"{j}.depth.npy"), shot.depth[0].numpy())
+                    _png(stem.with_suffix(".png"), shot.image, out)
+                    _png(stem.with_name(f"{j}.mask.png"), shot.mask, out)
+                    write_atomic(stem.with_name(f"{j}.depth.npy"), partial(np.save, arr=shot.depth[0].numpy()), "--out",
+                                 within=out)
                     points = splat_points(surface.cloud[None], shot.view_cameras, size, cfg.priors.point_size, "planar")
-                    _png(stem.with_name(f"{j}.points.png"), points[:1])
+                    _png(stem.with_name(f"{j}.points.png"), points[:1], out)
                     written += 1
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "objects.json").write_text(json.dumps(categories, indent=1))
+    write_atomic(make_folder(out, "--out") / "objects.json", json.dumps(categories, indent=1), "--out")
     return written
 
 

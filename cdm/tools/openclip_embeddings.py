@@ -24,14 +24,16 @@ from pathlib import Path
 import numpy as np
 
 from cdm.safe_io import load_npy, object_id_parts, read_json
+from cdm.safe_write import write_atomic
+from cdm.tools.export_views import crops
 
 __all__ = ["main"]
 
 
 def _reference(folder: Path) -> Path:
     """The reference view's image of one object folder (module docstring)."""
-    flat = sorted((p for p in folder.glob("*.png") if p.stem.isdigit()), key=lambda p: int(p.stem))
-    return flat[0] if flat else folder / "0" / "0.png"
+    flat = crops(folder, "--views")
+    return flat[0][1] if flat else folder / "0" / "0.png"
 
 
 def _depth_image(path: Path):
@@ -82,7 +84,11 @@ def main(argv: list[str] | None = None) -> int:
                     picture = _depth_image(ref.with_name(f"{ref.stem}.depth.npy"))
                 vector = model.encode_image(preprocess(picture)[None])[0]
             out[object_id] = (vector / vector.norm()).float().numpy()
-    np.savez(args.out, **out)
+    try:
+        write_atomic(args.out, lambda f: np.savez(f, **out), "--out")
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {len(out)} {args.kind} embeddings ({next(iter(out.values())).shape[0]} dims) to {args.out}")
     return 0
 

@@ -22,6 +22,7 @@ from typing import Any
 from ray.tune.search import Searcher
 
 from cdm.safe_io import parse_json
+from cdm.safe_write import write_atomic
 from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.execute.logged_runs import last_objects
 from sweeps.execute.tracking import SweepRun
@@ -160,8 +161,8 @@ class SeedSearcher(Searcher):
 
     def save(self, checkpoint_path: str) -> None:
         # JSON, not a pickle: a restored searcher reads its proposals here and the results from MLflow.
-        with open(checkpoint_path, "w") as out:
-            json.dump({"proposed": self.proposed, "spent_s": self._spent()}, out)
+        write_atomic(Path(checkpoint_path), json.dumps({"proposed": self.proposed, "spent_s": self._spent()}),
+                     "searcher state")
 
     def restore(self, checkpoint_path: str) -> None:
         """Proposals from ``checkpoint_path`` (checked as :func:`check_searcher_state` checked it before

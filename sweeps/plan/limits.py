@@ -26,7 +26,7 @@ from typing import Any, TextIO
 
 import yaml
 
-from cdm.safe_io import read_bounded
+from cdm.safe_io import BoundedYamlLoader, read_bounded
 
 __all__ = [
     "MAX_SET_CHARS",
@@ -106,7 +106,7 @@ def load_yaml(path: Path) -> Any:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise LimitError(f"{path}: not UTF-8 text (byte {exc.start}); give a YAML spec file") from None
-    loader = yaml.SafeLoader(text)
+    loader = BoundedYamlLoader(text)
     try:
         node = loader.get_single_node()
         if node is None:
