@@ -44,6 +44,23 @@ def display_width(text: str) -> int:
     return sum(0 if unicodedata.combining(c) else 2 if unicodedata.east_asian_width(c) in "WF" else 1 for c in text)
 
 
+_WHOLE = "[95% CI]"
+"""A header's words a wrap keeps on one line."""
+
+
+def _bytes(line: str) -> int:
+    return len(line.encode())
+
+
+def _fill(text: str, width: int, indent: str = "") -> str:
+    """``text`` wrapped so that every line is at most ``width`` UTF-8 bytes (λ, ±, ★ are two or three)."""
+    for room in range(width, width // 2, -1):
+        filled = textwrap.fill(text, room, subsequent_indent=indent)
+        if max(map(_bytes, filled.splitlines())) <= width:
+            return filled
+    return filled
+
+
 @dataclass(frozen=True)
 class ResultsTable:
     """Formatted rows (``header`` columns) plus per-column numbers for the CSV."""
@@ -72,31 +89,19 @@ class ResultsTable:
                 if (names is None or h in names) and (i == 0 or any(r[i] for r in self.rows))]
 
     def text(self, width: int = 120) -> str:
-        """The table for a terminal, at most ``width`` columns: the wide columns stay in ``results.md``,
-        empty ones are left out, then ``narrowing`` columns until it fits, then headers wider than their
-        column's values wrap over several lines (long cell names make the Δ header long); notes are wrapped."""
+        """The table for a terminal, every line at most ``width`` UTF-8 bytes: an upper bound of its columns in
+        any terminal, one where ★, Δ and λ take two columns (East Asian "ambiguous" width) included. The wide
+        columns stay in ``results.md`` and empty ones are left out; then, until it fits, headers wider than their
+        column's values wrap over several lines (long cell names make the Δ header long; its ``[95% CI]`` stays
+        whole) before each ``narrowing`` column is dropped in turn; notes are wrapped."""
         keep = [i for i in self._filled() if self.header[i] not in self.wide_only]
-
-        def widths(columns: list[int]) -> list[int]:
-            return [max(display_width(r[i]) for r in [self.header, *self.rows]) for i in columns]
-
-        for name in self.narrowing:
-            if sum(widths(keep)) + 2 * (len(keep) - 1) <= width:
+        for name in (*self.narrowing, None):
+            out = self._lines(keep, wrap=False)
+            if max(map(_bytes, out)) > width:
+                out = self._lines(keep, wrap=True)
+            if max(map(_bytes, out)) <= width or name is None:
                 break
             keep = [i for i in keep if self.header[i] != name]
-        sizes = widths(keep)
-        if sum(sizes) + 2 * (len(keep) - 1) > width:
-            sizes = [max([display_width(r[i]) for r in self.rows] + [display_width(w) for w in self.header[i].split()])
-                     for i in keep]
-        wrapped = {i: textwrap.wrap(self.header[i], w) or [""] for i, w in zip(keep, sizes)}
-        depth = max(len(lines) for lines in wrapped.values())
-        # A wrapped header sits on the bottom lines, next to the one-line headers.
-        heads = [{i: ([""] * (depth - len(lines)) + lines)[k] for i, lines in wrapped.items()} for k in range(depth)]
-
-        def line(cells: Sequence[str] | Mapping[int, str]) -> str:
-            return "  ".join(cells[i] + " " * (w - display_width(cells[i])) for i, w in zip(keep, sizes)).rstrip()
-
-        out = [self.title, *map(line, heads), "  ".join("-" * w for w in sizes)] + [line(r) for r in self.rows]
         dropped = [h for i, h in enumerate(self.header) if i not in keep and any(r[i] for r in self.rows)]
         categories = [h for h in dropped if h.count("/") == 2]
         if categories:  # eval/f1/chair, eval/f1/lamp, … → eval/f1/<category>
@@ -105,9 +110,27 @@ class ResultsTable:
         notes = self.notes + (
             ["not shown here, in results.md and results.csv: " + ", ".join(dropped)] if dropped else []
         )
-        out += [""] + [textwrap.fill(s, width) for s in self.summary] if self.summary else []
-        out += [""] + [textwrap.fill(n, width, subsequent_indent="  ") for n in notes] if notes else []
+        out += [""] + [_fill(s, width) for s in self.summary] if self.summary else []
+        out += [""] + [_fill(n, width, "  ") for n in notes] if notes else []
         return "\n".join(out)
+
+    def _lines(self, keep: list[int], wrap: bool) -> list[str]:
+        """The title, header, rule and rows of the columns ``keep``; with ``wrap``, a column is as wide as its
+        values (or its header's longest word) and its header wraps to that width."""
+        heads = [self.header[i].replace(_WHOLE, _WHOLE.replace(" ", "\u00a0")) for i in keep]
+        sizes = [max([display_width(r[i]) for r in self.rows]
+                     + ([display_width(w) for w in h.split(" ")] if wrap else [display_width(h)]))
+                 for i, h in zip(keep, heads)]
+        wrapped = [[w.replace("\u00a0", " ") for w in textwrap.wrap(h, size)] or [""] for h, size in zip(heads, sizes)]
+        depth = max(len(lines) for lines in wrapped)
+        # A wrapped header sits on the bottom lines, next to the one-line headers.
+        header = [[([""] * (depth - len(lines)) + lines)[k] for lines in wrapped] for k in range(depth)]
+
+        def line(cells: Sequence[str]) -> str:
+            return "  ".join(c + " " * (w - display_width(c)) for c, w in zip(cells, sizes)).rstrip()
+
+        rows = [line([r[i] for i in keep]) for r in self.rows]
+        return [self.title, *map(line, header), "  ".join("-" * w for w in sizes), *rows]
 
     def grid(self, names: Sequence[str] | None = None) -> str:
         """The rows as a Markdown table of the columns ``names`` (default: all), empty columns left out."""
