@@ -145,11 +145,13 @@ def _markdown_tables(text: str) -> list[list[dict[str, str]]]:
 
 
 def _printed_table(text: str) -> list[dict[str, str]]:
-    """The table the runner prints, in the first code block of ``text``: columns cut where its dashes start."""
+    """The table the runner prints, in the first code block of ``text``: columns cut where its dashes start, a
+    header wrapped over the lines between the title and the ``cell`` line read as one."""
     block = text.split("```\n", 2)[1].splitlines()
     start = next(i for i, line in enumerate(block) if line.startswith("cell "))
     cuts = [m.start() for m in re.finditer(r"-+", block[start + 1])] + [None]
-    header = [block[start][a:b].strip() for a, b in zip(cuts, cuts[1:])]
+    heads = block[1:start + 1]
+    header = [" ".join(filter(None, (line[a:b].strip() for line in heads))) for a, b in zip(cuts, cuts[1:])]
     rows = []
     for line in block[start + 2:]:
         if not line.strip():
