@@ -29,10 +29,12 @@ from cdm.data import DATASETS
 from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import start
 from cdm.inputs import MSN_URL
+from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c
 from cdm.model.encoder import load_msn_state_dict, sha256_file
 from cdm.safe_io import read_json
 from cdm.tools.estimate_depth import find_views
 from cdm.tools.export_views import export_views
+from sweeps.plan.address import given_address, reach
 
 __all__ = ["main"]
 
@@ -163,14 +165,19 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     missing = None
     try:
-        if args.command != "prepare" and args.batch_size < 1:
-            raise ValueError("--batch-size must be >= 1")
-        if args.command == "prepare":
-            failures = _shards(args)
-        elif args.command == "depth":
-            failures = _depth(args.views, args)
-        else:
-            failures, missing = _all(args)
+        with sigterm_as_ctrl_c():
+            if args.command != "prepare" and args.batch_size < 1:
+                raise ValueError("--batch-size must be >= 1")
+            if (given := given_address(args.address)) is not None:
+                reach(*given)  # before anything is written; asked again right before Ray joins it
+            if args.command == "prepare":
+                failures = _shards(args)
+            elif args.command == "depth":
+                failures = _depth(args.views, args)
+            else:
+                failures, missing = _all(args)
+    except KeyboardInterrupt:
+        return said_interrupted(f"python sweeps/inputs.py {args.command}")
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
