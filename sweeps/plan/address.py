@@ -44,7 +44,8 @@ def check_form(address: str, source: str) -> None:
     if address == "auto":
         return
     if address == "local":
-        raise AddressError(f"{source} local: leave {source} out for a cluster of this command's own (on 127.0.0.1)")
+        raise AddressError(f"{source} local: leave {source} out for a cluster of this command's own (on 127.0.0.1); "
+                           f"to join one give {FORMS}")
     if address.startswith(("http://", "https://")):
         raise AddressError(f"{source} {address}: that is a dashboard's address, for `ray job submit`; give {FORMS}")
     if "://" in address:
@@ -54,7 +55,7 @@ def check_form(address: str, source: str) -> None:
                            f"`ray job submit`, cluster/README.md); give {FORMS}")
     match = _HOST_PORT.match(address)
     if match is None or not 0 < int(match.group(2)) < 65536:
-        raise AddressError(f"{source} {address!r}: not a Ray address; give {FORMS}")
+        raise AddressError(f"{source} {address}: not a Ray address; give {FORMS}")
 
 
 def reach(address: str, source: str) -> str:
