@@ -29,7 +29,7 @@ from cdm.data import DATASETS
 from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import start
 from cdm.inputs import MSN_URL
-from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c
+from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c, take_sigterm_as_ctrl_c
 from cdm.model.encoder import load_msn_state_dict, sha256_file
 from cdm.safe_io import read_json
 from cdm.tools.estimate_depth import find_views
@@ -59,6 +59,7 @@ def _connect(address: str | None) -> tuple[float, float]:
     from sweeps.execute.cluster import connect
 
     connect(address)
+    take_sigterm_as_ctrl_c()  # ray.init replaced it with Ray's own, after which SIGTERM aborted the process (-6)
     resources = ray.cluster_resources()
     return float(resources.get("CPU", 1.0)), float(resources.get("GPU", 0.0))
 
