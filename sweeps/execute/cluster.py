@@ -27,12 +27,14 @@ def connect(address: str | None) -> bool:
         return False
     given = given_address(address)
     if given is not None:
-        target = reach(*given)  # asked right before joining: ray.init alone would retry for minutes
+        text, source = given
+        target = reach(text, source)  # asked right before joining: ray.init alone would retry for minutes
         try:
             ray.init(address=target, logging_level="WARNING")
-        except (ConnectionError, RuntimeError) as exc:  # the GCS answered, then the join failed (a version mismatch)
+        except (ConnectionError, RuntimeError) as exc:  # the GCS answered, the join did not (RuntimeError: another
+            # Ray version, ray/_private/utils.py check_version_info)
             first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-            raise AddressError(f"{given[1]} {given[0]}: Ray could not join {target}: {first}") from None
+            raise AddressError(f"{source} {text}: Ray could not join {target}: {first}") from None
     else:
         from sweeps.execute import local_cluster
 
