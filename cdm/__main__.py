@@ -16,6 +16,7 @@ import torch
 from cdm.baseline_names import BASELINES
 from cdm.config import Config, config_field_paths, load_config, parse_override
 from cdm.external_inputs import check_inputs
+from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c
 from cdm.memory import check_memory
 from cdm.optim import TrainingDiverged
 from cdm.train import Callback, fit
@@ -323,7 +324,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
+        with sigterm_as_ctrl_c():
+            return args.func(args)
+    except KeyboardInterrupt:
+        return said_interrupted(f"python -m cdm {args.command}")
     except ValueError as exc:
         # ConfigError and the data/checkpoint/image checks: raised at the boundary, before anything is written.
         print(f"error: {exc}", file=sys.stderr)

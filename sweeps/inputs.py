@@ -29,11 +29,13 @@ from cdm.data import DATASETS
 from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import check_out, start
 from cdm.external_inputs import MSN_URL
+from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c, take_sigterm_as_ctrl_c
 from cdm.model.encoder import load_msn_state_dict, sha256_file
 from cdm.safe_io import read_json
 from cdm.safe_write import write_atomic
 from cdm.tools.estimate_depth import find_views
 from cdm.tools.export_views import export_views
+from sweeps.plan.address import given_address, reach
 
 __all__ = ["main"]
 
@@ -58,6 +60,7 @@ def _connect(address: str | None) -> tuple[float, float]:
     from sweeps.execute.cluster import connect
 
     connect(address)
+    take_sigterm_as_ctrl_c()  # ray.init replaced it with Ray's own, after which SIGTERM aborted the process (-6)
     resources = ray.cluster_resources()
     return float(resources.get("CPU", 1.0)), float(resources.get("GPU", 0.0))
 
@@ -166,14 +169,19 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     missing = None
     try:
-        if args.command != "prepare" and args.batch_size < 1:
-            raise ValueError("--batch-size must be >= 1")
-        if args.command == "prepare":
-            failures = _shards(args)
-        elif args.command == "depth":
-            failures = _depth(args.views, args)
-        else:
-            failures, missing = _all(args)
+        with sigterm_as_ctrl_c():
+            if args.command != "prepare" and args.batch_size < 1:
+                raise ValueError("--batch-size must be >= 1")
+            if (given := given_address(args.address)) is not None:
+                reach(*given)  # before anything is written; asked again right before Ray joins it
+            if args.command == "prepare":
+                failures = _shards(args)
+            elif args.command == "depth":
+                failures = _depth(args.views, args)
+            else:
+                failures, missing = _all(args)
+    except KeyboardInterrupt:
+        return said_interrupted(f"python sweeps/inputs.py {args.command}")
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -6,9 +6,9 @@
 
 from __future__ import annotations
 
-import os
-
 import ray
+
+from sweeps.plan.address import AddressError, given_address, reach
 
 __all__ = ["cluster_capacity", "cluster_machines", "connect"]
 
@@ -19,12 +19,22 @@ def connect(address: str | None) -> bool:
     Returns:
         True when this call connected (the caller disconnects with ``ray.shutdown()``); False when
         the process was already connected (a test session, a notebook).
+
+    Raises:
+        AddressError: the address is refused, or no Ray GCS answers there (:func:`sweeps.plan.address.reach`).
     """
     if ray.is_initialized():
         return False
-    address = address or os.environ.get("RAY_ADDRESS")
-    if address:
-        ray.init(address=address, logging_level="WARNING")
+    given = given_address(address)
+    if given is not None:
+        text, source = given
+        target = reach(text, source)  # asked right before joining: ray.init alone would retry for minutes
+        try:
+            ray.init(address=target, logging_level="WARNING")
+        except (ConnectionError, RuntimeError) as exc:  # the GCS answered, the join did not (RuntimeError: another
+            # Ray version, ray/_private/utils.py check_version_info)
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise AddressError(f"{source} {text}: Ray could not join {target}: {first}") from None
     else:
         from sweeps.execute import local_cluster
 

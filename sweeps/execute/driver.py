@@ -22,6 +22,7 @@ from pathlib import Path
 
 import ray
 
+from cdm.interrupt import take_sigterm_as_ctrl_c
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.rules import PROTOCOL_NOTE, settings_notes
 from sweeps.compare.settle import final_round, write_settle_json
@@ -34,6 +35,7 @@ from sweeps.execute.seed_search import check_searcher_state
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
 from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, resolve_tracking_uri, ui_command, ui_link
 from sweeps.execute.tuner import run_sweep
+from sweeps.plan.address import AddressError
 from sweeps.plan.preflight import estimate_line
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.request import STATE_FILE, SweepRequest
@@ -256,14 +258,17 @@ def run_claimed(request: SweepRequest, args: argparse.Namespace, uri: str, held:
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI
     # in a staging folder, copied at once (sweep.json, so a crashed sweep can be resumed) and at the end.
     sweep_dir = request.sweep_dir
+    try:
+        started = connect(args.address)
+    except AddressError as exc:
+        raise DriverError(str(exc)) from None
     staging = Path(tempfile.mkdtemp(prefix="cdm-sweep-")) if is_uri(sweep_dir) else Path(sweep_dir)
-    started = connect(args.address)
     quiet_loggers()
     if not tty:
         plain_log_handlers()
     # `kill`, `timeout` and batch schedulers stop a job with SIGTERM, which ends Python at once and leaves
     # its MLflow runs RUNNING: taken as Ctrl-C, Tune stops the trials and the runs close as KILLED below.
-    previous_sigterm = signal.signal(signal.SIGTERM, lambda signum, frame: signal.raise_signal(signal.SIGINT))
+    previous_sigterm = take_sigterm_as_ctrl_c()
     sweep_run = None
     try:
         conc = _concurrency(request, uri)

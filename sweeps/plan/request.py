@@ -18,6 +18,7 @@ from pydantic import ValidationError
 
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.memory import check_memory
+from sweeps.plan.address import AddressError, check_form, given_address
 from sweeps.plan.budget import SeedBudget, budget_option, check_budget
 from sweeps.plan.limits import LISTED_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
 from sweeps.plan.preflight import check_inputs
@@ -70,7 +71,13 @@ def plan_request(args: argparse.Namespace) -> SweepRequest:
     if args.smoke and args.profile not in (None, "smoke"):
         raise RequestError(f"--smoke means --profile smoke; got --profile {args.profile} too")
     profile = "smoke" if args.smoke else (args.profile or "local")
-    remote = args.address is not None or "RAY_ADDRESS" in os.environ
+    given = given_address(args.address)
+    remote = given is not None
+    if remote:
+        try:
+            check_form(*given)  # whether a cluster answers there is asked right before Ray joins it (cluster.py)
+        except AddressError as exc:
+            raise RequestError(str(exc)) from None
     if remote and not args.dry_run and not is_uri(args.storage) and not Path(args.storage).is_absolute():
         # Under `ray job submit` the driver's working directory is the job's temporary copy of the
         # repository: checkpoints there vanish with the job and other nodes never see them.
