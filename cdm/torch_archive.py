@@ -61,6 +61,8 @@ class Archive:
             raise ArchiveError(f"it holds {len(infos):,} entries, more than the {MAX_ENTRIES:,} allowed")
         self._root = _root(infos)
         self._infos = {info.filename[len(self._root):]: info for info in infos}
+        if len(self._infos) != len(infos):  # readers differ on which copy counts
+            raise ArchiveError("it holds an entry twice")
         _check_entries(self._infos)
         total = sum(info.file_size for name, info in self._infos.items() if name.startswith("data/"))
         if total > MAX_STORAGE_BYTES:

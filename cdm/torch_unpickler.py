@@ -296,6 +296,8 @@ class _Unpickler(pickle._Unpickler):
 
 
 def _short(value: Any) -> str:
+    if isinstance(value, _Call):
+        return value.name
     text = repr(value) if isinstance(value, (str, bytes, int, float, tuple, type(None))) else type(value).__name__
     return text if len(text) <= 60 else f"{text[:57]}..."
 
