@@ -201,3 +201,23 @@ def test_the_three_bombs_are_refused_in_bounded_memory(tmp_path):
         assert outcome.peak_rss - baseline < 300 * 2**20, (name, outcome.peak_rss, baseline)
         assert file.stat().st_size < 4 * 2**20, name
 
+
+
+@pytest.mark.slow
+def test_a_depth_model_folder_with_pickled_objects_is_refused_in_our_words(tmp_path):
+    import argparse
+
+    import cv2
+    import numpy as np
+
+    model = tmp_path / "dpt"
+    model.mkdir()
+    torch.save({"w": argparse.Namespace(code=1)}, model / "pytorch_model.bin")
+    views = tmp_path / "views"
+    (views / "obj").mkdir(parents=True)
+    (views / "objects.json").write_text('{"obj": "mug"}')
+    cv2.imwrite(str(views / "obj" / "0.png"), np.full((32, 32, 3), 255, np.uint8))
+    outcome = run_command(["-m", "cdm.tools.estimate_depth", "--views", str(views), "--model", str(model),
+                           "--out", str(tmp_path / "out")], tmp_path)
+    line = assert_refused(outcome, f"--model: {model / 'pytorch_model.bin'} holds Python objects", "safetensors")
+    assert "weights_only" not in outcome.stderr, line

@@ -39,6 +39,7 @@ from cdm.data.cache import atomic_write
 from cdm.data.depth_maps import ESTIMATOR_FILE
 from cdm.data.images import read_image
 from cdm.safe_io import read_json
+from cdm.torch_files import load_tensors
 
 __all__ = ["Estimator", "View", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"]
 
@@ -79,6 +80,10 @@ def load_estimator(model: str, device: str = "cpu", output: Literal["depth", "di
         ValueError: ``transformers`` missing, the model not loadable, or its output kind unknown and
             ``output`` not given.
     """
+    folder = Path(model).expanduser()
+    for weights in sorted(folder.glob("*.bin")) if folder.is_dir() else ():
+        # transformers reads these with torch's loader, whose refusal advises weights_only=False: ours first.
+        load_tensors(weights, f"--model: {weights}", "weights file", "Pass the model's weights as safetensors")
     try:
         from transformers import AutoImageProcessor, AutoModelForDepthEstimation
         from transformers.utils import logging
