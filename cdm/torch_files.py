@@ -49,8 +49,8 @@ def load_tensors(file: Path, label: str, kind: str, advice: str) -> Any:
     try:
         return _read(file, label, kind, records=False)
     except Refused as exc:
-        raise ValueError(f"{label} holds Python objects other than tensors and plain data ({exc}); refused, "
-                         f"since loading them could run code from the file. {advice}") from None
+        raise ValueError(f"{label} holds Python objects other than tensors and plain data; refused, since loading "
+                         f"them ({exc}) could run code from the file. {advice}") from None
 
 
 def load_inert(file: Path, label: str, kind: str) -> Any:
