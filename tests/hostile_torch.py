@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import pickle
+import struct
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -67,10 +68,12 @@ def saved(obj: Any) -> dict[str, bytes]:
         return {name.split("/", 1)[1]: z.read(name) for name in z.namelist()}
 
 
-def tensor_pickle(storage_id: bytes, tail: bytes = b"") -> bytes:
-    """A protocol-2 pickle of ``{"w": <a float tensor of 3>}`` whose persistent id is the pickled
+def tensor_pickle(storage_id: bytes, tail: bytes = b"", key: str = "w") -> bytes:
+    """A protocol-2 pickle of ``{key: <a float tensor of 3>}`` whose persistent id is the pickled
     ``storage_id`` (normally ``('storage', torch.FloatStorage, '0', 'cpu', 3)``), then ``tail`` before STOP."""
-    return (b"\x80\x02}X\x01\x00\x00\x00w" + b"ctorch._utils\n_rebuild_tensor_v2\n(" + storage_id + b"Q"
+    name = key.encode()
+    return (b"\x80\x02}X" + struct.pack("<I", len(name)) + name
+            + b"ctorch._utils\n_rebuild_tensor_v2\n(" + storage_id + b"Q"
             + b"K\x00K\x03\x85K\x01\x85\x89ccollections\nOrderedDict\n)RtRs" + tail + b".")
 
 
