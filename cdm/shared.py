@@ -29,6 +29,7 @@ from cdm.data.views import ObjectDataset
 from cdm.digest import json_digest
 from cdm.evaluate import EvalSet, build_eval_set
 from cdm.safe_write import make_folder, write_atomic
+from cdm.torch_files import load_own
 
 __all__ = ["SharedStore", "SharedViews", "eval_key", "rounds_needed", "views_key"]
 
@@ -130,14 +131,14 @@ class SharedStore:
         path = self._round_path(key, view_round)
         if not path.exists():
             return None
-        return _batch(torch.load(path, mmap=True, weights_only=True))
+        return _batch(load_own(path, mmap=True))
 
     def eval_set(self, cfg: Config, val: ObjectDataset, train: ObjectDataset) -> EvalSet:
         """The evaluation set of ``cfg`` (:func:`cdm.evaluate.build_eval_set`), read when stored, else built and
         stored."""
         path = self._eval_path(eval_key(cfg, val, train))
         if path.exists():
-            d = torch.load(path, weights_only=True)
+            d = load_own(path, mmap=False)
             return EvalSet([_batch(b) for b in d["batches"]], d["fingerprint"], d["baseline_metrics"],
                            d["baseline_rows"], d.get("baseline_clouds", {}))
         built = build_eval_set(cfg, val, train, cfg.eval.seed)

@@ -18,6 +18,7 @@ from cdm.checkpoint import load_network
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.diffusion import SamplerSettings
 from cdm.pc2_checkpoint import PC2_DEFAULTS, is_pc2_checkpoint, read_pc2_checkpoint
+from cdm.torch_files import load_tensors
 from tests.pc2_files import PC2_CFG, write_pc2_checkpoint
 
 # Small enough to score in seconds: a quarter-width PVCNN2 (PC²'s key names, shapes at that width), 32² images.
@@ -241,7 +242,7 @@ def test_train_init_from_fine_tunes_from_the_weights_not_the_optimizer(pc2_file,
     out = capsys.readouterr().out
     assert "the file's optimizer, scheduler and step are not loaded (a fresh AdamW, warm-up and step 0)" in out
     assert "done at step 2" in out
-    ckpt = torch.load(tmp_path / "run" / "checkpoints" / "step_0000002" / "checkpoint.pt", weights_only=True)
+    ckpt = load_tensors(tmp_path / "run" / "checkpoints" / "step_0000002" / "checkpoint.pt", "c", "CDM checkpoint", "")
     assert ckpt["step"] == 2 and ckpt["config"]["model"]["init_from"] == str(path)
     moved = [k for k, v in ckpt["model"].items() if k.startswith("denoiser.")
              and not torch.equal(v, model[f"point_cloud_model.model.{k.removeprefix('denoiser.')}"])]

@@ -35,7 +35,7 @@ def test_pickled_objects_garbage_and_a_truncated_archive_are_refused_apart(tmp_p
         _load(tmp_path / "garbage.pt")
     torch.save({"w": torch.zeros(1000)}, tmp_path / "cut.pt")
     (tmp_path / "cut.pt").write_bytes((tmp_path / "cut.pt").read_bytes()[:600])
-    with pytest.raises(ValueError, match=r"^weights: .*cut\.pt is not a readable weights file \("):
+    with pytest.raises(ValueError, match=r"^weights: .*cut\.pt is not a readable weights file: not in torch's "):
         _load(tmp_path / "cut.pt")
 
 

@@ -40,6 +40,7 @@ from cdm.data.images import read_image
 from cdm.safe_io import read_json
 from cdm.safe_write import make_folder, write_atomic
 from cdm.tools.export_views import crops
+from cdm.torch_files import load_tensors
 
 __all__ = ["Estimator", "View", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"]
 
@@ -80,6 +81,10 @@ def load_estimator(model: str, device: str = "cpu", predicts: Literal["depth", "
         ValueError: ``transformers`` missing, the model not loadable, or what it predicts unknown and
             ``predicts`` not given.
     """
+    folder = Path(model).expanduser()
+    for weights in sorted(folder.glob("*.bin")) if folder.is_dir() else ():
+        # transformers reads these with torch's loader, whose refusal advises weights_only=False: ours first.
+        load_tensors(weights, f"--model: {weights}", "weights file", "Pass the model's weights as safetensors")
     try:
         from transformers import AutoImageProcessor, AutoModelForDepthEstimation
         from transformers.utils import logging

@@ -20,6 +20,7 @@ import ray
 import torch
 from mlflow import MlflowClient
 
+from cdm.torch_files import load_tensors
 from sweeps import run
 from tests.integration.local_ray import two_node_cluster
 
@@ -75,8 +76,7 @@ profiles: {smoke: {resources: {workers_per_trial: 2, cpus_per_worker: 0.99}}}
     rank1 = sorted((trial_dirs[0] / "rank_1" / "checkpoints").glob("step_*"))
     assert [p.name for p in rank0] == [p.name for p in rank1] == ["step_0000010", "step_0000020"]
     for a, b in zip(rank0, rank1):
-        sa = torch.load(next(a.glob("*.pt")), map_location="cpu", weights_only=False)
-        sb = torch.load(next(b.glob("*.pt")), map_location="cpu", weights_only=False)
+        sa, sb = (load_tensors(next(c.glob("*.pt")), str(c), "CDM checkpoint", "") for c in (a, b))
         assert sa["step"] == sb["step"]
         # Different data per rank (their generators are seeded by rank) ...
         assert not torch.equal(sa["generator"], sb["generator"])
