@@ -259,22 +259,18 @@ class _Unpickler(pickle._Unpickler):
         target.update(zip(keys, values))
 
     def _appends(self) -> None:
-        items = self.pop_mark()
+        self._extend(self.pop_mark())
+
+    def _append(self) -> None:
+        self._extend([self.stack.pop()])
+
+    def _extend(self, items: list[Any]) -> None:
+        """APPEND(S): only onto a record or a list the pickle built."""
         target = self.stack[-1]
         if isinstance(target, Pickled):
             target.appended.extend(items)
         elif type(target) is list:
             target.extend(items)
-        else:
-            raise Refused(f"it appends to {_short(target)}")
-
-    def _append(self) -> None:
-        value = self.stack.pop()
-        target = self.stack[-1]
-        if isinstance(target, Pickled):
-            target.appended.append(value)
-        elif type(target) is list:
-            target.append(value)
         else:
             raise Refused(f"it appends to {_short(target)}")
 

@@ -59,3 +59,22 @@ def _one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.fixture
+def script_help(monkeypatch, capsys):
+    """``script_help(path, *args)``: what the file ``path`` run as ``__main__`` prints for ``*args --help``,
+    the way a user who types ``python path ... --help`` sees it (exit 0 asserted)."""
+
+    def run(path: Path, *args: str) -> str:
+        import runpy
+        import sys
+
+        monkeypatch.setattr(sys, "argv", [str(path), *args, "--help"])
+        monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
+        with pytest.raises(SystemExit) as exit_:
+            runpy.run_path(str(path), run_name="__main__")
+        assert exit_.value.code == 0
+        return capsys.readouterr().out
+
+    return run

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import re
-import runpy
 import subprocess
 import sys
 from pathlib import Path
@@ -63,25 +62,16 @@ def test_every_command_of_the_project_is_a_cdm_lab_command():
     assert {c.module.replace(".", "/") + ".py" for _, c in COMMANDS.values()} == files
 
 
-def _old_help(command, monkeypatch, capsys) -> str:
-    """``--help`` of the command as typed before cdm-lab: the file or module run as ``__main__``."""
-    path = ROOT / (command.module.replace(".", "/") + ".py")
-    monkeypatch.setattr(sys, "argv", [str(path), *([command.subcommand] if command.subcommand else []), "--help"])
-    monkeypatch.syspath_prepend(str(ROOT))
-    with pytest.raises(SystemExit) as exit_:
-        runpy.run_path(str(path), run_name="__main__")
-    assert exit_.value.code == 0
-    return capsys.readouterr().out
-
-
 @pytest.mark.parametrize("name", sorted(COMMANDS))
-def test_each_commands_help_is_its_old_forms_help(name, monkeypatch, capsys):
+def test_each_commands_help_is_its_old_forms_help(name, capsys, script_help):
     with pytest.raises(SystemExit) as exit_:
         main([name, "--help"])
     assert exit_.value.code == 0
     ours = capsys.readouterr().out
     assert ours.startswith("usage: ") and len(ours.splitlines()) > 3
-    assert ours == _old_help(COMMANDS[name][1], monkeypatch, capsys)
+    command = COMMANDS[name][1]
+    old = script_help(ROOT / (command.module.replace(".", "/") + ".py"), *filter(None, [command.subcommand]))
+    assert ours == old  # the old form: the file or module run as __main__
 
 
 @pytest.mark.slow  # four interpreters importing torch: 15 s on a busy 2-core machine

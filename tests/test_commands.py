@@ -8,8 +8,6 @@ and ``python -m MODULE`` run, so the check costs no interpreter start per comman
 from __future__ import annotations
 
 import re
-import runpy
-import sys
 from pathlib import Path
 
 import pytest
@@ -54,19 +52,9 @@ def test_every_command_has_a_stated_purpose():
     assert _commands() == set(PURPOSE), "add each new command, with the words its --help opens with, to PURPOSE"
 
 
-def _help(command: str, monkeypatch, capsys) -> str:
-    path = ROOT / command
-    monkeypatch.setattr(sys, "argv", [str(path), "--help"])
-    monkeypatch.syspath_prepend(str(ROOT))
-    with pytest.raises(SystemExit) as exit_:
-        runpy.run_path(str(path), run_name="__main__")
-    assert exit_.value.code == 0
-    return capsys.readouterr().out
-
-
 @pytest.mark.parametrize("command", sorted(PURPOSE))
-def test_help_opens_with_what_the_command_does(command, monkeypatch, capsys):
-    text = _help(command, monkeypatch, capsys)
+def test_help_opens_with_what_the_command_does(command, script_help):
+    text = script_help(ROOT / command)
     # argparse prints the usage lines, a blank line, then the description.
     description = text.split("\n\n", 2)[1]
     assert " ".join(description.split()).startswith(PURPOSE[command]), description
