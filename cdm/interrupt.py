@@ -7,13 +7,17 @@ once, skipping ``finally``: a write under way would leave its temporary file beh
 
 from __future__ import annotations
 
+import functools
 import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import FrameType
+from typing import ParamSpec
 
-__all__ = ["INTERRUPTED", "said_interrupted", "sigterm_as_ctrl_c", "take_sigterm_as_ctrl_c"]
+__all__ = ["INTERRUPTED", "interruptible", "said_interrupted", "sigterm_as_ctrl_c", "take_sigterm_as_ctrl_c"]
+
+P = ParamSpec("P")
 
 Handler = Callable[[int, FrameType | None], object] | int | None
 """What ``signal.signal`` returns: a handler, ``SIG_DFL``/``SIG_IGN``, or None (not set from Python)."""
@@ -46,3 +50,21 @@ def said_interrupted(command: str) -> int:
     """Say that ``command`` stopped on Ctrl-C or SIGTERM, in one line; returns :data:`INTERRUPTED`."""
     print(f"interrupted: {command} stopped on Ctrl-C or SIGTERM", file=sys.stderr)
     return INTERRUPTED
+
+
+def interruptible(command: str) -> Callable[[Callable[P, int]], Callable[P, int]]:
+    """A command's ``main`` that Ctrl-C or SIGTERM ends in one line (:func:`said_interrupted`, exit
+    :data:`INTERRUPTED`), its ``finally`` blocks run on the way out; ``command`` is how the user typed it."""
+
+    def wrap(main: Callable[P, int]) -> Callable[P, int]:
+        @functools.wraps(main)
+        def run(*args: P.args, **kwargs: P.kwargs) -> int:
+            try:
+                with sigterm_as_ctrl_c():
+                    return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                return said_interrupted(command)
+
+        return run
+
+    return wrap

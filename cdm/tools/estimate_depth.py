@@ -37,6 +37,7 @@ import torch
 
 from cdm.data.depth_maps import ESTIMATOR_FILE
 from cdm.data.images import read_image
+from cdm.interrupt import interruptible
 from cdm.safe_io import read_json
 from cdm.safe_write import make_folder, write_atomic
 from cdm.tools.export_views import crops
@@ -188,6 +189,7 @@ def write_maps(estimator: Estimator, views: Sequence[View], out: Path, batch_siz
     return len(todo)
 
 
+@interruptible("python -m cdm.tools.estimate_depth")
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m cdm.tools.estimate_depth", description=__doc__.split("\n\n")[0])
     p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")

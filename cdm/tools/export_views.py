@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from cdm.config import load_config, parse_override
+from cdm.interrupt import interruptible
 from cdm.safe_write import make_folder, write_atomic
 
 __all__ = ["crops", "export_views", "main"]
@@ -102,6 +103,7 @@ def export_views(cfg, out: Path, rounds: int = 1) -> int:
     return written
 
 
+@interruptible("python -m cdm.tools.export_views")
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m cdm.tools.export_views", description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="folder to write into")

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cdm.interrupt import interruptible
 from cdm.safe_io import load_npy, object_id_parts, read_json
 from cdm.safe_write import write_atomic
 from cdm.tools.export_views import crops
@@ -48,6 +49,7 @@ def _depth_image(path: Path):
     return Image.fromarray((near * 255).astype(np.uint8)).convert("RGB")
 
 
+@interruptible("python -m cdm.tools.openclip_embeddings")
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m cdm.tools.openclip_embeddings", description=__doc__.split("\n\n")[0])
     p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from cdm.baseline_names import BASELINES
+from cdm.interrupt import interruptible
 from cdm.metric_names import label as metric_label
 from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.gallery import grid_png, panel_input, viewer_html
@@ -331,6 +332,7 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+@interruptible("python sweeps/report.py")
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     # One small download per trial: no progress bar for each.
