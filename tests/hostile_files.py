@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 _CHUNK = 2**24
@@ -36,6 +37,29 @@ class Outcome(NamedTuple):
 
     def error_lines(self) -> list[str]:
         return [line for line in self.stderr.splitlines() if line.startswith("error: ")]
+
+
+STOP_S = 5
+"""Issue 49's bound on a command's end after Ctrl-C or SIGTERM, in seconds."""
+
+
+def start_command(args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
+    """``python *args`` started from this checkout in its own process group, its output piped, not waited on."""
+    return subprocess.Popen([sys.executable, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+                            start_new_session=True)
+
+
+def stop_command(proc: subprocess.Popen, signum: int) -> tuple[int, str]:
+    """Send ``signum``; the exit code and stderr once the command ended, failing if it outlived :data:`STOP_S`."""
+    proc.send_signal(signum)
+    try:
+        _, err = proc.communicate(timeout=STOP_S)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail(f"{signal.Signals(signum).name} did not end {proc.args[1:3]} within {STOP_S} s")
+    return proc.returncode, err
 
 
 def run_command(args: list[str], cwd: Path, timeout: float = 120, env: dict[str, str] | None = None) -> Outcome:

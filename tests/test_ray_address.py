@@ -8,11 +8,8 @@ kernel completes every connection) but never answers, as a host that is not Ray'
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,12 +17,11 @@ from pathlib import Path
 import pytest
 
 from tests.datasets_fixtures import make_co3d
-from tests.hostile_files import ROOT, assert_refused, run_command
+from tests.hostile_files import ROOT, assert_refused, run_command, start_command, stop_command
 
 pytestmark = pytest.mark.slow  # each runs a command that imports torch and Ray: seconds on 2 shared cores
 
 VERDICT_S = 30  # the issue's bound on an unreachable address's error line
-STOP_S = 5  # the issue's bound on a command's end after Ctrl-C or SIGTERM
 LOOPBACK = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}  # Ray joins 127.0.0.1 as itself, not the outward address
 
 
@@ -92,24 +88,6 @@ def test_a_sweep_refuses_an_unreachable_address_and_leaves_its_storage_empty(tmp
     assert not storage.exists() or list(storage.rglob("*")) == []
 
 
-def _start(args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
-                            start_new_session=True)
-
-
-def _stop(proc: subprocess.Popen, signum: int) -> tuple[int, str]:
-    """Send ``signum``; the exit code and stderr once the command ended, failing if it outlived :data:`STOP_S`."""
-    proc.send_signal(signum)
-    try:
-        _, err = proc.communicate(timeout=STOP_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.communicate()
-        pytest.fail(f"{signal.Signals(signum).name} did not end {proc.args[1:3]} within {STOP_S} s")
-    return proc.returncode, err
-
-
 def _wait_for(condition, what: str, limit_s: float = 120) -> None:
     deadline = time.monotonic() + limit_s
     while not condition():
@@ -120,9 +98,9 @@ def _wait_for(condition, what: str, limit_s: float = 120) -> None:
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_ends_a_command_waiting_on_a_silent_address(signum, silent, co3d, tmp_path):
     out = tmp_path / "prepared"
-    proc = _start([*_prepare(co3d, out), "--address", f"127.0.0.1:{silent}"], LOOPBACK)
+    proc = start_command([*_prepare(co3d, out), "--address", f"127.0.0.1:{silent}"], LOOPBACK)
     _wait_for(lambda: _connections(silent) > 0, "the command wait on the address")  # the GCS call, 8 s at most
-    code, err = _stop(proc, signum)
+    code, err = stop_command(proc, signum)
     assert code == 130 and "interrupted: python sweeps/inputs.py prepare stopped" in err, err[-2000:]
     assert "Traceback" not in err and not out.exists()
 
@@ -142,10 +120,10 @@ def _counts(stdout: str) -> tuple[str, str]:
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_ends_prepare_part_way_with_nothing_half_written(signum, co3d, tmp_path):
     out = tmp_path / "prepared"
-    proc = _start(["-m", "cdm", "prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out),
+    proc = start_command(["-m", "cdm", "prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out),
                    "--image-size", "32"])
     _wait_for(lambda: any(out.rglob("*.shard")), "a shard written")
-    code, err = _stop(proc, signum)
+    code, err = stop_command(proc, signum)
     assert code == 130 and "interrupted: python -m cdm prepare stopped" in err, err[-2000:]
     assert "Traceback" not in err
     assert [p.name for p in out.rglob("*") if ".tmp" in p.name] == []  # no temporary file left behind
