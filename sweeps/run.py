@@ -96,6 +96,21 @@ def _tracking_uri(args: argparse.Namespace) -> str:
     return uri
 
 
+def _destinations(args: argparse.Namespace, request: SweepRequest) -> list[str]:
+    """Where a run of this request would keep its files and log its runs (the dry run's lines); a resumed
+    sweep's MLflow store is the one it started with, as the run's own (``claim_sweep``)."""
+    from sweeps.execute.tracking import artifact_location, resolve_tracking_uri
+
+    uri = resolve_tracking_uri(args.tracking_uri or (request.state or {}).get("tracking_uri"))
+    name = request.plan.spec.name
+    artifacts = artifact_location(uri, name)
+    return [
+        f"storage: {request.sweep_dir} (results.md, results.csv, the trials' folders and checkpoints, Tune's state)",
+        f"MLflow tracking URI: {uri}, experiment {name}"
+        + (f" (artifacts: {artifacts.removeprefix('file://')})" if artifacts else " (artifacts: the server's store)"),
+    ]
+
+
 def _report(args: argparse.Namespace, uri: str) -> int:
     from sweeps.results import publish
 
@@ -153,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
         return _rerun(args, uri)
     if args.dry_run:
         shared = shared_root(request.sweep_dir, request.remote) is not None and bool(plan.cells)
-        return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate, shared, missing)
+        return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate, shared, missing,
+                       _destinations(args, request))
     return _sweep(args, request)
 
 

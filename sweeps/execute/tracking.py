@@ -29,6 +29,7 @@ __all__ = [
     "EXPERIMENT_KIND",
     "WORKFLOW",
     "SweepRun",
+    "artifact_location",
     "as_params",
     "baselines_by_eval_set",
     "log_params",
@@ -76,6 +77,15 @@ def ui_link(path: str) -> str:
     return path + ("&" if "?" in path else "?") + WORKFLOW
 
 
+def artifact_location(uri: str, name: str) -> str | None:
+    """Where a new experiment ``name`` of the store ``uri`` keeps its artifacts: beside a SQLite database
+    (``<its folder>/mlruns/<name>``) rather than in whatever directory the driver ran from; None: the store's
+    own default (a tracking server's artifact store)."""
+    if uri.startswith("sqlite:///"):
+        return (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
+    return None
+
+
 def _experiment(client: MlflowClient, name: str, uri: str) -> str:
     """The experiment ``name``'s id, created if needed, tagged a model-training one (:data:`EXPERIMENT_KIND`),
     also when an older sweep created it."""
@@ -83,11 +93,7 @@ def _experiment(client: MlflowClient, name: str, uri: str) -> str:
     if found is not None:
         experiment_id = found.experiment_id
     else:
-        location = None
-        if uri.startswith("sqlite:///"):
-            # Keep artifacts beside the database rather than in whatever directory the driver ran from.
-            location = (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
-        experiment_id = client.create_experiment(name, artifact_location=location)
+        experiment_id = client.create_experiment(name, artifact_location=artifact_location(uri, name))
     client.set_experiment_tag(experiment_id, *EXPERIMENT_KIND)
     return experiment_id
 

@@ -101,8 +101,8 @@ def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> 
 
 def _scheduler(plan: SweepPlan):
     sch = plan.spec.scheduler
-    if sch.kind == "none":
-        return None
+    if not sch.stop_steps(plan.profile.steps, plan.profile.eval_every):
+        return None  # it could stop nothing (the dry run says so); Ray refuses a grace period past max_t
     from ray.tune.schedulers import ASHAScheduler
 
     # Time axis = the trainer's step (reported with every evaluation), which survives a resume.

@@ -22,8 +22,8 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
     out = [
         f"profile {prof.name}: {prof.description}".rstrip(": "),
         f"budget: {prof.steps} steps, evaluation every {prof.eval_every}",
-        (f"metric: {spec.metric.name} ({spec.metric.mode}); scheduler: {spec.scheduler.kind}; "
-         f"max retries per trial: {spec.failure.max_retries}"),
+        f"metric: {spec.metric.name} ({spec.metric.mode}); max retries per trial: {spec.failure.max_retries}",
+        f"scheduler: {_scheduler(plan)}",
     ]
     mode = (
         "Train local mode (loop inside the trial)"
@@ -40,7 +40,8 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
         except SpecError as exc:
             line += f"; this machine cannot run it: {exc}"
     out.append(line)
-    out.append("fixed: " + ", ".join(f"{k}={v}" for k, v in {**plan.fixed, **plan.sets}.items()))
+    fixed = {k: v for k, v in {**plan.fixed, **plan.sets}.items() if k not in plan.swept}
+    out.append("fixed: " + ", ".join(f"{k}={v}" for k, v in fixed.items()))
     out += ["protocol card:"] + [f"  {line}" for line in plan_card(plan).lines()]
     if spec.search.sampled:
         s = spec.search
@@ -71,6 +72,18 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
                 f"{len(plan.cells)}; their inputs and memory stand for the rest)"
             )
     return wrapped("\n".join(out))
+
+
+def _scheduler(plan: SweepPlan) -> str:
+    """The scheduler and where it may stop a trial, or, in one line, that under this profile it stops none."""
+    sch, prof = plan.spec.scheduler, plan.profile
+    if sch.kind == "none":
+        return "none"
+    stops = sch.stop_steps(prof.steps, prof.eval_every)
+    if stops:
+        return f"{sch.kind}, may stop a trial at step {', '.join(map(str, stops))} of {prof.steps}"
+    return (f"{sch.kind} stops no trial under profile {prof.name}: its first rung (step "
+            f"{sch.grace_evals * prof.eval_every}) is not before the last step ({prof.steps})")
 
 
 def wrapped(text: str, width: int = 120) -> str:

@@ -28,6 +28,7 @@ import math
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -39,8 +40,8 @@ from cdm.prior_model import ensure_priors
 from cdm.train import Trainer
 from sweeps.plan.trials import SweepPlan, expand
 
-__all__ = ["BOUND_GPU", "GPU_COSTS", "PEAK_FLOPS", "Estimate", "TrialCost", "calibrate", "estimate", "paper_gpu_line",
-           "paper_trial_gpu_hours", "paper_trial_gpu_hours_bound", "peak_flops"]
+__all__ = ["BOUND_GPU", "GPU_COSTS", "PEAK_FLOPS", "Estimate", "TrialCost", "asha_share", "calibrate", "estimate",
+           "paper_gpu_line", "paper_trial_gpu_hours", "paper_trial_gpu_hours_bound", "peak_flops"]
 
 GPU_COSTS = Path(__file__).resolve().parents[2] / "benchmarks" / "gpu_costs.json"
 STARTUP_S = 2.0
@@ -74,7 +75,7 @@ class TrialCost:
     step_s: float
     """One training step on a ready batch, one thread."""
     eval_s: float
-    """One evaluation, building the evaluation set included (paid once per trial; counted every time)."""
+    """One evaluation, building the evaluation set included (a trial builds it once, for its first)."""
     batch_s: float = 0.0
     """Rendering one training batch (the samples of one step)."""
     eval_set_s: float = 0.0
@@ -82,7 +83,8 @@ class TrialCost:
 
     def trial_s(self, steps: int, eval_every: int, shared: bool = False) -> float:
         data = 0.0 if shared else steps * self.batch_s
-        evals = math.ceil(steps / eval_every) * self.eval_s - (self.eval_set_s if shared else 0.0)
+        # The trainer keeps its evaluation set (cdm.train.Trainer.evaluate): built once, or not at all when shared.
+        evals = math.ceil(steps / eval_every) * (self.eval_s - self.eval_set_s) + (0.0 if shared else self.eval_set_s)
         return STARTUP_S + self.setup_s + steps * self.step_s + data + evals
 
 
@@ -96,14 +98,30 @@ class Estimate:
     """The trials are a sequential sweep's most (every cell at ``max`` seeds); it may stop sooner."""
     gpu_line: str = ""
     """What :func:`paper_gpu_line` says: measured GPU-hours, or the counted-FLOP lower bound, labelled."""
+    stopping: str = ""
+    """Where a scheduler stops trials early: the expected wall time then (:func:`asha_share`); ``wall_s``
+    counts every trial to its last step."""
 
     def text(self) -> str:
         return (
             f"estimate: {'worst case, ' if self.worst_case else ''}"
             f"{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
             f"{self.concurrent} at a time → "
-            f"~{self.wall_s / 60:.1f} min wall on this machine;\n  {self.gpu_line}"
+            f"~{self.wall_s / 60:.1f} min wall on this machine{self.stopping};\n  {self.gpu_line}"
         )
+
+
+def asha_share(stops: list[int], reduction_factor: float, cost: Callable[[int], float]) -> float:
+    """A trial's expected cost under ASHA stopping at the steps ``stops`` (each before the last), over its
+    cost run to the end: at each rung it goes on with probability 1 / ``reduction_factor`` (Ray's ASHA
+    stops a trial below the rung's (1 − 1/rf) quantile of the results judged there before it; the first
+    trial at a rung always goes on, so this slightly overstates the saving). ``cost(step)``: a trial ending
+    at ``step`` (``stops`` and the last step, ``cost(None)``)."""
+    go_on, expected = 1.0, 0.0
+    for step in stops:
+        expected += go_on * (1.0 - 1.0 / reduction_factor) * cost(step)
+        go_on /= reduction_factor
+    return (expected + go_on * cost(None)) / cost(None)
 
 
 def calibrate(config: Config, steps: int = 3, eval_set: bool = True, evaluate: bool = True) -> TrialCost:
@@ -333,5 +351,13 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
         # loss, not the data): the batches of the longest run, spread over the CPUs.
         shared_s = (steps * world * cost + eval_set) / max(1.0, cpus)
     paper = expand(plan.spec, "paper", plan.sets)
+    sch = plan.spec.scheduler
+    stopping = ""
+    if stops := sch.stop_steps(steps, plan.profile.eval_every):
+        share = asha_share(stops, sch.reduction_factor, lambda at: statistics.fmean(
+            replace(c, eval_set_s=costs[0].eval_set_s).trial_s(at or steps, plan.profile.eval_every, shared)
+            for c in costs))
+        stopping = (f" if none stops, ~{(shared_s + trials_wall * share) / 60:.1f} min if {sch.kind} stops "
+                    f"1 in {sch.reduction_factor:g} at step {', '.join(map(str, stops))}")
     return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, plan.sequential is not None,
-                    paper_gpu_line(paper))
+                    paper_gpu_line(paper), stopping)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Sequence
 
 from cdm.config import load_config
 from sweeps.plan.describe import describe, wrapped
@@ -64,8 +65,10 @@ def estimate_line(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
     return predicted
 
 
-def dry_run(plan: SweepPlan, remote: bool, rule: list[str], calibrate: bool, shared: bool, missing: str | None) -> int:
-    """Print the plan and the card (``rule``: the until-settled lines), the paper profile's GPU-hours and,
+def dry_run(plan: SweepPlan, remote: bool, rule: list[str], calibrate: bool, shared: bool, missing: str | None,
+            where: Sequence[str] = ()) -> int:
+    """Print the plan and the card (``rule``: the until-settled lines), ``where`` (the storage folder and the
+    MLflow store a run would write to), the paper profile's GPU-hours and,
     where ``calibrate`` and this machine allow, the calibrated estimate; return the exit code: 2 with one
     ``error:`` line when inputs are ``missing`` (the calibration, which would read them, is skipped) or
     one the calibration reads is refused (a checkpoint that is no PC² file, holds NaN weights, …)."""
@@ -73,6 +76,8 @@ def dry_run(plan: SweepPlan, remote: bool, rule: list[str], calibrate: bool, sha
 
     cpus, gpus = (None, None) if remote else (os.cpu_count() or 1, torch.cuda.device_count())
     print(describe(plan, cpus, gpus, rule), flush=True)
+    if where:
+        print(wrapped("\n".join(where)), flush=True)
     if plan.profile.name == "paper":  # measured GPU-hours, or a lower bound said as one; no calibration needed
         from sweeps.plan.estimate import paper_gpu_line
 

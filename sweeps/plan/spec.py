@@ -12,6 +12,7 @@ This module only reads and validates files; :mod:`sweeps.plan.trials` expands a 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -133,6 +134,23 @@ class Scheduler(Strict):
     kind: Literal["none", "asha"] = "none"
     grace_evals: int = Field(1, ge=1)
     reduction_factor: float = Field(2.0, gt=1.0)
+
+    def stop_steps(self, steps: int, eval_every: int) -> list[int]:
+        """The steps before the last (``steps``) at which ASHA may stop a trial: none for ``kind: none``.
+
+        Ray's one-bracket ASHA (``ray/tune/schedulers/async_hyperband.py``, ``_Bracket``) has rungs at
+        ``grace × rf^k`` (``grace = grace_evals × eval_every``, k = 0 … ⌊log_rf(steps / grace)⌋) and judges a
+        trial at the first result it reports at or past a rung: the trainer reports at every evaluation
+        (each ``eval_every`` steps) and at the last step. A rung whose report is the last step stops nothing."""
+        grace = self.grace_evals * eval_every
+        if self.kind == "none" or grace >= steps:
+            return []
+        rungs, rung = [], grace
+        while rung <= steps:
+            rungs.append(rung)
+            rung *= self.reduction_factor
+        judged = sorted({min(steps, -(-int(math.ceil(r)) // eval_every) * eval_every) for r in rungs})
+        return [s for s in judged if s < steps]
 
 
 class Failure(Strict):

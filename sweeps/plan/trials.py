@@ -98,6 +98,13 @@ class SweepPlan:
         return len(self.cells) if self.grid_trials is None else self.grid_trials
 
     @property
+    def swept(self) -> frozenset[str]:
+        """Config fields the trials vary (the grid, explicit cells, a sampled search's space): never one of
+        the settings every trial shares, whatever ``fixed`` holds for them before a cell sets its own."""
+        s = self.spec
+        return frozenset({*s.grid, *s.search.space, *(k for c in s.cells for k in c.set)})
+
+    @property
     def sequential(self) -> SequentialSeeds | None:
         """The spec's rule when its seeds run until settled (:class:`sweeps.plan.spec.SequentialSeeds`), else None."""
         return self.spec.sequential
