@@ -11,9 +11,11 @@ import pytest
 from sweeps.plan.estimate import (
     GPU_COSTS,
     STARTUP_S,
+    Estimate,
     TrialCost,
     _calibration_configs,
     _eval_signature,
+    asha_share,
     calibrate,
     estimate,
     paper_gpu_line,
@@ -35,9 +37,10 @@ def test_trial_time_counts_steps_and_every_evaluation():
 
 def test_shared_work_leaves_the_trial_and_waves_round_up():
     cost = TrialCost(setup_s=3.0, step_s=0.5, eval_s=10.0, batch_s=0.1, eval_set_s=4.0)
-    assert cost.trial_s(steps=800, eval_every=400) == STARTUP_S + 3.0 + 400.0 + 80.0 + 20.0
+    # Two evaluations, the evaluation set built for the first only (the trainer keeps it): 10 + (10 − 4).
+    assert cost.trial_s(steps=800, eval_every=400) == STARTUP_S + 3.0 + 400.0 + 80.0 + 16.0
     # With the shared store the trial renders no batch and builds no evaluation set.
-    assert cost.trial_s(steps=800, eval_every=400, shared=True) == STARTUP_S + 3.0 + 400.0 + 20.0 - 4.0
+    assert cost.trial_s(steps=800, eval_every=400, shared=True) == STARTUP_S + 3.0 + 400.0 + 16.0 - 4.0
     plan = expand(load_spec(SWEEPS / "point_size.yaml"), "smoke")
     waves = estimate(plan, cpus=2, concurrent=2)
     assert waves.wall_s == pytest.approx(3 * waves.trial_s)  # 5 trials, 2 at a time: 3 waves
@@ -174,3 +177,18 @@ def test_measured_figures_are_printed_with_what_gpu_check_measured_beside_them()
                     f"{paper.num_trials} trials, measured on NVIDIA H100 80GB HBM3: training step 0.200 s in fp16 at "
                     "batch 16; peak memory 21.0 GiB; largest batch that fits 64; a batch through 1,000 DDPM steps 51 s "
                     "(extrapolated: 20 timed sampler steps × 1000/20); 12.3 % of the device's peak FLOP/s)")
+
+
+def test_the_estimate_says_the_wall_time_when_asha_stops_its_share():
+    # Half the trials stop at step 700 of 1400 (reduction factor 2): a trial costs on average halfway between.
+    cost = {700: 100.0, None: 180.0}.__getitem__
+    assert asha_share([700], 2.0, cost) == pytest.approx((0.5 * 100 + 0.5 * 180) / 180)
+    # Rungs at 10 and 30 of 90, factor 3: 2/3 stop at 10, 2/9 at 30, 1/9 run to the end.
+    cost = {10: 10.0, 30: 30.0, None: 90.0}.__getitem__
+    assert asha_share([10, 30], 3.0, cost) == pytest.approx((2 / 3 * 10 + 2 / 9 * 30 + 1 / 9 * 90) / 90)
+    text = Estimate(8, 240.0, 5, 960.0, stopping="asha stops 1 in 2 at step 700", stopped_wall_s=720.0).text()
+    assert text.startswith("estimate: 8 trials × ~4.0 min, 5 at a time → ~16.0 min wall on this machine if none "
+                           "stops, ~12.0 min if asha stops 1 in 2 at step 700;")
+    # Calibrated: the λ search's smoke profile (20 steps, evaluations at 10 and 20) lets ASHA stop at step 10.
+    est = estimate(expand(load_spec(SWEEPS / "lambda.yaml"), "smoke"), cpus=2, concurrent=2)
+    assert est.stopping == "asha stops 1 in 2 at step 10" and 0 < est.stopped_wall_s < est.wall_s

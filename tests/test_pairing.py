@@ -35,7 +35,8 @@ def test_a_cell_better_on_every_object_is_better_and_beats_the_baseline():
     record = paired_record(pairing, "up", SHOWN, "eval/f1")
     assert record["eval/f1 delta"] == pytest.approx(0.1) and record["eval/f1 delta covers"] == "objects"
     assert (record["verdict"], record["beats baselines"]) == ("better", "sphere")
-    assert lead_difference(cells, "up", "ref", "eval/f1").mean == pytest.approx(0.1)
+    lead = lead_difference(cells, "up", "ref", "eval/f1")
+    assert lead.diff.mean == pytest.approx(0.1) and (lead.verdict, lead.covers) == ("better", "objects")
 
 
 def test_the_partner_metric_names_itself_when_it_disagrees():

@@ -46,3 +46,30 @@ def test_exactly_one_of_a_spec_a_rerun_and_a_report(tmp_path):
     for argv in ([], ["spec.yaml", "--report", "s"], ["--rerun", "r", "--report", "s"]):
         with pytest.raises(RequestError, match="give one of a sweep spec"):
             check_mode(run._parser().parse_args(argv))
+
+
+def test_a_dry_run_says_where_the_results_and_the_mlflow_runs_will_go(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    args = [str(tmp_path / "s.yaml"), "--smoke", "--dry-run", "--no-estimate"]
+    (tmp_path / "s.yaml").write_text(SPEC)
+    assert run.main(args) == 0
+    out = capsys.readouterr().out
+    folded = " ".join(out.split())  # lines folded at 120 bytes, joined
+    assert (f"storage: {tmp_path / 'results' / 's' / 'smoke'} (results.md, results.csv, the trials' folders and "
+            "checkpoints, Tune's state)") in folded
+    assert (f"MLflow tracking URI: sqlite:///{tmp_path / 'mlflow.db'}, experiment s "
+            f"(artifacts: {tmp_path / 'mlruns' / 's'})") in folded
+    assert max(len(line.encode()) for line in out.splitlines()) <= 120
+    # A resumed sweep logs into the store it started with (sweep.json), whatever the environment says.
+    folder = tmp_path / "r" / "s" / "smoke"
+    folder.mkdir(parents=True)
+    (folder / "sweep.json").write_text(json.dumps({
+        "spec": {"name": "s", "grid": {"priors.point_size": [0.08]}}, "sets": {}, "profile": "smoke", "budget": None,
+        "tracking_uri": "http://127.0.0.1:5999", "parent_run_id": "p"}))
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///elsewhere.db")
+    assert run.main([*args, "--resume", "--storage", str(tmp_path / "r")]) == 0
+    folded = " ".join(capsys.readouterr().out.split())
+    assert f"storage: {folder} (" in folded
+    assert "MLflow tracking URI: http://127.0.0.1:5999, experiment s (artifacts: the server's store)" in folded
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r", "s.yaml"]  # a dry run writes nothing

@@ -595,3 +595,54 @@ def test_trial_labels_are_built_and_split_in_one_place():
     assert trial_label("point_size=0.04 · H=10", 3) == "point_size=0.04 · H=10 · seed 3"
     assert split_label(trial_label("point_size=0.04 · H=10", 3)) == ("point_size=0.04 · H=10", "3")
     assert split_label("point_size=0.04") == ("point_size=0.04", None)
+
+
+def test_a_dry_run_lists_no_searched_key_as_fixed_and_says_where_asha_stops(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert run.main([str(SWEEPS / "lambda.yaml"), "--dry-run", "--no-estimate"]) == 0
+    out = capsys.readouterr().out
+    fixed = " ".join(out.split("\nfixed: ", 1)[1].split("\nprotocol card:", 1)[0].split())
+    # The recipe's λ 0.1 is what the search replaces in every trial: not a fixed setting.
+    assert "priors.lambda_3d" not in fixed and "priors.point_size=0.04" in fixed
+    assert "priors.lambda_3d: log_float [0.001, 10]" in out
+    # The local profile's evaluation halfway gives ASHA a rung before the last step (the spec promises it).
+    assert "\nscheduler: asha, may stop a trial at step 700 of 1400\n" in out
+    assert "ASHA stopping weak trials after their first evaluation" in " ".join(out.split())
+    assert max(len(line.encode()) for line in out.splitlines()) <= 120
+
+
+def test_a_scheduler_that_can_stop_nothing_is_said_in_one_line_and_not_run(tmp_path, monkeypatch, capsys):
+    from sweeps.execute.tuner import _scheduler
+
+    monkeypatch.chdir(tmp_path)
+    spec = tmp_path / "late.yaml"
+    spec.write_text(f"{(SWEEPS / 'lambda.yaml').read_text()}\n".replace("grace_evals: 1", "grace_evals: 2"))
+    assert run.main([str(spec), "--dry-run", "--no-estimate", "--smoke"]) == 0  # 20 steps, evaluations at 10, 20
+    lines = capsys.readouterr().out.splitlines()
+    line = next(i for i, text in enumerate(lines) if text.startswith("scheduler:"))
+    assert lines[line] == ("scheduler: asha stops no trial under profile smoke: its first rung (step 20) is not before "
+                           "the last step (20)")
+    assert not lines[line + 1].startswith("  ")  # one line
+    assert _scheduler(expand(load_spec(spec), "smoke")) is None  # and Tune runs without it
+    assert _scheduler(expand(load_spec(SWEEPS / "lambda.yaml"), "smoke")) is not None
+
+
+@pytest.mark.parametrize(("steps", "eval_every", "grace", "rf", "stops"), [
+    (1400, 1400, 1, 2, []),  # the shared local profile: the only rung is the last step
+    (1400, 700, 1, 2, [700]),
+    (100, 10, 1, 3, [10, 30, 90]),
+    (100, 10, 1, 2.5, [10, 30, 70]),  # rungs 25 and 62.5 are judged at the next evaluation
+    (20, 10, 3, 2, []),  # a grace period past the budget
+])
+def test_asha_stops_where_rays_rungs_meet_an_evaluation(steps, eval_every, grace, rf, stops):
+    from ray.tune.schedulers.async_hyperband import _Bracket
+
+    from sweeps.plan.spec import Scheduler
+
+    sch = Scheduler(kind="asha", grace_evals=grace, reduction_factor=rf)
+    assert sch.stop_steps(steps, eval_every) == stops
+    assert Scheduler().stop_steps(steps, eval_every) == []
+    if grace * eval_every <= steps:  # Ray's own rungs (it refuses a grace period past max_t), each judged at the
+        rungs = [m for m, _ in _Bracket(grace * eval_every, steps, rf, 0)._rungs]  # next evaluation
+        judged = {min(steps, -(-int(-(-m // 1)) // eval_every) * eval_every) for m in rungs}
+        assert sorted(s for s in judged if s < steps) == stops

@@ -37,6 +37,16 @@ class PairedDifference:
     high: float
     n: int
     """Objects paired."""
+    clipped: bool = False
+    """The interval reached past the values the Δ can take and was cut to them (:meth:`within`)."""
+
+    def within(self, bounds: tuple[float, float] | None) -> PairedDifference:
+        """This difference with its interval cut to ``bounds`` (the values the Δ can take; None: no bound),
+        marked ``clipped`` where it reached past them."""
+        if bounds is None or (bounds[0] <= self.low and self.high <= bounds[1]):
+            return self
+        low, high = max(self.low, bounds[0]), min(self.high, bounds[1])
+        return PairedDifference(self.mean, low, high, self.n, clipped=True)
 
     def verdict(self, mode: Literal["min", "max"]) -> Verdict:
         """``better`` when the whole interval lies on the good side of 0 for ``mode``, ``worse`` on the bad."""

@@ -16,10 +16,11 @@ from typing import Literal
 
 from sweeps.compare.bootstrap import PairedDifference, UnpairedError, compare, per_object_means
 from sweeps.compare.outcomes import TrialOutcome, finished
-from sweeps.compare.rules import object_column, partner_mode, weighed
-from sweeps.compare.sequential import SettleRecord
+from sweeps.compare.rules import TOO_FEW, delta_range, object_column, partner_mode, weighed
+from sweeps.compare.sequential import Decision, SettleRecord, decide
+from sweeps.plan.trials import split_label
 
-__all__ = ["Pairing", "lead_difference", "paired_record"]
+__all__ = ["Lead", "Pairing", "lead_difference", "paired_record", "seeds_vary"]
 
 
 def _object_scores(group: Sequence[TrialOutcome], key: str, category: str | None) -> dict[str, float]:
@@ -28,6 +29,46 @@ def _object_scores(group: Sequence[TrialOutcome], key: str, category: str | None
         [r for r in o.objects if category is None or r["category"] == category] for o in finished(group) if o.objects
     ]
     return per_object_means(trials, key) if trials and all(key in r for t in trials for r in t) else {}
+
+
+def _seed_scores(group: Sequence[TrialOutcome], key: str, category: str | None) -> dict[int, dict[str, float]]:
+    """Training seed → ``object_id →`` score under ``key`` of a cell's finished trials (what
+    :func:`sweeps.compare.sequential.decide` pairs), per seed as :func:`_object_scores` per cell."""
+    out = {}
+    for o in finished(group):
+        scores = _object_scores([o], key, category)
+        seed = split_label(o.label)[1]
+        if scores and seed is not None:
+            out[int(seed)] = scores
+    return out
+
+
+def seeds_vary(cells: Mapping[str, Sequence[TrialOutcome]]) -> bool:
+    """Some cell has more than one finished trial with per-object scores: its seeds' spread is to be counted."""
+    return any(sum(bool(o.objects) for o in finished(group)) > 1 for group in cells.values())
+
+
+def _over_seeds(cell: Sequence[TrialOutcome], reference: Sequence[TrialOutcome], metric: str,
+                mode: Literal["min", "max"], looks: int) -> Decision | None:
+    """``cell`` against ``reference`` on ``metric`` over the seeds both ran and the objects both scored, as a
+    sequential sweep's rows decide (:func:`sweeps.compare.sequential.decide`, its interval spending
+    (1 − level) / ``looks``); None where they pair on no seed or object."""
+    column, category = object_column(metric)  # type: ignore[misc]
+    try:
+        return decide(_seed_scores(cell, column, category), _seed_scores(reference, column, category), mode=mode,
+                      margin=None, look=looks, looks=looks)
+    except (UnpairedError, ValueError):  # no seed in common, other objects, or one object
+        return None
+
+
+def _as_difference(decision: Decision, metric: str) -> PairedDifference:
+    i = decision.interval
+    return PairedDifference(i.mean, i.low, i.high, i.objects).within(delta_range(metric))
+
+
+def _plain(verdict: str) -> str:
+    """A verdict over seeds as a row without a seeds rule says it: ``open`` is no clear difference."""
+    return "no clear difference" if verdict == "open" else verdict
 
 
 @dataclass
@@ -44,11 +85,15 @@ class Pairing:
     """Cell → its weighed verdict against the reference cell; a settled cell's says after how many seeds."""
     settled: Mapping[str, SettleRecord]
     notes: list[str]
+    seeded: dict[str, Decision]
+    """Cell → its decision over seeds and objects on the metric, where seeds vary in a sweep of fixed seeds
+    (a sequential sweep's cells have theirs in ``settled``)."""
 
     @classmethod
     def build(cls, cells: dict[str, list[TrialOutcome]], reference: str, shown: list[str],
               mode: Literal["min", "max"], baselines: list[str], settled: Mapping[str, SettleRecord]) -> Pairing:
-        pairing = cls(reference, {}, {}, {}, {n: r for n, r in settled.items() if n in cells and n != reference}, [])
+        pairing = cls(reference, {}, {}, {}, {n: r for n, r in settled.items() if n in cells and n != reference}, [],
+                      {})
         metric, modes = shown[0], {m: mode if m == shown[0] else partner_mode(m) for m in shown}
         to_baseline: dict[tuple[str, str, str], str] = {}
         unpaired: list[str] = []
@@ -73,20 +118,29 @@ class Pairing:
             if m == metric:
                 others = [(p, to_baseline[(name, b, p)]) for p in shown[1:] if (name, b, p) in to_baseline]
                 pairing.against.setdefault(name, {})[b] = weighed([(m, verdict), *others])
+        if seeds_vary(cells):  # the metric's verdict over seeds and objects, as a sequential sweep's
+            for name in cells:
+                if name != reference and name not in pairing.settled and (name, metric) in pairing.diffs:
+                    decision = _over_seeds(cells[name], cells[reference], metric, mode, 1)
+                    if decision is not None and decision.interval.seeds > 1:  # else paired per object, as before
+                        pairing.seeded[name] = decision
         for name in cells:
-            found = {
-                m: d.verdict(modes[m]) for m in shown if isinstance(d := pairing.diffs.get((name, m)), PairedDifference)
-            }
+            found = {m: d.verdict(modes[m]) for m in shown
+                     if isinstance(d := pairing.delta(name, m, metric), PairedDifference)}
+            if name in pairing.seeded:
+                found[metric] = _plain(pairing.seeded[name].verdict)
             record = pairing.settled.get(name)
+            too_few = [m for m in shown if getattr(pairing.delta(name, m, metric), "clipped", False)]
+            flag = "".join(f", {TOO_FEW}" + ("" if m == metric else f" on {m.removeprefix('eval/')}") for m in too_few)
             if record is not None:
                 # The partner was not decided on: its interval over objects only, said as such.
                 aside = [f" ({v} on {m.removeprefix('eval/')}, objects only)" for m, v in found.items()
                            if m != metric and v not in ("no clear difference", record.decision.verdict)]
-                pairing.verdicts[name] = "".join([record.text(), *aside])
+                pairing.verdicts[name] = "".join([record.text(), *aside, flag])
             elif metric in found:
                 pairing.verdicts[name] = weighed(
                     [(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric]
-                )
+                ) + flag
         if unpaired:
             pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
                                  f"comparison needs the same evaluation set): {', '.join(unpaired)}")
@@ -96,13 +150,14 @@ class Pairing:
         return [b for b, v in self.against.get(name, {}).items() if v == "better"]
 
     def delta(self, name: str, m: str, metric: str) -> PairedDifference | str | None:
-        """Row ``name``'s Δ on ``m``: a settled cell's interval over seeds and objects on the metric, else the
-        paired one."""
-        record = self.settled.get(name)
-        if record is not None and m == metric:
-            i = record.decision.interval
-            return PairedDifference(i.mean, i.low, i.high, i.objects)
-        return self.diffs.get((name, m))
+        """Row ``name``'s Δ on ``m``: on the metric, a settled cell's interval over seeds and objects (or, where
+        seeds vary in a sweep of fixed seeds, its own), else the paired one; cut to the values the Δ can take
+        (:func:`sweeps.compare.rules.delta_range`)."""
+        decision = self.settled[name].decision if name in self.settled else self.seeded.get(name)
+        if decision is not None and m == metric:
+            return _as_difference(decision, m)
+        d = self.diffs.get((name, m))
+        return d.within(delta_range(m)) if isinstance(d, PairedDifference) else d
 
     def columns(self, name: str, shown: list[str], metric: str) -> list[str]:
         """A cell's Δ per shown metric, verdict and the baselines it beats."""
@@ -115,12 +170,32 @@ class Pairing:
         return out + [self.verdicts.get(name, ""), ", ".join(self.beats(name)) or "none"]
 
 
-def lead_difference(
-    cells: dict[str, list[TrialOutcome]], best: str, runner_up: str, metric: str
-) -> PairedDifference | None:
-    """The leader ``best`` against the next cell ``runner_up`` on ``metric``, paired per object; None if unpaired."""
+@dataclass(frozen=True)
+class Lead:
+    """The leader against the next cell: the difference, its verdict and what its interval covers."""
+
+    diff: PairedDifference
+    verdict: str
+    """``better``/``worse``/``no clear difference``, or ``open`` where one seed of each settles nothing."""
+    covers: str
+    """``objects``, or ``seeds and objects``."""
+
+
+def lead_difference(cells: dict[str, list[TrialOutcome]], best: str, runner_up: str, metric: str,
+                    mode: Literal["min", "max"] = "max", looks: int | None = None) -> Lead | None:
+    """The leader ``best`` against the next cell ``runner_up`` on ``metric``; None if unpaired. Where seeds vary,
+    over seeds and objects as the rows' verdicts: a sequential sweep's (``looks``: its planned looks; its
+    interval spends (1 − level) / looks, and one seed in common settles nothing), else a sweep of fixed seeds'
+    (one look; paired per object where the two share one seed). Else paired per object."""
+    if seeds_vary(cells):
+        decision = _over_seeds(cells[best], cells[runner_up], metric, mode, looks or 1)
+        if decision is not None and (looks is not None or decision.interval.seeds > 1):
+            return Lead(_as_difference(decision, metric), decision.verdict, decision.interval.covers)
     ours, theirs = (_object_scores(cells[n], *object_column(metric)) for n in (best, runner_up))  # type: ignore[misc]
-    return compare(ours, theirs, (best, runner_up)) if ours and theirs and set(ours) == set(theirs) else None
+    if not (ours and theirs and set(ours) == set(theirs)):
+        return None
+    diff = compare(ours, theirs, (best, runner_up)).within(delta_range(metric))
+    return Lead(diff, diff.verdict(mode), "objects")
 
 
 def paired_record(pairing: Pairing, name: str, shown: list[str], metric: str) -> dict[str, object]:
@@ -132,9 +207,9 @@ def paired_record(pairing: Pairing, name: str, shown: list[str], metric: str) ->
         ok = isinstance(d, PairedDifference)
         record.update({f"{m} delta": d.mean if ok else None, f"{m} delta low": d.low if ok else None,
                        f"{m} delta high": d.high if ok else None})
-    settle = pairing.settled.get(name)
+    decision = pairing.settled[name].decision if name in pairing.settled else pairing.seeded.get(name)
     paired = isinstance(pairing.diffs.get((name, metric)), PairedDifference)
-    record[f"{metric} delta covers"] = settle.decision.interval.covers if settle else "objects" if paired else ""
+    record[f"{metric} delta covers"] = decision.interval.covers if decision else "objects" if paired else ""
     record["verdict"] = pairing.verdicts.get(name, "")
     record["beats baselines"] = ";".join(pairing.beats(name))
     return record

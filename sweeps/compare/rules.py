@@ -16,7 +16,9 @@ from sweeps.plan.spec import Spec
 
 __all__ = [
     "PROTOCOL_NOTE",
+    "TOO_FEW",
     "Stat",
+    "delta_range",
     "lambda_source",
     "number_text",
     "object_column",
@@ -153,6 +155,21 @@ def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any
         settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),
         *(PROTOCOL_NOTE + line for line in card),
     ]
+
+
+TOO_FEW = "too few objects to tell"
+"""What a verdict adds when its interval was wider than the metric allows and was clipped (:func:`delta_range`)."""
+
+
+def delta_range(metric: str) -> tuple[float, float] | None:
+    """The values the true Δ (cell − reference) of ``metric`` can take whatever the objects, or None.
+
+    F1 lies in [0, 1] (cdm/metrics.py), so every Δ of it, and its mean, lies in [−1, 1]: an interval reaching
+    past that has too few objects (or seeds) to tell anything and is clipped to it. CD ≥ 0 bounds the true Δ
+    only from below, by minus the reference's true mean CD, which the scores estimate but do not know: no
+    bound holds exactly, so a CD interval is never clipped."""
+    where = object_column(metric)
+    return (-1.0, 1.0) if where is not None and where[0] == "f1" else None
 
 
 def object_column(metric: str) -> tuple[str, str | None] | None:

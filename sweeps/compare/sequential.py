@@ -119,6 +119,8 @@ class SettleRecord:
     seeds: int
     decision: Decision
     reason: Literal["settled", "max", "budget"]
+    looks: int = 1
+    """The sweep's planned looks: its interval spent (1 − level) / ``looks``, as every other one of the sweep's."""
 
     def text(self) -> str:
         """``better, settled after 2 seeds`` or ``open at 5 seeds``."""

@@ -135,11 +135,11 @@ def next_round(plan: SweepPlan, started: set[str], results: Results, *, trials_l
         except UnpairedError:
             continue  # scored on other objects than the reference: the table says "not paired"
         if decision.settled or k == rule.max:
-            records[name] = SettleRecord(k, decision, "settled" if decision.settled else "max")
+            records[name] = SettleRecord(k, decision, "settled" if decision.settled else "max", rule.looks)
             continue
         wanted = [c for c in (trials[k], reference[k]) if c.label not in started and c.label not in start]
         if out_of_time or (trials_left is not None and trials_left - len(start) < len(wanted)):
-            records[name] = SettleRecord(k, decision, "budget")
+            records[name] = SettleRecord(k, decision, "budget", rule.looks)
             continue
         start.update({c.label: c for c in wanted})
     order = {c.label: i for i, c in enumerate(plan.cells)}

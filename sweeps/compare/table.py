@@ -27,10 +27,9 @@ from typing import Literal
 
 from cdm.baseline_names import BASELINES
 from cdm.metric_names import f1_unit
-from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.outcomes import TrialOutcome, finished
-from sweeps.compare.pairing import Pairing, lead_difference, paired_record
-from sweeps.compare.rules import Stat, number_text, object_column, partner, partner_mode
+from sweeps.compare.pairing import Lead, Pairing, lead_difference, paired_record, seeds_vary
+from sweeps.compare.rules import TOO_FEW, Stat, delta_range, number_text, object_column, partner, partner_mode
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
@@ -239,7 +238,9 @@ def build_table(
     leaders = [name for _, name in ranked if number_text(stats[name].mean) == number_text(stats[ranked[0][1]].mean)]  # type: ignore[union-attr]
     best = leaders[0] if len(leaders) == 1 else None
     mark = {best: " ★"} if best else {name: " (tied)" for name in leaders}
-    lead = lead_difference(cells, best, ranked[1][1], metric) if pairing and best and len(ranked) > 1 else None
+    looks = max((r.looks for r in settled.values()), default=1) if settled else None
+    lead = (lead_difference(cells, best, ranked[1][1], metric, mode, looks)
+            if pairing and best and len(ranked) > 1 else None)
 
     made = [_cell_row(columns, name, group, mark.get(name, ""), best) for name, group in cells.items()]
     if metric.startswith("eval/"):
@@ -256,7 +257,7 @@ def build_table(
         [record for _, record in made],
         notes,
         best,
-        _summary(cells, stats, leaders, metric, pairing, lead, mode),
+        _summary(cells, stats, leaders, metric, pairing, lead),
         frozenset(columns.per_category + ["beats baselines"]),
         tuple(narrowing),
         answer,
@@ -335,9 +336,11 @@ def _notes(
     if any(c in o.paper for o in outcomes for c in columns.per_category):
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
     seeds = max((len(finished(group)) for group in cells.values()), default=0)
+    varies = seeds_vary(cells)
     if ranked:
+        interval = "interval over seeds and objects (as the verdicts')" if varies else "paired interval"
         star = (f"★ highest mean {metric} ({mode}), apart from the next at the printed precision; \"best\" only where "
-                f"its paired interval against the next cell excludes 0" if best else
+                f"its {interval} against the next cell excludes 0" if best else
                 f"no ★: {', '.join(leaders)} tied for best by {metric} ({mode}) at the printed precision")
         notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
@@ -348,7 +351,15 @@ def _notes(
         notes.append("the bootstrap intervals cover the held-out objects only, not training seeds: "
                      + ("with one seed per cell, another seed can move a cell by more than an interval's width"
                         if seeds == 1 else "the seeds are averaged, their spread is not in the interval"))
+        if pairing.seeded:
+            notes.append(f"seeds vary: Δ{metric.removeprefix('eval/')} and its verdict (where a cell and "
+                         f"{pairing.reference} share two seeds or more) are over training seeds and held-out objects "
+                         "instead, Banerjee's two-way t-interval at 95% (sweeps/compare/sequential.py)")
         notes += [SETTLED_FOOTNOTE] if columns.seeds else []
+        bounds = delta_range(metric)
+        if bounds and any(TOO_FEW in v for v in pairing.verdicts.values()):
+            notes.append(f"{TOO_FEW}: an interval wider than Δ{metric.removeprefix('eval/')} can be, cut to "
+                         f"[{bounds[0]:+g}, {bounds[1]:+g}] ({metric.split('/')[1].upper()} lies in [0, 1])")
         notes += pairing.notes
     return notes + [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
 
@@ -363,8 +374,7 @@ def _summary(
     leaders: list[str],
     metric: str,
     pairing: Pairing | None,
-    lead: PairedDifference | None = None,
-    mode: Literal["min", "max"] = "max",
+    lead: Lead | None = None,
 ) -> list[str]:
     """One sentence per class of cells — the best cell (only when ``lead``, its paired Δ to the next, excludes 0;
     else the leader, said not resolvable), then cells that stand the same against the baselines (weighed
@@ -387,12 +397,14 @@ def _summary(
         )
 
     best = leaders[0] if len(leaders) == 1 else None
+    over = ", over seeds and objects" if lead and lead.covers == "seeds and objects" else ""
     lead_text = (
-        f"Δ{metric.removeprefix('eval/')} {lead.text()} against the next cell"
+        f"Δ{metric.removeprefix('eval/')} {lead.diff.text()} against the next cell{over}"
+        + (f", {TOO_FEW}" if lead.diff.clipped else "")
         if lead
         else "unpaired with the next cell"
     )
-    if best and lead is not None and lead.verdict(mode) == "better":
+    if best and lead is not None and lead.verdict == "better":
         out = [f"best cell {best} ({lead_text}): {standing(best, False)}"]
     elif best:
         out = [f"no cell is resolvably best by {metric}: the leader {best} ({lead_text}): {standing(best, False)}"]

@@ -87,6 +87,15 @@ def _scheduler(plan: SweepPlan) -> str:
 
 
 def wrapped(text: str, width: int = 120) -> str:
-    """``text`` with every line over ``width`` folded at spaces, each continuation indented two more."""
-    return "\n".join(textwrap.fill(line, width, subsequent_indent=line[: len(line) - len(line.lstrip())] + "  ",
-                                   break_long_words=False, break_on_hyphens=False) for line in text.splitlines())
+    """``text`` with every line over ``width`` UTF-8 bytes (→, λ, × are two or three) folded at spaces, each
+    continuation indented two more; a word longer than the room (a long path) stays whole."""
+    return "\n".join(_fold(line, width) for line in text.splitlines())
+
+
+def _fold(line: str, width: int) -> str:
+    indent = line[: len(line) - len(line.lstrip())] + "  "
+    for room in range(width, width // 2, -1):
+        folded = textwrap.fill(line, room, subsequent_indent=indent, break_long_words=False, break_on_hyphens=False)
+        if max(len(part.encode()) for part in folded.splitlines() or [""]) <= width:
+            break
+    return folded

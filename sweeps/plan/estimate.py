@@ -99,15 +99,19 @@ class Estimate:
     gpu_line: str = ""
     """What :func:`paper_gpu_line` says: measured GPU-hours, or the counted-FLOP lower bound, labelled."""
     stopping: str = ""
-    """Where a scheduler stops trials early: the expected wall time then (:func:`asha_share`); ``wall_s``
-    counts every trial to its last step."""
+    """Where a scheduler stops trials early (``asha stops 1 in 2 at step 700``); ``wall_s`` counts every trial
+    to its last step."""
+    stopped_wall_s: float | None = None
+    """The expected wall time when the scheduler stops its share (:func:`asha_share`)."""
 
     def text(self) -> str:
         return (
             f"estimate: {'worst case, ' if self.worst_case else ''}"
             f"{self.trials} trials × ~{self.trial_s / 60:.1f} min, "
             f"{self.concurrent} at a time → "
-            f"~{self.wall_s / 60:.1f} min wall on this machine{self.stopping};\n  {self.gpu_line}"
+            f"~{self.wall_s / 60:.1f} min wall on this machine"
+            + (f" if none stops, ~{self.stopped_wall_s / 60:.1f} min if {self.stopping}" if self.stopping else "")
+            + f";\n  {self.gpu_line}"
         )
 
 
@@ -352,12 +356,12 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
         shared_s = (steps * world * cost + eval_set) / max(1.0, cpus)
     paper = expand(plan.spec, "paper", plan.sets)
     sch = plan.spec.scheduler
-    stopping = ""
+    stopping, stopped = "", None
     if stops := sch.stop_steps(steps, plan.profile.eval_every):
         share = asha_share(stops, sch.reduction_factor, lambda at: statistics.fmean(
             replace(c, eval_set_s=costs[0].eval_set_s).trial_s(at or steps, plan.profile.eval_every, shared)
             for c in costs))
-        stopping = (f" if none stops, ~{(shared_s + trials_wall * share) / 60:.1f} min if {sch.kind} stops "
-                    f"1 in {sch.reduction_factor:g} at step {', '.join(map(str, stops))}")
+        stopping = f"{sch.kind} stops 1 in {sch.reduction_factor:g} at step {', '.join(map(str, stops))}"
+        stopped = shared_s + trials_wall * share
     return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, plan.sequential is not None,
-                    paper_gpu_line(paper), stopping)
+                    paper_gpu_line(paper), stopping, stopped)
