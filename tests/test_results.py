@@ -14,6 +14,7 @@ import torch
 from cdm.metric_names import label as metric_label
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.rules import settings_note, settings_notes
+from sweeps.compare.sequential import Decision, SeedInterval, SettleRecord
 from sweeps.compare.table import build_table
 from sweeps.plan.spec import load_spec
 
@@ -400,3 +401,78 @@ def test_every_f1_label_names_its_threshold_in_world_units():
     assert metric_label("train/loss", 0.01) == "train/loss"
     no_f1 = build_table([_trial("a", 0, train__loss=0.5)], "train/loss", "min", "t")  # no F1 shown: no footnote
     assert not any(n.startswith("F1 is") for n in no_f1.notes)
+
+
+SEED_SHIFTS = (0.30, -0.25, 0.10)
+"""What each training seed adds to ``b`` over ``a``: the seeds disagree far more than the objects do."""
+
+
+def _seeded_outcomes(seeds: int = 3) -> list[TrialOutcome]:
+    out = []
+    for seed, shift in enumerate(SEED_SHIFTS[:seeds]):
+        out += [_scored("a", REF_F1, REF_CD, seed),
+                _scored("b", [f + shift + w / 100 for f, w in zip(REF_F1, WOBBLE)], REF_CD, seed)]
+    return out
+
+
+def test_where_seeds_vary_the_headline_and_the_rows_use_the_seeds_by_objects_interval():
+    table = build_table(_seeded_outcomes(), "eval/f1", "max", "t")
+    rows = {r[0].removesuffix(" ★"): dict(zip(table.header, r)) for r in table.rows}
+    # Seeds averaged per object, b leads a by 0.05 on every object: the objects-only interval is narrow and
+    # excludes 0, but the three seeds disagree (+0.30, −0.25, +0.10): over seeds and objects it holds 0.
+    assert table.best == "b"
+    assert table.summary[0].startswith("no cell is resolvably best by eval/f1: the leader b (Δf1 +0.050 [")
+    assert "against the next cell, over seeds and objects" in table.summary[0]
+    low, high = (float(v) for v in rows["b"]["Δf1 vs a [95% CI]"].split("[")[1].rstrip("]").split(", "))
+    assert low < 0 < high and high - low > 0.5  # the row's interval, the headline's
+    assert f"[{low:+.3f}, {high:+.3f}]" in table.summary[0]
+    assert rows["b"]["verdict"] == "no clear difference"
+    assert table.records[1]["eval/f1 delta covers"] == "seeds and objects"
+    assert any(n.startswith("seeds vary: Δf1 and its verdict") for n in table.notes)
+    assert any("its interval over seeds and objects (as the verdicts') against the next cell" in n for n in table.notes)
+    # A sequential sweep's settled rows: the headline spends the same share of 5 % as they do (4 looks).
+    from sweeps.compare.sequential import decide
+
+    per_seed = {c: {int(o.label[-1]): {r["object_id"]: r["f1"] for r in o.objects} for o in _seeded_outcomes()
+                    if o.cell == c} for c in "ab"}
+    decision = decide(per_seed["b"], per_seed["a"], mode="max", margin=None, look=2, looks=4)
+    settled = build_table(_seeded_outcomes(), "eval/f1", "max", "t",
+                          settled={"b": SettleRecord(3, decision, "max", looks=4)})
+    srow = dict(zip(settled.header, settled.rows[1]))
+    # At 3 seeds and four looks the interval, [−1.37, +1.47], is wider than F1 allows: cut, and said so.
+    assert (decision.interval.low, decision.interval.high) == pytest.approx((-1.374154, 1.474154))
+    assert (srow["Δf1 vs a [95% CI]"], srow["verdict"]) == ("+0.050 [-1.000, +1.000]", "too few objects to tell")
+    assert settled.summary[0] == (
+        "no cell is resolvably best by eval/f1: the leader b (Δf1 +0.050 [-1.000, +1.000] against the next cell, "
+        "over seeds and objects, too few objects to tell): beats sphere; better on f1, worse on cd than Gaussian")
+
+
+def test_one_seed_per_cell_keeps_the_objects_only_interval():
+    table = build_table(_seeded_outcomes(seeds=1), "eval/f1", "max", "t")
+    assert table.summary[0].startswith("best cell b (Δf1 +0.300 [") and "over seeds" not in table.summary[0]
+    assert table.records[1]["eval/f1 delta covers"] == "objects"
+
+
+def test_an_interval_wider_than_f1_can_be_is_cut_to_its_range_and_says_too_few_objects(tmp_path):
+    # Two seeds of a smoke sweep, seeds × objects at t₁: an F1 interval like [−3.47, +3.67].
+    wide = SettleRecord(3, Decision(SeedInterval(0.1, -3.47, 3.67, 3, 6, "seeds and objects"), "open"), "max", looks=4)
+    table = build_table(_weighing_outcomes()[:2], "eval/f1", "max", "t", settled={"trade": wide})
+    row = dict(zip(table.header, next(r for r in table.rows if r[0].startswith("trade"))))
+    assert row["Δf1 vs ref [95% CI]"] == "+0.100 [-1.000, +1.000]"
+    assert row["verdict"] == "too few objects to tell (worse on cd, objects only)"
+    assert ('Δf1 intervals reaching past [-1, +1] (F1 lies in [0, 1]) are cut to it; where one still holds 0 the '
+            'verdict says "too few objects to tell"') in table.notes
+    assert max(len(line.encode()) for line in table.text().splitlines()) <= 120
+    _, path = table.write(tmp_path)
+    record = next(r for r in csv.DictReader(path.open()) if r["cell"] == "trade")
+    assert (float(record["eval/f1 delta low"]), float(record["eval/f1 delta high"])) == (-1.0, 1.0)
+    # Cut but still clear of 0: the data tell, the verdict stands.
+    sure = SettleRecord(3, Decision(SeedInterval(0.6, 0.2, 1.3, 3, 6, "seeds and objects"), "better"), "settled")
+    row = build_table(_weighing_outcomes()[:2], "eval/f1", "max", "t", settled={"trade": sure}).records[1]
+    assert row["eval/f1 delta high"] == 1.0
+    assert row["verdict"] == "better, settled after 3 seeds (worse on cd, objects only)"
+    # CD's Δ has no bound that holds whatever the reference's true mean: never cut.
+    cd_wide = SettleRecord(3, Decision(SeedInterval(3.0, -900.0, 900.0, 3, 6, "seeds and objects"), "open"), "max")
+    by_cd = build_table(_weighing_outcomes(), "eval/cd", "min", "t", settled={"cd only": cd_wide})
+    row = dict(zip(by_cd.header, next(r for r in by_cd.rows if r[0].startswith("cd only"))))
+    assert row["Δcd vs ref [95% CI]"] == "+3.00 [-900.00, +900.00]" and "too few" not in row["verdict"]

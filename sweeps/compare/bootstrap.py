@@ -61,7 +61,7 @@ class PairedDifference:
 
 def interval_text(mean: float, low: float, high: float) -> str:
     """``+1.10 [+0.39, +1.87]``: 3 decimals when both ends are within ±1 (F1-like), else 2 (CD-like)."""
-    digits = 3 if max(abs(low), abs(high)) < 1 else 2
+    digits = 3 if max(abs(low), abs(high)) <= 1 else 2
     return f"{mean:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}]"
 
 

@@ -129,22 +129,29 @@ class Pairing:
                      if isinstance(d := pairing.delta(name, m, metric), PairedDifference)}
             if name in pairing.seeded:
                 found[metric] = _plain(pairing.seeded[name].verdict)
+            # An interval cut to the metric's range that still holds 0 tells nothing: said so, not "unclear".
+            found |= {m: TOO_FEW for m, v in found.items()
+                      if v == "no clear difference" and pairing.delta(name, m, metric).clipped}  # type: ignore[union-attr]
             record = pairing.settled.get(name)
-            too_few = [m for m in shown if getattr(pairing.delta(name, m, metric), "clipped", False)]
-            flag = "".join(f", {TOO_FEW}" + ("" if m == metric else f" on {m.removeprefix('eval/')}") for m in too_few)
             if record is not None:
                 # The partner was not decided on: its interval over objects only, said as such.
                 aside = [f" ({v} on {m.removeprefix('eval/')}, objects only)" for m, v in found.items()
                            if m != metric and v not in ("no clear difference", record.decision.verdict)]
-                pairing.verdicts[name] = "".join([record.text(), *aside, flag])
+                clipped = not record.decision.settled and pairing.delta(name, metric, metric).clipped  # type: ignore[union-attr]
+                head = TOO_FEW if clipped else record.text()  # its seeds column says how many
+                pairing.verdicts[name] = "".join([head, *aside])
             elif metric in found:
                 pairing.verdicts[name] = weighed(
                     [(metric, found[metric])] + [(m, v) for m, v in found.items() if m != metric]
-                ) + flag
+                )
         if unpaired:
             pairing.notes.append(f"not paired with {reference}, evaluated on other objects or settings (a paired "
                                  f"comparison needs the same evaluation set): {', '.join(unpaired)}")
         return pairing
+
+    def clipped(self, shown: list[str], metric: str) -> list[str]:
+        """The shown metrics some row's Δ interval was cut on (:func:`sweeps.compare.rules.delta_range`)."""
+        return [m for m in shown if any(getattr(self.delta(n, m, metric), "clipped", False) for n, _ in self.diffs)]
 
     def beats(self, name: str) -> list[str]:
         return [b for b, v in self.against.get(name, {}).items() if v == "better"]

@@ -247,7 +247,8 @@ def build_table(
         made += [_baseline_row(columns, b, finished(outcomes)) for b in baselines]
     notes = list(settings) + _notes(columns, outcomes, cells, paper_note, mode, leaders, best, bool(ranked))
     narrowing = [f"Δ{second.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and second else []
-    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else [])
+    # Last, the trial counts: a long verdict (a sequential cell's, with its partner aside) still fits.
+    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else []) + ["trials"]
     answer = ("cell", *["seeds"] * columns.seeds, *shown,
               *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
     return ResultsTable(
@@ -356,10 +357,10 @@ def _notes(
                          f"{pairing.reference} share two seeds or more) are over training seeds and held-out objects "
                          "instead, Banerjee's two-way t-interval at 95% (sweeps/compare/sequential.py)")
         notes += [SETTLED_FOOTNOTE] if columns.seeds else []
-        bounds = delta_range(metric)
-        if bounds and any(TOO_FEW in v for v in pairing.verdicts.values()):
-            notes.append(f"{TOO_FEW}: an interval wider than Δ{metric.removeprefix('eval/')} can be, cut to "
-                         f"[{bounds[0]:+g}, {bounds[1]:+g}] ({metric.split('/')[1].upper()} lies in [0, 1])")
+        for m in pairing.clipped(shown, metric):
+            low, high = delta_range(m)  # type: ignore[misc]
+            notes.append(f"Δ{m.removeprefix('eval/')} intervals reaching past [{low:+g}, {high:+g}] (F1 lies in "
+                         f"[0, 1]) are cut to it; where one still holds 0 the verdict says \"{TOO_FEW}\"")
         notes += pairing.notes
     return notes + [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
 
