@@ -137,8 +137,8 @@ class Pairing:
                 # The partner was not decided on: its interval over objects only, said as such.
                 aside = [f" ({v} on {m.removeprefix('eval/')}, objects only)" for m, v in found.items()
                            if m != metric and v not in ("no clear difference", record.decision.verdict)]
-                clipped = not record.decision.settled and pairing.delta(name, metric, metric).clipped  # type: ignore[union-attr]
-                head = TOO_FEW if clipped else record.text()  # its seeds column says how many
+                # Its seeds column says how many.
+                head = TOO_FEW if found.get(metric) == TOO_FEW and not record.decision.settled else record.text()
                 pairing.verdicts[name] = "".join([head, *aside])
             elif metric in found:
                 pairing.verdicts[name] = weighed(
