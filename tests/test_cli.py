@@ -90,7 +90,7 @@ def test_train_evaluate_reconstruct(tmp_path):
     image = tmp_path / "input.png"
     cv2.imwrite(str(image), render_input(config))
     ply = tmp_path / "cloud.ply"
-    out = run_cli("reconstruct", "--checkpoint", str(ckpt), "--image", str(image), "--out", str(ply), cwd=tmp_path)
+    out = run_cli("reconstruct", "--checkpoint", str(ckpt), "--image", str(image), "--ply", str(ply), cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     lines = ply.read_text().splitlines()
     assert lines[2] == f"element vertex {TINY['data']['num_points']}"

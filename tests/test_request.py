@@ -14,7 +14,7 @@ SPEC = "name: s\ngrid: {priors.point_size: [0.02, 0.04]}\n"
 
 def _args(tmp_path, *extra):
     (tmp_path / "s.yaml").write_text(SPEC)
-    return run._parser().parse_args([str(tmp_path / "s.yaml"), "--smoke", "--storage", str(tmp_path / "r"), *extra])
+    return run.build_parser().parse_args([str(tmp_path / "s.yaml"), "--smoke", "--out", str(tmp_path / "r"), *extra])
 
 
 def test_a_request_plans_every_trial_and_says_where_the_sweep_is_kept(tmp_path):
@@ -42,7 +42,7 @@ def test_resume_plans_the_spec_and_sets_the_sweep_started_with_and_names_a_damag
 
 
 def test_exactly_one_of_a_spec_a_rerun_and_a_report(tmp_path):
-    check_mode(run._parser().parse_args(["--report", "s"]))
+    check_mode(run.build_parser().parse_args(["--report", "s"]))
     for argv in ([], ["spec.yaml", "--report", "s"], ["--rerun", "r", "--report", "s"]):
         with pytest.raises(RequestError, match="give one of a sweep spec"):
-            check_mode(run._parser().parse_args(argv))
+            check_mode(run.build_parser().parse_args(argv))
