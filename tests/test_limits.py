@@ -18,7 +18,7 @@ import yaml
 
 from cdm.config import Config, ConfigError, config_field_paths, load_config, parse_override
 from cdm.memory import check_memory, estimate_train_bytes
-from sweeps import run
+from sweeps import cdm_lab, run
 from sweeps.execute.claim import ClaimError, claim
 from sweeps.plan.limits import LimitError, check_trials, load_yaml
 from sweeps.plan.schema_base import SpecError
@@ -304,10 +304,11 @@ def test_a_claimed_folder_is_refused_naming_the_running_parent_run(tmp_path, cap
     assert not ray.is_initialized() and not (tmp_path / "results" / "s" / "smoke").exists()
 
 
-@pytest.mark.parametrize("mode", ["--report", "--rerun"])
-def test_report_and_rerun_refuse_a_bad_tracking_uri(tmp_path, capsys, monkeypatch, mode):
+@pytest.mark.parametrize("command", [["report"], ["run", "--report"], ["run", "--rerun"]])
+def test_report_and_rerun_refuse_a_bad_tracking_uri(tmp_path, capsys, monkeypatch, command):
     monkeypatch.chdir(tmp_path)
-    assert run.main([mode, "abc", "--tracking-uri", "ftp://nope"]) == 2
+    assert cdm_lab.main([*command, "abc", "--tracking-uri", "ftp://nope"]) == 2
     err = capsys.readouterr().err
-    assert "unsupported scheme 'ftp'" in err and len(err.strip().splitlines()) == 1, err
+    lines = [line for line in err.strip().splitlines() if not line.startswith("note: ")]  # run --report's rename
+    assert "unsupported scheme 'ftp'" in err and len(lines) == 1, err
     assert not list(tmp_path.iterdir())

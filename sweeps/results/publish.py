@@ -41,6 +41,7 @@ from sweeps.plan.spec import Spec
 from sweeps.plan.trials import split_label
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 from sweeps.results.view import headline_name, row_tags, share_view
+from sweeps.storage import StoreError, check_tracking_uri
 
 __all__ = [
     "DESCRIPTION_WIDTH",
@@ -339,8 +340,9 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     uri = resolve_tracking_uri(args.tracking_uri)
     try:
+        check_tracking_uri(uri)  # a URI MLflow cannot open is one line, not its traceback
         record = open_sweep(uri, args.experiment, args.run_id)
-    except ReportError as exc:
+    except (ReportError, StoreError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = (args.out or Path("results") / record.experiment / "report").resolve()
