@@ -60,6 +60,9 @@ class OldSpelling(argparse.Action):
     def __call__(self, parser, namespace, values, option_string=None):
         print(f"note: {parser.prog} {option_string} is now {self.new}; the old spelling goes in the next release",
               file=sys.stderr)
+        for action in parser._actions:  # the new flag, if required, is given now (each command builds its parser anew)
+            if action.dest == self.dest and action is not self:
+                action.required = False
         if self.key is None:
             setattr(namespace, self.dest, values)
         else:

@@ -45,6 +45,9 @@ class Command(NamedTuple):
         return _subparsers(parser)[self.subcommand]
 
 
+CHECKOUT = Path(__file__).resolve().parent.parent
+"""The folder above sweeps/: a git checkout when the project runs from one (``--version`` reads its commit)."""
+
 _SWEEPS = "sweeps: Ray, Optuna and MLflow around the model"
 _MODEL = "one model, without a sweep"
 _TOOLS = "external inputs, written once"
@@ -84,9 +87,9 @@ def parsers() -> Iterator[tuple[str, argparse.ArgumentParser]]:
             yield f"{name} {step}", sub
 
 
-def version() -> str:
-    """``cdm-lab VERSION (commit HASH)``: the commit of this checkout when it is one (``, modified`` with
-    uncommitted changes), else the one pip recorded when installing from git, else ``unknown``."""
+def version(root: Path = CHECKOUT) -> str:
+    """``cdm-lab VERSION (commit HASH)``: the commit of the checkout at ``root`` when it is one (``, modified``
+    with uncommitted changes), else the one pip recorded when installing from git, else ``unknown``."""
     from cdm.provenance import code_version
 
     try:
@@ -94,7 +97,7 @@ def version() -> str:
         number, recorded = dist.version, dist.read_text("direct_url.json")
     except PackageNotFoundError:
         number, recorded = "unknown", None
-    checkout = code_version(Path(__file__).resolve().parent.parent)
+    checkout = code_version(root)
     if checkout["git_commit"] != "unknown":
         commit = checkout["git_commit"] + (", modified" if checkout["git_dirty"] == "true" else "")
     else:

@@ -11,17 +11,19 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import os
 import re
 import subprocess
 import sys
+from importlib.metadata import distribution
 from pathlib import Path
 
 import pytest
 
 from cdm.__main__ import build_parser
 from cdm.cli import OldSpelling, old_spelling
-from sweeps.cdm_lab import COMMANDS, main, parsers
+from sweeps.cdm_lab import COMMANDS, main, parsers, version
 from tests.test_commands import _commands
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,6 +68,12 @@ def test_version_names_the_release_and_this_checkouts_commit(capsys):
     version = re.search(r'^version = "(.+)"$', (ROOT / "pyproject.toml").read_text(), re.M).group(1)
     assert out.err == ""
     assert re.fullmatch(rf"cdm-lab {re.escape(version)} \(commit {head}(, modified)?\)\n", out.out), out.out
+
+
+def test_version_outside_a_checkout_reads_the_installed_metadata(tmp_path):
+    dist = distribution("cdm-lab")
+    recorded = json.loads(dist.read_text("direct_url.json") or "{}").get("vcs_info", {}).get("commit_id", "unknown")
+    assert version(tmp_path) == f"cdm-lab {dist.version} (commit {recorded})"
 
 
 def test_every_command_of_the_project_is_a_cdm_lab_command():
@@ -181,7 +189,7 @@ def test_an_argument_error_of_an_old_form_names_the_cdm_lab_command(path, args, 
 def test_an_old_spelling_does_the_new_ones_job_and_says_its_name(capsys):
     parser = argparse.ArgumentParser(prog="cdm-lab prepare")
     parser.add_argument("--set", action="append", default=[])
-    parser.add_argument("--ply")
+    parser.add_argument("--ply", required=True)
     old_spelling(parser, "--data-kind", "--set data.kind=", "set", key="data.kind")
     old_spelling(parser, "--out", "--ply", "ply")
     args = parser.parse_args(["--set", "a=1", "--data-kind", "co3d", "--out", "c.ply"])
@@ -190,7 +198,8 @@ def test_an_old_spelling_does_the_new_ones_job_and_says_its_name(capsys):
         "note: cdm-lab prepare --data-kind is now --set data.kind=; the old spelling goes in the next release",
         "note: cdm-lab prepare --out is now --ply; the old spelling goes in the next release",
     ]
-    assert parser.parse_args([]).set == [] and "--data-kind" not in parser.format_help()
+    assert "--data-kind" not in parser.format_help() and "--out" not in parser.format_help()
+    assert parser.parse_args(["--ply", "a.ply"]).set == []  # the default list was not appended to
 
 
 def test_docs_cli_md_is_what_the_parsers_write():
