@@ -63,7 +63,9 @@ class OldSpelling(argparse.Action):
         for action in parser._actions:  # the new flag, if required, is given now (each command builds its parser anew)
             if action.dest == self.dest and action is not self:
                 action.required = False
-        if self.key is None:
+        if self.nargs == 0:  # an old switch
+            setattr(namespace, self.dest, self.const)
+        elif self.key is None:
             setattr(namespace, self.dest, values)
         else:
             setattr(namespace, self.dest, [*getattr(namespace, self.dest), f"{self.key}={values}"])

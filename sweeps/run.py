@@ -1,5 +1,7 @@
-"""Run a sweep: train every trial of a spec on Ray, track it in MLflow and print the results table;
-or re-run one finished trial (``--rerun RUN_ID``). ``cdm-lab report`` rebuilds a finished sweep's report.
+"""Run a sweep: train every trial of a spec on Ray, track it in MLflow and print the results table.
+
+``cdm-lab rerun RUN_ID`` re-runs one finished trial and ``cdm-lab report EXPERIMENT`` rebuilds a finished sweep's
+report; ``--rerun`` and ``--report`` here are their old spellings, kept for one release.
 
 The spec is expanded and every cell's config validated before Ray starts; a bad spec exits with
 code 2 and one message naming the field, having written nothing. Then the trials run on Ray (a local
@@ -29,8 +31,7 @@ __all__ = ["build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = command_parser("run", "Run a sweep: train every trial of a spec on Ray, track it in MLflow and print the "
-                       "results table; or re-run one finished trial (--rerun RUN_ID)", "sweeps/point_size.yaml --smoke")
+    p = command_parser("run", __doc__.split("\n\n")[0].replace("\n", " "), "sweeps/point_size.yaml --smoke")
     p.add_argument("spec", type=Path, nargs="?", metavar="SPEC", help="sweep spec YAML, e.g. sweeps/point_size.yaml")
     p.add_argument("--profile", default=None, metavar="NAME",
                    help="profile in sweeps/profiles.yaml or the spec: smoke, local or paper (default: local)")
@@ -68,12 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     old_spelling(p, "--storage", "--out", "storage")
     p.add_argument("--tracking-uri", default=None, metavar="URI",
                    help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
-    p.add_argument(
-        "--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record"
-    )
-    p.add_argument(
-        "--force", action="store_true", help="with --rerun: run even if the code or config differs from the record"
-    )
+    old_spelling(p, "--rerun", "`cdm-lab rerun RUN_ID`", "rerun", metavar="RUN_ID", default=None)
+    old_spelling(p, "--force", "`cdm-lab rerun RUN_ID --force`", "force", nargs=0, const=True, default=False)
     p.add_argument("--max-cells", type=int, default=MAX_TRIALS, metavar="N",
                    help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; docs/security.md)")
     old_spelling(p, "--report", "`cdm-lab report EXPERIMENT`", "report", metavar="EXPERIMENT", default=None)
@@ -104,15 +101,13 @@ def _report(args: argparse.Namespace, uri: str) -> int:
 
 
 def _rerun(args: argparse.Namespace, uri: str) -> int:
-    from sweeps.results.rerun import RerunError, rerun
+    from sweeps import rerun
 
     if is_uri(args.storage):
         return _fail("--rerun trains in this process and writes its files here: give --out a local folder, "
                      f"not {args.storage}")
-    try:
-        return rerun(args.rerun, uri, (Path(args.storage) / "reruns").resolve(), args.force)
-    except RerunError as exc:
-        return _fail(str(exc))
+    reruns = str(Path(args.storage) / "reruns")
+    return rerun.main([args.rerun, "--tracking-uri", uri, "--out", reruns, *(["--force"] if args.force else [])])
 
 
 def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:

@@ -44,5 +44,5 @@ def test_resume_plans_the_spec_and_sets_the_sweep_started_with_and_names_a_damag
 def test_exactly_one_of_a_spec_a_rerun_and_a_report(tmp_path):
     check_mode(run.build_parser().parse_args(["--report", "s"]))
     for argv in ([], ["spec.yaml", "--report", "s"], ["--rerun", "r", "--report", "s"]):
-        with pytest.raises(RequestError, match="give one of a sweep spec"):
+        with pytest.raises(RequestError, match="give one sweep spec"):
             check_mode(run.build_parser().parse_args(argv))

@@ -62,8 +62,8 @@ def check_mode(args: argparse.Namespace) -> None:
     """Exactly one of a spec, ``--rerun`` and ``--report``."""
     if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
         raise RequestError(
-            "give one of a sweep spec (e.g. sweeps/point_size.yaml) or --rerun RUN_ID; a finished sweep's report is "
-            "`cdm-lab report EXPERIMENT`"
+            "give one sweep spec (e.g. sweeps/point_size.yaml); a finished trial is re-run by `cdm-lab rerun RUN_ID`, "
+            "a finished sweep's report rebuilt by `cdm-lab report EXPERIMENT`"
         )
 
 
