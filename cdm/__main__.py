@@ -279,14 +279,14 @@ def build_parser() -> argparse.ArgumentParser:
     add_out(p, "checkpoint.pt (default: <train.out_dir>/prior_<category>)")
     p.set_defaults(func=cmd_train_prior)
     p = add_command(sub, "evaluate", "score a checkpoint on the held-out split",
-                    "--checkpoint runs/cdm/checkpoints/step_1500 --out eval/")
+                    "--checkpoint runs/cdm/checkpoints/step_0001500 --out eval/")
     p.add_argument("--checkpoint", required=True, metavar="PATH",
                    help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
     add_set(p, "eval.num_objects=20 (the checkpoint's config is the base)")
     add_out(p, "PLY clouds, PNG panels and CSV metrics (default: print the metrics only)")
     p.set_defaults(func=cmd_evaluate)
     p = add_command(sub, "reconstruct", "reconstruct a point cloud from one image",
-                    "--checkpoint runs/cdm/checkpoints/step_1500 --image chair.png --ply chair.ply")
+                    "--checkpoint runs/cdm/checkpoints/step_0001500 --image chair.png --ply chair.ply")
     p.add_argument("--checkpoint", required=True, metavar="PATH",
                    help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
     p.add_argument("--image", required=True, metavar="FILE",
@@ -294,7 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "pixels a side")
     p.add_argument("--ply", required=True, metavar="FILE", help="the point cloud to write, ASCII PLY (x y z per point)")
     old_spelling(p, "--out", "--ply", "ply")
-    add_set(p, "sampling.steps=50 (the checkpoint's config is the base)")
+    add_set(p, "diffusion.sample_steps=50 (the checkpoint's config is the base)")
     p.add_argument("--elev", type=float, default=20.0, help="camera elevation in degrees (default 20)")
     p.add_argument("--azim", type=float, default=0.0, help="camera azimuth in degrees (default 0)")
     p.add_argument("--dist", type=float, default=3.5, help="camera distance in world units (default 3.5)")

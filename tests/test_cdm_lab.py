@@ -23,6 +23,7 @@ import pytest
 
 from cdm.__main__ import build_parser
 from cdm.cli import OldSpelling, old_spelling
+from cdm.config import config_field_paths
 from sweeps.cdm_lab import COMMANDS, main, parsers, version
 from tests.test_commands import _commands
 
@@ -155,6 +156,13 @@ def test_every_command_keeps_the_grammar():
                 takes.setdefault(flag, set()).add(action.nargs == 0)
     assert [flag for flag, kinds in takes.items() if len(kinds) > 1] == []
     assert takes["--resume"] == {True} and takes["--resume-from"] == {False}  # run's switch, train's folder
+
+
+def test_every_config_field_a_help_or_example_names_is_one():
+    texts = [a.help or "" for _, p in parsers() for a in p._actions] + [p.epilog or "" for _, p in parsers()]
+    named = {key for text in texts for key in re.findall(r"\b([a-z_]+\.[a-z_0-9.]+)=", text)}
+    assert {"data.kind", "priors.lambda_3d", "diffusion.sample_steps", "train.steps"} <= named
+    assert named - set(config_field_paths()) == set()
 
 
 def test_the_grammar_check_finds_each_fault():
