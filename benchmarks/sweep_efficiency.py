@@ -47,7 +47,7 @@ def sweep_efficiency(quick: bool, out_dir: str) -> list[dict]:
         smoke = expand(load_spec(spec), "smoke")
         uri = f"sqlite:///{tmp}/mlflow.db"
         start = time.perf_counter()
-        code = run.main([str(spec), "--smoke", "--storage", f"{tmp}/results", "--tracking-uri", uri])
+        code = run.main([str(spec), "--smoke", "--out", f"{tmp}/results", "--tracking-uri", uri])
         total = time.perf_counter() - start
         if code != 0:
             raise RuntimeError(f"the efficiency sweep failed (exit {code})")

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from cdm.baseline_names import BASELINES
+from cdm.cli import PROG, add_command, add_out, add_set, old_spelling
 from cdm.config import Config, config_field_paths, load_config, parse_override
 from cdm.external_inputs import check_inputs
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c
@@ -66,8 +67,12 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise ValueError(f"{exc}; pass PC²'s checkpoint-latest.pth") from None
         if not is_pc2_checkpoint(args.init_from):
             raise ValueError(f"--init-from: {args.init_from} is not PC²'s checkpoint (no point_cloud_model.model.* "
-                             "weights); continue a CDM run with --resume")
+                             "weights); continue a CDM run with --resume-from")
         pc2 = read_pc2_checkpoint(args.init_from, "--init-from")
+    if args.out is not None:
+        if sets.setdefault("train.out_dir", args.out) != args.out:
+            raise ValueError(f"--out {args.out} and --set train.out_dir={sets['train.out_dir']} name two folders; "
+                             "give one")
     cfg = pc2.config(sets, args.config) if pc2 else load_config(args.config, sets)
     check_inputs(cfg)
     check_memory([cfg], concurrent=1)
@@ -162,14 +167,14 @@ def _load_image(path: Path, size: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _output_folder(out: Path) -> Path | None:
-    """The missing folder ``--out`` needs, if any: inside the working directory it is created (and
+    """The missing folder ``--ply`` needs, if any: inside the working directory it is created (and
     said so); elsewhere a missing folder is refused, so a typo does not scatter folders over the disk."""
     folder = out.resolve().parent
     if folder.is_dir():
         return None
     if not folder.is_relative_to(Path.cwd().resolve()):
         raise ValueError(
-            f"--out: folder {folder} does not exist and lies outside the working directory; create it first"
+            f"--ply: folder {folder} does not exist and lies outside the working directory; create it first"
         )
     return folder
 
@@ -183,7 +188,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from cdm.diffusion import SamplerSettings
     from cdm.evaluate import reconstruct, write_ply
 
-    out_folder = _output_folder(Path(args.out))
+    out_folder = _output_folder(Path(args.ply))
     cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
     elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
@@ -206,26 +211,18 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     bar.close()
     if out_folder is not None:
         print(f"creating folder {out_folder}")
-    out = write_ply(Path(args.out), cloud[0], "--out")
+    out = write_ply(Path(args.ply), cloud[0], "--ply")
     print(f"wrote {cloud.shape[1]} points to {out} (extent {cloud[0].abs().max().item():.3f})")
     return 0
 
 
 def cmd_prepare(args: argparse.Namespace) -> int:
-    from cdm.data import DATASETS
-    from cdm.data.captured import CapturedDataset
-    from cdm.data.prepare import prepare
+    from cdm.data.prepare import prepare, prepare_config
 
-    preparable = [k for k, cls in DATASETS.items() if issubclass(cls, CapturedDataset)]
-    if args.data_kind not in preparable:
-        raise ValueError(f"--data-kind: {args.data_kind!r} cannot be prepared; choose one of {', '.join(preparable)}")
-    cfg = load_config(None, {**_overrides(args.set), "data.kind": args.data_kind, "data.root": args.root,
-                             "data.image_size": args.image_size})
-    report = prepare(
-        DATASETS[args.data_kind], cfg, Path(args.out), depth_maps=args.depth_maps and Path(args.depth_maps)
-    )
+    dataset, cfg = prepare_config(_overrides(args.set), args.root)
+    report = prepare(dataset, cfg, Path(args.out), depth_maps=args.depth_maps and Path(args.depth_maps))
     print(f"prepared {report.out}: {report.written} shards written, {report.skipped} already complete; "
-          f"train with --set data.kind={args.data_kind} --set data.root={report.out}")
+          f"train with --set data.kind={cfg.data.kind} --set data.root={report.out}")
     return 0
 
 
@@ -259,64 +256,68 @@ def cmd_fields(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m cdm", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("train", help="train a model from a config file")
-    p.add_argument("--config", help="YAML config (groups data/model/diffusion/priors/train/eval); defaults if omitted")
-    p.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. priors.lambda_3d=0.5"
-    )
-    p.add_argument("--resume", help="checkpoint directory to continue from")
-    p.add_argument(
-        "--init-from", help="PC²'s checkpoint-latest.pth: fine-tune its network from its weights (not its optimizer)"
-    )
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="one of the commands below")
+    p = add_command(sub, "train", "train a model from a config file", "--config configs/quick.yaml --out runs/quick")
+    p.add_argument("--config", metavar="FILE",
+                   help="YAML config (groups data/model/diffusion/priors/train/eval); defaults if omitted")
+    add_set(p, "priors.lambda_3d=0.5")
+    add_out(p, "checkpoints/ and the evaluation's files (default: train.out_dir, runs/cdm)")
+    p.add_argument("--resume-from", dest="resume", metavar="DIR",
+                   help="a CDM checkpoint folder (<out>/checkpoints/step_N) to continue from, step and optimizer too")
+    old_spelling(p, "--resume", "--resume-from", "resume")
+    p.add_argument("--init-from", metavar="FILE",
+                   help="PC²'s checkpoint-latest.pth: fine-tune its network from its weights (not its optimizer)")
     p.set_defaults(func=cmd_train)
-    p = sub.add_parser("train-prior", help="train an unconditional category prior for BDM blending (sampling.blend)")
+    p = add_command(sub, "train-prior", "train an unconditional category prior for BDM blending (sampling.blend)",
+                    "--category chair --set train.steps=2000")
     p.add_argument("--category", required=True, help="the one category the prior models, e.g. chair")
-    p.add_argument(
-        "--config",
-        help="YAML config (data/model/diffusion/train); BDM's prior schedule unless it sets diffusion.beta_*",
-    )
-    p.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="override a field, e.g. train.steps=2000"
-    )
-    p.add_argument("--out", help="folder for checkpoint.pt (default: <train.out_dir>/prior_<category>)")
+    p.add_argument("--config", metavar="FILE",
+                   help="YAML config (data/model/diffusion/train); BDM's prior schedule unless it sets "
+                   "diffusion.beta_*")
+    add_set(p, "train.steps=2000")
+    add_out(p, "checkpoint.pt (default: <train.out_dir>/prior_<category>)")
     p.set_defaults(func=cmd_train_prior)
-    p = sub.add_parser("evaluate", help="score a checkpoint on the held-out split")
-    p.add_argument(
-        "--checkpoint", required=True, help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth"
-    )
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--out", help="folder for PLY/PNG/CSV outputs")
+    p = add_command(sub, "evaluate", "score a checkpoint on the held-out split",
+                    "--checkpoint runs/cdm/checkpoints/step_0001500 --out eval/")
+    p.add_argument("--checkpoint", required=True, metavar="PATH",
+                   help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
+    add_set(p, "eval.num_objects=20 (the checkpoint's config is the base)")
+    add_out(p, "PLY clouds, PNG panels and CSV metrics (default: print the metrics only)")
     p.set_defaults(func=cmd_evaluate)
-    p = sub.add_parser("reconstruct", help="reconstruct a point cloud from one image")
-    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint or PC²'s checkpoint-latest.pth")
-    p.add_argument("--image", required=True)
-    p.add_argument("--out", required=True, help="output .ply")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--elev", type=float, default=20.0, help="camera elevation, degrees")
-    p.add_argument("--azim", type=float, default=0.0, help="camera azimuth, degrees")
-    p.add_argument("--dist", type=float, default=3.5, help="camera distance, world units")
-    p.add_argument("--focal", type=float, default=2.0, help="focal length, NDC units")
-    p.add_argument("--seed", type=int, default=0)
+    p = add_command(sub, "reconstruct", "reconstruct a point cloud from one image",
+                    "--checkpoint runs/cdm/checkpoints/step_0001500 --image chair.png --ply chair.ply")
+    p.add_argument("--checkpoint", required=True, metavar="PATH",
+                   help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
+    p.add_argument("--image", required=True, metavar="FILE",
+                   help=f"the input photo: PNG/JPEG, grey, RGB or RGBA (alpha = mask), at least {MIN_IMAGE_SIDE} "
+                   "pixels a side")
+    p.add_argument("--ply", required=True, metavar="FILE", help="the point cloud to write, ASCII PLY (x y z per point)")
+    old_spelling(p, "--out", "--ply", "ply")
+    add_set(p, "diffusion.sample_steps=50 (the checkpoint's config is the base)")
+    p.add_argument("--elev", type=float, default=20.0, help="camera elevation in degrees (default 20)")
+    p.add_argument("--azim", type=float, default=0.0, help="camera azimuth in degrees (default 0)")
+    p.add_argument("--dist", type=float, default=3.5, help="camera distance in world units (default 3.5)")
+    p.add_argument("--focal", type=float, default=2.0, help="focal length in NDC units (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sampler's noise, an integer (default 0)")
     p.set_defaults(func=cmd_reconstruct)
-    p = sub.add_parser("prepare", help="convert a data set once into per-object shards that load fast "
-                       "(as Ray tasks over a cluster: python sweeps/inputs.py prepare)")
-    p.add_argument("--data-kind", required=True, help="data set kind of --root: shapenet_r2n2 or co3d")
-    p.add_argument("--root", required=True, help="the data set as published")
-    p.add_argument("--out", required=True, help="folder for the shards; rerun the same command to resume")
-    p.add_argument("--image-size", type=int, default=224, help="side of the stored crops in pixels (default 224)")
-    p.add_argument("--depth-maps", help="estimated depth maps (<object_id>/<position>.npy) to store in the shards "
-                   "for priors.depth_source=maps")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]")
+    p = add_command(sub, "prepare", "convert a data set once into per-object shards that load fast "
+                    "(as Ray tasks over a cluster: cdm-lab inputs prepare)",
+                    "--set data.kind=co3d --root RAW --out prepared/ --set data.categories=[teddybear]")
+    p.add_argument("--root", required=True, metavar="DIR", help="the data set as published")
+    add_out(p, "the shards; rerun the same command to resume", required=True)
+    p.add_argument("--depth-maps", metavar="DIR", help="estimated depth maps (<object_id>/<position>.npy) to store in "
+                   "the shards for priors.depth_source=maps")
+    add_set(p, "data.kind=co3d (required: shapenet_r2n2 or co3d), data.image_size=224 (crop side, pixels)")
+    old_spelling(p, "--data-kind", "--set data.kind=", "set", key="data.kind")
+    old_spelling(p, "--image-size", "--set data.image_size=", "set", key="data.image_size")
     p.set_defaults(func=cmd_prepare)
-    p = sub.add_parser(
-        "check-data", help="check that every ground-truth cloud projects into its own masks (exit 1 if not)"
-    )
-    p.add_argument("--config", help="YAML config; data.kind and data.root name the data set")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.kind=co3d")
+    p = add_command(sub, "check-data", "check that every ground-truth cloud projects into its own masks (exit 1 if "
+                    "not)", "--set data.kind=co3d --set data.root=prepared/")
+    p.add_argument("--config", metavar="FILE", help="YAML config; data.kind and data.root name the data set")
+    add_set(p, "data.kind=co3d")
     p.set_defaults(func=cmd_check_data)
-    p = sub.add_parser("fields", help="list every config field with its default")
+    p = add_command(sub, "fields", "list every config field with its default", "| grep priors")
     p.set_defaults(func=cmd_fields)
     return parser
 
@@ -327,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
         with sigterm_as_ctrl_c():
             return args.func(args)
     except KeyboardInterrupt:
-        return said_interrupted(f"python -m cdm {args.command}")
+        return said_interrupted(f"{PROG} {args.command}")
     except ValueError as exc:
         # ConfigError and the data/checkpoint/image checks: raised at the boundary, before anything is written.
         print(f"error: {exc}", file=sys.stderr)
@@ -342,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
             for k in ("root", "config", "checkpoint", "image", "depth_maps")
             if (v := getattr(args, k, None))
         )
-        print(f"error: out of memory in `python -m cdm {args.command}` ({inputs or 'no input files'}); "
+        print(f"error: out of memory in `{PROG} {args.command}` ({inputs or 'no input files'}); "
               "check those inputs' sizes, or free memory", file=sys.stderr)
         return 2
 

@@ -79,7 +79,7 @@ def required_inputs(cfg: Config) -> list[ExternalInput]:
         out.append(ExternalInput("model.global_embeddings", input_path(cfg.model.global_embeddings),
                                  "per-object global embeddings (.npz)", "file",
                                  f"{export}, then python -m cdm.tools.openclip_embeddings --views views/ "
-                                 f"--kind text|image|depth --out {cfg.model.global_embeddings}"))
+                                 f"--kind text|image|depth --npz {cfg.model.global_embeddings}"))
     reads_maps = PRIORS_2D[cfg.priors.prior_2d].reads_depth and cfg.priors.depth_source == "maps"
     if reads_maps and cfg.priors.depth_maps is not None:
         out.append(

@@ -3,13 +3,13 @@
 One subcommand per step, each resumable (what exists is kept), and ``all`` for every step of one
 published data set, which first prints what is done and what remains::
 
-    python sweeps/inputs.py prepare --data-kind co3d --root RAW --out PREPARED [--set data.categories=[teddybear]]
-    python sweeps/inputs.py depth --views VIEWS --model DIR_OR_HUB_ID --out $CDM_INPUTS/depth_maps
-    python sweeps/inputs.py all --data-kind co3d --root RAW --out PREPARED --inputs $CDM_INPUTS --model DIR_OR_HUB_ID
+    cdm-lab inputs prepare --set data.kind=co3d --root RAW --out PREPARED [--set data.categories=[teddybear]]
+    cdm-lab inputs depth --views VIEWS --model DIR_OR_HUB_ID --out $CDM_INPUTS/depth_maps
+    cdm-lab inputs all --set data.kind=co3d --root RAW --out PREPARED --inputs $CDM_INPUTS --model DIR_OR_HUB_ID
 
 Work goes out as Ray tasks (``sweeps/execute/fanout.py``) over the cluster at ``--address`` /
 ``RAY_ADDRESS``, else a local cluster bound to 127.0.0.1; every node must see ``--out`` (a shared
-file system). ``python -m cdm prepare`` does the same shards in one process, byte for byte. Exit 0 when
+file system). ``cdm-lab prepare`` does the same shards in one process, byte for byte. Exit 0 when
 all is made, 1 with the list of items that failed (the others are made), 2 on bad input, or when
 ``all`` finds MSN's weights missing (it says how to fetch them: nothing is downloaded here).
 """
@@ -24,10 +24,9 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python sweeps/inputs.py` puts sweeps/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from cdm.cli import add_command, add_out, add_set, command_parser, old_spelling
 from cdm.config import load_config, parse_override
-from cdm.data import DATASETS
-from cdm.data.captured import CapturedDataset
-from cdm.data.prepare import check_out, start
+from cdm.data.prepare import check_out, prepare_config, start
 from cdm.external_inputs import MSN_URL
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c, take_sigterm_as_ctrl_c
 from cdm.model.encoder import load_msn_state_dict, sha256_file
@@ -37,7 +36,7 @@ from cdm.tools.estimate_depth import find_views
 from cdm.tools.export_views import export_views
 from sweeps.plan.address import given_address, reach
 
-__all__ = ["main"]
+__all__ = ["build_parser", "main"]
 
 MSN_FILE = Path("msn") / "vits16_800ep.pth.tar"
 """Where the paper profile reads MSN's ViT-S/16 under ``$CDM_INPUTS`` (sweeps/profiles.yaml)."""
@@ -45,12 +44,8 @@ RECORD = "inputs.json"
 """Under ``--inputs``: the sha256 of the weights file first checked, so a changed file is noticed."""
 
 
-def _config(args: argparse.Namespace):
-    preparable = [k for k, cls in DATASETS.items() if issubclass(cls, CapturedDataset)]
-    if args.data_kind not in preparable:
-        raise ValueError(f"--data-kind: {args.data_kind!r} cannot be prepared; choose one of {', '.join(preparable)}")
-    return load_config(None, {**dict(parse_override(s) for s in args.set), "data.kind": args.data_kind,
-                              "data.root": args.root, "data.image_size": args.image_size})
+def _sets(args: argparse.Namespace) -> dict:
+    return dict(parse_override(s) for s in args.set)
 
 
 def _connect(address: str | None) -> tuple[float, float]:
@@ -68,7 +63,7 @@ def _connect(address: str | None) -> tuple[float, float]:
 def _shards(args: argparse.Namespace) -> list:
     from sweeps.execute.fanout import prepare_shards
 
-    prep = start(DATASETS[args.data_kind], _config(args), Path(args.out))
+    prep = start(*prepare_config(_sets(args), args.root), Path(args.out))
     cpus, _ = _connect(args.address)
     written, before, failures = prepare_shards(prep, cpus)
     print(f"prepared {prep.out}: {written} shards written, {before} already complete")
@@ -121,47 +116,51 @@ def _status(args: argparse.Namespace, views: Path, prepared: Path) -> None:
 
 def _all(args: argparse.Namespace) -> tuple[list, str | None]:
     inputs = Path(args.inputs)
-    views = inputs / "views" / args.data_kind
+    _, cfg = prepare_config(_sets(args), args.root)  # a missing or unpreparable data.kind stops here
+    views = inputs / "views" / cfg.data.kind
     args.depth_out = str(inputs / "depth_maps")
     check_out(Path(args.out).expanduser())  # before the status walks it
     _status(args, views, Path(args.out))
     missing = _msn(inputs)
     failures = _shards(args)
     if not (views / "objects.json").is_file():  # written last by export_views: the export is complete
-        cfg = load_config(None, {**dict(parse_override(s) for s in args.set), "data.kind": args.data_kind,
-                                 "data.root": args.out})
+        cfg = load_config(None, {**_sets(args), "data.root": args.out})
         print(f"exported {export_views(cfg, views)} views into {views}")
     return failures + _depth(views, args), missing
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python sweeps/inputs.py", description=__doc__.split("\n\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = command_parser("inputs", __doc__.split("\n\n")[0], "all --set data.kind=co3d --root RAW --out prepared/ "
+                            "--inputs $CDM_INPUTS --model DIR_OR_HUB_ID")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="STEP",
+                                help="one of the steps: prepare, depth, all")
     data = argparse.ArgumentParser(add_help=False)
-    data.add_argument("--data-kind", required=True, help="data set kind of --root: shapenet_r2n2 or co3d")
-    data.add_argument("--root", required=True, help="the data set as published")
-    data.add_argument("--out", required=True, help="folder for the prepared shards; rerun to resume")
-    data.add_argument("--image-size", type=int, default=224, help="side of the stored crops in pixels (default 224)")
-    data.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="e.g. data.categories=[teddybear]"
-    )
+    data.add_argument("--root", required=True, metavar="DIR", help="the data set as published")
+    add_out(data, "the prepared shards; rerun to resume", required=True)
+    add_set(data, "data.kind=co3d (required: shapenet_r2n2 or co3d), data.image_size=224 (crop side, pixels)")
+    old_spelling(data, "--data-kind", "--set data.kind=", "set", key="data.kind")
+    old_spelling(data, "--image-size", "--set data.image_size=", "set", key="data.image_size")
     model = argparse.ArgumentParser(add_help=False)
-    model.add_argument(
-        "--model", required=True, help="depth model: a local folder, or a hub id where the hub is reachable"
-    )
+    model.add_argument("--model", required=True, metavar="DIR_OR_HUB_ID",
+                       help="depth model: a local folder, or a hub id where the hub is reachable")
     model.add_argument("--predicts", choices=("depth", "disparity"),
                        help="what the model predicts, where its config does not tell (disparity: larger = nearer)")
-    model.add_argument("--batch-size", type=int, default=8, help="crops per forward pass (default 8)")
+    model.add_argument("--batch-size", type=int, default=8, metavar="N",
+                       help="crops per forward pass, >= 1 (default 8)")
     ray_ = argparse.ArgumentParser(add_help=False)
-    ray_.add_argument(
-        "--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)"
-    )
-    sub.add_parser("prepare", parents=[data, ray_], help="python -m cdm prepare, as Ray tasks")
-    p = sub.add_parser("depth", parents=[model, ray_], help="python -m cdm.tools.estimate_depth, as Ray tasks")
-    p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")
-    p.add_argument("--out", dest="depth_out", required=True, help="folder of maps to write (priors.depth_maps)")
-    p = sub.add_parser("all", parents=[data, model, ray_], help="shards, views, depth maps and the weights check")
-    p.add_argument("--inputs", required=True, help="the $CDM_INPUTS folder: msn/, views/<kind>/, depth_maps/")
+    ray_.add_argument("--address", default=None, metavar="HOST:PORT|auto",
+                      help="Ray cluster address (default: RAY_ADDRESS, else a local cluster on 127.0.0.1)")
+    add_command(sub, "inputs prepare", "cdm-lab prepare's shards, made as Ray tasks",
+                "--set data.kind=co3d --root RAW --out prepared/", parents=[data, ray_])
+    p = add_command(sub, "inputs depth", "cdm-lab estimate-depth's maps, made as Ray tasks",
+                    "--views views/ --model DIR_OR_HUB_ID --out depth_maps/", parents=[model, ray_])
+    p.add_argument("--views", required=True, type=Path, metavar="DIR", help="output folder of cdm-lab export-views")
+    add_out(p, "<object_id>/<position>.npy maps (priors.depth_maps)", dest="depth_out", required=True)
+    p = add_command(sub, "inputs all", "shards, views, depth maps and the weights check of one data set",
+                    "--set data.kind=co3d --root RAW --out prepared/ --inputs $CDM_INPUTS --model DIR_OR_HUB_ID",
+                    parents=[data, model, ray_])
+    p.add_argument("--inputs", required=True, metavar="DIR",
+                   help="the $CDM_INPUTS folder: msn/, views/<kind>/, depth_maps/")
     return parser
 
 
@@ -181,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 failures, missing = _all(args)
     except KeyboardInterrupt:
-        return said_interrupted(f"python sweeps/inputs.py {args.command}")
+        return said_interrupted(f"cdm-lab inputs {args.command}")
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

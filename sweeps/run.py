@@ -1,10 +1,12 @@
-"""Run a sweep: train every trial of a spec on Ray, track it in MLflow and print the results table;
-or re-run one finished trial (``--rerun RUN_ID``), or rebuild a finished sweep's report (``--report``).
+"""Run a sweep: train every trial of a spec on Ray, track it in MLflow and print the results table.
+
+``cdm-lab rerun RUN_ID`` re-runs one finished trial and ``cdm-lab report EXPERIMENT`` rebuilds a finished sweep's
+report; ``--rerun`` and ``--report`` here are their old spellings, kept for one release.
 
 The spec is expanded and every cell's config validated before Ray starts; a bad spec exits with
 code 2 and one message naming the field, having written nothing. Then the trials run on Ray (a local
 cluster bound to 127.0.0.1, or ``--address``/``RAY_ADDRESS``), tracked in MLflow, and the results
-table is printed and written to ``<storage>/<spec name>/<profile>/results.{md,csv}``.
+table is printed and written to ``<out>/<spec name>/<profile>/results.{md,csv}``.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from cdm.cli import add_out, add_set, command_parser, old_spelling
 from sweeps.compare.settle import describe_rule
 from sweeps.execute.precompute import shared_root
 from sweeps.plan.describe import describe, wrapped
@@ -24,13 +27,14 @@ from sweeps.plan.preflight import dry_run
 from sweeps.plan.request import RequestError, SweepRequest, check_mode, missing_inputs, plan_request
 from sweeps.storage import TRUST_FLAG, StoreError, check_tracking_uri, exists, is_uri, record_digest
 
-__all__ = ["main"]
+__all__ = ["build_parser", "main"]
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sweeps/run.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("spec", type=Path, nargs="?", help="sweep spec, e.g. sweeps/point_size.yaml")
-    p.add_argument("--profile", default=None, help="profile in sweeps/profiles.yaml or the spec (default: local)")
+def build_parser() -> argparse.ArgumentParser:
+    p = command_parser("run", __doc__.split("\n\n")[0].replace("\n", " "), "sweeps/point_size.yaml --smoke")
+    p.add_argument("spec", type=Path, nargs="?", metavar="SPEC", help="sweep spec YAML, e.g. sweeps/point_size.yaml")
+    p.add_argument("--profile", default=None, metavar="NAME",
+                   help="profile in sweeps/profiles.yaml or the spec: smoke, local or paper (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
     p.add_argument(
         "--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials"
@@ -47,7 +51,8 @@ def _parser() -> argparse.ArgumentParser:
         "(docs/sweeps.md, Seeds until settled)",
     )
     p.add_argument("--budget", default=None, metavar="2h|45m|30s|N",
-                   help="with seeds until settled: no seed starts past this wall time, or past N trials")
+                   help="with seeds until settled: no seed starts past this wall time (hours, minutes, seconds), "
+                        "or past N trials")
     p.add_argument(
         "--dry-run",
         action="store_true",
@@ -56,26 +61,19 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--no-estimate", action="store_true", help="with --dry-run: skip the cost estimate's calibration steps"
     )
-    p.add_argument("--address", default=None, help="Ray cluster address (default: RAY_ADDRESS, else a local cluster)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override for every trial")
-    p.add_argument("--storage", default="results",
-                   help="parent folder of sweep folders: a path (shared by every node on a cluster) or a URI "
-                        "(s3://, gs://, file://) (default: ./results)")
-    p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
-    p.add_argument(
-        "--rerun", metavar="RUN_ID", default=None, help="re-run the trial of this MLflow child run from its record"
-    )
-    p.add_argument(
-        "--force", action="store_true", help="with --rerun: run even if the code or config differs from the record"
-    )
+    p.add_argument("--address", default=None, metavar="HOST:PORT|auto",
+                   help="Ray cluster address (default: RAY_ADDRESS, else a local cluster on 127.0.0.1)")
+    add_set(p, "priors.lambda_3d=0.5 (every trial)")
+    add_out(p, "one folder per sweep, <spec>/<profile>/: a path (shared by every node on a cluster) or a URI "
+               "(s3://, gs://, file://) (default: ./results)", dest="storage", default="results")
+    old_spelling(p, "--storage", "--out", "storage")
+    p.add_argument("--tracking-uri", default=None, metavar="URI",
+                   help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
+    old_spelling(p, "--rerun", "`cdm-lab rerun RUN_ID`", "rerun", metavar="RUN_ID", default=None)
+    old_spelling(p, "--force", "`cdm-lab rerun RUN_ID --force`", "force", nargs=0, const=True, default=False)
     p.add_argument("--max-cells", type=int, default=MAX_TRIALS, metavar="N",
                    help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; docs/security.md)")
-    p.add_argument(
-        "--report",
-        metavar="EXPERIMENT",
-        default=None,
-        help="rebuild the results table and plots of this finished sweep from MLflow",
-    )
+    old_spelling(p, "--report", "`cdm-lab report EXPERIMENT`", "report", metavar="EXPERIMENT", default=None)
     return p
 
 
@@ -118,15 +116,13 @@ def _report(args: argparse.Namespace, uri: str) -> int:
 
 
 def _rerun(args: argparse.Namespace, uri: str) -> int:
-    from sweeps.results.rerun import RerunError, rerun
+    from sweeps import rerun
 
     if is_uri(args.storage):
-        return _fail("--rerun trains in this process and writes its files here: give --storage a local folder, "
+        return _fail("--rerun trains in this process and writes its files here: give --out a local folder, "
                      f"not {args.storage}")
-    try:
-        return rerun(args.rerun, uri, (Path(args.storage) / "reruns").resolve(), args.force)
-    except RerunError as exc:
-        return _fail(str(exc))
+    reruns = str(Path(args.storage) / "reruns")
+    return rerun.main([args.rerun, "--tracking-uri", uri, "--out", reruns, *(["--force"] if args.force else [])])
 
 
 def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:
@@ -150,7 +146,7 @@ def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
     try:
         check_mode(args)
         if args.spec is None:  # --report or --rerun: a finished sweep, read back from its MLflow store

@@ -174,28 +174,28 @@ def check_storage(sweep_dir: str) -> None:
     marker behind in the sweep's own path.
     """
     if not is_uri(sweep_dir):
-        _writable_folder(Path(sweep_dir), "--storage")
+        _writable_folder(Path(sweep_dir), "--out")
         return
     from pyarrow import fs
 
     try:
         filesystem, path = fs.FileSystem.from_uri(sweep_dir)
     except (ValueError, OSError) as exc:
-        raise StoreError(f"--storage {sweep_dir}: {_one_line(exc)}") from None
+        raise StoreError(f"--out {sweep_dir}: {_one_line(exc)}") from None
     if isinstance(filesystem, fs.LocalFileSystem):
-        _writable_folder(Path(path), "--storage")
+        _writable_folder(Path(path), "--out")
         return
     bucket = path.split("/", 1)[0]
     try:
         info = filesystem.get_file_info(bucket)
         if info.type == fs.FileType.NotFound:
-            raise StoreError(f"--storage {sweep_dir}: bucket {bucket!r} does not exist; create it first")
+            raise StoreError(f"--out {sweep_dir}: bucket {bucket!r} does not exist; create it first")
         probe = f"{bucket}/.cdm-write-probe-{uuid.uuid4().hex}"
         with filesystem.open_output_stream(probe) as stream:
             stream.write(b"probe")
         filesystem.delete_file(probe)
     except OSError as exc:
-        raise StoreError(f"--storage {sweep_dir}: cannot write to bucket {bucket!r} with this environment's "
+        raise StoreError(f"--out {sweep_dir}: cannot write to bucket {bucket!r} with this environment's "
                          f"credentials ({_one_line(exc)})") from None
 
 
@@ -227,7 +227,7 @@ def is_uri(storage: str) -> bool:
 
 
 def check_name(name: str, what: str) -> None:
-    """Refuse a name that would not stay one path component below ``--storage``: empty, ``.``/``..``,
+    """Refuse a name that would not stay one path component below ``--out``: empty, ``.``/``..``,
     a separator or NUL, a leading dot (hidden, and the lock files' prefix), or longer than :data:`MAX_NAME`."""
     if not name or name in (".", "..") or name.startswith(".") or any(c in name for c in "/\\\0"):
         raise StoreError(f"{what} {name[:MAX_NAME]!r}: not a plain name; use letters, digits, '_', '-' and '.' "
@@ -260,8 +260,8 @@ def check_no_links(sweep_dir: str) -> None:
     folder = Path(sweep_dir)
     for path in (folder.parent, folder):
         if path.is_symlink():
-            raise StoreError(f"--storage: {path} is a symbolic link (to {os.readlink(path)}); a sweep folder is never "
-                             "followed through a link: remove it, or give its target as --storage")
+            raise StoreError(f"--out: {path} is a symbolic link (to {os.readlink(path)}); a sweep folder is never "
+                             "followed through a link: remove it, or give its target as --out")
 
 
 def private_folder(path: Path) -> Path:

@@ -268,16 +268,20 @@ the trials run, so ``execute/`` and ``results/`` build on it, and it on ``plan/`
 
 def _stage(module: str) -> int | None:
     """Height of a ``sweeps`` module's stage in :data:`STAGES`; None for the entry points and the
-    storage modules every stage shares (``sweeps.run``, ``sweeps.report``, ``sweeps.storage``, …)."""
+    storage modules every stage shares (``sweeps.run``, ``sweeps.report``, ``sweeps.rerun``, ``sweeps.storage``, …)."""
     parts = module.split(".")
     return STAGES.index(parts[1]) if len(parts) > 2 and parts[0] == "sweeps" and parts[1] in STAGES else None
+
+
+ENTRIES = ("sweeps.run", "sweeps.report", "sweeps.rerun", "sweeps.inputs")
+"""The command lines of sweeps/: they may import any stage."""
 
 
 def _backward_arrows(graph: dict[str, set[str]]) -> list[str]:
     """Imports that point from a stage to one built on it, or from a shared module into any stage."""
     bad = []
     for importer, imported in graph.items():
-        if not importer.startswith("sweeps.") or importer in ("sweeps.run", "sweeps.report", "sweeps.inputs"):
+        if not importer.startswith("sweeps.") or importer in ENTRIES:
             continue
         for target in imported:
             if not target.startswith("sweeps."):

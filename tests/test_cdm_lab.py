@@ -1,23 +1,30 @@
-"""``cdm-lab``: one command line whose commands are the project's commands, each the same command.
+"""``cdm-lab``: one command line whose commands are the project's commands, each the same command, one grammar.
 
 The commands run as a user types them: the ``cdm-lab`` script that ``pip install -e .`` puts beside this
 interpreter, or, where this checkout is not installed, ``python -m sweeps.cdm_lab`` (what the script runs).
 Each command's help is compared with its old form's in this process (its file run as ``__main__`` by ``runpy``,
-as tests/test_commands.py does).
+as tests/test_commands.py does). Every command's parser is walked for the grammar of :mod:`cdm.cli`, and
+docs/cli.md is held to what ``python docs/cli.py`` writes from those parsers.
 """
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
+import json
 import os
 import re
 import subprocess
 import sys
+from importlib.metadata import distribution
 from pathlib import Path
 
 import pytest
 
 from cdm.__main__ import build_parser
-from sweeps.cdm_lab import COMMANDS, main
+from cdm.cli import OldSpelling, old_spelling
+from cdm.config import config_field_paths
+from sweeps.cdm_lab import COMMANDS, main, parsers, version
 from tests.test_commands import _commands
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -45,12 +52,29 @@ def test_help_lists_every_command_and_imports_no_heavy_library():
     assert _run([sys.executable, "-c", probe]).stderr.strip() == "[]"
 
 
-def test_no_command_or_an_unknown_one_exits_2_naming_the_choices():
-    for args in ([], ["tran"]):
-        out = _run(CDM_LAB, *args)
-        assert out.returncode == 2 and out.stdout == ""
-        assert out.stderr.splitlines()[-1].startswith("cdm-lab: error: ")
+def test_bare_cdm_lab_lists_the_commands_and_an_unknown_one_exits_2_naming_the_choices():
+    bare = _run(CDM_LAB)
+    assert bare.returncode == 0 and bare.stderr == "" and bare.stdout == _run(CDM_LAB, "--help").stdout
+    assert bare.stdout.startswith("usage: cdm-lab ") and all(f"\n  {name} " in bare.stdout for name in COMMANDS)
+    out = _run(CDM_LAB, "tran")
+    assert out.returncode == 2 and out.stdout == ""
+    assert out.stderr.splitlines()[-1].startswith("cdm-lab: error: ")
     assert "invalid choice: 'tran' (choose from 'run', 'report'" in out.stderr
+
+
+def test_version_names_the_release_and_this_checkouts_commit(capsys):
+    assert main(["--version"]) == 0  # in this process: the commit is read with cdm.provenance, which imports torch
+    out = capsys.readouterr()
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    version = re.search(r'^version = "(.+)"$', (ROOT / "pyproject.toml").read_text(), re.M).group(1)
+    assert out.err == ""
+    assert re.fullmatch(rf"cdm-lab {re.escape(version)} \(commit {head}(, modified)?\)\n", out.out), out.out
+
+
+def test_version_outside_a_checkout_reads_the_installed_metadata(tmp_path):
+    dist = distribution("cdm-lab")
+    recorded = json.loads(dist.read_text("direct_url.json") or "{}").get("vcs_info", {}).get("commit_id", "unknown")
+    assert version(tmp_path) == f"cdm-lab {dist.version} (commit {recorded})"
 
 
 def test_every_command_of_the_project_is_a_cdm_lab_command():
@@ -84,3 +108,113 @@ def test_a_command_prints_and_exits_as_its_old_form():
     ours, old = _run(CDM_LAB, "run", *bad), _run([sys.executable, "sweeps/run.py", *bad])
     assert ours.returncode == 2 and ours.stderr.startswith("error: ") and "no_such_spec.yaml" in ours.stderr
     assert (ours.returncode, ours.stdout, ours.stderr) == (old.returncode, old.stdout, old.stderr)
+
+
+CONFIG_COMMANDS = {"run", "train", "train-prior", "evaluate", "reconstruct", "prepare", "check-data", "export-views",
+                   "inputs prepare", "inputs all"}
+"""The commands that build a config, and so take ``--set KEY=VALUE``; the others read no config."""
+UNITS = ("degrees", "units", "pixels", "trials", "count", "crops", "integer")
+"""One of these words in the help of every numeric flag: what its number counts or measures."""
+
+
+def grammar_faults(name: str, parser: argparse.ArgumentParser) -> list[str]:
+    """What in command ``name``'s parser breaks the shared grammar of cdm/cli.py, one line per fault."""
+    faults = []
+    if not parser.format_usage().startswith(f"usage: cdm-lab {name} "):
+        faults.append(f"usage line {parser.format_usage().split(chr(10))[0]!r} does not name cdm-lab {name}")
+    if not parser.description or "\n" in parser.description:
+        faults.append("no one-line description")
+    if not (parser.epilog or "").startswith(f"example:\n  cdm-lab {name} "):
+        faults.append("no example")
+    for action in parser._actions:
+        flag = "/".join(action.option_strings) or action.dest
+        if isinstance(action, OldSpelling):
+            if not action.new:
+                faults.append(f"{flag}: an old spelling naming no new one")
+        elif not action.help or action.help == argparse.SUPPRESS:
+            faults.append(f"{flag}: no help")
+        elif action.type in (int, float) and not any(unit in action.help for unit in UNITS):
+            faults.append(f"{flag}: a number whose help names no unit ({action.help!r})")
+        if "--out" in action.option_strings and not isinstance(action, OldSpelling) and (
+                action.metavar != "DIR" or not action.help.startswith("folder")):
+            faults.append(f"--out is not a folder: {action.metavar} {action.help!r}")
+    has_set = any("--set" in a.option_strings and not isinstance(a, OldSpelling) for a in parser._actions)
+    if has_set != (name in CONFIG_COMMANDS):
+        faults.append("builds a config without --set" if not has_set else "--set on a command without a config")
+    return faults
+
+
+def test_every_command_keeps_the_grammar():
+    walked = dict(parsers())
+    assert set(COMMANDS) | {"inputs prepare", "inputs depth", "inputs all"} == set(walked)
+    faults = [f"cdm-lab {name}: {fault}" for name, parser in walked.items() for fault in grammar_faults(name, parser)]
+    assert not faults, "\n".join(faults)
+    takes = {}  # a flag is a switch everywhere or takes a value everywhere: one name, one meaning
+    for parser in walked.values():
+        for action in (a for a in parser._actions if not isinstance(a, OldSpelling)):
+            for flag in action.option_strings:
+                takes.setdefault(flag, set()).add(action.nargs == 0)
+    assert [flag for flag, kinds in takes.items() if len(kinds) > 1] == []
+    assert takes["--resume"] == {True} and takes["--resume-from"] == {False}  # run's switch, train's folder
+
+
+def test_every_config_field_a_help_or_example_names_is_one():
+    texts = [a.help or "" for _, p in parsers() for a in p._actions] + [p.epilog or "" for _, p in parsers()]
+    named = {key for text in texts for key in re.findall(r"\b([a-z_]+\.[a-z_0-9.]+)=", text)}
+    assert {"data.kind", "priors.lambda_3d", "diffusion.sample_steps", "train.steps"} <= named
+    assert named - set(config_field_paths()) == set()
+
+
+def test_the_grammar_check_finds_each_fault():
+    bad = argparse.ArgumentParser(prog="other.py", description="two\nlines")
+    bad.add_argument("--seed", type=int)
+    bad.add_argument("--out", help="a .ply file")
+    bad.add_argument("--set", action="append", help="override")
+    assert grammar_faults("fields", bad) == [
+        "usage line 'usage: other.py [-h] [--seed SEED] [--out OUT] [--set SET]' does not name cdm-lab fields",
+        "no one-line description", "no example", "--seed: no help", "--out is not a folder: None 'a .ply file'",
+        "--set on a command without a config",
+    ]
+
+
+@pytest.mark.parametrize("path,args,name", [
+    ("cdm/__main__.py", ["reconstruct"], "reconstruct"),
+    ("sweeps/inputs.py", ["depth", "--no-such-flag"], "inputs depth"),
+    ("sweeps/run.py", ["--no-such-flag"], "run"),
+])
+def test_an_argument_error_of_an_old_form_names_the_cdm_lab_command(path, args, name, monkeypatch, capsys):
+    """``python -m cdm reconstruct``, ``python sweeps/inputs.py depth``, ``python sweeps/run.py``: run as users do."""
+    import runpy
+
+    monkeypatch.setattr(sys, "argv", [str(ROOT / path), *args])
+    with pytest.raises(SystemExit) as exit_:
+        runpy.run_path(str(ROOT / path), run_name="__main__")
+    err = capsys.readouterr().err.splitlines()
+    assert exit_.value.code == 2 and err[0].startswith(f"usage: cdm-lab {name} ")
+    assert err[-1].startswith(f"cdm-lab {name}: error: ")
+
+
+def test_an_old_spelling_does_the_new_ones_job_and_says_its_name(capsys):
+    parser = argparse.ArgumentParser(prog="cdm-lab prepare")
+    parser.add_argument("--set", action="append", default=[])
+    parser.add_argument("--ply", required=True)
+    old_spelling(parser, "--data-kind", "--set data.kind=", "set", key="data.kind")
+    old_spelling(parser, "--out", "--ply", "ply")
+    args = parser.parse_args(["--set", "a=1", "--data-kind", "co3d", "--out", "c.ply"])
+    assert (args.set, args.ply) == (["a=1", "data.kind=co3d"], "c.ply")
+    assert capsys.readouterr().err.splitlines() == [
+        "note: cdm-lab prepare --data-kind is now --set data.kind=; the old spelling goes in the next release",
+        "note: cdm-lab prepare --out is now --ply; the old spelling goes in the next release",
+    ]
+    assert "--data-kind" not in parser.format_help() and "--out" not in parser.format_help()
+    assert parser.parse_args(["--ply", "a.ply"]).set == []  # the default list was not appended to
+
+
+def test_docs_cli_md_is_what_the_parsers_write():
+    spec = importlib.util.spec_from_file_location("docs_cli", ROOT / "docs" / "cli.py")
+    page = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(page)
+    written = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
+    assert written == page.render(), "docs/cli.md is stale: run python docs/cli.py"
+    assert all(f"\n## cdm-lab {name}\n" in written for name in COMMANDS)
+    assert "](docs/cli.md)" in (ROOT / "README.md").read_text(encoding="utf-8")

@@ -81,19 +81,40 @@ def test_empty_and_corrupt_mesh_folders(tmp_path):
 @pytest.mark.slow
 def test_train_evaluate_reconstruct(tmp_path):
     config = write_config(tmp_path, train={"steps": 4, "eval_every": 4})
-    out = run_cli("train", "--config", str(config), cwd=tmp_path)
+    out = run_cli("train", "--config", str(config), "--out", "trained", cwd=tmp_path)  # --out over train.out_dir
     assert out.returncode == 0, out.stderr
-    ckpt = next((tmp_path / "out" / "checkpoints").glob("step_*"))
+    assert not (tmp_path / "out").exists()
+    ckpt = next((tmp_path / "trained" / "checkpoints").glob("step_*"))
     out = run_cli("evaluate", "--checkpoint", str(ckpt), cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     assert "eval/cd" in out.stdout and "baseline/sphere/cd" in out.stdout
     image = tmp_path / "input.png"
     cv2.imwrite(str(image), render_input(config))
     ply = tmp_path / "cloud.ply"
-    out = run_cli("reconstruct", "--checkpoint", str(ckpt), "--image", str(image), "--out", str(ply), cwd=tmp_path)
+    out = run_cli("reconstruct", "--checkpoint", str(ckpt), "--image", str(image), "--ply", str(ply), cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     lines = ply.read_text().splitlines()
     assert lines[2] == f"element vertex {TINY['data']['num_points']}"
     assert len(lines) == 7 + TINY["data"]["num_points"]
     out = run_cli("evaluate", "--checkpoint", str(tmp_path / "nope"), cwd=tmp_path)
     assert out.returncode == 2 and "checkpoint" in out.stderr
+
+
+@pytest.mark.parametrize(
+    "argv,said",
+    [
+        (["train", "--out", "a", "--set", "train.out_dir=b"], "--out a and --set train.out_dir=b name two folders"),
+        (["prepare", "--root", "raw", "--out", "prep"], "data.kind: give --set data.kind=KIND; choose one of"),
+        (["prepare", "--data-kind", "procedural", "--root", "raw", "--out", "prep"],
+         "data.kind: 'procedural' cannot be prepared; choose one of"),
+    ],
+)
+def test_out_and_data_kind_are_refused_in_one_line_before_anything_is_written(argv, said, tmp_path, monkeypatch,
+                                                                               capsys):
+    from cdm.__main__ import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("note: ")]
+    assert len(err) == 1 and err[0].startswith(f"error: {said}"), err
+    assert not list(tmp_path.iterdir())

@@ -265,7 +265,7 @@ def test_rayjob_entrypoint_is_a_valid_paper_sweep(capsys, tmp_path, monkeypatch)
     job = _docs(CLUSTER / "kuberay" / "rayjob.yaml")[0]["spec"]
     argv = shlex.split(job["entrypoint"])
     assert argv[:2] == ["python", "/home/ray/cdm-lab/sweeps/run.py"]
-    args = run._parser().parse_args(argv[2:])
+    args = run.build_parser().parse_args(argv[2:])
     assert (args.profile, args.address) == ("paper", "auto")
     assert str(args.storage).startswith("/mnt/shared/") and args.tracking_uri == "http://cdm-mlflow:5000"
     assert yaml.safe_load(job["runtimeEnvYAML"]) == {

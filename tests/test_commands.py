@@ -24,6 +24,7 @@ PURPOSE = {
     "sweeps/run.py": "Run a sweep: train every trial of a spec on Ray",
     "sweeps/inputs.py": "Make a data set's inputs for the paper profile on Ray",
     "sweeps/cdm_lab.py": "One command line for CDM Lab",
+    "sweeps/rerun.py": "Re-run one finished trial of a sweep from its MLflow record",
     "sweeps/report.py": "Rebuild a finished sweep's comparison straight from MLflow",
     "cdm/__main__.py": "Train, evaluate and use a CDM model without a sweep",
     "cdm/tools/export_views.py": "Write the images a config's data set shows the model",
@@ -35,6 +36,7 @@ PURPOSE = {
     "benchmarks/gpu_check.py": "One device script: every figure a cluster user needs for the paper profile",
     "benchmarks/step_ops.py": "Ops dispatched per pvcnn2 training step, and per point operation",
     "docs/screenshots.py": "Take the README's pictures of a finished sweep",
+    "docs/cli.py": "Write docs/cli.md from the parsers of every cdm-lab command",
 }
 
 

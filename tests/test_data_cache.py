@@ -38,7 +38,8 @@ def _cfg(kind, root, size=48, **overrides):
 
 
 def _prepare(kind, root, out, size=48):
-    return main(["prepare", "--data-kind", kind, "--root", str(root), "--out", str(out), "--image-size", str(size)])
+    return main(["prepare", "--set", f"data.kind={kind}", "--root", str(root), "--out", str(out),
+                 "--set", f"data.image_size={size}"])
 
 
 def _tensors(s):

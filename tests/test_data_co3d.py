@@ -156,7 +156,8 @@ def test_categories(tree):
 
 def _prepare(root, out, *extra):
     return main(
-        ["prepare", "--data-kind", "co3d", "--root", str(root), "--out", str(out), "--image-size", "32", *extra]
+        ["prepare", "--set", "data.kind=co3d", "--root", str(root), "--out", str(out), "--set", "data.image_size=32",
+         *extra]
     )
 
 

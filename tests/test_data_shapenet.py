@@ -212,14 +212,14 @@ def _prepare(root, out, *extra):
     return main(
         [
             "prepare",
-            "--data-kind",
-            "shapenet_r2n2",
+            "--set",
+            "data.kind=shapenet_r2n2",
             "--root",
             str(root),
             "--out",
             str(out),
-            "--image-size",
-            "32",
+            "--set",
+            "data.image_size=32",
             *extra,
         ]
     )

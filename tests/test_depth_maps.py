@@ -131,12 +131,12 @@ def test_prepare_stores_the_maps_in_the_shards(tree, tmp_path, capsys):
     _write_maps(tmp_path / "maps", gt_cfg, lambda d: 4.0 * d + 1.0)
     args = [
         "prepare",
-        "--data-kind",
-        "co3d",
+        "--set",
+        "data.kind=co3d",
         "--root",
         str(tree.root),
-        "--image-size",
-        "32",
+        "--set",
+        "data.image_size=32",
         "--set",
         "data.categories=[teddybear]",
     ]

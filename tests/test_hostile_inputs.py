@@ -48,8 +48,8 @@ def _first_frame(key, value):
 def _prepare(root, tmp_path, kind="co3d", *extra, timeout=120, env=None):
     out = tmp_path / "a" / "out"
     out.parent.mkdir(parents=True, exist_ok=True)
-    outcome = run_command(["-m", "cdm", "prepare", "--data-kind", kind, "--root", str(root), "--out", str(out),
-                           "--image-size", "32", *extra], tmp_path, timeout=timeout, env=env)
+    outcome = run_command(["-m", "cdm", "prepare", "--set", f"data.kind={kind}", "--root", str(root), "--out", str(out),
+                           "--set", "data.image_size=32", *extra], tmp_path, timeout=timeout, env=env)
     return outcome, out
 
 

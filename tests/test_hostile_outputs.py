@@ -34,8 +34,8 @@ def co3d(tmp_path_factory):
 
 def _prepare(root, out, cwd, *command, env=None):
     command = command or ("-m", "cdm", "prepare")
-    return run_command([*command, "--data-kind", "co3d", "--root", str(root), "--out", str(out),
-                        "--image-size", "32"], cwd, env=env)
+    return run_command([*command, "--set", "data.kind=co3d", "--root", str(root), "--out", str(out),
+                        "--set", "data.image_size=32"], cwd, env=env)
 
 
 def _foreign_folder(folder):

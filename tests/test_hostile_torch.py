@@ -54,7 +54,7 @@ def evil(tmp_path: Path) -> tuple[Path, Path]:
 def _cdm_commands(evil: Path, image: Path) -> list[list[str]]:
     return [
         ["-m", "cdm", "evaluate", "--checkpoint", str(evil), *_sets()],
-        ["-m", "cdm", "reconstruct", "--checkpoint", str(evil), "--image", str(image), "--out", "c.ply", *_sets()],
+        ["-m", "cdm", "reconstruct", "--checkpoint", str(evil), "--image", str(image), "--ply", "c.ply", *_sets()],
         ["-m", "cdm", "train", "--init-from", str(evil), *_sets()],
     ]
 
@@ -77,14 +77,14 @@ def test_a_torchscript_archive_runs_nothing_through_any_reader(evil, tmp_path):
     for name, base in bases.items():
         spec = _spec(tmp_path, name, base)
         smoke = run_command([str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke",
-                             "--storage", "res", "--tracking-uri", f"sqlite:///{tmp_path}/m.db"], tmp_path)
+                             "--out", "res", "--tracking-uri", f"sqlite:///{tmp_path}/m.db"], tmp_path)
         assert_refused(smoke, str(path), "TorchScript archive")
         dry = run_command([str(ROOT / "sweeps" / "run.py"), str(spec), "--dry-run"], tmp_path)
         assert_refused(dry, str(path), "TorchScript archive")
     msn = tmp_path / "inputs" / "msn" / "vits16_800ep.pth.tar"
     msn.parent.mkdir(parents=True)
     msn.write_bytes(path.read_bytes())
-    check = run_command([str(ROOT / "sweeps" / "inputs.py"), "all", "--data-kind", "co3d", "--root", "nowhere",
+    check = run_command([str(ROOT / "sweeps" / "inputs.py"), "all", "--set", "data.kind=co3d", "--root", "nowhere",
                          "--out", "prep", "--inputs", str(tmp_path / "inputs"), "--model", "dm"], tmp_path)
     assert_refused(check, str(msn), "TorchScript archive")
     assert not marker.exists()

@@ -21,5 +21,5 @@ def test_a_signal_ends_a_tool_part_way_in_one_line_with_no_temporary_file(signum
         time.sleep(0.05)
     code, err = stop_command(proc, signum)
     assert code == 130, err[-2000:]
-    assert err.strip().splitlines() == ["interrupted: python -m cdm.tools.export_views stopped on Ctrl-C or SIGTERM"]
+    assert err.strip().splitlines() == ["interrupted: cdm-lab export-views stopped on Ctrl-C or SIGTERM"]
     assert [p.name for p in out.rglob("*") if ".tmp-" in p.name] == []

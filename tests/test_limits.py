@@ -18,7 +18,7 @@ import yaml
 
 from cdm.config import Config, ConfigError, config_field_paths, load_config, parse_override
 from cdm.memory import check_memory, estimate_train_bytes
-from sweeps import run
+from sweeps import cdm_lab, run
 from sweeps.execute.claim import ClaimError, claim
 from sweeps.plan.limits import LimitError, check_trials, load_yaml
 from sweeps.plan.schema_base import SpecError
@@ -254,8 +254,8 @@ BAD_SPECS = {
     ),
     "storage": (
         b"name: s\ngrid: {priors.point_size: [0.04]}\n",
-        ["--storage", "/proc/cdm-results"],
-        "--storage /proc/cdm-results",
+        ["--out", "/proc/cdm-results"],
+        "--out /proc/cdm-results",
     ),
 }
 
@@ -265,7 +265,7 @@ def test_bad_input_exits_2_with_one_line_and_writes_nothing(tmp_path, capsys, mo
     data, extra, needle = BAD_SPECS[case]
     monkeypatch.chdir(tmp_path)
     (tmp_path / "spec.yaml").write_bytes(data)
-    argv = ["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp_path}/mlflow.db", *extra]
+    argv = ["spec.yaml", "--smoke", "--out", "results", "--tracking-uri", f"sqlite:///{tmp_path}/mlflow.db", *extra]
     assert run.main(argv) == 2
     err = capsys.readouterr().err
     assert needle in err and err.startswith("error: ") and len(err.strip().splitlines()) == 1, err
@@ -281,7 +281,7 @@ def test_damaged_state_file_on_resume(tmp_path, capsys, monkeypatch, content, ne
     folder = tmp_path / "results" / "s" / "smoke"
     folder.mkdir(parents=True)
     (folder / "sweep.json").write_bytes(content)
-    assert run.main(["spec.yaml", "--smoke", "--storage", "results", "--resume"]) == 2
+    assert run.main(["spec.yaml", "--smoke", "--out", "results", "--resume"]) == 2
     err = capsys.readouterr().err
     assert needle in err and str(folder / "sweep.json") in err and len(err.strip().splitlines()) == 1, err
     assert sorted(p.name for p in folder.iterdir()) == ["sweep.json"] and not (tmp_path / "mlflow.db").exists()
@@ -293,7 +293,7 @@ def test_a_claimed_folder_is_refused_naming_the_running_parent_run(tmp_path, cap
     holder = _hold(str(tmp_path / "results" / "s" / "smoke"))
     try:
         assert (
-            run.main(["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp_path}/m.db"])
+            run.main(["spec.yaml", "--smoke", "--out", "results", "--tracking-uri", f"sqlite:///{tmp_path}/m.db"])
             == 2
         )
     finally:
@@ -304,10 +304,11 @@ def test_a_claimed_folder_is_refused_naming_the_running_parent_run(tmp_path, cap
     assert not ray.is_initialized() and not (tmp_path / "results" / "s" / "smoke").exists()
 
 
-@pytest.mark.parametrize("mode", ["--report", "--rerun"])
-def test_report_and_rerun_refuse_a_bad_tracking_uri(tmp_path, capsys, monkeypatch, mode):
+@pytest.mark.parametrize("command", [["report"], ["rerun"], ["run", "--report"], ["run", "--rerun"]])
+def test_report_and_rerun_refuse_a_bad_tracking_uri(tmp_path, capsys, monkeypatch, command):
     monkeypatch.chdir(tmp_path)
-    assert run.main([mode, "abc", "--tracking-uri", "ftp://nope"]) == 2
+    assert cdm_lab.main([*command, "abc", "--tracking-uri", "ftp://nope"]) == 2
     err = capsys.readouterr().err
-    assert "unsupported scheme 'ftp'" in err and len(err.strip().splitlines()) == 1, err
+    lines = [line for line in err.strip().splitlines() if not line.startswith("note: ")]  # the old spellings
+    assert "unsupported scheme 'ftp'" in err and len(lines) == 1, err
     assert not list(tmp_path.iterdir())

@@ -213,7 +213,7 @@ def test_python_m_cdm_evaluate_and_reconstruct_take_pc2s_checkpoint_and_refuse_a
         str(image), np.full((32, 32, 3), 255, np.uint8) * (np.indices((32, 32)).sum(0) < 40)[..., None].astype(np.uint8)
     )
     out = subprocess.run([sys.executable, "-m", "cdm", "reconstruct", "--checkpoint", str(path), "--image", str(image),
-                          "--out", "cloud.ply", *_sets()], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+                          "--ply", "cloud.ply", *_sets()], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.startswith(f"PC² checkpoint {path}") and "wrote 128 points to cloud.ply" in out.stdout
     marker = tmp_path / "marker"

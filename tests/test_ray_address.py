@@ -49,8 +49,8 @@ def co3d(tmp_path_factory) -> Path:
 
 
 def _prepare(co3d: Path, out: Path) -> list[str]:
-    return ["sweeps/inputs.py", "prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out),
-            "--image-size", "32"]
+    return ["sweeps/inputs.py", "prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out),
+            "--set", "data.image_size=32"]
 
 
 @pytest.mark.parametrize("address, needle", [
@@ -79,7 +79,7 @@ def test_ray_address_from_the_environment_is_named_as_such(co3d, tmp_path):
 
 def test_a_sweep_refuses_an_unreachable_address_and_leaves_its_storage_empty(tmp_path, silent):
     storage = tmp_path / "results"
-    args = ["sweeps/run.py", "sweeps/point_size.yaml", "--smoke", "--storage", str(storage),
+    args = ["sweeps/run.py", "sweeps/point_size.yaml", "--smoke", "--out", str(storage),
             "--tracking-uri", f"sqlite:///{tmp_path / 'mlflow.db'}"]
     junk = run_command([*args, "--address", "head:port", "--dry-run"], ROOT, timeout=VERDICT_S)
     assert_refused(junk, "--address head:port: not a Ray address")
@@ -101,7 +101,7 @@ def test_a_signal_ends_a_command_waiting_on_a_silent_address(signum, silent, co3
     proc = start_command([*_prepare(co3d, out), "--address", f"127.0.0.1:{silent}"], LOOPBACK)
     _wait_for(lambda: _connections(silent) > 0, "the command wait on the address")  # the GCS call, 8 s at most
     code, err = stop_command(proc, signum)
-    assert code == 130 and "interrupted: python sweeps/inputs.py prepare stopped" in err, err[-2000:]
+    assert code == 130 and "interrupted: cdm-lab inputs prepare stopped" in err, err[-2000:]
     assert "Traceback" not in err and not out.exists()
 
 
@@ -120,15 +120,15 @@ def _counts(stdout: str) -> tuple[str, str]:
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_ends_prepare_part_way_with_nothing_half_written(signum, co3d, tmp_path):
     out = tmp_path / "prepared"
-    proc = start_command(["-m", "cdm", "prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out),
-                   "--image-size", "32"])
+    proc = start_command(["-m", "cdm", "prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out),
+                   "--set", "data.image_size=32"])
     _wait_for(lambda: any(out.rglob("*.shard")), "a shard written")
     code, err = stop_command(proc, signum)
-    assert code == 130 and "interrupted: python -m cdm prepare stopped" in err, err[-2000:]
+    assert code == 130 and "interrupted: cdm-lab prepare stopped" in err, err[-2000:]
     assert "Traceback" not in err
     assert [p.name for p in out.rglob("*") if ".tmp" in p.name] == []  # no temporary file left behind
-    rerun = run_command(["-m", "cdm", "prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out),
-                         "--image-size", "32"], ROOT)
+    rerun = run_command(["-m", "cdm", "prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out),
+                         "--set", "data.image_size=32"], ROOT)
     assert rerun.code == 0, rerun.stderr[-2000:]
     written, kept = (int(n) for n in _counts(rerun.stdout))
     assert kept >= 1 and written + kept == len(list(out.rglob("*.shard")))  # each shard there was whole

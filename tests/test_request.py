@@ -14,7 +14,7 @@ SPEC = "name: s\ngrid: {priors.point_size: [0.02, 0.04]}\n"
 
 def _args(tmp_path, *extra):
     (tmp_path / "s.yaml").write_text(SPEC)
-    return run._parser().parse_args([str(tmp_path / "s.yaml"), "--smoke", "--storage", str(tmp_path / "r"), *extra])
+    return run.build_parser().parse_args([str(tmp_path / "s.yaml"), "--smoke", "--out", str(tmp_path / "r"), *extra])
 
 
 def test_a_request_plans_every_trial_and_says_where_the_sweep_is_kept(tmp_path):
@@ -42,10 +42,10 @@ def test_resume_plans_the_spec_and_sets_the_sweep_started_with_and_names_a_damag
 
 
 def test_exactly_one_of_a_spec_a_rerun_and_a_report(tmp_path):
-    check_mode(run._parser().parse_args(["--report", "s"]))
+    check_mode(run.build_parser().parse_args(["--report", "s"]))
     for argv in ([], ["spec.yaml", "--report", "s"], ["--rerun", "r", "--report", "s"]):
-        with pytest.raises(RequestError, match="give one of a sweep spec"):
-            check_mode(run._parser().parse_args(argv))
+        with pytest.raises(RequestError, match="give one sweep spec"):
+            check_mode(run.build_parser().parse_args(argv))
 
 
 def test_a_dry_run_says_where_the_results_and_the_mlflow_runs_will_go(tmp_path, monkeypatch, capsys):
@@ -68,7 +68,7 @@ def test_a_dry_run_says_where_the_results_and_the_mlflow_runs_will_go(tmp_path, 
         "spec": {"name": "s", "grid": {"priors.point_size": [0.08]}}, "sets": {}, "profile": "smoke", "budget": None,
         "tracking_uri": "http://127.0.0.1:5999", "parent_run_id": "p"}))
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///elsewhere.db")
-    assert run.main([*args, "--resume", "--storage", str(tmp_path / "r")]) == 0
+    assert run.main([*args, "--resume", "--out", str(tmp_path / "r")]) == 0
     folded = " ".join(capsys.readouterr().out.split())
     assert f"storage: {folder} (" in folded
     assert "MLflow tracking URI: http://127.0.0.1:5999, experiment s (artifacts: the server's store)" in folded

@@ -72,7 +72,7 @@ def test_a_recorded_commit_with_a_newline_is_shown_on_one_line(store, tmp_path):
 @pytest.mark.slow
 def test_rerun_force_of_a_record_with_torch_threads_0_exits_2_through_the_command(store, tmp_path):
     uri, run = _recorded(store, tmp_path, {"repro.torch_threads": "0"})
-    outcome = run_command([str(ROOT / "sweeps" / "run.py"), "--rerun", run, "--force", "--tracking-uri", uri,
-                           "--storage", str(tmp_path / "results")], tmp_path, timeout=300)
+    outcome = run_command([str(ROOT / "sweeps" / "rerun.py"), run, "--force", "--tracking-uri", uri,
+                           "--out", str(tmp_path / "results")], tmp_path, timeout=300)
     assert_refused(outcome, "repro.torch_threads is '0'")
     assert not (tmp_path / "results").exists()

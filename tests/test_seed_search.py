@@ -228,7 +228,7 @@ def test_resume_with_a_damaged_searcher_state_exits_2_and_runs_no_seed_again(tmp
             "--trust-storage",
             "--profile",
             "smoke",
-            "--storage",
+            "--out",
             str(tmp_path / "results"),
         ],
         tmp_path,

@@ -571,10 +571,10 @@ def test_the_small_profiles_leave_x0_unclamped_on_data_sets_whose_frames_pass_un
 
 def test_relative_storage_is_refused_on_a_cluster(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    argv = [str(SWEEPS / "point_size.yaml"), "--smoke", "--storage", "results"]
+    argv = [str(SWEEPS / "point_size.yaml"), "--smoke", "--out", "results"]
     assert run.main([*argv, "--address", "127.0.0.1:6379"]) == 2
     err = capsys.readouterr().err
-    assert "--storage results: on a cluster give an absolute path" in err and "s3://" in err
+    assert "--out results: on a cluster give an absolute path" in err and "s3://" in err
     monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:6379")  # what `ray job submit` sets for its driver
     assert run.main(argv) == 2
     assert list(tmp_path.iterdir()) == []
@@ -582,7 +582,7 @@ def test_relative_storage_is_refused_on_a_cluster(tmp_path, monkeypatch, capsys)
 
 def test_dry_run_names_missing_inputs(tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("CDM_INPUTS", str(tmp_path / "nothing"))
-    code = run.main([str(SWEEPS / "global_features.yaml"), "--smoke", "--dry-run", "--storage", str(tmp_path / "r")])
+    code = run.main([str(SWEEPS / "global_features.yaml"), "--smoke", "--dry-run", "--out", str(tmp_path / "r")])
     captured = capsys.readouterr()
     assert code == 2 and captured.out.count("(MISSING)") == 5
     assert captured.err.strip().splitlines()[-1].startswith("error: model.global_embeddings: ")

@@ -61,7 +61,7 @@ def in_tmp(tmp_path, monkeypatch) -> Path:
 
 
 def _argv(tmp: Path, *extra: str) -> list[str]:
-    return ["spec.yaml", "--smoke", "--storage", "results", "--tracking-uri", f"sqlite:///{tmp}/m.db", *extra]
+    return ["spec.yaml", "--smoke", "--out", "results", "--tracking-uri", f"sqlite:///{tmp}/m.db", *extra]
 
 
 # --- item 1: nothing follows a link it did not make -------------------------------------------------
@@ -535,7 +535,7 @@ def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, c
 
 def test_the_resume_hint_keeps_the_storage():
     assert stopping.resume_command(Path("sweeps/s.yaml"), "smoke", "/mnt/my results") == (
-        "python sweeps/run.py sweeps/s.yaml --profile smoke --storage '/mnt/my results' --resume")
+        "python sweeps/run.py sweeps/s.yaml --profile smoke --out '/mnt/my results' --resume")
 
 
 def test_interrupted_children_are_closed_as_killed_and_reopened_by_resume(tmp_path):

@@ -133,7 +133,7 @@ def test_point_size_walks_from_the_yaml_to_the_footprint_as_the_doc_lists(tmp_pa
     text = re.sub(r"priors\.point_size: \[[^\]]*\]", f"priors.point_size: [{SENTINEL}]", text)
     assert text.endswith("\n") and "\nprofiles:\n" in text  # the spec's own profiles come last: one step here
     spec_file.write_text(text + "  smoke:\n    budget: {steps: 1, eval_every: 1}\n")
-    args = run._parser().parse_args([str(spec_file), "--smoke", "--storage", str(tmp_path / "results")])
+    args = run.build_parser().parse_args([str(spec_file), "--smoke", "--out", str(tmp_path / "results")])
     with Walk() as planned:
         request = plan_request(args)
     (cell,) = request.plan.cells

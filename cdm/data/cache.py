@@ -1,11 +1,11 @@
 """Prepared data roots (one shard per object) and the per-process cache of decoded views.
 
-``python -m cdm prepare --data-kind KIND --root RAW --out OUT`` (:mod:`cdm.data.prepare`) reads every
+``python -m cdm prepare --set data.kind=KIND --root RAW --out OUT`` (:mod:`cdm.data.prepare`) reads every
 object of the training split and of ``data.eval_split`` once and writes
 
 - ``OUT/<published split>/<object_id>.shard``: the object's cloud and sequence cameras in the data set's
   frame (:mod:`cdm.normalise`) and every input view of the split already cropped and resized
-  (``--image-size``, 224 by default):
+  (``data.image_size``, 224 by default):
   RGB and mask as uint8, depth as the published float16 values with their scale, and the crop camera;
 - ``OUT/cdm_prepared.json``: the manifest (kind, image size, categories, objects per split);
 - ``OUT/.cdm_prepare_scratch/``: the temporary files of shards being written (:data:`SCRATCH`).

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from cdm.config import Config
+from cdm.config import Config, load_config
 from cdm.data.cache import (
     ESTIMATED_DEPTHS,
     FORMAT,
@@ -32,7 +32,9 @@ from cdm.data.depth_maps import DepthMaps
 from cdm.safe_io import read_json
 from cdm.safe_write import TEMP_NAME, make_folder, write_atomic
 
-__all__ = ["PrepareReport", "Preparation", "check_out", "prepare", "shard_path", "start", "write_object"]
+__all__ = [
+    "PrepareReport", "Preparation", "check_out", "prepare", "prepare_config", "shard_path", "start", "write_object"
+]
 
 
 class PrepareReport(NamedTuple):
@@ -41,6 +43,19 @@ class PrepareReport(NamedTuple):
     out: Path
     written: int
     skipped: int
+
+
+def prepare_config(sets: dict, root: str | Path) -> tuple[type[CapturedDataset], Config]:
+    """What ``prepare`` reads: the data set class ``--set data.kind=`` names (a captured kind) and the config
+    over the published data set at ``root`` (``--set`` overrides, ``data.image_size`` the crops' side)."""
+    from cdm.data import DATASETS
+
+    preparable = [k for k, cls in DATASETS.items() if issubclass(cls, CapturedDataset)]
+    kind = sets.get("data.kind")
+    if kind not in preparable:
+        said = "give --set data.kind=KIND" if kind is None else f"{kind!r} cannot be prepared"
+        raise ValueError(f"data.kind: {said}; choose one of {', '.join(preparable)}")
+    return DATASETS[kind], load_config(None, {**sets, "data.root": str(root)})
 
 
 def _object_arrays(record: ObjectRecord, views: list[ViewImages]) -> dict[str, np.ndarray]:

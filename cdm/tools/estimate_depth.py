@@ -35,6 +35,7 @@ import cv2
 import numpy as np
 import torch
 
+from cdm.cli import add_out, command_parser
 from cdm.data.depth_maps import ESTIMATOR_FILE
 from cdm.data.images import read_image
 from cdm.interrupt import interruptible
@@ -43,7 +44,9 @@ from cdm.safe_write import make_folder, write_atomic
 from cdm.tools.export_views import crops
 from cdm.torch_files import load_tensors
 
-__all__ = ["Estimator", "View", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"]
+__all__ = [
+    "Estimator", "View", "build_parser", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"
+]
 
 
 class View(NamedTuple):
@@ -189,22 +192,30 @@ def write_maps(estimator: Estimator, views: Sequence[View], out: Path, batch_siz
     return len(todo)
 
 
-@interruptible("python -m cdm.tools.estimate_depth")
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m cdm.tools.estimate_depth", description=__doc__.split("\n\n")[0])
-    p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")
-    p.add_argument("--model", required=True, help="local model folder, or a hub id where the hub is reachable")
-    p.add_argument("--out", required=True, type=Path, help="folder of maps to write (priors.depth_maps)")
-    p.add_argument("--batch-size", type=int, default=8, help="crops per forward pass (default 8)")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+def build_parser() -> argparse.ArgumentParser:
+    p = command_parser("estimate-depth", __doc__.split("\n\n")[0],
+                       "--views views/ --model depth-anything/Depth-Anything-V2-Small-hf --out depth_maps/")
+    p.add_argument("--views", required=True, type=Path, metavar="DIR", help="output folder of cdm-lab export-views")
+    p.add_argument("--model", required=True, metavar="DIR_OR_HUB_ID",
+                   help="local model folder, or a hub id where the hub is reachable")
+    add_out(p, "<object_id>/<position>.npy maps and estimator.json (priors.depth_maps)", required=True, type=Path)
+    p.add_argument("--batch-size", type=int, default=8, metavar="N", help="crops per forward pass, >= 1 (default 8)")
+    p.add_argument("--device", default=None, metavar="DEVICE",
+                   help="torch device: cpu, cuda or cuda:N (default: cuda where available, else cpu)")
     p.add_argument("--predicts", choices=("depth", "disparity"),
                    help="what the model predicts, where its config does not tell (disparity: larger = nearer)")
-    args = p.parse_args(argv)
+    return p
+
+
+@interruptible("cdm-lab estimate-depth")
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     try:
         if args.batch_size < 1:
             raise ValueError("--batch-size must be >= 1")
         views = find_views(args.views)
-        estimator = load_estimator(args.model, args.device, args.predicts)
+        estimator = load_estimator(args.model, device, args.predicts)
         write_manifest(args.out, args.model, estimator.disparity)
         written = write_maps(estimator, views, args.out, args.batch_size)
     except ValueError as exc:

@@ -28,11 +28,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.cli import add_out, add_set, command_parser
 from cdm.config import load_config, parse_override
 from cdm.interrupt import interruptible
 from cdm.safe_write import make_folder, write_atomic
 
-__all__ = ["crops", "export_views", "main"]
+__all__ = ["build_parser", "crops", "export_views", "main"]
 
 
 def crops(folder: Path, label: str) -> list[tuple[int, Path]]:
@@ -103,14 +104,20 @@ def export_views(cfg, out: Path, rounds: int = 1) -> int:
     return written
 
 
-@interruptible("python -m cdm.tools.export_views")
+def build_parser() -> argparse.ArgumentParser:
+    p = command_parser("export-views", __doc__.split("\n\n")[0],
+                       "--out views/ --set data.kind=co3d --set data.root=prepared/")
+    add_out(p, "<object_id>/<position>.png crops, masks and objects.json", required=True)
+    p.add_argument("--config", metavar="FILE", help="YAML config (default: the built-in defaults)")
+    add_set(p, "data.kind=co3d")
+    p.add_argument("--rounds", type=int, default=1, metavar="R",
+                   help="training view rounds to write, a count >= 1 (rendered kinds; default 1)")
+    return p
+
+
+@interruptible("cdm-lab export-views")
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m cdm.tools.export_views", description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", required=True, help="folder to write into")
-    p.add_argument("--config", help="YAML config (default: the built-in defaults)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="config override")
-    p.add_argument("--rounds", type=int, default=1, help="training view rounds to write (rendered kinds)")
-    args = p.parse_args(argv)
+    args = build_parser().parse_args(argv)
     try:
         cfg = load_config(args.config, dict(parse_override(s) for s in args.set))
         if args.rounds < 1:

@@ -4,9 +4,9 @@ Not a dependency of CDM Lab (it downloads its weights): install ``open_clip_torc
 this, then copy the ``.npz`` files next to the data. Input: a folder from
 ``python -m cdm.tools.export_views`` (its ``objects.json`` names every object and category)::
 
-    python -m cdm.tools.openclip_embeddings --views views/ --kind image --out image.npz
-    python -m cdm.tools.openclip_embeddings --views views/ --kind text  --out text.npz
-    python -m cdm.tools.openclip_embeddings --views views/ --kind depth --out depth.npz
+    python -m cdm.tools.openclip_embeddings --views views/ --kind image --npz image.npz
+    python -m cdm.tools.openclip_embeddings --views views/ --kind text  --npz text.npz
+    python -m cdm.tools.openclip_embeddings --views views/ --kind depth --npz depth.npz
 
 ``image``: the embedding of the object's reference view (captured kinds: its lowest sequence
 position, the held-out view for held-out objects; rendered kinds: round 0, view 0); ``text``: the
@@ -23,12 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
+from cdm.cli import command_parser, old_spelling
 from cdm.interrupt import interruptible
 from cdm.safe_io import load_npy, object_id_parts, read_json
 from cdm.safe_write import write_atomic
 from cdm.tools.export_views import crops
 
-__all__ = ["main"]
+__all__ = ["build_parser", "main"]
 
 
 def _reference(folder: Path) -> Path:
@@ -49,18 +50,25 @@ def _depth_image(path: Path):
     return Image.fromarray((near * 255).astype(np.uint8)).convert("RGB")
 
 
-@interruptible("python -m cdm.tools.openclip_embeddings")
+def build_parser() -> argparse.ArgumentParser:
+    p = command_parser("openclip-embeddings", __doc__.split("\n\n")[0], "--views views/ --kind image --npz image.npz")
+    p.add_argument("--views", required=True, type=Path, metavar="DIR", help="output folder of cdm-lab export-views")
+    p.add_argument("--kind", required=True, choices=("image", "text", "depth"),
+                   help="what is embedded: the reference view, 'a photo of a {category}', or its depth drawn grey")
+    p.add_argument("--npz", required=True, type=Path, metavar="FILE",
+                   help="the embeddings to write: .npz, one unit-norm float32 vector per object id")
+    old_spelling(p, "--out", "--npz", "npz", type=Path)
+    p.add_argument("--depth-maps", type=Path, metavar="DIR",
+                   help="estimated maps (<object_id>/<position>.npy) instead of rendered depth, with --kind depth")
+    p.add_argument("--model", default="ViT-B-32", metavar="NAME", help="OpenCLIP model name (default ViT-B-32)")
+    p.add_argument("--pretrained", default="laion2b_s34b_b79k", metavar="TAG",
+                   help="OpenCLIP pretrained weights tag of --model (default laion2b_s34b_b79k)")
+    return p
+
+
+@interruptible("cdm-lab openclip-embeddings")
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m cdm.tools.openclip_embeddings", description=__doc__.split("\n\n")[0])
-    p.add_argument("--views", required=True, type=Path, help="output folder of python -m cdm.tools.export_views")
-    p.add_argument("--kind", required=True, choices=("image", "text", "depth"))
-    p.add_argument("--out", required=True, type=Path, help=".npz to write")
-    p.add_argument(
-        "--depth-maps", type=Path, help="estimated maps (<object_id>/<position>.npy) instead of rendered depth"
-    )
-    p.add_argument("--model", default="ViT-B-32")
-    p.add_argument("--pretrained", default="laion2b_s34b_b79k")
-    args = p.parse_args(argv)
+    args = build_parser().parse_args(argv)
     import open_clip  # optional: only where this script runs
     import torch
     from PIL import Image
@@ -87,11 +95,11 @@ def main(argv: list[str] | None = None) -> int:
                 vector = model.encode_image(preprocess(picture)[None])[0]
             out[object_id] = (vector / vector.norm()).float().numpy()
     try:
-        write_atomic(args.out, lambda f: np.savez(f, **out), "--out")
+        write_atomic(args.npz, lambda f: np.savez(f, **out), "--npz")
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"wrote {len(out)} {args.kind} embeddings ({next(iter(out.values())).shape[0]} dims) to {args.out}")
+    print(f"wrote {len(out)} {args.kind} embeddings ({next(iter(out.values())).shape[0]} dims) to {args.npz}")
     return 0
 
 

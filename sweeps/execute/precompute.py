@@ -137,8 +137,8 @@ def check_space(plan: SweepPlan, sweep_dir: str, remote: bool) -> None:
     free = shutil.disk_usage(probe).free
     if need > free:
         raise StoreError(
-            f"--storage {sweep_dir}: the views and evaluation sets its cells share ({root}) need "
-            f"{_size(need)} but its disk has {_size(free)} free; free space, or give --storage on a larger disk"
+            f"--out {sweep_dir}: the views and evaluation sets its cells share ({root}) need "
+            f"{_size(need)} but its disk has {_size(free)} free; free space, or give --out on a larger disk"
         )
 
 

@@ -40,7 +40,7 @@ def discard_start(sweep_dir: str) -> None:
 
 def resume_command(spec: Path, profile: str, storage: str) -> str:
     """The command that continues this sweep: the storage too, or the resume would look in ./results."""
-    return shlex.join(["python", "sweeps/run.py", str(spec), "--profile", profile, "--storage", storage, "--resume"])
+    return shlex.join(["python", "sweeps/run.py", str(spec), "--profile", profile, "--out", storage, "--resume"])
 
 def kill_running_children(sweep_run) -> int:
     """Close as KILLED the child runs of ``sweep_run`` (a :class:`sweeps.execute.tracking.SweepRun`) still RUNNING

@@ -1,6 +1,6 @@
 """The command line's sweep request checked and turned into its plan, before Ray starts.
 
-Every check of the arguments of a sweep (``--profile``/``--smoke``, ``--storage`` on a cluster, ``--set``,
+Every check of the arguments of a sweep (``--profile``/``--smoke``, ``--out`` on a cluster, ``--set``,
 ``--resume`` against ``sweep.json``, ``--budget``, the trial cap, the machine's memory) lives here; each
 refusal is one :class:`RequestError` that ``sweeps/run.py`` prints as ``error: …`` with exit code 2,
 having started and written nothing.
@@ -62,7 +62,8 @@ def check_mode(args: argparse.Namespace) -> None:
     """Exactly one of a spec, ``--rerun`` and ``--report``."""
     if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
         raise RequestError(
-            "give one of a sweep spec (e.g. sweeps/point_size.yaml), --rerun RUN_ID or --report EXPERIMENT"
+            "give one sweep spec (e.g. sweeps/point_size.yaml); a finished trial is re-run by `cdm-lab rerun RUN_ID`, "
+            "a finished sweep's report rebuilt by `cdm-lab report EXPERIMENT`"
         )
 
 
@@ -81,7 +82,7 @@ def plan_request(args: argparse.Namespace) -> SweepRequest:
     if remote and not args.dry_run and not is_uri(args.storage) and not Path(args.storage).is_absolute():
         # Under `ray job submit` the driver's working directory is the job's temporary copy of the
         # repository: checkpoints there vanish with the job and other nodes never see them.
-        raise RequestError(f"--storage {args.storage}: on a cluster give an absolute path that every node shares "
+        raise RequestError(f"--out {args.storage}: on a cluster give an absolute path that every node shares "
                            "(e.g. /mnt/shared/results) or an object-store URI (s3://bucket/results)")
     try:
         spec = load_spec(args.spec)

@@ -128,7 +128,7 @@ def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | Non
         plan = json.loads(Path(client.download_artifacts(run_id, "plan.json", tmp)).read_text())
     children = client.search_runs([exp.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{run_id}'",
                                   order_by=["attributes.start_time ASC"], max_results=10000)
-    # `run.py --rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
+    # `cdm-lab rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
     children = [r for r in children if "rerun_of" not in r.data.tags]
     return SweepRecord(client, exp.name, exp.experiment_id, parent, spec, plan, children)
 

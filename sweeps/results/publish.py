@@ -1,7 +1,7 @@
 """Rebuild a finished sweep's comparison straight from MLflow: results table, the paper's layout, plots, panels.
 
 ``python sweeps/report.py EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]``
-(also ``python sweeps/run.py --report EXPERIMENT``) reads the sweep's parent run (its spec file and
+(also ``cdm-lab report EXPERIMENT``) reads the sweep's parent run (its spec file and
 ``plan.json``) and its child runs, and writes ``results.{md,csv}`` and the plots into ``--out``
 (default ``results/<experiment>/report``); ``--log`` also logs the plots onto the parent run.
 A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 listing the known ones.
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from cdm.baseline_names import BASELINES
+from cdm.cli import add_out, command_parser
 from cdm.interrupt import interruptible
 from cdm.metric_names import label as metric_label
 from sweeps.compare.bootstrap import PairedDifference
@@ -40,9 +41,11 @@ from sweeps.plan.spec import Spec
 from sweeps.plan.trials import split_label
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 from sweeps.results.view import headline_name, row_tags, share_view
+from sweeps.storage import StoreError, check_tracking_uri
 
 __all__ = [
     "DESCRIPTION_WIDTH",
+    "build_parser",
     "describe_sweep",
     "describe_trial",
     "main",
@@ -317,30 +320,29 @@ def publish(uri: str, parent_run_id: str, folder: Path) -> str:
     return share_view(record, table)
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sweeps/report.py", description=__doc__.split("\n\n")[0])
-    p.add_argument("experiment", help="MLflow experiment name (= the spec's name)")
-    p.add_argument("--tracking-uri", default=None, help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
-    p.add_argument("--run-id", default=None, help="parent run of the sweep (default: the experiment's latest sweep)")
-    p.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="folder for results.{md,csv} and plots (default: results/<experiment>/report)",
-    )
+def build_parser() -> argparse.ArgumentParser:
+    p = command_parser("report", "Rebuild a finished sweep's comparison straight from MLflow: results table, "
+                       "the paper's layout, plots, panels", "point_size --out reports/point_size")
+    p.add_argument("experiment", metavar="EXPERIMENT", help="MLflow experiment name (= the spec's name)")
+    p.add_argument("--tracking-uri", default=None, metavar="URI",
+                   help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
+    p.add_argument("--run-id", default=None, metavar="RUN_ID",
+                   help="parent run of the sweep (default: the experiment's latest sweep)")
+    add_out(p, "results.{md,csv} and plots (default: results/<experiment>/report)", type=Path, default=None)
     p.add_argument("--log", action="store_true", help="also log the plots onto the parent run and save the UI view")
     return p
 
 
-@interruptible("python sweeps/report.py")
+@interruptible("cdm-lab report")
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
     # One small download per trial: no progress bar for each.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     uri = resolve_tracking_uri(args.tracking_uri)
     try:
+        check_tracking_uri(uri)  # a URI MLflow cannot open is one line, not its traceback
         record = open_sweep(uri, args.experiment, args.run_id)
-    except ReportError as exc:
+    except (ReportError, StoreError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = (args.out or Path("results") / record.experiment / "report").resolve()

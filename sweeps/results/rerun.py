@@ -1,4 +1,4 @@
-"""Re-run one cell of a finished sweep from its MLflow child run: ``python sweeps/run.py --rerun RUN_ID``.
+"""Re-run one cell of a finished sweep from its MLflow child run: ``cdm-lab rerun RUN_ID`` (sweeps/rerun.py).
 
 The child run holds the resolved config (``config.yaml``) and the reproducibility record
 (``repro.*`` tags, :mod:`cdm.provenance`). The re-run refuses to start when the checked-out code is not
@@ -72,7 +72,7 @@ def _recorded_threads(text: str | None) -> int:
         return torch.get_num_threads()
     if not (text.isascii() and text.isdigit() and len(text) <= 4 and 1 <= int(text) <= MAX_THREADS):
         raise RerunError(
-            f"--rerun: the record's repro.torch_threads is {text[:40]!r}; expected a whole number from 1 to "
+            f"rerun: the record's repro.torch_threads is {text[:40]!r}; expected a whole number from 1 to "
             f"{MAX_THREADS} (a damaged or edited record)"
         )
     return int(text)
@@ -91,10 +91,10 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     try:
         run = client.get_run(run_id)
     except MlflowException:
-        raise RerunError(f"--rerun: no run {run_id!r} in {uri}") from None
+        raise RerunError(f"rerun: no run {run_id!r} in {uri}") from None
     tags = run.data.tags
     if "repro.config_hash" not in tags:
-        raise RerunError(f"--rerun: run {run_id} has no reproducibility record (repro.* tags); was it a sweep trial?")
+        raise RerunError(f"rerun: run {run_id} has no reproducibility record (repro.* tags); was it a sweep trial?")
     warnings = _code_warnings(tags, force)
     threads = _recorded_threads(tags.get("repro.torch_threads"))
     with tempfile.TemporaryDirectory() as tmp:
@@ -103,10 +103,10 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
                                  {"train.out_dir": str(out_root / run_id)})
         except (MlflowException, OSError) as exc:
             raise RerunError(
-                f"--rerun: run {run_id} has no readable config.yaml ({' '.join(str(exc).split())[:200]})"
+                f"rerun: run {run_id} has no readable config.yaml ({' '.join(str(exc).split())[:200]})"
             ) from None
         except ValueError as exc:  # ConfigError: a recorded value this code no longer accepts
-            raise RerunError(f"--rerun: run {run_id}'s config.yaml: {exc}") from None
+            raise RerunError(f"rerun: run {run_id}'s config.yaml: {exc}") from None
     if config_hash(config) != tags["repro.config_hash"]:
         message = (
             f"config hash {config_hash(config)} differs from the recorded {_shown(tags['repro.config_hash'])} "

@@ -27,7 +27,7 @@ def test_bdm_blend_smoke_sweep(cluster, tmp_path, capsys):
     spec = tmp_path / "bdm_blend.yaml"
     spec.write_text(yaml.safe_dump(tree, allow_unicode=True))
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    assert run.main([str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri]) == 0
+    assert run.main([str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri]) == 0
     out = capsys.readouterr().out
 
     sweep = tmp_path / "results" / "bdm_blend" / "smoke"

@@ -143,7 +143,7 @@ def test_s3_sweep_is_claimed_listens_on_loopback_and_resumes_after_a_kill(s3, tm
                     "profiles: {smoke: {budget: {steps: 60, eval_every: 10}}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = f"s3://{BUCKET}/results"
-    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", storage,
+    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--out", storage,
             "--tracking-uri", uri]
     env = {**os.environ, **s3, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
     env.pop("RAY_ADDRESS", None)
@@ -225,7 +225,7 @@ def test_s3_bad_credentials_or_missing_bucket_fail_before_ray(s3, tmp_path, monk
     spec = tmp_path / "spec.yaml"
     spec.write_text("name: s3bad\ngrid: {priors.point_size: [0.02]}\n")
     bucket = BUCKET if change else "no-such-bucket"
-    code = run.main([str(spec), "--smoke", "--storage", f"s3://{bucket}/results", "--tracking-uri", f"sqlite:///{tmp_path}/mlflow.db"])
+    code = run.main([str(spec), "--smoke", "--out", f"s3://{bucket}/results", "--tracking-uri", f"sqlite:///{tmp_path}/mlflow.db"])
     err = capsys.readouterr().err
     assert code == 2 and needle in err and len(err.strip().splitlines()) == 1, err
     assert not ray.is_initialized()
@@ -242,7 +242,7 @@ def test_a_disk_that_fills_mid_run_is_said_as_such_and_the_shared_cache_removed(
     size_kib = (need // 4096 + 4) * 4
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     with small_disk(tmp_path / "disk", f"{size_kib}k") as disk:
-        code = run.main([str(spec), "--smoke", "--storage", str(disk), "--tracking-uri", uri])
+        code = run.main([str(spec), "--smoke", "--out", str(disk), "--tracking-uri", uri])
         err = capfd.readouterr().err
         errors = [line for line in err.splitlines() if line.startswith("error:")]
         assert code == 2 and len(errors) == 1, err[-3000:]
@@ -250,7 +250,7 @@ def test_a_disk_that_fills_mid_run_is_said_as_such_and_the_shared_cache_removed(
             f"error: no space left on the device of {disk}/full/smoke (removed the shared cache "
             f"{disk}/full/smoke/shared)"
         ), errors[0]
-        assert errors[0].endswith(f"--profile smoke --storage {disk} --resume"), errors[0]
+        assert errors[0].endswith(f"--profile smoke --out {disk} --resume"), errors[0]
         assert not (disk / "full" / "smoke" / "shared").exists() and (disk / "full" / "smoke" / "sweep.json").exists()
     assert not ray.is_initialized()
     client = MlflowClient(uri)
@@ -268,7 +268,7 @@ def test_a_stopped_driver_closes_the_interrupted_child_as_killed_and_the_hint_ke
                     "profiles: {smoke: {budget: {steps: 400, eval_every: 10}}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     storage = tmp_path / "my results"
-    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--storage", str(storage),
+    argv = [sys.executable, str(ROOT / "sweeps" / "run.py"), str(spec), "--smoke", "--out", str(storage),
             "--tracking-uri", uri]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "XDG_STATE_HOME": str(tmp_path / "state")}
     env.pop("RAY_ADDRESS", None)
@@ -295,4 +295,4 @@ def test_a_stopped_driver_closes_the_interrupted_child_as_killed_and_the_hint_ke
     # The parent is KILLED; the runs view's baseline rows (finished scores, no trials) are no runs of it.
     parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags and r.data.tags.get("kind") != BASELINE_KIND]
     assert [r.info.status for r in parents] == ["KILLED"]
-    assert f"--profile smoke --storage '{storage}' --resume" in out, out[-3000:]
+    assert f"--profile smoke --out '{storage}' --resume" in out, out[-3000:]

@@ -64,7 +64,7 @@ def smoke(tmp_path_factory) -> Smoke:
     (folder / "spec.yaml").write_text(SPEC)
     uri = f"sqlite:///{folder}/mlflow.db"
     with local_ray():  # shut down after the sweep: the notebook and the browser need the CPUs
-        argv = [str(folder / "spec.yaml"), "--smoke", "--storage", str(folder / "results"), "--tracking-uri", uri]
+        argv = [str(folder / "spec.yaml"), "--smoke", "--out", str(folder / "results"), "--tracking-uri", uri]
         assert run.main(argv) == 0
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name("compare")

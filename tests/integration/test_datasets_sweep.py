@@ -21,7 +21,7 @@ def _smoke(tmp_path, kind: str, root, *sets: str) -> float:
     spec = tmp_path / "spec.yaml"
     spec.write_text(f"name: {kind}\ngrid: {{priors.point_size: [0.04]}}\n")
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    argv = [str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri,
+    argv = [str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri,
             "--set", f"data.kind={kind}", "--set", f"data.root={root}", *[a for s in sets for a in ("--set", s)]]
     start = time.perf_counter()
     assert run.main(argv) == 0

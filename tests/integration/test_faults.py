@@ -100,7 +100,7 @@ def mlflow_http(tmp_path_factory) -> Iterator[str]:
 def _argv(tmp_path: Path, body: str, tracking_uri: str, storage: str | None = None) -> list[str]:
     spec = tmp_path / "spec.yaml"
     spec.write_text(body)
-    return [str(spec), "--smoke", "--storage", storage or str(tmp_path / "results"), "--tracking-uri", tracking_uri]
+    return [str(spec), "--smoke", "--out", storage or str(tmp_path / "results"), "--tracking-uri", tracking_uri]
 
 
 def _children(uri: str, experiment: str) -> list:

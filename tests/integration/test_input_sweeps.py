@@ -49,7 +49,7 @@ def test_smoke_sweep_runs_every_row(cluster, tmp_path, capsys, spec, rows):
     argv = [
         str(ROOT / "sweeps" / f"{spec}.yaml"),
         "--smoke",
-        "--storage",
+        "--out",
         str(tmp_path / "results"),
         "--tracking-uri",
         uri,

@@ -22,7 +22,7 @@ from tests.integration.local_ray import TwoNodes, two_node_cluster
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
-SIZE = ["--image-size", "32"]
+SIZE = ["--set", "data.image_size=32"]
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def co3d(tmp_path_factory) -> Path:
 def one_process(co3d, tmp_path_factory) -> Path:
     """The shards ``python -m cdm prepare`` writes in one process: the reference."""
     out = tmp_path_factory.mktemp("one") / "prepared"
-    done = subprocess.run([sys.executable, "-m", "cdm", "prepare", "--data-kind", "co3d", "--root", str(co3d),
+    done = subprocess.run([sys.executable, "-m", "cdm", "prepare", "--set", "data.kind=co3d", "--root", str(co3d),
                            "--out", str(out), *SIZE], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     return out
@@ -65,7 +65,7 @@ def test_shards_made_on_two_nodes_equal_the_one_process_run_byte_for_byte(
     two_nodes, co3d, one_process, tmp_path, capsys
 ):
     out = tmp_path / "prepared"
-    assert inputs.main(["prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out), *SIZE]) == 0
+    assert inputs.main(["prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out), *SIZE]) == 0
     assert "prepared" in capsys.readouterr().out
     ours, reference = _files(out), _files(one_process)
     assert len([k for k in reference if k.endswith(".shard")]) == 80
@@ -74,7 +74,7 @@ def test_shards_made_on_two_nodes_equal_the_one_process_run_byte_for_byte(
 
 def test_a_killed_prepare_resumes_without_rewriting_a_finished_shard(two_nodes, co3d, one_process, tmp_path):
     out = tmp_path / "prepared"
-    args = ["prepare", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out), *SIZE]
+    args = ["prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out), *SIZE]
     driver = _driver(args, two_nodes.address)
     deadline = time.monotonic() + 120
     while not any(out.rglob("*.shard")) and driver.poll() is None and time.monotonic() < deadline:
@@ -108,7 +108,7 @@ def test_a_bad_object_fails_alone_and_is_named(two_nodes, co3d, tmp_path):
     bad.write_bytes(b"not a jpeg")
     out = tmp_path / "prepared"
     driver = _driver(
-        ["prepare", "--data-kind", "co3d", "--root", str(root), "--out", str(out), *SIZE], two_nodes.address
+        ["prepare", "--set", "data.kind=co3d", "--root", str(root), "--out", str(out), *SIZE], two_nodes.address
     )
     stdout, stderr = driver.communicate(timeout=300)
     assert driver.returncode == 1, stderr
@@ -132,7 +132,7 @@ def test_all_makes_every_input_says_what_remains_and_asks_for_msns_weights(two_n
     from tests.test_encoder import write_msn_checkpoint
 
     inputs_dir, out = tmp_path / "inputs", tmp_path / "prepared"
-    args = ["all", "--data-kind", "co3d", "--root", str(co3d), "--out", str(out), "--inputs", str(inputs_dir),
+    args = ["all", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out), "--inputs", str(inputs_dir),
             "--model", dpt, *SIZE]
     first = _driver(args, two_nodes.address)
     stdout, stderr = first.communicate(timeout=600)

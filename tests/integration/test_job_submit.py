@@ -222,7 +222,7 @@ def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, 
     submit = _ray_job(ray_head, "submit", "--working-dir", ".",
                   "--runtime-env", "cluster/runtime_env.yaml", "--submission-id", sub_id, "--no-wait", "--",
                   "python", "sweeps/run.py", "sweeps/point_size.yaml", "--smoke",
-                  "--storage", str(storage), "--tracking-uri", mlflow_server)
+                  "--out", str(storage), "--tracking-uri", mlflow_server)
     assert submit.returncode == 0, submit.stdout + submit.stderr
     status = "PENDING"
     deadline = time.monotonic() + 240

@@ -44,7 +44,7 @@ def _sweep(tmp_path: Path, body: str) -> tuple[list[str], str]:
     spec = tmp_path / "spec.yaml"
     spec.write_text(body)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    return [str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri], uri
+    return [str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri], uri
 
 
 def test_concurrent_trials_run_on_both_nodes(two_nodes, tmp_path):

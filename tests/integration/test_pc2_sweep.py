@@ -45,7 +45,7 @@ def test_a_cell_scores_pc2s_released_weights_at_step_0_as_a_finished_trial(clust
     spec = tmp_path / "pc2_released.yaml"
     spec.write_text(SPEC)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    assert run.main([str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri]) == 0
+    assert run.main([str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri]) == 0
     out = capsys.readouterr().out
     assert f"model.init_from={cluster}/pc2/chair/checkpoint-latest.pth (ok)" in out
     assert "✓ finished [PC² (released weights) · categories=chair · seed 0] at step 0: eval/cd" in out

@@ -29,7 +29,7 @@ def test_finished_trial_missing_from_tunes_snapshot_is_not_rerun(cluster, tmp_pa
         "name: late\ngrid: {priors.point_size: [0.04]}\nprofiles: {smoke: {budget: {steps: 20, eval_every: 10}}}\n"
     )
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    argv = [str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri]
+    argv = [str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri]
     folder = tmp_path / "results" / "late" / "smoke"
     driver = subprocess.Popen([sys.executable, str(ROOT / "sweeps" / "run.py"), *argv, "--address", cluster],
                               cwd=tmp_path, stdout=(tmp_path / "driver.log").open("w"), stderr=subprocess.STDOUT)

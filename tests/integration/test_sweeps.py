@@ -31,7 +31,7 @@ def _sweep(tmp_path: Path, body: str, *extra: str) -> tuple[list[str], str]:
     spec = tmp_path / "spec.yaml"
     spec.write_text(body)
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    argv = [str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri, *extra]
+    argv = [str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri, *extra]
     return argv, uri
 
 
@@ -49,7 +49,7 @@ def _children(uri: str, experiment: str):
 @dataclass(frozen=True)
 class Sweep:
     folder: Path
-    """The sweep's storage (``--storage``)."""
+    """The sweep's storage (``--out``)."""
     uri: str
     out: str
     """What the runner printed."""
@@ -173,7 +173,7 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     assert tags["repro.git_commit"] and tags["repro.config_hash"] and tags["repro.version_torch"]
     assert tags["repro.data_fingerprint"].startswith("train ") and tags["eval_set"]
     capsys.readouterr()
-    rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--storage", str(e2e.folder)]
+    rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--out", str(e2e.folder)]
     assert run.main(rerun_argv) == 0
     out = capsys.readouterr().out
     assert "reproduced exactly" in out and "DIFFERENT" not in out

@@ -44,7 +44,7 @@ def _sweep(tmp_path: Path, name: str, large: bool, low: int, high: int, steps: i
     spec = tmp_path / "spec.yaml"
     spec.write_text(SPEC.format(name=name, large=LARGE if large else "", min=low, max=high, steps=steps))
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    return [str(spec), "--smoke", "--storage", str(tmp_path / "results"), "--tracking-uri", uri], uri
+    return [str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri], uri
 
 
 def _children(uri: str, experiment: str) -> tuple[MlflowClient, list, list]:
