@@ -110,18 +110,14 @@ def _trilinear_corners(coords: Tensor, resolution: int) -> tuple[Tensor, Tensor,
     u = coords * r - 0.5  # continuous index; voxel centres at integers
     lo = torch.floor(u)
     frac = u - lo
-    lo = lo.long()
-    index, weight, inside = [], [], []
-    for corner in range(8):
-        bits = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1], device=coords.device)
-        c = lo + bits
-        w = torch.where(bits.bool(), frac, 1.0 - frac).prod(dim=-1)
-        ok = ((c >= 0) & (c < r)).all(dim=-1)
-        c = c.clamp(0, r - 1)
-        index.append((c[:, 0] * r + c[:, 1]) * r + c[:, 2])
-        weight.append(w)
-        inside.append(ok)
-    return torch.stack(index, 1), torch.stack(weight, 1), torch.stack(inside, 1)
+    bits = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], device=coords.device)  # (8, 3)
+    corner = lo.long()[:, None, :] + bits  # (P, 8, 3)
+    frac = frac[:, None, :]
+    weight = torch.where(bits.bool(), frac, 1.0 - frac).prod(dim=-1)
+    inside = ((corner >= 0) & (corner < r)).all(dim=-1)
+    corner = corner.clamp(0, r - 1)
+    index = (corner[..., 0] * r + corner[..., 1]) * r + corner[..., 2]
+    return index, weight, inside
 
 
 class _Interpolation(NamedTuple):
@@ -140,11 +136,11 @@ def _interpolation(corner_rows: Tensor, weight: Tensor, present: Tensor, num_row
     """
     w = weight * present.to(weight.dtype)
     w = w / w.sum(dim=1, keepdim=True)
-    per_point = present.sum(dim=1)
-    cols, values = corner_rows[present], w[present]
-    crow = F.pad(per_point.cumsum(0), (1, 0))
+    kept = present.reshape(-1).nonzero().squeeze(1)  # point-major: CSR order
+    cols, values = corner_rows.reshape(-1).index_select(0, kept), w.reshape(-1).index_select(0, kept)
+    crow = F.pad(present.sum(dim=1).cumsum(0), (1, 0))
     order = torch.sort(cols, stable=True).indices  # stable: point indices stay ascending per voxel
-    points = torch.repeat_interleave(torch.arange(weight.shape[0], device=weight.device), per_point)
+    points = kept // present.shape[1]
     crow_t = F.pad(torch.bincount(cols, minlength=num_rows).cumsum(0), (1, 0))
     with warnings.catch_warnings():
         # torch warns once per process that CSR support is "beta"; CSR @ dense is all we use.
@@ -405,8 +401,8 @@ class SparseGrid(VoxelGrid):
         offsets = torch.cartesian_prod(steps, steps, steps)  # (27, 3), [kd, kh, kw] order
         nb = ijk[:, None, :] + offsets[None]  # (M, 27, 3)
         inside = ((nb >= 0) & (nb < r)).all(dim=-1)
-        nb = nb.clamp(0, r - 1)
-        nb_keys = self.row_batch[:, None] * r**3 + (nb[..., 0] * r + nb[..., 1]) * r + nb[..., 2]
+        # inside the grid, a neighbour's key is the row's key plus its offset's (same sample, no wrap-around)
+        nb_keys = torch.where(inside, self.keys[:, None] + (offsets[:, 0] * r + offsets[:, 1]) * r + offsets[:, 2], 0)
         nb_rows = torch.where(inside, self._table[nb_keys], -1)
         present = (nb_rows >= 0).T  # (27, M)
         present = present[_PAIRED]  # the centre pairs each row with itself: the convolution needs no map
