@@ -211,13 +211,13 @@ class _SubmanifoldConv(torch.autograd.Function):
     ``(o, i)`` of each offset ``k`` of a :class:`KernelMap`.
 
     Gather → GEMM → scatter per offset, as sparse-convolution libraries do on CPU (spconv,
-    MinkowskiEngine), with an offset and its mirror in one ``index_select`` → ``bmm`` → ``index_add_``
-    (13 rounds of three ops instead of 26). Each round's buffers stay small enough for the cache: gathering all offsets
-    at once was slower, and a padded gather-once GEMM over all 27 offsets spends ``1 / density`` times the
-    FLOPs on grids 40–60 % dense (``benchmarks/RESULTS.md``, "Lean step"). The backward gathers the output
-    gradient once per round and recomputes the gathered inputs rather than keep a ``(P, C)`` copy per
-    layer. The products run in autocast's precision when it is on; the weight gradient comes back in the
-    weight's dtype.
+    MinkowskiEngine), with an offset and its mirror in one ``index_select`` → ``bmm`` → ``index_add_``:
+    13 rounds of three ops instead of 26. Each round's buffers stay small enough for the cache; gathering
+    all offsets at once was slower, and a padded gather-once GEMM over all 27 offsets spends
+    ``1 / density`` times the FLOPs on grids 40–60 % dense (``benchmarks/RESULTS.md``, "Lean step
+    (issue 54)"). The backward gathers the output gradient once per round and recomputes the gathered
+    inputs rather than keep a ``(P, C)`` copy per layer. The products run in autocast's precision when it
+    is on; the weight gradient comes back in the weight's dtype.
     """
 
     @staticmethod
