@@ -10,7 +10,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from cdm.model.voxels import KernelMap, SparseGrid
+from cdm.model.sparse_conv import KernelMap
+from cdm.model.voxels import SparseGrid
 
 __all__ = ["NaiveSubmanifoldConv", "naive_conv", "offset_pairs"]
 

@@ -17,7 +17,6 @@ from cdm.model.voxels import (
     normalize_coords,
     resolve_voxel_backend,
 )
-from tests.naive_sparse_conv import naive_conv, offset_pairs
 
 
 def _cloud(b: int, n: int, seed: int, dtype=torch.float32) -> torch.Tensor:
@@ -42,48 +41,6 @@ def test_sparse_conv_equals_dense_conv3d_at_occupied_sites(resolution, channels)
     got = sparse.conv(vs, conv.weight, conv.bias)
     assert torch.allclose(_dense_rows(vd)[sparse.keys], vs, atol=1e-6)
     assert (_dense_rows(expected)[sparse.keys] - got).abs().max() <= 1e-5
-
-
-def _conv_and_grads(conv, grid, x, weight, bias, grad_out):
-    x, weight, bias = (t.detach().clone().requires_grad_() for t in (x, weight, bias))
-    out = conv(grid, x, weight, bias)
-    out.backward(grad_out)
-    return out.detach(), x.grad, weight.grad, bias.grad
-
-
-@pytest.mark.parametrize(
-    ("resolution", "points", "channels"), [(16, 512, (32, 32)), (8, 512, (64, 128)), (4, 3, (5, 7))]
-)
-def test_sparse_conv_and_its_gradients_equal_the_naive_per_offset_loop(resolution, points, channels):
-    """The lean convolution against the per-offset loop it replaced: the same sums in another order, so
-    equal to float64 rounding (1e-12 relative to the largest value); the (4, 3) grid has offsets without pairs."""
-    torch.manual_seed(resolution)
-    grid = SparseGrid(_cloud(4, points, seed=resolution, dtype=torch.float64), resolution)
-    m = grid.keys.numel()
-    x = torch.randn(m, channels[0], dtype=torch.float64)
-    weight = torch.randn(channels[1], channels[0], 3, 3, 3, dtype=torch.float64)
-    bias = torch.randn(channels[1], dtype=torch.float64)
-    grad_out = torch.randn(m, channels[1], dtype=torch.float64)
-    lean = _conv_and_grads(SparseGrid.conv, grid, x, weight, bias, grad_out)
-    naive = _conv_and_grads(naive_conv, grid, x, weight, bias, grad_out)
-    for got, expected in zip(lean, naive):
-        assert (got - expected).abs().max() <= 1e-12 * expected.abs().max()
-    pairs = offset_pairs(grid.kernel_map, m)
-    for k in range(27):  # mirror offsets pair the same voxels the other way round
-        assert torch.equal(pairs[k][0], pairs[26 - k][1]) and torch.equal(pairs[k][1], pairs[26 - k][0])
-    assert resolution != 4 or any(out_rows.numel() == 0 for out_rows, _ in pairs)
-
-
-def test_sparse_conv_needs_no_input_gradient():
-    grid = SparseGrid(_cloud(2, 40, seed=3), 4)
-    x = torch.randn(grid.keys.numel(), 3)
-    weight = torch.randn(5, 3, 3, 3, 3, requires_grad=True)
-    grid.conv(x, weight, None).sum().backward()
-    expected = torch.randn(5, 3, 3, 3, 3, requires_grad=True)
-    with torch.no_grad():
-        expected.copy_(weight)
-    naive_conv(grid, x, expected, None).sum().backward()
-    assert torch.allclose(weight.grad, expected.grad, rtol=1e-5, atol=1e-5)
 
 
 def test_voxelize_is_the_mean_of_each_voxels_points():
