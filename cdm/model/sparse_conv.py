@@ -55,7 +55,8 @@ def build_kernel_map(keys: Tensor, table: Tensor, resolution: int) -> KernelMap:
     ijk = torch.stack([local // (r * r), (local // r) % r, local % r], dim=1)
     steps = torch.arange(-1, 2, device=device)
     offsets = torch.cartesian_prod(steps, steps, steps)  # (27, 3), [kd, kh, kw] order
-    inside = ((ijk[:, None, :] + offsets[None] >= 0) & (ijk[:, None, :] + offsets[None] < r)).all(dim=-1)
+    nb = ijk[:, None, :] + offsets[None]  # (M, 27, 3)
+    inside = ((nb >= 0) & (nb < r)).all(dim=-1)
     # inside the grid, a neighbour's key is the row's key plus its offset's (same sample, no wrap-around)
     nb_keys = torch.where(inside, keys[:, None] + (offsets[:, 0] * r + offsets[:, 1]) * r + offsets[:, 2], 0)
     nb_rows = torch.where(inside, table[nb_keys], -1)  # (M, 27)
