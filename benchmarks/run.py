@@ -20,6 +20,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.blend import blend_overhead  # noqa: E402
+from benchmarks.lean_step import lean_step  # noqa: E402
 from benchmarks.loader import loader_speed  # noqa: E402
 from benchmarks.memory import peak_rss  # noqa: E402
 from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
@@ -36,6 +37,7 @@ BENCHMARKS = {
     "prior_overhead": prior_overhead,
     "voxel_backends": voxel_backends,
     "step_reference": step_vs_reference,
+    "lean_step": lean_step,
     "memory": peak_rss,
     "render": rendering,
     "sweep_efficiency": sweep_efficiency,

@@ -108,3 +108,29 @@ def test_gpu_check_on_a_machine_without_cuda_says_so_and_writes_nothing(tmp_path
                          text=True, timeout=120)
     assert run.returncode == 2 and run.stderr.startswith("error: --device cuda: no CUDA device here")
     assert len(run.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+@pytest.mark.slow
+def test_lean_step_benchmark_times_both_trees_and_finds_them_equal(tmp_path):
+    from benchmarks.lean_step import BASE, TOLERANCE
+
+    if subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", BASE], capture_output=True).returncode != 0:
+        pytest.skip(f"this clone has no {BASE} to compare with")
+    out = subprocess.run(
+        [sys.executable, "benchmarks/run.py", "--quick", "--only", "lean_step", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )
+    assert out.returncode == 0, out.stderr
+    timing, ops, equality = json.loads((tmp_path / "results.json").read_text())
+    assert timing["benchmark"] == "lean step" and timing["without_s"] > 0 and timing["with_s"] > 0
+    assert 0 < ops["with_s"] < ops["without_s"]  # fewer top-level ops: deterministic, unlike the times
+    assert abs(equality["with_s"] - equality["without_s"]) <= TOLERANCE * equality["without_s"]
+    assert equality["max_grad_diff"] <= TOLERANCE and equality["ratio"] <= 1
+    assert "| lean step | local step: quick.yaml" in out.stdout
+
+
+def test_lean_step_refuses_a_round_count_below_one():
+    out = subprocess.run([sys.executable, "benchmarks/lean_step.py", "--rounds", "0"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and out.stdout == ""
+    assert out.stderr.strip() == "error: --rounds must be >= 1, got 0"

@@ -35,6 +35,7 @@ PURPOSE = {
     "benchmarks/sweep_cpu.py": "Measure the CPU a training step takes inside a real sweep",
     "benchmarks/gpu_check.py": "One device script: every figure a cluster user needs for the paper profile",
     "benchmarks/step_ops.py": "Ops dispatched per pvcnn2 training step, and per point operation",
+    "benchmarks/lean_step.py": "The local training step, this tree ÷ the tree at a base revision, side by side",
     "docs/screenshots.py": "Take the README's pictures of a finished sweep",
     "docs/cli.py": "Write docs/cli.md from the parsers of every cdm-lab command",
 }

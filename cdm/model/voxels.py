@@ -37,6 +37,7 @@ from torch import Tensor
 
 from cdm.config import Devoxelize
 from cdm.model.pointops import at_least_float32
+from cdm.model.sparse_conv import build_kernel_map, submanifold_conv
 
 __all__ = [
     "DenseGrid",
@@ -51,9 +52,6 @@ __all__ = [
 ]
 
 VoxelBackend = Literal["dense", "sparse"]
-
-_CENTRE = 13  # index of the (0, 0, 0) offset among the 27 of a 3×3×3 kernel
-
 
 def norm_groups(channels: int) -> int:
     """GroupNorm groups for ``channels``: 8 as in PVCNN when it divides, else the largest divisor of 8 that does."""
@@ -109,18 +107,14 @@ def _trilinear_corners(coords: Tensor, resolution: int) -> tuple[Tensor, Tensor,
     u = coords * r - 0.5  # continuous index; voxel centres at integers
     lo = torch.floor(u)
     frac = u - lo
-    lo = lo.long()
-    index, weight, inside = [], [], []
-    for corner in range(8):
-        bits = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1], device=coords.device)
-        c = lo + bits
-        w = torch.where(bits.bool(), frac, 1.0 - frac).prod(dim=-1)
-        ok = ((c >= 0) & (c < r)).all(dim=-1)
-        c = c.clamp(0, r - 1)
-        index.append((c[:, 0] * r + c[:, 1]) * r + c[:, 2])
-        weight.append(w)
-        inside.append(ok)
-    return torch.stack(index, 1), torch.stack(weight, 1), torch.stack(inside, 1)
+    bits = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], device=coords.device)  # (8, 3)
+    corner = lo.long()[:, None, :] + bits  # (P, 8, 3)
+    frac = frac[:, None, :]
+    weight = torch.where(bits.bool(), frac, 1.0 - frac).prod(dim=-1)
+    inside = ((corner >= 0) & (corner < r)).all(dim=-1)
+    corner = corner.clamp(0, r - 1)
+    index = (corner[..., 0] * r + corner[..., 1]) * r + corner[..., 2]
+    return index, weight, inside
 
 
 class _Interpolation(NamedTuple):
@@ -139,11 +133,11 @@ def _interpolation(corner_rows: Tensor, weight: Tensor, present: Tensor, num_row
     """
     w = weight * present.to(weight.dtype)
     w = w / w.sum(dim=1, keepdim=True)
-    per_point = present.sum(dim=1)
-    cols, values = corner_rows[present], w[present]
-    crow = F.pad(per_point.cumsum(0), (1, 0))
+    kept = present.reshape(-1).nonzero().squeeze(1)  # point-major: CSR order
+    cols, values = corner_rows.reshape(-1).index_select(0, kept), w.reshape(-1).index_select(0, kept)
+    crow = F.pad(present.sum(dim=1).cumsum(0), (1, 0))
     order = torch.sort(cols, stable=True).indices  # stable: point indices stay ascending per voxel
-    points = torch.repeat_interleave(torch.arange(weight.shape[0], device=weight.device), per_point)
+    points = kept // present.shape[1]
     crow_t = F.pad(torch.bincount(cols, minlength=num_rows).cumsum(0), (1, 0))
     with warnings.catch_warnings():
         # torch warns once per process that CSR support is "beta"; CSR @ dense is all we use.
@@ -174,50 +168,6 @@ class _Interpolate(torch.autograd.Function):
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
         with torch.autocast(grad.device.type, enabled=False):
             return (ctx.transpose @ grad.to(ctx.transpose.dtype)).to(ctx.rows_dtype), None
-
-
-class _SubmanifoldConv(torch.autograd.Function):
-    """Submanifold 3×3×3 convolution on occupied voxels: ``out[o] = Σ_k W_k · x[i]`` over the pairs
-    ``(o, i)`` of each offset ``k`` — one gather → matmul → ``index_add_`` per offset.
-
-    A hand-written backward runs the same loop in reverse and accumulates into one buffer, where plain
-    autograd would sum a full ``(M, C_in)`` gradient per offset (both choices measured:
-    ``benchmarks/RESULTS.md``, "Code choices"). The gathered inputs are recomputed, not saved. Under
-    autocast the backward computes in the incoming gradient's precision.
-    """
-
-    @staticmethod
-    def forward(ctx, x: Tensor, weight: Tensor, pairs: list[tuple[Tensor, Tensor]]) -> Tensor:
-        kernels = weight.flatten(2).permute(2, 1, 0).contiguous()  # (27, C_in, C_out)
-        out = x @ kernels[_CENTRE]  # the centre offset pairs every row with itself
-        for k, (out_rows, in_rows) in enumerate(pairs):
-            if k != _CENTRE and out_rows.numel():
-                out.index_add_(0, out_rows, x.index_select(0, in_rows) @ kernels[k])
-        ctx.save_for_backward(x, kernels)
-        ctx.pairs = pairs
-        return out
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None]:
-        x, kernels = ctx.saved_tensors
-        weight_dtype = kernels.dtype
-        x, kernels = x.to(grad.dtype), kernels.to(grad.dtype)  # autocast gives a half-precision grad
-        need_x, need_w = ctx.needs_input_grad[:2]
-        grad_x = grad @ kernels[_CENTRE].T if need_x else None
-        grad_k = torch.zeros_like(kernels, dtype=weight_dtype) if need_w else None
-        if need_w:
-            grad_k[_CENTRE] = x.T @ grad
-        for k, (out_rows, in_rows) in enumerate(ctx.pairs):
-            if k == _CENTRE or not out_rows.numel():
-                continue
-            g = grad.index_select(0, out_rows)
-            if need_x:
-                grad_x.index_add_(0, in_rows, g @ kernels[k].T)
-            if need_w:
-                grad_k[k] = x.index_select(0, in_rows).T @ g
-        grad_w = grad_k.permute(2, 1, 0).reshape(kernels.shape[2], kernels.shape[1], 3, 3, 3) if need_w else None
-        return grad_x, grad_w, None
 
 
 class VoxelGrid(ABC):
@@ -327,8 +277,8 @@ class SparseGrid(VoxelGrid):
     Attributes:
         keys: ``(M,)`` global key of each row. ``point_rows``: ``(B·N,)`` row of each point's voxel.
         row_batch: ``(M,)`` sample of each row. ``rows_per_sample``: ``(B,)`` occupied voxels per sample.
-        pairs: 27 ``(out_rows, in_rows)`` pairs per kernel offset (``[kd, kh, kw]`` flattened, offset
-        ``(kd−1, kh−1, kw−1)``): the occupied voxel ``in`` is the neighbour of ``out`` at that offset.
+        kernel_map: the :class:`~cdm.model.sparse_conv.KernelMap` of the submanifold convolution, shared by
+            every layer on this grid.
     """
 
     def __init__(self, coords: Tensor, resolution: int):
@@ -344,21 +294,7 @@ class SparseGrid(VoxelGrid):
         self.rows_per_sample = torch.bincount(self.row_batch, minlength=self.batch_size)
         self._table = torch.full((self.batch_size * r**3,), -1, dtype=torch.long, device=device)
         self._table[self.keys] = torch.arange(m, device=device)
-
-        local = self.keys % r**3
-        ijk = torch.stack([local // (r * r), (local // r) % r, local % r], dim=1)
-        steps = torch.arange(-1, 2, device=device)
-        offsets = torch.cartesian_prod(steps, steps, steps)  # (27, 3), [kd, kh, kw] order
-        nb = ijk[:, None, :] + offsets[None]  # (M, 27, 3)
-        inside = ((nb >= 0) & (nb < r)).all(dim=-1)
-        nb = nb.clamp(0, r - 1)
-        nb_keys = self.row_batch[:, None] * r**3 + (nb[..., 0] * r + nb[..., 1]) * r + nb[..., 2]
-        nb_rows = torch.where(inside, self._table[nb_keys], -1)
-        present = (nb_rows >= 0).T  # (27, M)
-        k, out_rows = present.nonzero(as_tuple=True)  # sorted by offset, then output row
-        in_rows = nb_rows[out_rows, k]
-        sizes = present.sum(dim=1).tolist()
-        self.pairs = list(zip(out_rows.split(sizes), in_rows.split(sizes)))
+        self.kernel_map = build_kernel_map(self.keys, self._table, r)
 
     def voxelize(self, features: Tensor) -> Tensor:
         b, n, c = features.shape
@@ -367,7 +303,7 @@ class SparseGrid(VoxelGrid):
         return total / self._counts[:, None].to(features.dtype)
 
     def conv(self, voxels: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
-        out = _SubmanifoldConv.apply(voxels, weight, self.pairs)
+        out = submanifold_conv(voxels, weight, self.kernel_map)
         return out if bias is None else out + bias
 
     def group_norm(self, voxels: Tensor, num_groups: int, weight: Tensor, bias: Tensor, eps: float) -> Tensor:
