@@ -74,6 +74,29 @@ def test_image_encoder_shape_and_gradient(size):
         encoder(image, torch.ones(2, 1, size, size), torch.rand(2, 1, size, size))
 
 
+@pytest.mark.parametrize("size", [16, 30])
+def test_image_encoder_coarse_equals_projecting_the_concatenated_maps(size):
+    """The naive reference: upsample the S/4 map, concatenate it with the S/2 map and project with the 1×1
+    ``out`` convolution. The encoder projects before upsampling (linear maps commute with bilinear
+    weights that sum to 1): the same function, equal to float rounding; gradients too."""
+    torch.manual_seed(0)
+    encoder = ImageEncoder(prior_2d_channels=1, feature_dim=6)
+    image, mask, prior = torch.rand(2, 3, size, size), torch.ones(2, 1, size, size), torch.rand(2, 1, size, size)
+
+    def naive() -> torch.Tensor:
+        half = encoder.down1(torch.cat([image, mask, prior], dim=1))
+        quarter = encoder.mid(encoder.down2(half))
+        up = F.interpolate(quarter, size=half.shape[-2:], mode="bilinear", align_corners=False)
+        return encoder.out(torch.cat([up, half], dim=1))
+
+    upstream = torch.randn(2, 6, (size + 1) // 2, (size + 1) // 2)
+    params = list(encoder.parameters())
+    got, want = encoder.coarse(image, mask, prior), naive()
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    for g, w in zip(torch.autograd.grad(got, params, upstream), torch.autograd.grad(want, params, upstream)):
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-5 * w.abs().max().item())
+
+
 def test_mask_distance_transform_matches_scipy():
     g = torch.Generator().manual_seed(0)
     mask = (torch.rand(3, 1, 20, 20, generator=g) > 0.93).float()

@@ -108,8 +108,14 @@ class ImageEncoder(nn.Module):
             )
         half = self.down1(torch.cat([image, mask, prior_2d], dim=1))
         quarter = self.mid(self.down2(half))
-        up = F.interpolate(quarter, size=half.shape[-2:], mode="bilinear", align_corners=False)
-        return self.out(torch.cat([up, half], dim=1))
+        # out(cat[upsample(quarter), half]), computed as upsample(W_q·quarter) + W_h·half + b: the 1×1
+        # convolution is linear and bilinear weights sum to 1, so it commutes with the upsampling, which
+        # then moves F channels, not 2F, and no concatenation is made (the same function; float rounding).
+        wide = quarter.shape[1]
+        weight = self.out.weight
+        up = F.interpolate(F.conv2d(quarter, weight[:, :wide]), size=half.shape[-2:], mode="bilinear",
+                           align_corners=False)
+        return up + F.conv2d(half, weight[:, wide:], self.out.bias)
 
 
 class _Attention(nn.Module):
