@@ -21,6 +21,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from cdm.cameras import Cameras, ndc_to_pixel, project_points
 from cdm.config import RenderKind
@@ -199,6 +200,37 @@ def _footprint(radius_px: float) -> _Footprint:
     return _Footprint(table, lam[keep], vec[:, keep].T.contiguous())
 
 
+def _shifted_sum(canvas: Tensor, taps: list[list[float]]) -> Tensor:
+    """Valid correlation of ``(…, side, side)`` with the ``w × w`` table ``taps``: ``w²`` shifted
+    multiply-adds into one buffer (Python floats: each is one fused ``add_``)."""
+    width = len(taps)
+    out_size = canvas.shape[-1] - width + 1
+    out = canvas[..., :out_size, :out_size] * taps[0][0]
+    for i in range(width):
+        for j in range(width):
+            if i or j:
+                out.add_(canvas[..., i : i + out_size, j : j + out_size], alpha=taps[i][j])
+    return out
+
+
+class _ShiftedTaps(torch.autograd.Function):
+    """:func:`_shifted_sum` whose backward is its adjoint: the same shifted adds of the gradient,
+    zero-padded by ``w − 1``, with the table flipped. Autograd of the slices would zero-fill and copy a
+    canvas-sized gradient per tap (``w²`` of each per render)."""
+
+    @staticmethod
+    def forward(ctx, canvas: Tensor, taps: list[list[float]]) -> Tensor:
+        ctx.taps = taps
+        return _shifted_sum(canvas, taps)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        pad = len(ctx.taps) - 1
+        flipped = [row[::-1] for row in ctx.taps[::-1]]
+        return _shifted_sum(F.pad(grad, (pad, pad, pad, pad)), flipped), None
+
+
 def _filter_and_crop(canvas: Tensor, footprint: _Footprint) -> Tensor:
     """Filter ``(M, C, S+2h, S+2h)`` canvases by the footprint ``T`` → ``(M, C, S, S)``.
 
@@ -212,13 +244,7 @@ def _filter_and_crop(canvas: Tensor, footprint: _Footprint) -> Tensor:
     side = canvas.shape[-1]
     out_size = side - width + 1
     if width <= 3:
-        taps = footprint.table.tolist()  # Python floats: each shift is one fused multiply-add
-        out = canvas[..., :out_size, :out_size] * taps[0][0]
-        for i in range(width):
-            for j in range(width):
-                if i or j:
-                    out = out.add(canvas[..., i : i + out_size, j : j + out_size], alpha=taps[i][j])
-        return out
+        return _ShiftedTaps.apply(canvas, footprint.table.tolist())
     lam = footprint.lam.to(canvas.dtype).to(canvas.device)
     taps = footprint.taps.to(canvas.dtype).to(canvas.device)
     r = taps.shape[0]
