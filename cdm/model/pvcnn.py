@@ -68,37 +68,40 @@ class _PointNormSiLU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, h: Tensor, groups: int, weight: Tensor, bias: Tensor, eps: float) -> Tensor:
-        b, n, c = h.shape
+        n = h.shape[1]
         mean_c = h.sum(dim=1, keepdim=True) / n  # (B, 1, C)
         centred = h - mean_c
         spread_c = centred.square().sum(dim=1, keepdim=True) / n  # each channel's variance about its mean
         mean_g = _group_mean(mean_c, groups)
-        var_g = _group_mean(spread_c + (mean_c - mean_g).square(), groups)
-        rstd = (var_g + eps).rsqrt()
-        normed = torch.addcmul((mean_c - mean_g) * rstd, centred, rstd)  # (h − μ_group)·r
-        pre = torch.addcmul(bias, normed, weight)
-        ctx.save_for_backward(normed, pre, rstd, weight)
+        rstd = (_group_mean(spread_c + (mean_c - mean_g).square(), groups) + eps).rsqrt()
+        # x̂ = (h − μ_group)·r, pre = x̂·weight + bias, written over the centred buffer: on CPU a step is
+        # bound by memory traffic, and fresh buffers cost more than the arithmetic.
+        scale = rstd * weight
+        pre = torch.addcmul(torch.addcmul(bias, mean_c - mean_g, scale), centred, scale, out=centred)
+        ctx.save_for_backward(h, pre, mean_g, rstd, weight)
         ctx.groups = groups
         return F.silu(pre)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: Tensor):
-        normed, pre, rstd, weight = ctx.saved_tensors
-        n = normed.shape[1]
+        h, pre, mean_g, rstd, weight = ctx.saved_tensors
+        n = h.shape[1]
         g_pre = torch.ops.aten.silu_backward(grad.contiguous(), pre)
         sum_g = g_pre.sum(dim=1, keepdim=True)  # (B, 1, C)
-        sum_gx = (g_pre * normed).sum(dim=1, keepdim=True)
+        sum_gx = (torch.linalg.vecdot(g_pre, h, dim=1).unsqueeze(1) - mean_g * sum_g) * rstd  # Σ g_pre·x̂
         grad_weight = sum_gx.sum(dim=(0, 1)) if ctx.needs_input_grad[2] else None
         grad_bias = sum_g.sum(dim=(0, 1)) if ctx.needs_input_grad[3] else None
         if not ctx.needs_input_grad[0]:
             return None, None, grad_weight, grad_bias, None
-        # d/dh of x̂ = (h − μ)·r over a group, with γ = ∂L/∂x̂ = g_pre·weight: r·(γ − mean(γ) − x̂·mean(γ·x̂)),
-        # both means pooled from the per-channel sums above.
+        # d/dh of x̂ over a group, with γ = ∂L/∂x̂ = g_pre·weight: r·(γ − mean(γ) − x̂·mean(γ·x̂)), both means
+        # pooled from the per-channel sums above; with x̂ = (h − μ)·r, affine in g_pre and h per channel.
         mean_gamma = _group_mean(sum_g * weight, ctx.groups) / n
         mean_gamma_x = _group_mean(sum_gx * weight, ctx.groups) / n
-        grad_h = torch.addcmul(-mean_gamma * rstd, g_pre, weight * rstd)
-        return torch.addcmul(grad_h, normed, -mean_gamma_x * rstd), None, grad_weight, grad_bias, None
+        h_coeff = -mean_gamma_x * rstd * rstd
+        constant = (mean_g * mean_gamma_x * rstd - mean_gamma) * rstd
+        grad_h = torch.addcmul(constant, g_pre, weight * rstd, out=g_pre)
+        return grad_h.addcmul_(h, h_coeff), None, grad_weight, grad_bias, None
 
 
 def _group_mean(per_channel: Tensor, groups: int) -> Tensor:
