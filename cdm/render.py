@@ -298,19 +298,22 @@ def _validate_splat(
 
 def _bilinear_deposit(col: Tensor, row: Tensor, front: Tensor, side: int) -> tuple[Tensor, Tensor]:
     """Each point's weight ``front`` shared bilinearly among the 4 canvas pixels around ``(col, row)``:
-    ``(B, 4N)`` weights (0 off the canvas) and their flat pixel indices on the ``side × side`` canvas. The
-    pixel is chosen without gradient; the weights carry the gradient w.r.t. the projection."""
+    ``(B, 4N)`` weights (0 off the canvas) and their flat pixel indices on the ``side × side`` canvas,
+    corner by corner (``(0, 0), (0, 1), (1, 0), (1, 1)`` rows × columns). The pixel is chosen without
+    gradient; the weights carry the gradient w.r.t. the projection. The 4 corners are computed together
+    (one op each, not four: a render's small ops cost more than their arithmetic)."""
+    b, n = col.shape
     col0, row0 = torch.floor(col).detach(), torch.floor(row).detach()
     fc, fr = col - col0, row - row0
-    values = []
-    indices = []
-    for dr, wr in ((0, 1.0 - fr), (1, fr)):
-        for dc, wc in ((0, 1.0 - fc), (1, fc)):
-            r, c = row0 + dr, col0 + dc
-            on_canvas = ((r >= 0) & (r < side) & (c >= 0) & (c < side)).to(front.dtype)
-            values.append(wr * wc * front * on_canvas)
-            indices.append((r.clamp(0, side - 1) * side + c.clamp(0, side - 1)).long())
-    return torch.cat(values, dim=1), torch.cat(indices, dim=1)
+    down = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=col.dtype, device=col.device)[:, None]  # (4, 1)
+    right = torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=col.dtype, device=col.device)[:, None]
+    wr = torch.stack([1.0 - fr, fr], dim=1).repeat_interleave(2, dim=1)  # (B, 4, N): rows 0, 0, 1, 1
+    wc = torch.stack([1.0 - fc, fc], dim=1).repeat(1, 2, 1)  # columns 0, 1, 0, 1
+    r, c = row0[:, None] + down, col0[:, None] + right
+    on_canvas = ((r >= 0) & (r < side) & (c >= 0) & (c < side)).to(front.dtype)
+    values = wr * wc * front[:, None] * on_canvas
+    indices = (r.clamp(0, side - 1) * side + c.clamp(0, side - 1)).long()
+    return values.view(b, 4 * n), indices.view(b, 4 * n)
 
 
 def splat_points(
