@@ -359,16 +359,17 @@ def splat_points(
     _validate_splat(points, cameras, image_size, point_size, kind, depth_layer)
     b, n, _ = points.shape
     s = image_size
-    proj = project_points(points, cameras, eps=Z_NEAR)
-    z = proj[..., 2]
+    # split/unbind, not indexing: their backward is one cat, where each index's backward zero-fills a copy
+    xy, z = project_points(points, cameras, eps=Z_NEAR).split([2, 1], dim=-1)
+    z = z.squeeze(-1)
     front = (z > Z_NEAR).to(points.dtype)
-    pix = ndc_to_pixel(proj[..., :2], s)
+    pix_col, pix_row = ndc_to_pixel(xy, s).unbind(-1)
 
     footprint = _footprint(point_size * s / 2.0)
     half = (footprint.table.shape[0] - 1) // 2
     side = s + 2 * half  # canvas with a footprint-wide margin
 
-    col, row = pix[..., 0] + half, pix[..., 1] + half
+    col, row = pix_col + half, pix_row + half
     if depth_layer is not None:
         front = front * _front_layer(z.detach(), col.detach(), row.detach(), front, side, half, depth_layer)
     w, flat = _bilinear_deposit(col, row, front, side)
