@@ -62,7 +62,7 @@ class _PointNormSiLU(torch.autograd.Function):
     statistics per sample and group over its points, biased variance, ``eps`` inside the root.
 
     Every reduction runs over the points (dim 1), per channel, and channels are then pooled into groups
-    on ``(B, C)``: on CPU a sum over dim 1 of ``(B, N, C)`` is ~100× faster than one over ``(N, C/G)``.
+    on ``(B, C)``: on CPU a sum over dim 1 of ``(B, N, C)`` took ~1 % of ``var_mean`` over ``(N, C/G)``.
     The variance is two-pass (centred per channel, then the law of total variance over the group's channels).
     """
 
