@@ -21,6 +21,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from cdm.cameras import Cameras, ndc_to_pixel, project_points
 from cdm.config import RenderKind
@@ -199,6 +200,37 @@ def _footprint(radius_px: float) -> _Footprint:
     return _Footprint(table, lam[keep], vec[:, keep].T.contiguous())
 
 
+def _shifted_sum(canvas: Tensor, taps: list[list[float]]) -> Tensor:
+    """Valid correlation of ``(…, side, side)`` with the ``w × w`` table ``taps``: ``w²`` shifted
+    multiply-adds into one buffer (Python floats: each is one fused ``add_``)."""
+    width = len(taps)
+    out_size = canvas.shape[-1] - width + 1
+    out = canvas[..., :out_size, :out_size] * taps[0][0]
+    for i in range(width):
+        for j in range(width):
+            if i or j:
+                out.add_(canvas[..., i : i + out_size, j : j + out_size], alpha=taps[i][j])
+    return out
+
+
+class _ShiftedTaps(torch.autograd.Function):
+    """:func:`_shifted_sum` whose backward is its adjoint: the same shifted adds of the gradient,
+    zero-padded by ``w − 1``, with the table flipped. Autograd of the slices would zero-fill and copy a
+    canvas-sized gradient per tap (``w²`` of each per render)."""
+
+    @staticmethod
+    def forward(ctx, canvas: Tensor, taps: list[list[float]]) -> Tensor:
+        ctx.taps = taps
+        return _shifted_sum(canvas, taps)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):
+        pad = len(ctx.taps) - 1
+        flipped = [row[::-1] for row in ctx.taps[::-1]]
+        return _shifted_sum(F.pad(grad, (pad, pad, pad, pad)), flipped), None
+
+
 def _filter_and_crop(canvas: Tensor, footprint: _Footprint) -> Tensor:
     """Filter ``(M, C, S+2h, S+2h)`` canvases by the footprint ``T`` → ``(M, C, S, S)``.
 
@@ -212,13 +244,7 @@ def _filter_and_crop(canvas: Tensor, footprint: _Footprint) -> Tensor:
     side = canvas.shape[-1]
     out_size = side - width + 1
     if width <= 3:
-        taps = footprint.table.tolist()  # Python floats: each shift is one fused multiply-add
-        out = canvas[..., :out_size, :out_size] * taps[0][0]
-        for i in range(width):
-            for j in range(width):
-                if i or j:
-                    out = out.add(canvas[..., i : i + out_size, j : j + out_size], alpha=taps[i][j])
-        return out
+        return _ShiftedTaps.apply(canvas, footprint.table.tolist())
     lam = footprint.lam.to(canvas.dtype).to(canvas.device)
     taps = footprint.taps.to(canvas.dtype).to(canvas.device)
     r = taps.shape[0]
@@ -272,19 +298,22 @@ def _validate_splat(
 
 def _bilinear_deposit(col: Tensor, row: Tensor, front: Tensor, side: int) -> tuple[Tensor, Tensor]:
     """Each point's weight ``front`` shared bilinearly among the 4 canvas pixels around ``(col, row)``:
-    ``(B, 4N)`` weights (0 off the canvas) and their flat pixel indices on the ``side × side`` canvas. The
-    pixel is chosen without gradient; the weights carry the gradient w.r.t. the projection."""
+    ``(B, 4N)`` weights (0 off the canvas) and their flat pixel indices on the ``side × side`` canvas,
+    corner by corner (``(0, 0), (0, 1), (1, 0), (1, 1)`` rows × columns). The pixel is chosen without
+    gradient; the weights carry the gradient w.r.t. the projection. The 4 corners are computed together
+    (one op each, not four: a render's small ops cost more than their arithmetic)."""
+    b, n = col.shape
     col0, row0 = torch.floor(col).detach(), torch.floor(row).detach()
     fc, fr = col - col0, row - row0
-    values = []
-    indices = []
-    for dr, wr in ((0, 1.0 - fr), (1, fr)):
-        for dc, wc in ((0, 1.0 - fc), (1, fc)):
-            r, c = row0 + dr, col0 + dc
-            on_canvas = ((r >= 0) & (r < side) & (c >= 0) & (c < side)).to(front.dtype)
-            values.append(wr * wc * front * on_canvas)
-            indices.append((r.clamp(0, side - 1) * side + c.clamp(0, side - 1)).long())
-    return torch.cat(values, dim=1), torch.cat(indices, dim=1)
+    down = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=col.dtype, device=col.device)[:, None]  # (4, 1)
+    right = torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=col.dtype, device=col.device)[:, None]
+    wr = torch.stack([1.0 - fr, fr], dim=1).repeat_interleave(2, dim=1)  # (B, 4, N): rows 0, 0, 1, 1
+    wc = torch.stack([1.0 - fc, fc], dim=1).repeat(1, 2, 1)  # columns 0, 1, 0, 1
+    r, c = row0[:, None] + down, col0[:, None] + right
+    on_canvas = ((r >= 0) & (r < side) & (c >= 0) & (c < side)).to(front.dtype)
+    values = wr * wc * front[:, None] * on_canvas
+    indices = (r.clamp(0, side - 1) * side + c.clamp(0, side - 1)).long()
+    return values.view(b, 4 * n), indices.view(b, 4 * n)
 
 
 def splat_points(
@@ -330,16 +359,17 @@ def splat_points(
     _validate_splat(points, cameras, image_size, point_size, kind, depth_layer)
     b, n, _ = points.shape
     s = image_size
-    proj = project_points(points, cameras, eps=Z_NEAR)
-    z = proj[..., 2]
+    # split/unbind, not indexing: their backward is one cat, where each index's backward zero-fills a copy
+    xy, z = project_points(points, cameras, eps=Z_NEAR).split([2, 1], dim=-1)
+    z = z.squeeze(-1)
     front = (z > Z_NEAR).to(points.dtype)
-    pix = ndc_to_pixel(proj[..., :2], s)
+    pix_col, pix_row = ndc_to_pixel(xy, s).unbind(-1)
 
     footprint = _footprint(point_size * s / 2.0)
     half = (footprint.table.shape[0] - 1) // 2
     side = s + 2 * half  # canvas with a footprint-wide margin
 
-    col, row = pix[..., 0] + half, pix[..., 1] + half
+    col, row = pix_col + half, pix_row + half
     if depth_layer is not None:
         front = front * _front_layer(z.detach(), col.detach(), row.detach(), front, side, half, depth_layer)
     w, flat = _bilinear_deposit(col, row, front, side)

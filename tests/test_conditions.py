@@ -137,7 +137,7 @@ def test_without_mask_channels_no_mask_reaches_the_points(tmp_path):
     cfg = tiny_config(tmp_path, **PC2, **{"model.mask_channels": False})
     net = CDMNetwork(cfg.model, 0)
     batch = collate([build_dataset(cfg, "train").sample(i) for i in range(2)])
-    assert net.encode(batch).pixel.shape == (2, conditioning_channels(cfg.model.feature_dim, 0, False), 32, 32)
+    assert net.encode(batch).pixel.shape == (2, conditioning_channels(0, 0, False), 32, 32)
     assert net(batch.points, torch.tensor([4, 9]), net.encode(batch), batch.camera).shape == batch.points.shape
 
 

@@ -21,8 +21,11 @@ from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.evaluate import build_eval_set, run_evaluation
 from cdm.metrics import chamfer_f1
 from cdm.model import CDMNetwork, pointops
+from cdm.model.conditioning import features_at_pixels
+from cdm.model.pvcnn import point_norm_silu
 from cdm.model.voxels import SparseGrid, VoxelBranch, normalize_coords
 from cdm.optim import Optimiser
+from cdm.render import splat_points
 from cdm.train import Trainer
 from tests.conftest import tiny_config
 from tests.test_model import tiny_batch
@@ -156,6 +159,30 @@ def test_the_sparse_voxel_branch_agrees(precision):
 def _pvcnn2_config(tmp_path, **overrides):
     return tiny_config(tmp_path, **{"model.denoiser": "pvcnn2", "model.width_multiplier": 0.25,
                                     "model.voxel_resolution_multiplier": 0.5, "data.num_points": 1024, **overrides})
+
+
+def test_lean_step_ops_match_the_cpus():
+    """The training step's hand-written pieces (benchmarks/RESULTS.md, "Lean local step"): point
+    GroupNorm+SiLU, features sampled at pixels and the splat's footprint filter, values and gradients."""
+    g = torch.Generator().manual_seed(0)
+    h = torch.randn(2, 300, 32, generator=g) * 3 + 5
+    norm = torch.nn.GroupNorm(8, 32)
+    coarse = torch.randn(2, 6, 8, 8, generator=g)
+    pixel = torch.randint(0, 256, (2, 300), generator=g)
+    points = torch.rand(2, 300, 3, generator=g) - 0.5
+    cams = tiny_batch(b=2).camera
+
+    def run(device: torch.device) -> list[torch.Tensor]:
+        net = copy.deepcopy(norm).to(device)
+        inputs = [t.to(device).requires_grad_() for t in (h, coarse, points)]
+        cameras = cams.to(device)
+        outs = [point_norm_silu(inputs[0], net), features_at_pixels(inputs[1], pixel.to(device), 16),
+                splat_points(inputs[2], cameras, 32, 0.06, "planar")]
+        loss = sum((o * torch.linspace(-1, 1, o.numel(), device=device).view_as(o)).sum() for o in outs)
+        return [o.detach().cpu() for o in outs] + [x.cpu() for x in torch.autograd.grad(loss, [*inputs, net.weight])]
+
+    for got, want in zip(run(CUDA), run(torch.device("cpu")), strict=True):
+        torch.testing.assert_close(got, want, rtol=RTOL, atol=ATOL * max(1.0, want.abs().max().item()))
 
 
 def test_a_pvcnn2_training_step_matches_the_cpus(tmp_path):

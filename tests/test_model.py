@@ -22,6 +22,10 @@ from cdm.model import (
     project_conditioning,
     timestep_embedding,
 )
+from cdm.model.conditioning import features_at_pixels
+from cdm.model.encoder import upsample_features
+from cdm.model.pvcnn import point_norm_silu
+from cdm.model.voxels import norm_groups
 
 
 def _model_config(tiny: Config, **changes) -> ModelConfig:
@@ -70,6 +74,29 @@ def test_image_encoder_shape_and_gradient(size):
         encoder(image, torch.ones(2, 1, size, size), torch.rand(2, 1, size, size))
 
 
+@pytest.mark.parametrize("size", [16, 30])
+def test_image_encoder_coarse_equals_projecting_the_concatenated_maps(size):
+    """The naive reference: upsample the S/4 map, concatenate it with the S/2 map and project with the 1×1
+    ``out`` convolution. The encoder projects before upsampling (linear maps commute with bilinear
+    weights that sum to 1): the same function, equal to float rounding; gradients too."""
+    torch.manual_seed(0)
+    encoder = ImageEncoder(prior_2d_channels=1, feature_dim=6)
+    image, mask, prior = torch.rand(2, 3, size, size), torch.ones(2, 1, size, size), torch.rand(2, 1, size, size)
+
+    def naive() -> torch.Tensor:
+        half = encoder.down1(torch.cat([image, mask, prior], dim=1))
+        quarter = encoder.mid(encoder.down2(half))
+        up = F.interpolate(quarter, size=half.shape[-2:], mode="bilinear", align_corners=False)
+        return encoder.out(torch.cat([up, half], dim=1))
+
+    upstream = torch.randn(2, 6, (size + 1) // 2, (size + 1) // 2)
+    params = list(encoder.parameters())
+    got, want = encoder.coarse(image, mask, prior), naive()
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
+    for g, w in zip(torch.autograd.grad(got, params, upstream), torch.autograd.grad(want, params, upstream)):
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-5 * w.abs().max().item())
+
+
 def test_mask_distance_transform_matches_scipy():
     g = torch.Generator().manual_seed(0)
     mask = (torch.rand(3, 1, 20, 20, generator=g) > 0.93).float()
@@ -115,6 +142,78 @@ def test_conditioning_map_channel_layout():
     assert torch.equal(cmap[:, 10:], mask_distance_transform(batch.mask))
 
 
+@pytest.mark.parametrize(("coarse_size", "size"), [(8, 16), (4, 64), (5, 9)])
+def test_features_at_pixels_are_the_upsampled_map_at_those_pixels(coarse_size, size):
+    """The naive reference upsamples the whole map (PC²'s feature_model.py), then gathers: the same
+    function. The two round the source coordinate differently (~1e-7 of it), which moves a value by
+    that times the map's slope: 1e-5 on values of order 1, gradients too."""
+    g = torch.Generator().manual_seed(0)
+    coarse = torch.randn(2, 5, coarse_size, coarse_size, generator=g, requires_grad=True)
+    pixel = torch.randint(0, size * size, (2, 300), generator=g)
+    pixel[:, :4] = torch.tensor([0, size - 1, size * (size - 1), size * size - 1])  # corners: clamped borders
+    upstream = torch.randn(2, 300, 5, generator=g)
+    full = upsample_features(coarse, size).flatten(2).gather(2, pixel[:, None].expand(2, 5, -1)).transpose(1, 2)
+    sampled = features_at_pixels(coarse, pixel, size)
+    torch.testing.assert_close(sampled, full, rtol=0, atol=1e-5)
+    (grad_full,) = torch.autograd.grad(full, coarse, upstream)
+    (grad_sampled,) = torch.autograd.grad(sampled, coarse, upstream)
+    torch.testing.assert_close(grad_sampled, grad_full, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("denoiser", ["pointvoxel", "pvcnn2"])
+def test_network_with_coarse_features_equals_the_full_conditioning_map(tiny, denoiser):
+    """The naive reference puts the whole upsampled feature map into the conditioning map (the context
+    without ``features``); output and every gradient agree with the sampled features to float rounding."""
+    torch.manual_seed(0)
+    pc2 = {"width_multiplier": 0.25, "voxel_resolution_multiplier": 0.25} if denoiser == "pvcnn2" else {}
+    net = CDMNetwork(_model_config(tiny, denoiser=denoiser, **pc2), prior_2d_channels=1).eval()  # no dropout
+    batch = tiny_batch(n=300)
+    t = torch.tensor([3, 700])
+    params = [p for p in net.parameters() if p.requires_grad]
+
+    def run(naive: bool):
+        context = net.encode(batch)
+        if naive:
+            full = upsample_features(context.features, 16)
+            maps = conditioning_map(full, batch.prior_2d, batch.image, batch.mask, net.mask_channels)
+            context = context._replace(pixel=net._arrange(maps), features=None)
+        out = net(batch.points, t, context, batch.camera)
+        return out, torch.autograd.grad(out.square().sum(), params, allow_unused=True)
+
+    (out, grads), (naive_out, naive_grads) = run(False), run(True)
+    torch.testing.assert_close(out, naive_out, rtol=1e-5, atol=1e-6)
+    assert [g is None for g in grads] == [g is None for g in naive_grads]
+    # Some gradients cancel to ~0, so the scale is the largest gradient of the network.
+    scale = max(g.abs().max().item() for g in naive_grads if g is not None)
+    for grad, naive_grad in zip(grads, naive_grads, strict=True):
+        if naive_grad is not None:
+            torch.testing.assert_close(grad, naive_grad, rtol=1e-4, atol=1e-5 * scale)
+
+
+@pytest.mark.parametrize("channels", [8, 32, 128])
+def test_point_norm_silu_equals_group_norm_then_silu(channels):
+    """The naive reference is ``nn.GroupNorm`` on the transposed ``(B, C, N)`` features, then SiLU: the
+    same function, summed in another order, so equal to 1e-5 relative (features off-centre, where a
+    one-pass variance would not be)."""
+    g = torch.Generator().manual_seed(0)
+    h = (torch.randn(3, 200, channels, generator=g) * 3 + 5).requires_grad_()
+    norm = torch.nn.GroupNorm(norm_groups(channels), channels)
+    with torch.no_grad():
+        norm.weight.copy_(torch.randn(channels, generator=g))
+        norm.bias.copy_(torch.randn(channels, generator=g))
+    upstream = torch.randn(3, 200, channels, generator=g)
+    naive = F.silu(norm(h.transpose(1, 2)).transpose(1, 2))
+    fused = point_norm_silu(h, norm)
+    torch.testing.assert_close(fused, naive, rtol=1e-5, atol=1e-5)
+    params = (h, norm.weight, norm.bias)
+    for got, want in zip(torch.autograd.grad(fused, params, upstream), torch.autograd.grad(naive, params, upstream)):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5 * want.abs().max().item())
+    # as autocast runs GroupNorm: float32 whatever the input's dtype
+    low = point_norm_silu(h.detach().bfloat16(), norm)
+    assert low.dtype == torch.float32
+    torch.testing.assert_close(low, F.silu(norm(h.detach().bfloat16().float().transpose(1, 2)).transpose(1, 2)))
+
+
 @pytest.mark.parametrize("backend", ["dense", "sparse"])
 @pytest.mark.parametrize("global_feature", ["none", "concat", "cross_attention"])
 def test_network_forward_shapes(tiny, backend, global_feature):
@@ -123,7 +222,9 @@ def test_network_forward_shapes(tiny, backend, global_feature):
     net = CDMNetwork(_model_config(tiny, voxel_backend=backend, global_feature=global_feature), prior_2d_channels=1)
     assert net.voxel_backend == backend
     context = net.encode(batch)
-    assert context.pixel.shape == (2, conditioning_channels(8, 1), 16, 16)
+    # The map holds the other channels; the features stay coarse (S/2) and are sampled at the points.
+    assert context.pixel.shape == (2, conditioning_channels(0, 1), 16, 16)
+    assert context.features.shape == (2, 8, 8, 8)
     assert (context.embedding is None) == (global_feature != "concat")
     assert (context.tokens is None) == (global_feature != "cross_attention")
     if context.tokens is not None:

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from cdm.model import CDMNetwork, conditioning_channels, mask_distance_transform
+from cdm.model.encoder import upsample_features
 from cdm.model.pvcnn2 import PVCNN2Denoiser, SelfAttention, pc2_timestep_embedding
 from cdm.model.reference_weights import (
     denoiser_from_reference,
@@ -552,8 +553,10 @@ def test_cdm_network_feeds_pvcnn2_pc2s_channel_order(tiny, mask_channels: bool):
     features = net.encoder(batch.image, batch.mask, batch.prior_2d)
     # PC²'s projection_model.py: RGB normalised to [-1, 1], image features, mask, distance; the prior after
     # the features.
+    # The features stay coarse in the context; projection inserts them after RGB.
     pc2 = [batch.image * 2 - 1, features, batch.prior_2d, batch.mask, mask_distance_transform(batch.mask)]
-    assert torch.equal(context.pixel, torch.cat(pc2[: 5 if cfg.model.mask_channels else 3], dim=1))
+    assert torch.equal(upsample_features(context.features, 16), features)
+    assert torch.equal(context.pixel, torch.cat([pc2[0], *pc2[2 : 5 if cfg.model.mask_channels else 3]], dim=1))
     out = net(batch.points, torch.tensor([0, 999]), context, batch.camera)
     assert out.shape == (2, 300, 3) and torch.isfinite(out).all()
 

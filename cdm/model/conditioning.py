@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from cdm.cameras import Cameras
@@ -25,6 +26,7 @@ from cdm.render import rasterize_points
 __all__ = [
     "conditioning_channels",
     "conditioning_map",
+    "features_at_pixels",
     "mask_distance_transform",
     "project_conditioning",
     "project_views",
@@ -74,43 +76,82 @@ def mask_distance_transform(mask: Tensor) -> Tensor:
 
 
 def conditioning_map(
-    features: Tensor, prior_2d: Tensor, image: Tensor, mask: Tensor, mask_channels: bool = True
+    features: Tensor | None, prior_2d: Tensor, image: Tensor, mask: Tensor, mask_channels: bool = True
 ) -> Tensor:
     """Stack the per-pixel conditioning channels, once per image.
 
     Args:
-        features: ``(B, F, S, S)`` image features (encoder output).
+        features: ``(B, F, S, S)`` image features (encoder output), or ``None`` for a map without them
+            (:func:`project_conditioning` then samples coarse features at the points).
         prior_2d: ``(B, C2, S, S)`` 2D-prior channels (contour or depth, Eq. 7).
         image: ``(B, 3, S, S)`` RGB in [0, 1].
         mask: ``(B, 1, S, S)`` foreground in {0, 1}.
         mask_channels: ``model.mask_channels``: append the mask and its distance transform.
     Returns:
         ``(B, F + C2 + 5, S, S)``: ``[features, prior_2d, RGB, mask, distance transform]``, or
-        ``(B, F + C2 + 3, S, S)`` without the last two.
+        ``(B, F + C2 + 3, S, S)`` without the last two (``F`` = 0 without features).
     """
+    maps = [prior_2d, image] if features is None else [features, prior_2d, image]
     if not mask_channels:
-        return torch.cat([features, prior_2d, image], dim=1)
-    return torch.cat([features, prior_2d, image, mask, mask_distance_transform(mask)], dim=1)
+        return torch.cat(maps, dim=1)
+    return torch.cat([*maps, mask, mask_distance_transform(mask)], dim=1)
 
 
-def project_conditioning(cond_map: Tensor, points: Tensor, cameras: Cameras, radius: float) -> Tensor:
+def features_at_pixels(coarse: Tensor, pixel: Tensor, size: int) -> Tensor:
+    """The bilinear upsampling of ``coarse`` to ``size × size`` (``align_corners=False``,
+    :func:`cdm.model.encoder.upsample_features`), read only at the flat pixel indices ``pixel``.
+
+    ``grid_sample`` at those pixels' centres: source coordinate ``(col + ½)·s/size − ½`` in both, the
+    border clamped in both (``padding_mode="border"``), so the same function as upsampling the
+    whole map and gathering, equal up to float rounding; a step then touches ``N`` points, not ``size²``
+    pixels, forward and backward.
+
+    Args:
+        coarse: ``(B, F, s, s)`` features.
+        pixel: ``(B, N)`` long flat indices ``row·size + col`` in ``[0, size²)``.
+        size: ``S``, the side of the upsampled map.
+    Returns:
+        ``(B, N, F)``.
+    """
+    row = torch.div(pixel, size, rounding_mode="floor")
+    col = pixel - row * size
+    centre = torch.stack([col, row], dim=-1).to(coarse.dtype)
+    grid = (2.0 * centre + 1.0) / size - 1.0  # x (column) first, as grid_sample reads it
+    sampled = F.grid_sample(coarse, grid[:, None], mode="bilinear", padding_mode="border", align_corners=False)
+    return sampled[:, :, 0].transpose(1, 2)
+
+
+def project_conditioning(
+    cond_map: Tensor,
+    points: Tensor,
+    cameras: Cameras,
+    radius: float,
+    features: Tensor | None = None,
+    feature_slot: int = 0,
+) -> Tensor:
     """Gather each visible point's conditioning channels at its own pixel; zeros for hidden points.
 
     Runs every diffusion step on ``x_t``: one hard rasterization (no gradient) and one gather
-    (differentiable w.r.t. ``cond_map``, so a trainable encoder learns through it).
+    (differentiable w.r.t. ``cond_map`` and ``features``, so a trainable encoder learns through it).
 
     Args:
         cond_map: ``(B, C, S, S)`` from :func:`conditioning_map`.
         points: ``(B, N, 3)`` world coordinates (``x_t``).
         cameras: input cameras, batch ``(B,)``.
         radius: rasterization radius, NDC units (``model.raster_radius``; PC²: 0.0075).
+        features: ``(B, F, s, s)`` coarse image features that ``cond_map`` lacks: each point gets
+            their bilinear upsampling to ``S`` at its pixel (:func:`features_at_pixels`).
+        feature_slot: the channel at which those ``F`` channels are inserted.
     Returns:
-        ``(B, N, C)`` per-point conditioning.
+        ``(B, N, C)`` per-point conditioning (``C + F`` with ``features``).
     """
     b, c, s, _ = cond_map.shape
     frags = rasterize_points(points.detach(), cameras, s, radius)
-    index = frags.pixel.clamp(min=0)[:, None, :].expand(b, c, -1)
-    gathered = cond_map.flatten(2).gather(2, index).transpose(1, 2)  # (B, N, C)
+    pixel = frags.pixel.clamp(min=0)
+    gathered = cond_map.flatten(2).gather(2, pixel[:, None, :].expand(b, c, -1)).transpose(1, 2)  # (B, N, C)
+    if features is not None:
+        sampled = features_at_pixels(features, pixel, s)
+        gathered = torch.cat([gathered[..., :feature_slot], sampled, gathered[..., feature_slot:]], dim=-1)
     return gathered * frags.visible[..., None].to(gathered.dtype)
 
 

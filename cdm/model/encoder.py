@@ -49,6 +49,7 @@ __all__ = [
     "check_encoder_record",
     "load_msn_state_dict",
     "sha256_file",
+    "upsample_features",
 ]
 
 MSN_WEIGHTS_URL = "https://dl.fbaipublicfiles.com/msn/vits16_800ep.pth.tar"
@@ -97,16 +98,24 @@ class ImageEncoder(nn.Module):
 
     def forward(self, image: Tensor, mask: Tensor, prior_2d: Tensor) -> Tensor:
         """``(B, 3, S, S)`` RGB in [0, 1], ``(B, 1, S, S)`` mask, ``(B, C2, S, S)`` prior → ``(B, F, S, S)``."""
+        return upsample_features(self.coarse(image, mask, prior_2d), image.shape[-1])
+
+    def coarse(self, image: Tensor, mask: Tensor, prior_2d: Tensor) -> Tensor:
+        """:meth:`forward` before its last bilinear upsampling: ``(B, F, ⌈S/2⌉, ⌈S/2⌉)``."""
         if prior_2d.shape[1] != self.prior_2d_channels:
             raise ValueError(
                 f"prior_2d has {prior_2d.shape[1]} channels but the encoder was built for {self.prior_2d_channels}"
             )
-        size = image.shape[-2:]
         half = self.down1(torch.cat([image, mask, prior_2d], dim=1))
         quarter = self.mid(self.down2(half))
-        up = F.interpolate(quarter, size=half.shape[-2:], mode="bilinear", align_corners=False)
-        features = self.out(torch.cat([up, half], dim=1))
-        return F.interpolate(features, size=size, mode="bilinear", align_corners=False)
+        # out(cat[upsample(quarter), half]), computed as upsample(W_q·quarter) + W_h·half + b: the 1×1
+        # convolution is linear and bilinear weights sum to 1, so it commutes with the upsampling, which
+        # then moves F channels, not 2F, and no concatenation is made (the same function; float rounding).
+        wide = quarter.shape[1]
+        weight = self.out.weight
+        up = F.interpolate(F.conv2d(quarter, weight[:, :wide]), size=half.shape[-2:], mode="bilinear",
+                           align_corners=False)
+        return up + F.conv2d(half, weight[:, wide:], self.out.bias)
 
 
 class _Attention(nn.Module):
@@ -304,10 +313,22 @@ class FrozenViT(nn.Module):
     @torch.no_grad()
     def forward(self, image: Tensor, mask: Tensor, prior_2d: Tensor) -> Tensor:
         """Same signature as :meth:`ImageEncoder.forward`; only ``image`` (RGB in [0, 1]) is used."""
+        return upsample_features(self.coarse(image, mask, prior_2d), image.shape[-1])
+
+    @torch.no_grad()
+    def coarse(self, image: Tensor, mask: Tensor, prior_2d: Tensor) -> Tensor:
+        """:meth:`forward` before its bilinear upsampling: the ``(B, 384, S/16, S/16)`` patch-token grid."""
         s = image.shape[-1]
         if image.ndim != 4 or image.shape[1] != 3 or s % _PATCH or image.shape[-2] != s:
             raise ValueError(f"vit_s16 needs (B, 3, S, S) images with S a multiple of 16, got {tuple(image.shape)}")
-        return F.interpolate(self._tokens(image), size=(s, s), mode="bilinear", align_corners=False)
+        return self._tokens(image)
+
+
+def upsample_features(coarse: Tensor, size: int) -> Tensor:
+    """An encoder's ``coarse`` features ``(B, F, s, s)`` → ``(B, F, size, size)``: bilinear, ``align_corners=False``
+    (PC²'s ``feature_model.py``). :func:`cdm.model.conditioning.features_at_pixels` samples the same
+    values at chosen pixels only."""
+    return F.interpolate(coarse, size=(size, size), mode="bilinear", align_corners=False)
 
 
 def build_encoder(cfg: ModelConfig, prior_2d_channels: int) -> ImageEncoder | FrozenViT:

@@ -26,7 +26,7 @@ from cdm.config import ModelConfig
 from cdm.data.sample import Batch
 from cdm.model.conditioning import conditioning_channels, conditioning_map, project_conditioning, project_views
 from cdm.model.embeddings import load_embeddings
-from cdm.model.encoder import build_encoder
+from cdm.model.encoder import build_encoder, upsample_features
 from cdm.model.global_features import TOKEN_GRID, global_embedding, image_tokens
 from cdm.model.pvcnn import PVCNNDenoiser
 from cdm.model.pvcnn2 import PVCNN2Denoiser
@@ -42,7 +42,8 @@ class ImageContext(NamedTuple):
 
     Attributes:
         pixel: ``(B, C, S, S)`` conditioning map ``[features, 2D prior, RGB, mask, distance]``; with the
-            ``pvcnn2`` denoiser in PC²'s order ``[2·RGB − 1, features, 2D prior, mask, distance]``.
+            ``pvcnn2`` denoiser in PC²'s order ``[2·RGB − 1, features, 2D prior, mask, distance]``. Without
+            the feature channels when ``features`` holds them.
         embedding: ``(B, F)`` global embedding (``global_feature == "concat"``), else ``None``; ``(B, E)``
             from ``model.global_embeddings`` with ``global_source == "embeddings"``.
         tokens: ``(B, 64, F)`` image tokens (``global_feature == "cross_attention"``), else ``None``;
@@ -59,6 +60,11 @@ class ImageContext(NamedTuple):
     """Their cameras, batch ``(B, K)``."""
     view_valid: Tensor | None = None
     """``(B, K)`` bool, the views each sample uses."""
+    features: Tensor | None = None
+    """``(B, F, s, s)`` the encoder's features before their bilinear upsampling to ``S``
+    (``encoder.coarse``), when ``pixel`` lacks the feature channels: each point then samples them at
+    its pixel (:func:`~cdm.model.conditioning.features_at_pixels`, the same values). ``None`` with
+    condition views, whose maps hold every channel."""
 
 
 class CDMNetwork(nn.Module):
@@ -143,23 +149,27 @@ class CDMNetwork(nn.Module):
                 f"batch.prior_2d has {batch.prior_2d.shape[1]} channels, the network expects "
                 f"{self.prior_2d_channels}; build it with the data's priors.prior_2d"
             )
-        features = self._encode(batch.image, batch.mask, batch.prior_2d)
-        pixel = self._arrange(conditioning_map(features, batch.prior_2d, batch.image, batch.mask, self.mask_channels))
+        coarse = self._encode(batch.image, batch.mask, batch.prior_2d)
+        size = batch.image.shape[-1]
+        c = batch.conditions
         concat, attend = self.global_feature == "concat", self.global_feature == "cross_attention"
+        pooled = upsample_features(coarse, size) if self.embeddings is None and (concat or attend) else None
+        # A single view keeps its features coarse: a step samples them at N points, not S² pixels.
+        features = None if c is None else upsample_features(coarse, size)
+        pixel = self._arrange(conditioning_map(features, batch.prior_2d, batch.image, batch.mask, self.mask_channels),
+                              with_features=features is not None)
         if self.embeddings is not None:
-            given = self.embeddings.batch(batch.object_id).to(features)  # (B, T, E)
+            given = self.embeddings.batch(batch.object_id).to(coarse)  # (B, T, E)
             context = ImageContext(pixel, given.mean(dim=1) if concat else None, given if attend else None)
         else:
             context = ImageContext(
-                pixel, global_embedding(features) if concat else None, image_tokens(features) if attend else None
+                pixel, global_embedding(pooled) if concat else None, image_tokens(pooled) if attend else None
             )
-        c = batch.conditions
         if c is None:
-            return context
+            return context._replace(features=coarse)
         image, mask, prior = (t.flatten(0, 1) for t in (c.image, c.mask, c.prior_2d))
-        views = self._arrange(
-            conditioning_map(self._encode(image, mask, prior), prior, image, mask, self.mask_channels)
-        )
+        views = self._arrange(conditioning_map(upsample_features(self._encode(image, mask, prior), size), prior, image,
+                                               mask, self.mask_channels))
         views = views.unflatten(0, c.valid.shape)
         return context._replace(views=views, view_cameras=c.camera, view_valid=c.valid)
 
@@ -167,19 +177,28 @@ class CDMNetwork(nn.Module):
         return nullcontext() if self.autocast is None else torch.autocast(device.type, dtype=self.autocast)
 
     def _encode(self, image: Tensor, mask: Tensor, prior_2d: Tensor) -> Tensor:
+        """The encoder's coarse features (``encoder.coarse``), float32."""
         with self._mixed_precision(image.device):
-            return self.encoder(image, mask, prior_2d).float()
+            return self.encoder.coarse(image, mask, prior_2d).float()
 
-    def _arrange(self, maps: Tensor) -> Tensor:
+    @property
+    def _feature_slot(self) -> int:
+        """The channel of the conditioning at which the image features start: after RGB in PC²'s order."""
+        return 3 if self.pc2_order else 0
+
+    def _arrange(self, maps: Tensor, with_features: bool = True) -> Tensor:
         """``(B, C, S, S)`` conditioning maps ``[features, 2D prior, RGB, rest]`` → PC²'s order for ``pvcnn2``:
         ``[2·RGB − 1, features, 2D prior, rest]`` (``rest``: mask and distance transform, when projected).
+        Maps ``with_features=False`` lack the features, which :func:`project_conditioning` inserts at
+        :attr:`_feature_slot`.
 
         Done on the maps, before projection, so that hidden points get zeros in every channel as in PC².
         """
         if not self.pc2_order:
             return maps
-        f, rgb = self.feature_dim + self.prior_2d_channels, self.feature_dim + self.prior_2d_channels + 3
-        return torch.cat([maps[:, f:rgb] * 2.0 - 1.0, maps[:, :f], maps[:, rgb:]], dim=1)
+        f = self.feature_dim if with_features else 0
+        prior, rgb = f + self.prior_2d_channels, f + self.prior_2d_channels + 3
+        return torch.cat([maps[:, prior:rgb] * 2.0 - 1.0, maps[:, :prior], maps[:, rgb:]], dim=1)
 
     def forward(self, x_t: Tensor, t: Tensor, context: ImageContext, camera: Cameras) -> Tensor:
         """One denoiser evaluation.
@@ -199,7 +218,8 @@ class CDMNetwork(nn.Module):
                 f"t {tuple(t.shape)} and context (batch {context.pixel.shape[0]}) must match x_t's batch {x_t.shape[0]}"
             )
         if context.views is None:
-            cond = project_conditioning(context.pixel, x_t, camera, self.raster_radius)
+            cond = project_conditioning(context.pixel, x_t, camera, self.raster_radius, context.features,
+                                        self._feature_slot)
         else:
             fields = ("R", "T", "focal", "principal")
             cameras = Cameras(
