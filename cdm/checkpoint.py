@@ -19,11 +19,11 @@ from torch import Tensor
 from cdm.config import Config, load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
+from cdm.io.torch import load_tensors
+from cdm.io.write import make_folder, write_atomic
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.model.state_dicts import checked_state_dict, load_into
 from cdm.runtime import AUTOCAST_DTYPES, resolve_device, resolve_precision
-from cdm.safe_write import make_folder, write_atomic
-from cdm.torch_files import load_tensors
 
 __all__ = [
     "CHECKPOINT_FILE",

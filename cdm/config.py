@@ -20,7 +20,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from cdm.safe_io import MAX_JSON_DEPTH, BoundedYamlLoader, bracket_depth, read_bounded
+from cdm.io.files import MAX_JSON_DEPTH, BoundedYamlLoader, bracket_depth, read_bounded
 
 __all__ = [
     "BlendConfig",
@@ -185,7 +185,7 @@ class ModelConfig(_Group):
     state dict): the network starts from its weights, PVCNN2 and the frozen ViT-S/16 alike (weights only:
     no optimiser state). ``{category}`` becomes the run's one category (PC² trains one model per
     category). Needs ``denoiser: pvcnn2`` and ``encoder: vit_s16`` (``python -m cdm train --init-from``
-    reads them from the file); the file is read as data, never run (:func:`cdm.torch_files.load_inert`)."""
+    reads them from the file); the file is read as data, never run (:func:`cdm.io.torch.load_inert`)."""
     feature_dim: int = Field(32, ge=1)
     """Channels of the per-pixel image feature map projected onto points (PC² ViT-S: 384)."""
     raster_radius: float = Field(0.0075, gt=0.0, le=1.0)
@@ -653,7 +653,7 @@ def apply_overrides(tree: dict[str, Any], overrides: dict[str, Any]) -> dict[str
 
 
 def read_config_file(path: str | Path) -> Any:
-    """The YAML tree of a config file, read within the caps of :mod:`cdm.safe_io` (not yet validated).
+    """The YAML tree of a config file, read within the caps of :mod:`cdm.io.files` (not yet validated).
 
     Raises:
         ConfigError: missing, unreadable, too large, too deeply nested or not YAML; the message names the file.
@@ -676,7 +676,7 @@ def read_config_file(path: str | Path) -> Any:
         raise ConfigError(f"config file {path}: nested too deeply to be a config") from None
     except ConfigError:
         raise
-    except ValueError as exc:  # not a regular file, or over the size cap (cdm.safe_io)
+    except ValueError as exc:  # not a regular file, or over the size cap (cdm.io.files)
         raise ConfigError(str(exc)) from None
 
 

@@ -5,7 +5,7 @@ PC²'s ``experiments/main.py`` saves ``checkpoint-latest.pth`` as ``{"model", "o
 "epoch", "step", "best_val", "model_ema", "cfg"}``: ``model`` is the state dict of its whole diffusion
 model (PVCNN2 under ``point_cloud_model.model.``, the frozen ViT-S/16 under ``feature_model.model.``
 with timm's names) and ``cfg`` its Hydra/OmegaConf config, pickled. The file is read with
-:func:`cdm.torch_files.load_inert`: ``cfg`` stays a tree of inert records that :func:`config_data`
+:func:`cdm.io.torch.load_inert`: ``cfg`` stays a tree of inert records that :func:`config_data`
 turns into plain data, and a file whose pickle would run anything else is refused.
 
 What the network is follows from PC²'s code, and ``cfg`` settles what it may change
@@ -26,9 +26,9 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from cdm.config import Config, ConfigError, load_config
+from cdm.io.torch import Pickled, load_inert
 from cdm.model.state_dicts import checked_state_dict
 from cdm.paths import input_path
-from cdm.torch_files import Pickled, load_inert
 
 __all__ = ["PC2_DEFAULTS", "PC2File", "config_data", "is_pc2_checkpoint", "read_pc2_checkpoint"]
 
@@ -80,7 +80,7 @@ def is_pc2_checkpoint(path: str | Path) -> bool:
 
 
 def config_data(node: Any) -> Any:
-    """An OmegaConf config read by :func:`cdm.torch_files.load_inert` as plain dicts, lists and values.
+    """An OmegaConf config read by :func:`cdm.io.torch.load_inert` as plain dicts, lists and values.
 
     OmegaConf pickles a ``DictConfig`` / ``ListConfig`` with its children in ``_content`` and a value
     node with its value in ``_val``; anything else keeps its class name.

@@ -35,7 +35,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from cdm.safe_write import write_atomic
+from cdm.io.write import write_atomic
 from sweeps.store_retry import StoreBusy, check_not_locked
 
 __all__ = [
@@ -205,7 +205,7 @@ def parse_state(text: str, where: str) -> dict[str, Any]:
     Raises:
         StoreError: not JSON, or a key missing or of the wrong type.
     """
-    from cdm.safe_io import parse_json
+    from cdm.io.files import parse_json
 
     try:  # nesting bounded: a planted file deep enough would overflow the parser's recursion
         state = parse_json(text.encode(errors="replace"), "--resume", Path(where))
@@ -286,7 +286,7 @@ def private_folder(path: Path) -> Path:
 
 def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
     """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent) through the one no-follow atomic
-    writer (:func:`cdm.safe_write.write_atomic`): a symbolic link or a second name of another file (a hard
+    writer (:func:`cdm.io.write.write_atomic`): a symbolic link or a second name of another file (a hard
     link) standing at ``path`` is refused, its target untouched.
 
     Raises:

@@ -1,6 +1,6 @@
 """Nothing deleted or written outside what a command made (issue #49, section 2), each case through the
 command a user types: ``prepare`` fills only a new, empty or its own ``--out`` and removes only its own
-scratch files; every tool writes through :func:`cdm.safe_write.write_atomic`, so a link planted where it
+scratch files; every tool writes through :func:`cdm.io.write.write_atomic`, so a link planted where it
 writes is refused and its target left as it was.
 
 Also from section 4, numbers and names read back: a 5,001-digit integer in a config or spec file, and a

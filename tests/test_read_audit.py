@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-OWNER = Path("cdm/torch_files.py")
+OWNER = Path("cdm/io/torch/load.py")
 """The one module that may call torch's loader (its ``load_own``: the cache's own memory-mapped files)."""
 SCANNED = ("cdm", "sweeps", "benchmarks", "tests")
 EXEMPT = {Path("tests/test_hostile_torch.py"): ["torch.jit.load", "torch.load"],

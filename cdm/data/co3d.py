@@ -50,11 +50,11 @@ from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.co3d_annotations import ANNOTATIONS, LAYOUT, SET_LIST, Frame, half_sizes, kept_frames, load_category
 from cdm.data.co3d_lists import excluded_sequences
-from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
+from cdm.io.files import MAX_ARRAY_BYTES, PLAIN_NAME, read_bounded
+from cdm.io.images import read_image
 from cdm.normalise import IDENTITY
 from cdm.normalise import Frame as NormalisedFrame
-from cdm.safe_io import MAX_ARRAY_BYTES, PLAIN_NAME, read_bounded
 
 __all__ = ["CROP_MARGIN", "Co3DDataset", "centred_box", "crop_camera", "load_depth"]
 

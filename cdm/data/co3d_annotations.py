@@ -25,7 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cdm.safe_io import inside, plain_name, read_json
+from cdm.io.files import inside, plain_name, read_json
 
 __all__ = ["ANNOTATIONS", "LAYOUT", "SET_LIST", "Category", "Frame", "half_sizes", "kept_frames", "load_category"]
 

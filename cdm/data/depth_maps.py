@@ -27,8 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.io.files import load_npy, read_json
 from cdm.paths import input_path
-from cdm.safe_io import load_npy, read_json
 
 __all__ = ["ESTIMATOR_FILE", "DepthMaps"]
 

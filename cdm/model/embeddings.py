@@ -24,8 +24,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.io.files import load_npz, open_regular
 from cdm.paths import input_path
-from cdm.safe_io import load_npz, open_regular
 
 __all__ = ["Embeddings", "embedding_ids", "load_embeddings"]
 
@@ -79,7 +79,7 @@ def load_embeddings(path: str | Path) -> Embeddings:
 
     Raises:
         ValueError: missing or unreadable file, no arrays, mixed shapes, non-float or non-finite
-            values, over :mod:`cdm.safe_io`'s array caps; the message names ``model.global_embeddings``.
+            values, over :mod:`cdm.io.files`'s array caps; the message names ``model.global_embeddings``.
     """
     arrays = _read(path, names=False)
     if not arrays:

@@ -33,11 +33,11 @@ from torch import Tensor
 
 from cdm.config import ModelConfig
 from cdm.data.lru import ByteLRU
+from cdm.io.files import open_regular
+from cdm.io.torch import load_inert
 from cdm.model.state_dicts import checked_state_dict
 from cdm.model.voxels import norm_groups
 from cdm.paths import input_path
-from cdm.safe_io import open_regular
-from cdm.torch_files import load_inert
 
 __all__ = [
     "MSN_WEIGHTS_URL",
@@ -203,7 +203,7 @@ def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -
     Accepts MSN's published checkpoint (``{"target_encoder": {"module.<name>": tensor, ...}, ...}``,
     the projection head ``fc.*`` dropped as PC² does), a plain state dict with the same names, or PC²'s
     checkpoint, which saves the frozen ViT with the rest of its model under ``feature_model.model.``
-    (timm's names, which are MSN's; its pickled config is read as data, :func:`cdm.torch_files.load_inert`).
+    (timm's names, which are MSN's; its pickled config is read as data, :func:`cdm.io.torch.load_inert`).
 
     Raises:
         ValueError: missing file, unreadable file, a key that is not a string, a weight that is not a finite

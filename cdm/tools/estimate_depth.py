@@ -36,12 +36,12 @@ import numpy as np
 import torch
 
 from cdm.data.depth_maps import ESTIMATOR_FILE
-from cdm.data.images import read_image
 from cdm.interrupt import interruptible
-from cdm.safe_io import read_json
-from cdm.safe_write import make_folder, write_atomic
+from cdm.io.files import read_json
+from cdm.io.images import read_image
+from cdm.io.torch import load_tensors
+from cdm.io.write import make_folder, write_atomic
 from cdm.tools.export_views import crops
-from cdm.torch_files import load_tensors
 
 __all__ = ["Estimator", "View", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"]
 

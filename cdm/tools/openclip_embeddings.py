@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from cdm.interrupt import interruptible
-from cdm.safe_io import load_npy, object_id_parts, read_json
-from cdm.safe_write import write_atomic
+from cdm.io.files import load_npy, object_id_parts, read_json
+from cdm.io.write import write_atomic
 from cdm.tools.export_views import crops
 
 __all__ = ["main"]

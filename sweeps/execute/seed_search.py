@@ -21,8 +21,8 @@ from typing import Any
 
 from ray.tune.search import Searcher
 
-from cdm.safe_io import parse_json
-from cdm.safe_write import write_atomic
+from cdm.io.files import parse_json
+from cdm.io.write import write_atomic
 from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.execute.logged_runs import last_objects
 from sweeps.execute.tracking import SweepRun

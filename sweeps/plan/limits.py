@@ -26,7 +26,7 @@ from typing import Any, TextIO
 
 import yaml
 
-from cdm.safe_io import BoundedYamlLoader, read_bounded
+from cdm.io.files import BoundedYamlLoader, read_bounded
 
 __all__ = [
     "MAX_SET_CHARS",

@@ -8,7 +8,7 @@ import argparse
 import pytest
 import torch
 
-from cdm.torch_files import Pickled, load_inert, load_tensors
+from cdm.io.torch import Pickled, load_inert, load_tensors
 
 
 def _load(file):

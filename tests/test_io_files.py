@@ -1,4 +1,4 @@
-"""cdm/safe_io.py: regular files only, caps checked before anything is allocated, names that stay inside."""
+"""cdm/io/files.py: regular files only, caps checked before anything is allocated, names that stay inside."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import resource
 import numpy as np
 import pytest
 
-from cdm.safe_io import (
+from cdm.io.files import (
     MAX_JSON_DEPTH,
     annotation_cap,
     inside,

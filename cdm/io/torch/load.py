@@ -2,7 +2,7 @@
 
 This module owns reading pickles: no other module calls ``torch.load``, ``torch.jit.load`` or
 ``pickle.load`` (tests/test_read_audit.py walks the code). Both readers open the archive themselves
-(:class:`cdm.torch_archive.Archive`: no TorchScript, bounded members) and run one inert unpickler on its
+(:class:`cdm.io.torch.archive.Archive`: no TorchScript, bounded members) and run one inert unpickler on its
 ``data.pkl``; torch's loader never sees the file, so ``torch.jit.load`` cannot be reached:
 
 - :func:`load_tensors`: what ``torch.load(weights_only=True)`` reads: tensors, ``OrderedDict``, plain data.
@@ -26,9 +26,9 @@ from typing import Any
 
 import torch
 
-from cdm.safe_io import open_regular
-from cdm.torch_archive import Archive, ArchiveError
-from cdm.torch_unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, Pickled, Refused, unpickle
+from cdm.io.files import open_regular
+from cdm.io.torch.archive import Archive, ArchiveError
+from cdm.io.torch.unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, Pickled, Refused, unpickle
 
 __all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_own", "load_tensors"]
 
