@@ -4,7 +4,7 @@ A checkpoint holds everything needed to use or continue a run without anything e
 habit): the resolved config, the step, the voxel back-end the weights were trained with (the
 back-ends compute different functions) and the weights; a CDM run adds its EMA weights, optimiser,
 schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Files are read with
-``torch.load(weights_only=True)``: tensors and plain data only, nothing executed.
+:func:`cdm.io.torch.load_tensors`: tensors and plain data only, nothing executed, torch's loader never used.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def save_checkpoint(checkpoint: Checkpoint, folder: str | Path) -> Path:
 
 
 def load_checkpoint(path: str | Path) -> Checkpoint:
-    """Read a checkpoint file or its folder safely (``weights_only=True``).
+    """Read a checkpoint file or its folder safely (:func:`cdm.io.torch.load_tensors`: tensors and plain data).
 
     Raises:
         ValueError: missing file, unreadable file, not a CDM checkpoint, or weights (``model``, ``ema``)

@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import math
 import re
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
 from cdm.config import Config, ConfigError, load_config
-from cdm.io.torch import Pickled, load_inert
+from cdm.io.torch import Pickled, load_inert, pickle_bytes
 from cdm.model.state_dicts import checked_state_dict
 from cdm.paths import input_path
 
@@ -59,9 +58,6 @@ _REQUIRED = {k: PC2_DEFAULTS[k] for k in (
     "model.image_feature_model", "model.use_local_colors", "model.use_local_features", "model.use_global_features",
     "model.predict_color", "model.beta_schedule", "model.point_cloud_model", "dataset.scale_factor")}
 _MARKER = b"point_cloud_model.model.sa_layers.0.0.point_features.layers.0.weight"
-_PEEK_BYTES = 16 * 2**20
-"""How much of the archive's pickle recognition reads: PC²'s state dict names its ~150 ViT tensors, then
-PVCNN2's first weight, within the first ~40 kB; an archive's pickle can unpack to far more."""
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z0-9_.]+)\}$")
 
 
@@ -69,14 +65,12 @@ def is_pc2_checkpoint(path: str | Path) -> bool:
     """Whether ``path`` is a torch file whose pickle names PC²'s first PVCNN2 weight under PC²'s model
     prefix; read from the archive's pickle bytes, nothing unpickled."""
     path = input_path(path)
-    if not path.is_file() or not zipfile.is_zipfile(path):
+    if not path.is_file():
         return False
-    with zipfile.ZipFile(path) as archive:
-        pickles = [n for n in archive.namelist() if n.endswith("/data.pkl")]
-        if not pickles:
-            return False
-        with archive.open(pickles[0]) as data:
-            return _MARKER in data.read(_PEEK_BYTES)
+    try:
+        return _MARKER in pickle_bytes(path, str(path))
+    except ValueError:  # not a torch archive: not PC²'s either
+        return False
 
 
 def config_data(node: Any) -> Any:

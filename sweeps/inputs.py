@@ -30,7 +30,7 @@ from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import check_out, start
 from cdm.external_inputs import MSN_URL
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c, take_sigterm_as_ctrl_c
-from cdm.io.files import read_json
+from cdm.io.json import read_json
 from cdm.io.write import write_atomic
 from cdm.model.encoder import load_msn_state_dict, sha256_file
 from cdm.tools.estimate_depth import find_views

@@ -34,7 +34,9 @@ from torch import Tensor
 from cdm.cameras import Cameras
 from cdm.data.lru import ByteLRU
 from cdm.data.views import interleave
-from cdm.io.files import MAX_TEXT_BYTES, object_id_parts, open_regular, parse_json, read_json
+from cdm.io.files import MAX_TEXT_BYTES, open_regular
+from cdm.io.json import parse_json, read_json
+from cdm.io.names import object_id_parts
 from cdm.io.write import write_atomic
 
 __all__ = [

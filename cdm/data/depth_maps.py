@@ -27,7 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from cdm.io.files import load_npy, read_json
+from cdm.io.arrays import load_npy
+from cdm.io.json import read_json
 from cdm.paths import input_path
 
 __all__ = ["ESTIMATOR_FILE", "DepthMaps"]

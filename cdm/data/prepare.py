@@ -29,7 +29,7 @@ from cdm.data.cache import (
 )
 from cdm.data.captured import CapturedDataset
 from cdm.data.depth_maps import DepthMaps
-from cdm.io.files import read_json
+from cdm.io.json import read_json
 from cdm.io.write import TEMP_NAME, make_folder, write_atomic
 
 __all__ = ["PrepareReport", "Preparation", "check_out", "prepare", "shard_path", "start", "write_object"]

@@ -56,8 +56,11 @@ from cdm.config import Config
 from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.views import Split, interleave
-from cdm.io.files import PLAIN_NAME, load_npy, plain_name, read_bounded, read_json
+from cdm.io.arrays import load_npy
+from cdm.io.files import read_bounded
 from cdm.io.images import read_image
+from cdm.io.json import read_json
+from cdm.io.names import PLAIN_NAME, plain_name
 from cdm.normalise import Frame, bdm_frame
 from cdm.registry import PRIORS_2D
 

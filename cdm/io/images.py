@@ -18,9 +18,10 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from cdm.io.files import MAX_ARRAY_BYTES, read_bounded
+from cdm.io.arrays import MAX_ARRAY_BYTES
+from cdm.io.files import read_bounded
 
-__all__ = ["MAX_IMAGE_PIXELS", "read_image"]
+__all__ = ["MAX_IMAGE_PIXELS", "read_image", "read_rgb"]
 
 MAX_IMAGE_PIXELS = 1 << 26
 """Most pixels (width × height) of an image read: 8,192² (Co3D's frames are about 2 megapixels)."""
@@ -59,6 +60,13 @@ def read_image(path: Path, flags: int, field: str) -> np.ndarray | None:
         need = width * height * _BYTES_PER_PIXEL[flags]
         _refuse(field, path, f"{width}×{height} pixels (decoding takes {need / 2**30:.1f} GiB)")
     return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+
+
+def read_rgb(path: Path, field: str) -> np.ndarray | None:
+    """The image at ``path`` as ``(H, W, 3)`` 8-bit RGB, read as :func:`read_image` reads it (header first,
+    regular files only); None when the file is missing or not an image."""
+    bgr = read_image(path, cv2.IMREAD_COLOR, field)
+    return None if bgr is None else np.ascontiguousarray(bgr[..., ::-1])
 
 
 def _refuse(field: str, path: Path, size: str) -> None:

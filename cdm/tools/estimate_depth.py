@@ -37,8 +37,8 @@ import torch
 
 from cdm.data.depth_maps import ESTIMATOR_FILE
 from cdm.interrupt import interruptible
-from cdm.io.files import read_json
 from cdm.io.images import read_image
+from cdm.io.json import read_json
 from cdm.io.torch import load_tensors
 from cdm.io.write import make_folder, write_atomic
 from cdm.tools.export_views import crops

@@ -19,6 +19,7 @@ import ray
 import ray.tune
 
 from cdm.config import load_config
+from cdm.io.files import read_text
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import lease_cores
@@ -76,7 +77,7 @@ class _TrialCloser(ray.tune.Callback):
     def on_trial_error(self, iteration, trials, trial, **info) -> None:
         label = self._label(trial)
         # Tune has just written the traceback to the trial's local error file (before syncing it).
-        reason = error_summary(Path(trial.error_file).read_text()) if trial.error_file else "unknown error"
+        reason = error_summary(read_text(Path(trial.error_file), "error file")) if trial.error_file else "unknown error"
         self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason)
         print(f"✗ failed [{label}]: {reason} ({self._count(trials, trial)})", flush=True)
 

@@ -89,7 +89,7 @@ def load_profiles(path: str | Path = PROFILES_FILE) -> dict[str, Profile]:
     another section sets."""
     path = Path(path)
     try:
-        profiles = {name: SharedProfile.model_validate(body) for name, body in read_yaml(path).items()}
+        profiles = {name: SharedProfile.model_validate(body) for name, body in read_yaml(path, "profiles").items()}
     except ValidationError as exc:
         raise SpecError(f"{path}: {format_validation_error(exc, SharedProfile)}") from None
     for name, prof in profiles.items():

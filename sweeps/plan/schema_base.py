@@ -12,7 +12,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict
 
 from cdm.config import config_field_paths
-from sweeps.plan.limits import LimitError, load_yaml
+from cdm.io.yaml import read_yaml as read_yaml_file
 
 __all__ = ["KNOWN_FIELDS", "OWNED_FIELDS", "SpecError", "Strict", "field_error", "read_yaml"]
 
@@ -47,12 +47,13 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-def read_yaml(path: Path) -> dict[str, Any]:
-    """The file's YAML, read within :mod:`sweeps.plan.limits`' bounds, as a mapping."""
+def read_yaml(path: Path, label: str) -> dict[str, Any]:
+    """The sweep file's YAML as a mapping, read under the one YAML rule of :mod:`cdm.io.yaml`; ``label``
+    says which file it is (``"spec"``, ``"profiles"``)."""
     try:
-        tree = load_yaml(path)
-    except LimitError as exc:
+        tree = read_yaml_file(path, label)
+    except ValueError as exc:
         raise SpecError(str(exc)) from None
     if not isinstance(tree, dict):
-        raise SpecError(f"{path}: top level must be a mapping")
+        raise SpecError(f"{label}: {path}: top level must be a mapping")
     return tree

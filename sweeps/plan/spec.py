@@ -312,7 +312,7 @@ def load_spec(path: str | Path) -> Spec:
     """Read and validate a spec file; :class:`SpecError` names the first bad field."""
     path = Path(path)
     try:
-        return Spec.model_validate(read_yaml(path))
+        return Spec.model_validate(read_yaml(path, "spec"))
     except ValidationError as exc:
         raise SpecError(f"{path}: {format_validation_error(exc, Spec)}") from None
 

@@ -8,7 +8,6 @@ The runner's end-of-sweep publishing and ``sweeps/results/publish.py`` are built
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 import tempfile
@@ -21,6 +20,7 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.config import load_config
+from cdm.io.json import read_json
 from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
@@ -125,7 +125,7 @@ def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | Non
         )
     with tempfile.TemporaryDirectory() as tmp:
         spec = load_spec(client.download_artifacts(run_id, specs[0], tmp))
-        plan = json.loads(Path(client.download_artifacts(run_id, "plan.json", tmp)).read_text())
+        plan = read_json(Path(client.download_artifacts(run_id, "plan.json", tmp)), f"sweep run {run_id}")
     children = client.search_runs([exp.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{run_id}'",
                                   order_by=["attributes.start_time ASC"], max_results=10000)
     # `run.py --rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
