@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from cdm.io.yaml import parse_yaml, read_yaml
+from cdm.io.yaml import parse_yaml, read_mapping
 
 __all__ = [
     "BlendConfig",
@@ -648,7 +648,7 @@ def read_config_file(path: str | Path) -> Any:
         ConfigError: missing, unreadable, too large, too deeply nested or not YAML; the message names the file.
     """
     try:
-        return read_yaml(Path(path), "config file") or {}
+        return read_mapping(Path(path), "config file")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 

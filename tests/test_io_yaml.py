@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from cdm.config import ConfigError, load_config, parse_override
-from cdm.io.yaml import MAX_YAML_DEPTH, parse_yaml, read_yaml
+from cdm.io.yaml import MAX_YAML_DEPTH, parse_yaml, read_mapping, read_yaml
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.spec import load_spec
 from tests.hostile_files import YAML_BOMB
@@ -79,3 +79,14 @@ def test_parse_yaml_refuses_in_one_line_naming_the_label(text, said):
     with pytest.raises(ValueError, match=said) as refused:
         parse_yaml(text, "v")
     assert "\n" not in str(refused.value)
+
+
+def test_read_mapping_is_a_mapping_or_one_line_and_an_empty_file_is_empty(tmp_path):
+    path = tmp_path / "s.yaml"
+    path.write_text("")
+    assert read_mapping(path, "spec") == {}
+    path.write_text("- a\n- b\n")
+    with pytest.raises(ValueError, match=f"^spec: {path}: top level must be a mapping, not a list$"):
+        read_mapping(path, "spec")
+    path.write_text("name: t\n")
+    assert read_mapping(path, "spec") == {"name": "t"}

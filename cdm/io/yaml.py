@@ -25,7 +25,7 @@ import yaml
 from cdm.io.files import read_text
 from cdm.io.json import MAX_INT_DIGITS, MAX_JSON_DEPTH, bracket_depth
 
-__all__ = ["MAX_YAML_BYTES", "MAX_YAML_DEPTH", "MAX_YAML_NODES", "parse_yaml", "read_yaml"]
+__all__ = ["MAX_YAML_BYTES", "MAX_YAML_DEPTH", "MAX_YAML_NODES", "parse_yaml", "read_mapping", "read_yaml"]
 
 MAX_YAML_BYTES = 1 << 20
 """Largest YAML file read (1 MiB; the repository's specs and configs are a few kB)."""
@@ -120,3 +120,14 @@ def read_yaml(path: Path, label: str) -> Any:
     """The YAML file ``path`` under the module's rule (:func:`parse_yaml`); a ``ValueError`` starting with
     ``label`` (the field or option that named the file) and the path."""
     return parse_yaml(read_text(path, label, MAX_YAML_BYTES), f"{label}: {path}")
+
+
+def read_mapping(path: Path, label: str) -> dict[str, Any]:
+    """The YAML file ``path`` (:func:`read_yaml`) as a mapping, ``{}`` when it is empty; a ``ValueError``
+    starting with ``label`` and the path when its top level is anything else."""
+    tree = read_yaml(path, label)
+    if tree is None:
+        return {}
+    if not isinstance(tree, dict):
+        raise ValueError(f"{label}: {path}: top level must be a mapping, not a {type(tree).__name__}")
+    return tree
