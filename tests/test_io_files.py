@@ -7,7 +7,7 @@ import resource
 
 import pytest
 
-from cdm.io.files import annotation_cap, open_regular, read_bounded, read_gzip, read_text
+from cdm.io.files import annotation_cap, file_sha256, open_regular, read_bounded, read_gzip, read_text
 from tests.hostile_files import gzip_bomb
 
 
@@ -71,3 +71,14 @@ def test_read_text_is_utf8_or_one_line_naming_the_file(tmp_path):
         read_text(path, "notes")
     with pytest.raises(ValueError, match="is 4 bytes; at most 3 are read"):
         read_text(path, "notes", cap=3)
+
+
+def test_file_sha256_is_hashlibs_of_the_bytes_and_refuses_a_fifo(tmp_path):
+    import hashlib
+
+    path = tmp_path / "weights.bin"
+    path.write_bytes(b"x" * (3 * 2**20 + 5))  # more than one 1 MiB chunk
+    assert file_sha256(path, "model.encoder_weights") == hashlib.sha256(path.read_bytes()).hexdigest()
+    os.mkfifo(tmp_path / "fifo")
+    with pytest.raises(ValueError, match="is a FIFO"):
+        file_sha256(tmp_path / "fifo", "model.encoder_weights")

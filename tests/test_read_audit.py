@@ -144,42 +144,34 @@ def test_every_allowed_read_is_still_there_and_has_its_reason():
         assert sorted(reads) == found and all(len(why) > 20 for why in reads.values())
 
 
-@pytest.mark.parametrize("snippet,expected", [
-    ("import torch\ntorch.load('x')\n", ["2: torch.load"]),
-    ("import torch\nm = torch.jit.load('x')\n", ["2: torch.jit.load"]),
-    ("from torch import load as L\nL('x')\n", ["2: torch.load"]),
-    ("import pickle as p\np.loads(b'')\n", ["2: pickle.loads"]),
-    ("import numpy as np\nnp.load('x', allow_pickle=True)\n", ["2: numpy.load(allow_pickle=True)"]),
-    ("import numpy as np\nnp.load('x', allow_pickle=False)\n", []),
-    ("import torch\ntorch.save({}, 'x')\n", []),
+@pytest.mark.parametrize("snippet,pickles,reads", [
+    ("import torch\ntorch.load('x')\n", ["2: torch.load"], ["2: torch.load"]),
+    ("import torch\nm = torch.jit.load('x')\n", ["2: torch.jit.load"], ["2: torch.jit.load"]),
+    ("from torch import load as L\nL('x')\n", ["2: torch.load"], ["2: torch.load"]),
+    ("import pickle as p\np.loads(b'')\n", ["2: pickle.loads"], ["2: pickle.loads"]),
+    ("import numpy as np\nnp.load('x', allow_pickle=True)\n", ["2: numpy.load(allow_pickle=True)"], ["2: numpy.load"]),
+    ("import numpy as np\nnp.load('x', allow_pickle=False)\n", [], ["2: numpy.load"]),
+    ("import torch\ntorch.save({}, 'x')\n", [], []),
+    ("open('x')\n", [], ["1: open"]),
+    ("open('x', 'rb')\n", [], ["1: open"]),
+    ("open('x', mode='r', newline='')\n", [], ["1: open"]),
+    ("open('x', 'w')\n", [], []),
+    ("open('x', 'a+')\n", [], []),
+    ("from pathlib import Path\nPath('x').read_text()\n", [], ["2: .read_text"]),
+    ("p.read_bytes()\n", [], ["1: .read_bytes"]),
+    ("with p.open(newline='') as f:\n    pass\n", [], ["1: .open"]),
+    ("p.open('wb')\n", [], []),
+    ("PreparedRoot.open(root, kind)\n", [], []),
+    ("import os\nos.open('x', os.O_RDONLY)\n", [], []),
+    ("import yaml\nyaml.safe_load(s)\n", [], ["2: yaml.safe_load"]),
+    ("import json\njson.loads(s)\n", [], ["2: json.loads"]),
+    ("from json import load\nload(f)\n", [], ["2: json.load"]),
+    ("import cv2\ncv2.imread('x')\n", [], ["2: cv2.imread"]),
+    ("from PIL import Image\nImage.open('x')\n", [], ["2: PIL.Image.open"]),
+    ("import gzip\ngzip.open('x')\n", [], ["2: gzip.open"]),
+    ("import zipfile\nzipfile.ZipFile('x')\n", [], ["2: zipfile.ZipFile"]),
+    ("import trimesh\ntrimesh.load_mesh('x')\n", [], ["2: trimesh.load_mesh"]),
+    ("import json\njson.dumps(x)\n", [], []),
 ])
-def test_the_audit_finds_a_planted_call(snippet, expected):
-    assert readers(snippet) == expected
-
-
-@pytest.mark.parametrize("snippet,expected", [
-    ("open('x')\n", ["1: open"]),
-    ("open('x', 'rb')\n", ["1: open"]),
-    ("open('x', mode='r', newline='')\n", ["1: open"]),
-    ("open('x', 'w')\n", []),
-    ("open('x', 'a+')\n", []),
-    ("from pathlib import Path\nPath('x').read_text()\n", ["2: .read_text"]),
-    ("p.read_bytes()\n", ["1: .read_bytes"]),
-    ("with p.open(newline='') as f:\n    pass\n", ["1: .open"]),
-    ("p.open('wb')\n", []),
-    ("PreparedRoot.open(root, kind)\n", []),
-    ("import os\nos.open('x', os.O_RDONLY)\n", []),
-    ("import yaml\nyaml.safe_load(s)\n", ["2: yaml.safe_load"]),
-    ("import json\njson.loads(s)\n", ["2: json.loads"]),
-    ("from json import load\nload(f)\n", ["2: json.load"]),
-    ("import numpy as np\nnp.load('x.npy')\n", ["2: numpy.load"]),
-    ("import cv2\ncv2.imread('x')\n", ["2: cv2.imread"]),
-    ("from PIL import Image\nImage.open('x')\n", ["2: PIL.Image.open"]),
-    ("import gzip\ngzip.open('x')\n", ["2: gzip.open"]),
-    ("import zipfile\nzipfile.ZipFile('x')\n", ["2: zipfile.ZipFile"]),
-    ("import trimesh\ntrimesh.load_mesh('x')\n", ["2: trimesh.load_mesh"]),
-    ("import pickle\npickle.load(f)\n", ["2: pickle.load"]),
-    ("import json\njson.dumps(x)\n", []),
-])
-def test_the_read_audit_finds_a_planted_read(snippet, expected):
-    assert file_reads(snippet) == expected
+def test_the_audits_find_a_planted_call(snippet, pickles, reads):
+    assert (readers(snippet), file_reads(snippet)) == (pickles, reads)
