@@ -336,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: training diverged: {exc}", file=sys.stderr)
         return 1
     except MemoryError:
-        # The readers' caps (cdm/io/files.py) come first; what still runs out names the command's inputs.
+        # The readers' caps (cdm/io/) come first; what still runs out names the command's inputs.
         inputs = ", ".join(
             f"--{k.replace('_', '-')} {v}"
             for k in ("root", "config", "checkpoint", "image", "depth_maps")

@@ -75,7 +75,7 @@ def load_embeddings(path: str | Path) -> Embeddings:
 
     Raises:
         ValueError: missing or unreadable file, no arrays, mixed shapes, non-float or non-finite
-            values, over :mod:`cdm.io.files`'s array caps; the message names ``model.global_embeddings``.
+            values, over :mod:`cdm.io.arrays`' caps; the message names ``model.global_embeddings``.
     """
     arrays = _read(path, names=False)
     if not arrays:
