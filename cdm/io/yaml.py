@@ -100,20 +100,22 @@ def parse_yaml(text: str, label: str) -> Any:
     loader = BoundedYamlLoader(text)
     try:
         node = loader.get_single_node()
-        if node is None:
-            return None
-        if _expanded_size(node, {}, set()) > MAX_YAML_NODES:
-            raise ValueError(f"{label}: its aliases (*name) expand to more than {MAX_YAML_NODES} YAML nodes; "
-                             "write the values out or use fewer nested aliases")
-        return loader.construct_document(node)
+        size = 0 if node is None else _expanded_size(node, {}, set())
+        value = loader.construct_document(node) if node is not None and size <= MAX_YAML_NODES else None
     except yaml.YAMLError as exc:
         raise ValueError(f"{label} is not valid YAML: {' '.join(str(exc).split())}") from None
     except _SelfReference:
         raise ValueError(f"{label} refers to itself through an alias (a recursive anchor)") from None
     except RecursionError:  # block-style nesting, which no bracket counts
         raise ValueError(f"{label} is nested too deeply to be read") from None
+    except ValueError as exc:  # a value PyYAML builds but Python refuses
+        raise ValueError(f"{label} is not valid YAML: {exc}") from None
     finally:
         loader.dispose()
+    if size > MAX_YAML_NODES:
+        raise ValueError(f"{label}: its aliases (*name) expand to more than {MAX_YAML_NODES} YAML nodes; "
+                         "write the values out or use fewer nested aliases")
+    return value
 
 
 def read_yaml(path: Path, label: str) -> Any:
