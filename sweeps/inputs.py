@@ -30,9 +30,10 @@ from cdm.data.captured import CapturedDataset
 from cdm.data.prepare import check_out, start
 from cdm.external_inputs import MSN_URL
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c, take_sigterm_as_ctrl_c
+from cdm.io.files import file_sha256
 from cdm.io.json import read_json
 from cdm.io.write import write_atomic
-from cdm.model.encoder import load_msn_state_dict, sha256_file
+from cdm.model.encoder import load_msn_state_dict
 from cdm.tools.estimate_depth import find_views
 from cdm.tools.export_views import export_views
 from sweeps.plan.address import given_address, reach
@@ -95,7 +96,7 @@ def _msn(inputs: Path) -> str | None:
     path = inputs / MSN_FILE
     if not path.is_file():
         return f"{path} is missing: curl -L --create-dirs -o {path} {MSN_URL}"
-    digest, record = sha256_file(path), inputs / RECORD
+    digest, record = file_sha256(path, "model.encoder_weights"), inputs / RECORD
     seen = read_json(record, "--inputs") if record.is_file() else {}
     if not isinstance(seen, dict):
         raise ValueError(f"--inputs: {record} is not this tool's record (a JSON object); remove it to start over")
