@@ -58,8 +58,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     sets = _overrides(args.set)
     pc2 = None
     if args.init_from is not None:
+        from cdm.io.files import open_regular
         from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
-        from cdm.safe_io import open_regular
 
         try:  # says what the path is (missing, a folder, a device, a FIFO) rather than guessing it is missing
             open_regular(Path(args.init_from), "--init-from").close()
@@ -137,7 +137,7 @@ def _load_image(path: Path, size: int) -> tuple[torch.Tensor, torch.Tensor]:
     """RGB ``(3, S, S)`` in [0, 1] and mask ``(1, S, S)``: alpha if present, else pixels unlike the corners."""
     import cv2
 
-    from cdm.data.images import read_image
+    from cdm.io.images import read_image
 
     raw = read_image(path, cv2.IMREAD_UNCHANGED, "--image")
     if raw is None:
@@ -337,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: training diverged: {exc}", file=sys.stderr)
         return 1
     except MemoryError:
-        # The readers' caps (cdm/safe_io.py) come first; what still runs out names the command's inputs.
+        # The readers' caps (cdm/io/) come first; what still runs out names the command's inputs.
         inputs = ", ".join(
             f"--{k.replace('_', '-')} {v}"
             for k in ("root", "config", "checkpoint", "image", "depth_maps")

@@ -4,7 +4,7 @@ A checkpoint holds everything needed to use or continue a run without anything e
 habit): the resolved config, the step, the voxel back-end the weights were trained with (the
 back-ends compute different functions) and the weights; a CDM run adds its EMA weights, optimiser,
 schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Files are read with
-``torch.load(weights_only=True)``: tensors and plain data only, nothing executed.
+:func:`cdm.io.torch.load_tensors`: tensors and plain data only, nothing executed, torch's loader never used.
 """
 
 from __future__ import annotations
@@ -19,11 +19,11 @@ from torch import Tensor
 from cdm.config import Config, load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
+from cdm.io.torch import load_tensors
+from cdm.io.write import make_folder, write_atomic
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.model.state_dicts import checked_state_dict, load_into
 from cdm.runtime import AUTOCAST_DTYPES, resolve_device, resolve_precision
-from cdm.safe_write import make_folder, write_atomic
-from cdm.torch_files import load_tensors
 
 __all__ = [
     "CHECKPOINT_FILE",
@@ -89,7 +89,7 @@ def save_checkpoint(checkpoint: Checkpoint, folder: str | Path) -> Path:
 
 
 def load_checkpoint(path: str | Path) -> Checkpoint:
-    """Read a checkpoint file or its folder safely (``weights_only=True``).
+    """Read a checkpoint file or its folder safely (:func:`cdm.io.torch.load_tensors`: tensors and plain data).
 
     Raises:
         ValueError: missing file, unreadable file, not a CDM checkpoint, or weights (``model``, ``ema``)

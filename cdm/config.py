@@ -17,10 +17,9 @@ import typing
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from cdm.safe_io import MAX_JSON_DEPTH, BoundedYamlLoader, bracket_depth, read_bounded
+from cdm.io.yaml import parse_yaml, read_mapping
 
 __all__ = [
     "BlendConfig",
@@ -185,7 +184,7 @@ class ModelConfig(_Group):
     state dict): the network starts from its weights, PVCNN2 and the frozen ViT-S/16 alike (weights only:
     no optimiser state). ``{category}`` becomes the run's one category (PC² trains one model per
     category). Needs ``denoiser: pvcnn2`` and ``encoder: vit_s16`` (``python -m cdm train --init-from``
-    reads them from the file); the file is read as data, never run (:func:`cdm.torch_files.load_inert`)."""
+    reads them from the file); the file is read as data, never run (:func:`cdm.io.torch.load_inert`)."""
     feature_dim: int = Field(32, ge=1)
     """Channels of the per-pixel image feature map projected onto points (PC² ViT-S: 384)."""
     raster_radius: float = Field(0.0075, gt=0.0, le=1.0)
@@ -613,25 +612,15 @@ def config_field_paths(group: str | None = None) -> list[str]:
 
 
 def parse_override(text: str) -> tuple[str, Any]:
-    """Parse ``key=value`` where value is YAML (``priors.point_size=0.04``, ``data.categories=[a,b]``)."""
+    """Parse ``key=value`` where value is YAML (``priors.point_size=0.04``, ``data.categories=[a,b]``), read
+    under the one YAML rule of :mod:`cdm.io.yaml`."""
     if "=" not in text:
         raise ConfigError(f"override {text!r} must look like key=value, e.g. priors.lambda_3d=0.5")
     key, raw = text.split("=", 1)
-    if (depth := bracket_depth(raw.encode(errors="replace"))) > MAX_JSON_DEPTH:  # before PyYAML's recursive parser
-        raise ConfigError(f"{key}: the value is nested {depth} deep; at most {MAX_JSON_DEPTH}")
     try:
-        # An alias chain of a few hundred bytes can expand to gigabytes: a value has no need of one.
-        if any(isinstance(event, yaml.AliasEvent) for event in yaml.parse(raw, Loader=yaml.SafeLoader)):
-            raise ConfigError(f"{key}: YAML aliases (*name) are not allowed in a value; write the value out")
-        value = yaml.load(raw, Loader=BoundedYamlLoader)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{key}: cannot parse value {raw[:80]!r}: {' '.join(str(exc).split())}") from None
-    except RecursionError:  # brackets nested thousands deep; sweeps/run.py refuses them earlier by count
-        raise ConfigError(f"{key}: the value is nested too deeply") from None
-    except ConfigError:
-        raise
-    except ValueError as exc:  # a value PyYAML builds but Python refuses
-        raise ConfigError(f"{key}: cannot parse value {raw[:40]!r}…: {exc}") from None
+        value = parse_yaml(raw, f"{key}: the value")
+    except ValueError as exc:  # over a cap of cdm.io.yaml, not YAML, or a value Python refuses
+        raise ConfigError(str(exc)) from None
     return key.strip(), value
 
 
@@ -653,30 +642,14 @@ def apply_overrides(tree: dict[str, Any], overrides: dict[str, Any]) -> dict[str
 
 
 def read_config_file(path: str | Path) -> Any:
-    """The YAML tree of a config file, read within the caps of :mod:`cdm.safe_io` (not yet validated).
+    """The YAML tree of a config file, read under the one YAML rule of :mod:`cdm.io.yaml` (not yet validated).
 
     Raises:
         ConfigError: missing, unreadable, too large, too deeply nested or not YAML; the message names the file.
     """
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"config file {path}: cannot read (no such file)")
     try:
-        raw = read_bounded(path, "config file")
-        if (depth := bracket_depth(raw)) > MAX_JSON_DEPTH:
-            raise ConfigError(f"config file {path}: nested {depth} deep; at most {MAX_JSON_DEPTH}")
-        return yaml.load(raw.decode("utf-8"), Loader=BoundedYamlLoader) or {}
-    except OSError as exc:
-        raise ConfigError(f"config file {path}: cannot read ({exc.strerror})") from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"config file {path}: not UTF-8 text (byte {exc.start})") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    except RecursionError:  # PyYAML composes recursively: a planted file nests past Python's stack
-        raise ConfigError(f"config file {path}: nested too deeply to be a config") from None
-    except ConfigError:
-        raise
-    except ValueError as exc:  # not a regular file, or over the size cap (cdm.safe_io)
+        return read_mapping(Path(path), "config file")
+    except ValueError as exc:
         raise ConfigError(str(exc)) from None
 
 

@@ -39,10 +39,10 @@ from cdm.data.sample import Batch, collate
 from cdm.data.views import ObjectDataset
 from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.digest import json_digest
+from cdm.io.write import make_folder, write_atomic
 from cdm.metrics import ChamferF1, chamfer_f1
 from cdm.model import CDMNetwork
 from cdm.normalise import FRAME_VERSION
-from cdm.safe_write import make_folder, write_atomic
 
 __all__ = [
     "EvalOutput",
@@ -306,7 +306,7 @@ def run_evaluation(
 
 
 def write_ply(path: Path, points: Tensor, label: str = "train.out_dir") -> Path:
-    """Write an ``(N, 3)`` cloud as ASCII PLY (:func:`cdm.safe_write.write_atomic`; ``label`` names the
+    """Write an ``(N, 3)`` cloud as ASCII PLY (:func:`cdm.io.write.write_atomic`; ``label`` names the
     option that chose ``path`` in a refusal)."""
     make_folder(path.parent, label)
     pts = points.detach().cpu().numpy()

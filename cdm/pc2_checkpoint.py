@@ -5,7 +5,7 @@ PC²'s ``experiments/main.py`` saves ``checkpoint-latest.pth`` as ``{"model", "o
 "epoch", "step", "best_val", "model_ema", "cfg"}``: ``model`` is the state dict of its whole diffusion
 model (PVCNN2 under ``point_cloud_model.model.``, the frozen ViT-S/16 under ``feature_model.model.``
 with timm's names) and ``cfg`` its Hydra/OmegaConf config, pickled. The file is read with
-:func:`cdm.torch_files.load_inert`: ``cfg`` stays a tree of inert records that :func:`config_data`
+:func:`cdm.io.torch.load_inert`: ``cfg`` stays a tree of inert records that :func:`config_data`
 turns into plain data, and a file whose pickle would run anything else is refused.
 
 What the network is follows from PC²'s code, and ``cfg`` settles what it may change
@@ -20,15 +20,14 @@ from __future__ import annotations
 
 import math
 import re
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NamedTuple
 
 from cdm.config import Config, ConfigError, load_config
+from cdm.io.torch import Pickled, load_inert, pickle_bytes
 from cdm.model.state_dicts import checked_state_dict
 from cdm.paths import input_path
-from cdm.torch_files import Pickled, load_inert
 
 __all__ = ["PC2_DEFAULTS", "PC2File", "config_data", "is_pc2_checkpoint", "read_pc2_checkpoint"]
 
@@ -59,9 +58,6 @@ _REQUIRED = {k: PC2_DEFAULTS[k] for k in (
     "model.image_feature_model", "model.use_local_colors", "model.use_local_features", "model.use_global_features",
     "model.predict_color", "model.beta_schedule", "model.point_cloud_model", "dataset.scale_factor")}
 _MARKER = b"point_cloud_model.model.sa_layers.0.0.point_features.layers.0.weight"
-_PEEK_BYTES = 16 * 2**20
-"""How much of the archive's pickle recognition reads: PC²'s state dict names its ~150 ViT tensors, then
-PVCNN2's first weight, within the first ~40 kB; an archive's pickle can unpack to far more."""
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z0-9_.]+)\}$")
 
 
@@ -69,18 +65,16 @@ def is_pc2_checkpoint(path: str | Path) -> bool:
     """Whether ``path`` is a torch file whose pickle names PC²'s first PVCNN2 weight under PC²'s model
     prefix; read from the archive's pickle bytes, nothing unpickled."""
     path = input_path(path)
-    if not path.is_file() or not zipfile.is_zipfile(path):
+    if not path.is_file():
         return False
-    with zipfile.ZipFile(path) as archive:
-        pickles = [n for n in archive.namelist() if n.endswith("/data.pkl")]
-        if not pickles:
-            return False
-        with archive.open(pickles[0]) as data:
-            return _MARKER in data.read(_PEEK_BYTES)
+    try:
+        return _MARKER in pickle_bytes(path, str(path))
+    except ValueError:  # not a torch archive: not PC²'s either
+        return False
 
 
 def config_data(node: Any) -> Any:
-    """An OmegaConf config read by :func:`cdm.torch_files.load_inert` as plain dicts, lists and values.
+    """An OmegaConf config read by :func:`cdm.io.torch.load_inert` as plain dicts, lists and values.
 
     OmegaConf pickles a ``DictConfig`` / ``ListConfig`` with its children in ``_content`` and a value
     node with its value in ``_val``; anything else keeps its class name.

@@ -28,8 +28,8 @@ from cdm.data.sample import Batch, ConditionViews, Sample, collate
 from cdm.data.views import ObjectDataset
 from cdm.digest import json_digest
 from cdm.evaluate import EvalSet, build_eval_set
-from cdm.safe_write import make_folder, write_atomic
-from cdm.torch_files import load_own
+from cdm.io.torch import load_own
+from cdm.io.write import make_folder, write_atomic
 
 __all__ = ["SharedStore", "SharedViews", "eval_key", "rounds_needed", "views_key"]
 
@@ -103,7 +103,7 @@ def _batch(d: dict) -> Batch:
 
 
 def _save(obj: object, path: Path) -> None:
-    # Atomic (cdm.safe_write): the runs reading it see the whole file or none.
+    # Atomic (cdm.io.write): the runs reading it see the whole file or none.
     write_atomic(make_folder(path.parent, "shared cache") / path.name, lambda f: torch.save(obj, f), "shared cache")
 
 

@@ -29,9 +29,10 @@ from cdm.config import load_config, parse_override
 from cdm.data.prepare import check_out, prepare_config, start
 from cdm.external_inputs import MSN_URL
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c, take_sigterm_as_ctrl_c
-from cdm.model.encoder import load_msn_state_dict, sha256_file
-from cdm.safe_io import read_json
-from cdm.safe_write import write_atomic
+from cdm.io.files import file_sha256
+from cdm.io.json import read_json
+from cdm.io.write import write_atomic
+from cdm.model.encoder import load_msn_state_dict
 from cdm.tools.estimate_depth import find_views
 from cdm.tools.export_views import export_views
 from sweeps.plan.address import given_address, reach
@@ -90,7 +91,7 @@ def _msn(inputs: Path) -> str | None:
     path = inputs / MSN_FILE
     if not path.is_file():
         return f"{path} is missing: curl -L --create-dirs -o {path} {MSN_URL}"
-    digest, record = sha256_file(path), inputs / RECORD
+    digest, record = file_sha256(path, "model.encoder_weights"), inputs / RECORD
     seen = read_json(record, "--inputs") if record.is_file() else {}
     if not isinstance(seen, dict):
         raise ValueError(f"--inputs: {record} is not this tool's record (a JSON object); remove it to start over")

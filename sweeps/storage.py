@@ -35,7 +35,8 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from cdm.safe_write import write_atomic
+from cdm.io.json import parse_json, read_json
+from cdm.io.write import write_atomic
 from sweeps.store_retry import StoreBusy, check_not_locked
 
 __all__ = [
@@ -134,7 +135,7 @@ def _check_mlflow_server(uri: str) -> None:
                          "(`mlflow server --host 127.0.0.1 --port 5000`) or give another URI") from None
     try:
         with urllib.request.urlopen(f"{base}/api/2.0/mlflow/experiments/search?max_results=1", timeout=10) as reply:
-            answer = json.loads(reply.read(1 << 20))
+            answer = parse_json(reply.read(1 << 20), f"--tracking-uri {uri}", "the server's answer")
     except (urllib.error.URLError, OSError, ValueError) as exc:
         answer = _one_line(exc)
     if not isinstance(answer, dict):
@@ -205,8 +206,6 @@ def parse_state(text: str, where: str) -> dict[str, Any]:
     Raises:
         StoreError: not JSON, or a key missing or of the wrong type.
     """
-    from cdm.safe_io import parse_json
-
     try:  # nesting bounded: a planted file deep enough would overflow the parser's recursion
         state = parse_json(text.encode(errors="replace"), "--resume", Path(where))
     except ValueError as exc:
@@ -286,7 +285,7 @@ def private_folder(path: Path) -> Path:
 
 def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
     """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent) through the one no-follow atomic
-    writer (:func:`cdm.safe_write.write_atomic`): a symbolic link or a second name of another file (a hard
+    writer (:func:`cdm.io.write.write_atomic`): a symbolic link or a second name of another file (a hard
     link) standing at ``path`` is refused, its target untouched.
 
     Raises:
@@ -368,7 +367,7 @@ def _digest_file(sweep_dir: str) -> Path:
 
 def _tune_state_digests(sweep_dir: str) -> dict[str, str]:
     """SHA-256 of every file of the sweep folder Tune may unpickle: all but the checkpoints' contents (read
-    with ``torch.load(weights_only=True)``), keyed by their path below the folder."""
+    as tensors and plain data by :func:`cdm.io.torch.load_tensors`), keyed by their path below the folder."""
     from pyarrow import fs
 
     filesystem, root = fs.FileSystem.from_uri(sweep_dir)
@@ -407,11 +406,15 @@ def check_resume_trust(sweep_dir: str) -> None:
             raise StoreError(f"--resume: {bad}; Tune's state there is unpickled (runs code) only from a folder "
                              f"no one else could write: {way_out}")
         return
-    try:
-        recorded = json.loads(_digest_file(sweep_dir).read_text())
-    except FileNotFoundError:
+    if not _digest_file(sweep_dir).is_file():
         raise StoreError(f"--resume: no digest of {sweep_dir}'s Tune state was recorded (its driver was killed); "
-                         f"that state is pickles anyone who writes the bucket could have changed: {way_out}") from None
+                         f"that state is pickles anyone who writes the bucket could have changed: {way_out}")
+    try:
+        recorded = read_json(_digest_file(sweep_dir), "--resume")
+    except ValueError as exc:
+        raise StoreError(f"{exc}; the digest of Tune's state is damaged: {way_out}") from None
+    if not isinstance(recorded, dict):
+        raise StoreError(f"--resume: {_digest_file(sweep_dir)} is damaged (not a JSON object): {way_out}")
     found = _tune_state_digests(sweep_dir)
     changed = sorted(k for k in recorded.keys() | found.keys() if recorded.get(k) != found.get(k))
     if changed:

@@ -39,6 +39,11 @@ class Outcome(NamedTuple):
         return [line for line in self.stderr.splitlines() if line.startswith("error: ")]
 
 
+YAML_BOMB = "name: bomb\ngrid:\n  data.categories: &a [[x, x, x, x, x, x, x, x, x]]\n" + "".join(
+    f"  {p}: &{n} [{', '.join([f'*{p}'] * 9)}]\n" for p, n in zip("abcdefg", "bcdefgh"))
+"""A 330-byte alias chain: 9⁸ ≈ 43 million leaves once expanded."""
+
+
 STOP_S = 5
 """Issue 49's bound on a command's end after Ctrl-C or SIGTERM, in seconds."""
 

@@ -272,7 +272,7 @@ def test_a_checkpoint_that_is_a_fifo_or_dev_zero_is_refused_not_read(tmp_path, k
 def test_an_image_that_is_a_fifo_or_dev_zero_is_refused_not_read(tmp_path, kind, said):
     import cv2
 
-    from cdm.data.images import read_image
+    from cdm.io.images import read_image
 
     path = tmp_path / "frame000001.jpg"
     os.mkfifo(path) if kind == "fifo" else path.symlink_to("/dev/zero")

@@ -1,6 +1,6 @@
 """Nothing deleted or written outside what a command made (issue #49, section 2), each case through the
 command a user types: ``prepare`` fills only a new, empty or its own ``--out`` and removes only its own
-scratch files; every tool writes through :func:`cdm.safe_write.write_atomic`, so a link planted where it
+scratch files; every tool writes through :func:`cdm.io.write.write_atomic`, so a link planted where it
 writes is refused and its target left as it was.
 
 Also from section 4, numbers and names read back: a 5,001-digit integer in a config or spec file, and a
@@ -192,10 +192,10 @@ def test_a_5001_digit_integer_in_a_yaml_file_is_named(tmp_path, kind):
     if kind == "config":
         path = tmp_path / "c.yaml"
         path.write_text(f"train:\n  steps: {huge}\n")
-        command, said = ["-m", "cdm", "train", "--config", str(path)], f"config file {path}: "
+        command, said = ["-m", "cdm", "train", "--config", str(path)], f"config file: {path} "
     else:
         path = tmp_path / "s.yaml"
         path.write_text((ROOT / "sweeps" / "point_size.yaml").read_text() + f"\nextra: {huge}\n")
-        command, said = [str(ROOT / "sweeps" / "run.py"), str(path), "--dry-run"], f"{path}: "
+        command, said = [str(ROOT / "sweeps" / "run.py"), str(path), "--dry-run"], f"spec: {path} "
     line = assert_refused(run_command(command, tmp_path), said, "an integer of 5001 digits", "at most 1000")
     assert huge not in line

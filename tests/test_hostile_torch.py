@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from cdm.torch_files import load_inert, load_tensors
+from cdm.io.torch import load_inert, load_tensors
 from tests.hostile_files import assert_refused, run_command
 from tests.hostile_torch import (
     GOOD_ID,
@@ -208,7 +208,7 @@ def _deflated_pickle(path: Path, size: int) -> None:
 
 @pytest.mark.slow
 def test_the_three_bombs_are_refused_in_bounded_memory(tmp_path):
-    baseline = run_command(["-c", "import torch, cdm.torch_files"], tmp_path).peak_rss
+    baseline = run_command(["-c", "import torch, cdm.io.torch"], tmp_path).peak_rss
     for name, file in _bombs(tmp_path).items():
         outcome = run_command(["-m", "cdm", "evaluate", "--checkpoint", str(file), *_sets()], tmp_path)
         assert_refused(outcome, str(file), "more than" if name != "steps" else "runs more than 2,000,000 steps")

@@ -14,58 +14,24 @@ from pathlib import Path
 
 import pytest
 import ray
-import yaml
 
-from cdm.config import Config, ConfigError, config_field_paths, load_config, parse_override
+from cdm.config import Config, ConfigError, config_field_paths, load_config
 from cdm.memory import check_memory, estimate_train_bytes
 from sweeps import cdm_lab, run
 from sweeps.execute.claim import ClaimError, claim
-from sweeps.plan.limits import LimitError, check_trials, load_yaml
+from sweeps.plan.limits import LimitError, check_trials
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import expand
 from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
+from tests.hostile_files import YAML_BOMB
 
 ROOT = Path(__file__).resolve().parents[1]
-
-BOMB = "name: bomb\ngrid:\n  data.categories: &a [[x, x, x, x, x, x, x, x, x]]\n" + "".join(
-    f"  {p}: &{n} [{', '.join([f'*{p}'] * 9)}]\n" for p, n in zip("abcdefg", "bcdefgh"))
-"""A 330-byte alias chain: 9⁸ ≈ 43 million leaves once expanded."""
-
 
 def _grid(values_per_key: int, keys: int = 3) -> str:
     fields = ["priors.point_size", "priors.lambda_3d", "train.lr"][:keys]
     return "name: big\ngrid:\n" + "".join(
         f"  {k}: [{', '.join(f'{0.001 * (i + 1):.3f}' for i in range(values_per_key))}]\n" for k in fields)
-
-
-def test_alias_bomb_is_refused_before_it_expands(tmp_path):
-    spec = tmp_path / "bomb.yaml"
-    spec.write_text(BOMB)
-    assert len(BOMB) < 400
-    tracemalloc.start()
-    with pytest.raises(LimitError, match="expand to more than 100000 YAML nodes"):
-        load_yaml(spec)
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    assert peak < 20 * 2**20  # the composed graph is a few hundred nodes; expansion would be gigabytes
-
-
-def test_small_aliases_load_as_safe_load_does(tmp_path):
-    text = "base: &b {priors.point_size: 0.04}\ngrid: {priors.lambda_3d: [0.1, 1.0]}\ncells: [{label: one, set: *b}]\n"
-    spec = tmp_path / "s.yaml"
-    spec.write_text(text)
-    assert load_yaml(spec) == yaml.safe_load(text)
-
-
-def test_recursive_anchor_binary_and_oversized_files_are_refused(tmp_path):
-    cases = {"rec.yaml": (b"a: &x [1, *x]\n", "refers to itself"),
-             "bin.yaml": (b"\x00\xff\xfe\x00 spec", "not UTF-8 text"),
-             "big.yaml": (b"# " + b"x" * (1 << 20) + b"\n", "at most 1048576 bytes")}
-    for name, (data, needle) in cases.items():
-        (tmp_path / name).write_bytes(data)
-        with pytest.raises(LimitError, match=needle):
-            load_yaml(tmp_path / name)
 
 
 def test_trial_cap_counts_without_building_and_is_raised_by_the_flag(tmp_path):
@@ -149,12 +115,6 @@ def test_every_float_field_must_be_finite():
         )
 
 
-def test_set_value_may_not_use_aliases():
-    with pytest.raises(ConfigError, match="data.categories: YAML aliases"):
-        parse_override("data.categories=[&a [x, x], *a, *a]")
-    assert parse_override("data.categories=[chair, car]") == ("data.categories", ["chair", "car"])
-
-
 def test_memory_estimate_grows_with_each_size_and_refuses_past_the_machine():
     base = expand(load_spec(ROOT / "sweeps" / "point_size.yaml"), "smoke").cells[0].config
     b0 = estimate_train_bytes(base, 2)
@@ -235,7 +195,7 @@ def test_a_released_claim_leaves_only_what_the_sweep_wrote(tmp_path):
 
 BAD_SPECS = {
     "binary": (b"\x89PNG\r\n\x1a\n\x00\x00", [], "not UTF-8 text"),
-    "bomb": (BOMB.encode(), [], "expand to more than"),
+    "bomb": (YAML_BOMB.encode(), [], "expand to more than"),
     "grid": (_grid(100).encode(), ["--dry-run"], "1000000 trials"),
     "inf": (
         b"name: s\ngrid: {priors.point_size: [0.04]}\n",

@@ -17,8 +17,8 @@ from cdm.__main__ import main
 from cdm.checkpoint import load_network
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.diffusion import SamplerSettings
+from cdm.io.torch import load_tensors
 from cdm.pc2_checkpoint import PC2_DEFAULTS, is_pc2_checkpoint, read_pc2_checkpoint
-from cdm.torch_files import load_tensors
 from tests.pc2_files import PC2_CFG, write_pc2_checkpoint
 
 # Small enough to score in seconds: a quarter-width PVCNN2 (PC²'s key names, shapes at that width), 32² images.

@@ -177,6 +177,18 @@ def test_resolution_order_profile_base_spec_profile_budget_cell_seed_set():
     assert cfg.train.threads == 1  # = CPUs per worker
 
 
+def test_a_trials_f1_threshold_is_what_it_drew_else_its_cells_else_the_plans():
+    shared = {"p": SHARED["smoke"]}
+    spec = _spec(grid={"eval.f1_threshold": [0.02, 0.04]}, seeds=[3])
+    plan = expand(spec, "p", {}, shared=shared)
+    assert [plan.f1_threshold(c.label, {}) for c in plan.cells] == [0.02, 0.04]
+    assert plan.f1_threshold(plan.cells[0].label, {"eval.f1_threshold": "0.5"}) == 0.5  # a run's logged param
+    assert plan.f1_threshold("no such cell · seed 3", {}) == Config().eval.f1_threshold == 0.01
+    spec = _spec(base={"eval.f1_threshold": 0.03}, grid={"train.lr": [0.01]}, seeds=[3])
+    fixed = expand(spec, "p", {}, shared=shared)
+    assert fixed.f1_threshold("sampled · seed 3", {}) == 0.03
+
+
 def test_a_budget_left_out_is_the_configs_default_the_papers_length():
     """The paper profile writes no budget: its cells train train.steps's default (PC²'s 100,000 steps, scored every
     5,000), the one home of that value, exactly as when the profile wrote the numbers out."""

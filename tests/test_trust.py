@@ -30,7 +30,7 @@ import ray
 from mlflow import MlflowClient
 
 from cdm.config import load_config
-from cdm.data.images import read_image
+from cdm.io.images import read_image
 from sweeps import run, store_retry
 from sweeps.execute import driver, local_cluster, stopping
 from sweeps.execute.claim import ClaimError, claim, claims_folder

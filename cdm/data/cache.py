@@ -34,8 +34,10 @@ from torch import Tensor
 from cdm.cameras import Cameras
 from cdm.data.lru import ByteLRU
 from cdm.data.views import interleave
-from cdm.safe_io import MAX_TEXT_BYTES, object_id_parts, open_regular, parse_json, read_json
-from cdm.safe_write import write_atomic
+from cdm.io.files import MAX_TEXT_BYTES, open_regular
+from cdm.io.json import parse_json, read_json
+from cdm.io.names import object_id_parts
+from cdm.io.write import write_atomic
 
 __all__ = [
     "DECODED",
@@ -58,7 +60,7 @@ FORMAT = 2
 (roots of format 1 are refused: prepare them again)."""
 SCRATCH = ".cdm_prepare_scratch"
 """Folder in a prepared root holding the temporary files of shards being written: the only place
-``prepare`` removes files it finds (:data:`cdm.safe_write.TEMP_NAME` names only)."""
+``prepare`` removes files it finds (:data:`cdm.io.write.TEMP_NAME` names only)."""
 ESTIMATED_DEPTHS = "estimated_depths"
 """Shard array (and manifest key) of the estimated depth maps stored by ``prepare --depth-maps``."""
 _MAGIC = b"CDMSHRD1"
@@ -118,7 +120,7 @@ reused worker processes, so later cells find their images here."""
 
 def write_shard(path: Path, arrays: dict[str, np.ndarray], meta: dict, scratch: Path) -> None:
     """Write one shard (format in the module docstring) atomically, its temporary file in ``scratch``
-    (:func:`cdm.safe_write.write_atomic`)."""
+    (:func:`cdm.io.write.write_atomic`)."""
     layout, offset = {}, 0
     for name, array in arrays.items():
         layout[name] = {"dtype": array.dtype.str, "shape": list(array.shape), "offset": offset}

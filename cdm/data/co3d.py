@@ -35,14 +35,12 @@ centred on the frame (:func:`centred_box`): from the annotation alone, no image 
 
 from __future__ import annotations
 
-import io
 from collections import defaultdict
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
-import trimesh
 
 from cdm.cameras import Cameras
 from cdm.config import Config
@@ -50,11 +48,12 @@ from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud
 from cdm.data.co3d_annotations import ANNOTATIONS, LAYOUT, SET_LIST, Frame, half_sizes, kept_frames, load_category
 from cdm.data.co3d_lists import excluded_sequences
-from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
+from cdm.io.images import read_image
+from cdm.io.meshes import read_vertices
+from cdm.io.names import PLAIN_NAME
 from cdm.normalise import IDENTITY
 from cdm.normalise import Frame as NormalisedFrame
-from cdm.safe_io import MAX_ARRAY_BYTES, PLAIN_NAME, read_bounded
 
 __all__ = ["CROP_MARGIN", "Co3DDataset", "centred_box", "crop_camera", "load_depth"]
 
@@ -121,12 +120,7 @@ def _crop(array: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
 
 
 def _read_cloud(path: Path) -> np.ndarray:
-    data = read_bounded(path, "data.root", MAX_ARRAY_BYTES)
-    try:
-        loaded = trimesh.load(io.BytesIO(data), file_type="ply")
-    except (ValueError, KeyError, IndexError, TypeError, EOFError, OSError, MemoryError) as exc:
-        raise ValueError(f"data.root: cannot read point cloud {path}: {type(exc).__name__}: {exc}") from None
-    points = np.asarray(getattr(loaded, "vertices", np.empty((0, 3))), dtype=np.float64)
+    points = read_vertices(path, "data.root")
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 16 or not np.isfinite(points).all():
         raise ValueError(f"data.root: {path} holds no usable point cloud (expected ≥16 finite xyz vertices)")
     return points

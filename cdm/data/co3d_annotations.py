@@ -25,7 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cdm.safe_io import inside, plain_name, read_json
+from cdm.io.json import read_json
+from cdm.io.names import inside, plain_name
 
 __all__ = ["ANNOTATIONS", "LAYOUT", "SET_LIST", "Category", "Frame", "half_sizes", "kept_frames", "load_category"]
 

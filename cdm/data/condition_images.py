@@ -35,9 +35,9 @@ import torch
 from torch import Tensor
 
 from cdm.cameras import Cameras
-from cdm.data.images import read_image
 from cdm.data.priors2d import prior_2d_channels
 from cdm.data.sample import ConditionViews
+from cdm.io.images import read_image
 from cdm.paths import input_path
 
 __all__ = ["ConditionImages", "condition_views", "grey"]

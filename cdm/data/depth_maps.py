@@ -27,8 +27,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.io.arrays import load_npy
+from cdm.io.json import read_json
 from cdm.paths import input_path
-from cdm.safe_io import load_npy, read_json
 
 __all__ = ["ESTIMATOR_FILE", "DepthMaps"]
 

@@ -17,45 +17,23 @@ from __future__ import annotations
 
 import hashlib
 import math
-import struct
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from cdm.config import Config
 from cdm.data.views import ObjectDataset, Shape, Split, interleave, select_categories
+from cdm.io.meshes import read_mesh
 from cdm.normalise import Frame, box_frame
 
-__all__ = ["MESH_SUFFIXES", "VAL_FRACTION", "MeshFolderDataset", "load_mesh"]
+__all__ = ["MESH_SUFFIXES", "VAL_FRACTION", "MeshFolderDataset"]
 
 MESH_SUFFIXES = (".glb", ".obj", ".off", ".ply", ".stl")
 """File types read (case-insensitive), all through trimesh."""
 
 VAL_FRACTION = 0.1
 """Share of each category's meshes held out (at least one)."""
-
-# What trimesh's loaders raise on malformed files (parsers index, unpack and decode blindly).
-_LOAD_ERRORS = (ValueError, IndexError, KeyError, TypeError, EOFError, OSError, struct.error)
-
-
-def load_mesh(path: Path) -> trimesh.Trimesh:
-    """Read one mesh file as a single triangle mesh (scenes concatenated, transforms applied).
-
-    Raises:
-        ValueError: the file cannot be parsed or holds no triangles with area; names the file.
-    """
-    try:
-        mesh = trimesh.load_mesh(path)
-    except _LOAD_ERRORS as exc:
-        raise ValueError(f"data.root: cannot read mesh {path}: {type(exc).__name__}: {exc}") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ValueError(f"data.root: {path} holds no triangles (empty, corrupt or a point cloud); remove or fix it")
-    if not (np.all(np.isfinite(mesh.vertices)) and mesh.area > 0):
-        raise ValueError(f"data.root: {path} has non-finite vertices or zero surface area; remove or fix it")
-    return mesh
-
 
 def _root(cfg: Config) -> Path:
     if cfg.data.root is None:
@@ -78,7 +56,7 @@ def _mesh_files(folder: Path) -> list[Path]:
 @lru_cache(maxsize=4096)
 def _bounds(path: Path, stamp: tuple[int, int]) -> np.ndarray:
     """``(2, 3)`` bounding box of the mesh at ``path`` (once per process and file version: ``stamp`` = size, mtime)."""
-    return np.asarray(load_mesh(path).bounds, dtype=np.float64)
+    return np.asarray(read_mesh(path, "data.root").bounds, dtype=np.float64)
 
 
 def _held_out(files: list[Path], folder: Path) -> set[Path]:
@@ -145,5 +123,5 @@ class MeshFolderDataset(ObjectDataset):
         return self._frames[category]
 
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:
-        mesh = load_mesh(self._files[self.objects[index].object_id])
+        mesh = read_mesh(self._files[self.objects[index].object_id], "data.root")
         return Shape(mesh, np.zeros(len(mesh.faces), dtype=np.int64))

@@ -29,8 +29,8 @@ from cdm.data.cache import (
 )
 from cdm.data.captured import CapturedDataset
 from cdm.data.depth_maps import DepthMaps
-from cdm.safe_io import read_json
-from cdm.safe_write import TEMP_NAME, make_folder, write_atomic
+from cdm.io.json import read_json
+from cdm.io.write import TEMP_NAME, make_folder, write_atomic
 
 __all__ = [
     "PrepareReport", "Preparation", "check_out", "prepare", "prepare_config", "shard_path", "start", "write_object"

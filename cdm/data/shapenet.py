@@ -55,11 +55,14 @@ from cdm.cameras import Cameras, look_at_cameras
 from cdm.config import Config
 from cdm.data.cache import ObjectRecord, ViewImages
 from cdm.data.captured import CapturedDataset, cap_cloud
-from cdm.data.images import read_image
 from cdm.data.views import Split, interleave
+from cdm.io.arrays import load_npy
+from cdm.io.files import read_bounded
+from cdm.io.images import read_image
+from cdm.io.json import read_json
+from cdm.io.names import PLAIN_NAME, plain_name
 from cdm.normalise import Frame, bdm_frame
 from cdm.registry import PRIORS_2D
-from cdm.safe_io import PLAIN_NAME, load_npy, plain_name, read_bounded, read_json
 
 __all__ = [
     "BDM_SPLIT_FILE",

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cdm.io.arrays import load_npz
 from cdm.paths import input_path
-from cdm.safe_io import load_npz, open_regular
 
 __all__ = ["Embeddings", "embedding_ids", "load_embeddings"]
 
@@ -62,10 +62,6 @@ def _read(path: str | Path, names: bool):
             f"{_FIELD}: {path} does not exist; write one with cdm/tools/openclip_embeddings.py "
             "(docs/paper.md, 'External inputs')"
         )
-    with open_regular(path, _FIELD) as f:
-        single = f.read(6) == b"\x93NUMPY"
-    if single:
-        raise ValueError(f"{_FIELD}: {path} is a single array, not an .npz keyed by object id (use numpy.savez)")
     return load_npz(path, _FIELD, names=names)
 
 
@@ -79,7 +75,7 @@ def load_embeddings(path: str | Path) -> Embeddings:
 
     Raises:
         ValueError: missing or unreadable file, no arrays, mixed shapes, non-float or non-finite
-            values, over :mod:`cdm.safe_io`'s array caps; the message names ``model.global_embeddings``.
+            values, over :mod:`cdm.io.arrays`' caps; the message names ``model.global_embeddings``.
     """
     arrays = _read(path, names=False)
     if not arrays:

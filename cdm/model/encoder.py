@@ -33,11 +33,11 @@ from torch import Tensor
 
 from cdm.config import ModelConfig
 from cdm.data.lru import ByteLRU
+from cdm.io.files import file_sha256
+from cdm.io.torch import load_inert
 from cdm.model.state_dicts import checked_state_dict
 from cdm.model.voxels import norm_groups
 from cdm.paths import input_path
-from cdm.safe_io import open_regular
-from cdm.torch_files import load_inert
 
 __all__ = [
     "MSN_WEIGHTS_URL",
@@ -48,7 +48,6 @@ __all__ = [
     "build_encoder",
     "check_encoder_record",
     "load_msn_state_dict",
-    "sha256_file",
     "upsample_features",
 ]
 
@@ -197,22 +196,13 @@ class ViTS16(nn.Module):
         return x.transpose(1, 2).reshape(b, -1, grid, grid)
 
 
-def sha256_file(path: Path) -> str:
-    """Hex SHA-256 of a file's bytes (read in 1 MiB chunks)."""
-    digest = hashlib.sha256()
-    with open_regular(path, "model.encoder_weights") as f:
-        for chunk in iter(lambda: f.read(2**20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def load_msn_state_dict(path: str | Path, name: str = "model.encoder_weights") -> dict[str, Tensor]:
     """The ViT-S/16 state dict of a local weights file, validated against :class:`ViTS16`'s layout.
 
     Accepts MSN's published checkpoint (``{"target_encoder": {"module.<name>": tensor, ...}, ...}``,
     the projection head ``fc.*`` dropped as PC² does), a plain state dict with the same names, or PC²'s
     checkpoint, which saves the frozen ViT with the rest of its model under ``feature_model.model.``
-    (timm's names, which are MSN's; its pickled config is read as data, :func:`cdm.torch_files.load_inert`).
+    (timm's names, which are MSN's; its pickled config is read as data, :func:`cdm.io.torch.load_inert`).
 
     Raises:
         ValueError: missing file, unreadable file, a key that is not a string, a weight that is not a finite
@@ -279,7 +269,8 @@ class FrozenViT(nn.Module):
         backbone.load_state_dict(state)
         self._backbone = [backbone.requires_grad_(False).eval()]  # a list: not a registered submodule
         self.out_channels = VIT_S16_CHANNELS
-        self.record = {"encoder": "vit_s16", "weights_sha256": sha256_file(input_path(weights))}
+        digest = file_sha256(input_path(weights), "model.encoder_weights")
+        self.record = {"encoder": "vit_s16", "weights_sha256": digest}
         self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         self.cache_bytes = cache_bytes

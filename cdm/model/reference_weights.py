@@ -16,7 +16,7 @@ Our module names equal PVCNN2's (``tests/test_pvcnn2.py`` holds PC²'s list), so
 stripping its prefix. Anything else — a missing or unexpected key, a different shape — is refused with
 an error naming the first offending key in the network's order.
 
-Files are read with :func:`cdm.torch_files.load_inert`: PC²'s checkpoints also pickle their OmegaConf
+Files are read with :func:`cdm.io.torch.load_inert`: PC²'s checkpoints also pickle their OmegaConf
 ``cfg``, which is kept as inert data (never constructed), and a file whose pickle would call anything
 else is refused.
 """
@@ -29,9 +29,9 @@ from typing import Any, Literal
 
 from torch import Tensor
 
+from cdm.io.torch import load_inert
 from cdm.model.pvcnn2 import PVCNN2Denoiser
 from cdm.model.state_dicts import checked_state_dict
-from cdm.torch_files import load_inert
 
 __all__ = [
     "Reference",
@@ -123,7 +123,7 @@ def load_reference_checkpoint(path: str | Path, reference: Reference) -> dict[st
 
     Raises:
         ValueError: the file's pickle would call something other than what tensors and a config need
-            (:func:`cdm.torch_files.load_inert`), torch cannot read it, or it holds no PVCNN2 weights.
+            (:func:`cdm.io.torch.load_inert`), torch cannot read it, or it holds no PVCNN2 weights.
     """
     checkpoint = load_inert(Path(path), str(path), "torch file")
     if not isinstance(checkpoint, Mapping):

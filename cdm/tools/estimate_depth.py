@@ -37,12 +37,12 @@ import torch
 
 from cdm.cli import add_out, command_parser
 from cdm.data.depth_maps import ESTIMATOR_FILE
-from cdm.data.images import read_image
 from cdm.interrupt import interruptible
-from cdm.safe_io import read_json
-from cdm.safe_write import make_folder, write_atomic
+from cdm.io.images import read_image
+from cdm.io.json import read_json
+from cdm.io.torch import load_tensors
+from cdm.io.write import make_folder, write_atomic
 from cdm.tools.export_views import crops
-from cdm.torch_files import load_tensors
 
 __all__ = [
     "Estimator", "View", "build_parser", "estimate", "find_views", "load_estimator", "main", "output_kind", "write_maps"

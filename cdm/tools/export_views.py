@@ -31,7 +31,7 @@ from torch import Tensor
 from cdm.cli import add_out, add_set, command_parser
 from cdm.config import load_config, parse_override
 from cdm.interrupt import interruptible
-from cdm.safe_write import make_folder, write_atomic
+from cdm.io.write import make_folder, write_atomic
 
 __all__ = ["build_parser", "crops", "export_views", "main"]
 

@@ -25,8 +25,11 @@ import numpy as np
 
 from cdm.cli import command_parser, old_spelling
 from cdm.interrupt import interruptible
-from cdm.safe_io import load_npy, object_id_parts, read_json
-from cdm.safe_write import write_atomic
+from cdm.io.arrays import load_npy
+from cdm.io.images import read_rgb
+from cdm.io.json import read_json
+from cdm.io.names import object_id_parts
+from cdm.io.write import write_atomic
 from cdm.tools.export_views import crops
 
 __all__ = ["build_parser", "main"]
@@ -36,6 +39,12 @@ def _reference(folder: Path) -> Path:
     """The reference view's image of one object folder (module docstring)."""
     flat = crops(folder, "--views")
     return flat[0][1] if flat else folder / "0" / "0.png"
+
+
+def _rgb(path: Path) -> np.ndarray:
+    if (rgb := read_rgb(path, "--views")) is None:
+        raise ValueError(f"--views: {path} is not an image")
+    return rgb
 
 
 def _depth_image(path: Path):
@@ -87,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 ref = _reference(args.views / object_id)
                 if args.kind == "image":
-                    picture = Image.open(ref).convert("RGB")
+                    picture = Image.fromarray(_rgb(ref))
                 elif args.depth_maps is not None:
                     picture = _depth_image(args.depth_maps / object_id / f"{ref.stem}.npy")
                 else:

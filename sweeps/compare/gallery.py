@@ -44,9 +44,11 @@ def _view(points: np.ndarray, elevation: float = ELEVATION, azimuth: float = AZI
 def panel_input(png: Path) -> np.ndarray | None:
     """The input image of an evaluation panel (``cdm.evaluate.save_panel``: its top-left square, framed by
     the axes' black border), as ``(H, W, 3)`` uint8; None when no such frame is found."""
-    from PIL import Image
+    from cdm.io.images import read_rgb  # OpenCV, only when a panel is read
 
-    rgb = np.asarray(Image.open(png).convert("RGB"))
+    rgb = read_rgb(png, "evaluation panel")
+    if rgb is None:
+        return None
     h, w = rgb.shape[:2]
     dark = rgb[: int(h * 0.6), : w // 4].mean(axis=2) < 80  # the input square: top row, first of four columns
     rows = np.flatnonzero(dark.mean(axis=1) > 0.5)

@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from cdm.io.files import read_text
 from cdm.metric_names import label as metric_label
 from sweeps.compare.rules import partner
 from sweeps.storage import write_file
@@ -329,7 +330,7 @@ def optuna_plots(
 
 def read_ply(path: Path) -> np.ndarray:
     """The ``(N, 3)`` points of an ASCII PLY as written by :func:`cdm.evaluate.write_ply`."""
-    lines = Path(path).read_text().splitlines()
+    lines = read_text(Path(path), "reconstruction").splitlines()
     start = lines.index("end_header") + 1
     return np.loadtxt(lines[start:], dtype=np.float32, ndmin=2)[:, :3]
 

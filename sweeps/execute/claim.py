@@ -31,6 +31,7 @@ import stat
 import tempfile
 from pathlib import Path
 
+from cdm.io.json import parse_json
 from sweeps.storage import StoreError, private_folder
 
 __all__ = ["ClaimError", "SweepClaim", "claim", "claims_folder"]
@@ -108,8 +109,8 @@ class SweepClaim:
 
 def _holder_text(fd: int) -> str:
     try:
-        holder = json.loads(os.pread(fd, 4096, 0) or b"{}")
-    except json.JSONDecodeError:
+        holder = parse_json(os.pread(fd, 4096, 0) or b"{}", "sweep lock", "its holder record")
+    except ValueError:  # damaged, or planted: the holder stays unnamed
         holder = {}
     who = f"process {holder['pid']} on {holder['host']}" if "pid" in holder else "another process"
     if "parent_run_id" in holder:

@@ -2,7 +2,7 @@
 
 Work is cut into chunks of objects (or views), one Ray task each. A task does its items one by one and
 returns the ones that failed with their error, so a bad object fails alone, named, and the others
-finish. Every file is written atomically under its final name (:func:`cdm.safe_write.write_atomic`,
+finish. Every file is written atomically under its final name (:func:`cdm.io.write.write_atomic`,
 :mod:`cdm.tools.estimate_depth`) and an item whose file exists is skipped, so a killed run, rerun,
 writes only what is missing. Tasks write to ``out`` as every node sees it: on several machines, a
 shared file system. Used by ``sweeps/inputs.py``.

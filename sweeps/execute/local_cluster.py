@@ -33,6 +33,7 @@ import stat
 import tempfile
 from pathlib import Path
 
+from cdm.io.json import read_json
 from sweeps.storage import StoreError, private_folder, write_private
 
 __all__ = [
@@ -111,7 +112,7 @@ def reap_stale_sessions() -> list[int]:
     ended = []
     for record in SESSION_RECORDS.glob("*.json"):
         try:
-            info = json.loads(record.read_text())
+            info = read_json(record, "Ray session record")
             driver, session_dir = int(info["pid"]), str(info["session_dir"])
         except (OSError, ValueError, KeyError, TypeError):
             record.unlink(missing_ok=True)

@@ -7,12 +7,13 @@ The driver's parent run (:class:`sweeps.execute.tracking.SweepRun`), the trial's
 
 from __future__ import annotations
 
-import csv
 import tempfile
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 
 from mlflow import MlflowClient
 
+from cdm.io.csv import read_csv
 from sweeps.store_retry import PatientClient, wait_when_busy
 
 __all__ = [
@@ -101,8 +102,7 @@ def last_objects(client: MlflowClient, run_id: str) -> list[dict[str, object]]:
         return []
     with tempfile.TemporaryDirectory() as tmp:
         local = client.download_artifacts(run_id, tables[0], tmp)
-        with open(local, newline="") as fh:
-            rows = list(csv.DictReader(fh))
+        rows = read_csv(Path(local), f"run {run_id}")
     text = ("object_id", "category", "eval_set")
     return [{k: (v if k in text else float(v)) for k, v in row.items()} for row in rows]
 

@@ -21,8 +21,9 @@ from typing import Any
 
 from ray.tune.search import Searcher
 
-from cdm.safe_io import parse_json
-from cdm.safe_write import write_atomic
+from cdm.io.files import read_bounded
+from cdm.io.json import parse_json
+from cdm.io.write import write_atomic
 from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.execute.logged_runs import last_objects
 from sweeps.execute.tracking import SweepRun
@@ -168,8 +169,11 @@ class SeedSearcher(Searcher):
         """Proposals from ``checkpoint_path`` (checked as :func:`check_searcher_state` checked it before
         Tune started), results from MLflow: one search over the parent's children, then the scores of
         each finished one (at most one per trial of the plan)."""
-        with open(checkpoint_path, "rb") as fh:
-            self.proposed, spent = parse_searcher_state(fh.read(MAX_STATE_BYTES + 1), checkpoint_path, self.plan)
+        try:
+            raw = read_bounded(Path(checkpoint_path), "--resume", MAX_STATE_BYTES)
+        except ValueError as exc:
+            raise StoreError(f"{exc}; the seed searcher's state is damaged, {_FRESH_START}") from None
+        self.proposed, spent = parse_searcher_state(raw, checkpoint_path, self.plan)
         self.spent_before, self.since = spent, time.monotonic()
         self.started_at, self.durations = {}, []
         self.out_of_time = BUDGET_TAG in self.sweep_run.client.get_run(self.sweep_run.run_id).data.tags

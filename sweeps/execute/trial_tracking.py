@@ -8,7 +8,6 @@ skips steps it had already logged: no duplicates. The driver closes it with Tune
 
 from __future__ import annotations
 
-import csv
 import math
 import time
 from pathlib import Path
@@ -18,6 +17,7 @@ from mlflow import MlflowClient
 from mlflow.entities import Metric, RunTag
 
 from cdm.config import F1_THRESHOLD, Config
+from cdm.io.csv import read_csv
 from cdm.metric_names import f1_at
 from cdm.train import Callback
 from sweeps.compare.rules import rounded
@@ -139,8 +139,7 @@ class TrialRun(Callback):
         self._log(step, {k: v for k, v in metrics.items() if not k.startswith("baseline/") and not is_per_category(k)})
         if not self.eval_set_tagged:  # every evaluation of a run scores the same evaluation set
             for path in (p for p in files if p.name == "objects.csv"):
-                with path.open(newline="") as fh:
-                    first = next(csv.DictReader(fh), None)
+                first = next(iter(read_csv(path, "evaluation")), None)
                 if first is not None:
                     self.client.set_tag(self.run_id, "eval_set", first["eval_set"])
                     self.eval_set_tagged = True

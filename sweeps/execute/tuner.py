@@ -18,7 +18,7 @@ from typing import Any
 import ray
 import ray.tune
 
-from cdm.config import load_config
+from cdm.io.files import read_text
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import lease_cores
@@ -29,7 +29,7 @@ from sweeps.execute.trial import TrialSetup, run_trial
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
-from sweeps.plan.trials import Cell, SweepPlan
+from sweeps.plan.trials import SweepPlan
 
 __all__ = ["error_summary", "run_sweep"]
 
@@ -76,7 +76,7 @@ class _TrialCloser(ray.tune.Callback):
     def on_trial_error(self, iteration, trials, trial, **info) -> None:
         label = self._label(trial)
         # Tune has just written the traceback to the trial's local error file (before syncing it).
-        reason = error_summary(Path(trial.error_file).read_text()) if trial.error_file else "unknown error"
+        reason = error_summary(read_text(Path(trial.error_file), "error file")) if trial.error_file else "unknown error"
         self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason)
         print(f"✗ failed [{label}]: {reason} ({self._count(trials, trial)})", flush=True)
 
@@ -129,16 +129,7 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
     objects = tuple(sweep_run.trial_objects(trial_id)) if trial_id and status != "failed" else ()
     paper_label, paper = (cell.paper_label, cell.paper) if cell else (None, {})
     return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects,
-                        _f1_threshold(plan, cell, result.config or {}))
-
-
-def _f1_threshold(plan: SweepPlan, cell: Cell | None, tune_config: dict[str, Any]) -> float:
-    """The trial's ``eval.f1_threshold``: its cell's config, else (a sampled trial) what it drew or the plan's."""
-    if cell is not None:
-        return cell.config.eval.f1_threshold
-    if "eval.f1_threshold" in tune_config:
-        return float(tune_config["eval.f1_threshold"])
-    return load_config(None, {**plan.fixed, **plan.sets}).eval.f1_threshold
+                        plan.f1_threshold(label, result.config or {}))
 
 
 def _tuner(plan: SweepPlan, trainable, conc: Concurrency, sweep_dir: str, sweep_run: SweepRun, resume: bool,

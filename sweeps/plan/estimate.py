@@ -35,6 +35,7 @@ from pathlib import Path
 from cdm.config import Config, load_config
 from cdm.data import build_dataset, list_categories
 from cdm.evaluate import build_eval_set
+from cdm.io.json import read_json
 from cdm.optim import TrainingDiverged
 from cdm.prior_model import ensure_priors
 from cdm.train import Trainer
@@ -193,7 +194,7 @@ def _eval_objects(cfg: Config) -> int:
 
 
 def _figures() -> dict:
-    return json.loads(GPU_COSTS.read_text()) if GPU_COSTS.is_file() else {}
+    return read_json(GPU_COSTS, "GPU costs") if GPU_COSTS.is_file() else {}
 
 
 def _paper_config(paper: SweepPlan) -> Config:

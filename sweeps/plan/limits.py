@@ -1,8 +1,5 @@
 """Caps on what one sweep may ask of the machine, checked before anything is allocated or started.
 
-- :func:`load_yaml`: spec and profile files are read with a size cap, must be UTF-8, and YAML
-  aliases may not expand the document past :data:`MAX_YAML_NODES` nodes (a 330-byte "billion
-  laughs" anchor chain would otherwise grow to gigabytes inside ``yaml.safe_load``).
 - :func:`check_trials`: at most ``--max-cells`` trials (default :data:`MAX_TRIALS`), counted from
   the spec's grid, cells and seeds before a single config is built (:func:`count_trials`).
 - a ``--dry-run`` of more than :data:`LISTED_TRIALS` grid trials checks them one at a time, holding
@@ -21,19 +18,14 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any, TextIO
 
-import yaml
-
-from cdm.safe_io import BoundedYamlLoader, read_bounded
+from sweeps.plan.spec import Spec
 
 __all__ = [
     "MAX_SET_CHARS",
     "MAX_SET_DEPTH",
     "MAX_TRIALS",
-    "MAX_YAML_BYTES",
-    "MAX_YAML_NODES",
     "LISTED_TRIALS",
     "PROGRESS_EVERY",
     "LimitError",
@@ -41,13 +33,8 @@ __all__ = [
     "check_set_text",
     "check_trials",
     "count_trials",
-    "load_yaml",
 ]
 
-MAX_YAML_BYTES = 1 << 20
-"""Largest spec or profiles file read (1 MiB; the repository's specs are a few kB)."""
-MAX_YAML_NODES = 100_000
-"""Most YAML nodes a document may hold once its aliases are expanded."""
 MAX_SET_CHARS = 4096
 """Longest ``--set key=value`` (a list of a few hundred categories fits)."""
 MAX_SET_DEPTH = 16
@@ -65,72 +52,8 @@ class LimitError(ValueError):
     """An input exceeds a cap; the message names the file or field and how to raise the cap."""
 
 
-def _expanded_size(node: yaml.Node, memo: dict[int, int], active: set[int]) -> int:
-    """Nodes under ``node`` with every alias expanded (shared nodes counted once per use)."""
-    key = id(node)
-    if key in memo:
-        return memo[key]
-    if key in active:
-        raise LimitError("refers to itself through an alias (a recursive anchor)")
-    active.add(key)
-    if isinstance(node, yaml.SequenceNode):
-        children = list(node.value)
-    elif isinstance(node, yaml.MappingNode):
-        children = [part for pair in node.value for part in pair]
-    else:
-        children = []
-    size = 1
-    for child in children:
-        size += _expanded_size(child, memo, active)
-        if size > MAX_YAML_NODES:
-            break
-    active.discard(key)
-    memo[key] = size
-    return size
-
-
-def load_yaml(path: Path) -> Any:
-    """Read a YAML file safely: size-capped, UTF-8, aliases bounded; ``yaml.safe_load``'s result.
-
-    Raises:
-        LimitError: the file cannot be read, is too large, is not UTF-8 text, is not YAML, or
-            expands past :data:`MAX_YAML_NODES` nodes.
-    """
-    try:
-        raw = read_bounded(path, str(path), MAX_YAML_BYTES, show_path=False)  # a FIFO or device is refused, not read
-    except ValueError as exc:
-        raise LimitError(f"{exc}; a spec may be at most {MAX_YAML_BYTES} bytes of YAML") from None
-    except OSError as exc:
-        raise LimitError(f"{path}: cannot read ({exc.strerror})") from None
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise LimitError(f"{path}: not UTF-8 text (byte {exc.start}); give a YAML spec file") from None
-    loader = BoundedYamlLoader(text)
-    try:
-        node = loader.get_single_node()
-        if node is None:
-            return None
-        expanded = _expanded_size(node, {}, set())
-        if expanded > MAX_YAML_NODES:
-            raise LimitError(f"{path}: its aliases (*name) expand to more than {MAX_YAML_NODES} YAML nodes; "
-                             "write the values out or use fewer nested aliases")
-        return loader.construct_document(node)
-    except yaml.YAMLError as exc:
-        raise LimitError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    except RecursionError:
-        raise LimitError(f"{path}: nested too deeply to be a spec") from None
-    except LimitError as exc:
-        if str(exc).startswith(str(path)):
-            raise
-        raise LimitError(f"{path}: {exc}") from None
-    finally:
-        loader.dispose()
-
-
-def count_trials(spec: Any) -> tuple[int, str]:
-    """Trials of a :class:`sweeps.plan.spec.Spec`, counted without building them, and what was counted (typed
-    ``Any``: the spec module reads its files through this one).
+def count_trials(spec: Spec) -> tuple[int, str]:
+    """Trials of a spec, counted without building them, and what was counted.
 
     A grid counts (explicit cells or 1) × the product of its value lists × seeds, an upper bound
     when ``exclude`` drops combinations; Optuna counts its largest ``num_samples``.
@@ -143,8 +66,8 @@ def count_trials(spec: Any) -> tuple[int, str]:
     ), "grid × cells × seeds"
 
 
-def check_trials(spec: Any, max_trials: int = MAX_TRIALS) -> None:
-    """Refuse a :class:`sweeps.plan.spec.Spec` with more than ``max_trials`` trials (:func:`count_trials`)."""
+def check_trials(spec: Spec, max_trials: int = MAX_TRIALS) -> None:
+    """Refuse a spec with more than ``max_trials`` trials (:func:`count_trials`)."""
     count, what = count_trials(spec)
     if count > max_trials:
         raise LimitError(f"{what}: {count} trials; a sweep may have at most {max_trials} "

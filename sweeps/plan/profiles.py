@@ -13,7 +13,8 @@ from typing import Any
 from pydantic import Field, ValidationError
 
 from cdm.config import ConfigError, PaperDataSet, format_validation_error, load_config, read_config_file
-from sweeps.plan.schema_base import KNOWN_FIELDS, SpecError, Strict, field_error, read_yaml
+from cdm.io.yaml import read_mapping
+from sweeps.plan.schema_base import KNOWN_FIELDS, SpecError, Strict, field_error
 
 __all__ = ["PROFILES_FILE", "RUN_ONLY", "Budget", "Profile", "Resources", "SharedProfile", "load_profiles"]
 
@@ -89,9 +90,11 @@ def load_profiles(path: str | Path = PROFILES_FILE) -> dict[str, Profile]:
     another section sets."""
     path = Path(path)
     try:
-        profiles = {name: SharedProfile.model_validate(body) for name, body in read_yaml(path).items()}
+        profiles = {name: SharedProfile.model_validate(body) for name, body in read_mapping(path, "profiles").items()}
     except ValidationError as exc:
         raise SpecError(f"{path}: {format_validation_error(exc, SharedProfile)}") from None
+    except ValueError as exc:  # the file: over a cap of cdm.io.yaml, not YAML, not a mapping
+        raise SpecError(str(exc)) from None
     for name, prof in profiles.items():
         if prof.recipe is not None:
             profiles[name] = prof = prof.model_copy(

@@ -1,20 +1,16 @@
-"""What every sweep file's schema shares: the strict model, :class:`SpecError`, the YAML read as a mapping,
-and which dotted :mod:`cdm.config` fields a file may set.
+"""What every sweep file's schema shares: the strict model, :class:`SpecError` and which dotted
+:mod:`cdm.config` fields a file may set.
 
 :mod:`sweeps.plan.spec` (a spec file) and :mod:`sweeps.plan.profiles` (the shared profiles) build on it.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Any
-
 from pydantic import BaseModel, ConfigDict
 
 from cdm.config import config_field_paths
-from sweeps.plan.limits import LimitError, load_yaml
 
-__all__ = ["KNOWN_FIELDS", "OWNED_FIELDS", "SpecError", "Strict", "field_error", "read_yaml"]
+__all__ = ["KNOWN_FIELDS", "OWNED_FIELDS", "SpecError", "Strict", "field_error"]
 
 KNOWN_FIELDS = frozenset(config_field_paths())
 """Every dotted config field (``python -m cdm fields``)."""
@@ -45,14 +41,3 @@ class Strict(BaseModel):
     """A sweep file's model: an unknown key is a typo, not a field to ignore."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-def read_yaml(path: Path) -> dict[str, Any]:
-    """The file's YAML, read within :mod:`sweeps.plan.limits`' bounds, as a mapping."""
-    try:
-        tree = load_yaml(path)
-    except LimitError as exc:
-        raise SpecError(str(exc)) from None
-    if not isinstance(tree, dict):
-        raise SpecError(f"{path}: top level must be a mapping")
-    return tree

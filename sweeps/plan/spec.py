@@ -19,8 +19,9 @@ from typing import Any, Literal
 from pydantic import Field, TypeAdapter, ValidationError, field_validator, model_validator
 
 from cdm.config import PaperDataSet, format_validation_error
+from cdm.io.yaml import read_mapping
 from sweeps.plan.profiles import Profile, Resources
-from sweeps.plan.schema_base import OWNED_FIELDS, SpecError, Strict, field_error, read_yaml
+from sweeps.plan.schema_base import OWNED_FIELDS, SpecError, Strict, field_error
 from sweeps.plan.search import SEARCHES, search_kind
 
 __all__ = [
@@ -330,7 +331,9 @@ def load_spec(path: str | Path) -> Spec:
     """Read and validate a spec file; :class:`SpecError` names the first bad field."""
     path = Path(path)
     try:
-        return Spec.model_validate(read_yaml(path))
+        return Spec.model_validate(read_mapping(path, "spec"))
     except ValidationError as exc:
         raise SpecError(f"{path}: {format_validation_error(exc, Spec)}") from None
+    except ValueError as exc:  # the file: over a cap of cdm.io.yaml, not YAML, not a mapping
+        raise SpecError(str(exc)) from None
 

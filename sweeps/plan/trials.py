@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -135,6 +135,15 @@ class SweepPlan:
     def grid_cell(self, label: str) -> Cell | None:
         """The grid cell of this trial label (its config built by :func:`expand`); None in an Optuna sweep."""
         return next((c for c in self.cells if c.label == label), None)
+
+    def f1_threshold(self, label: str, drawn: Mapping[str, Any]) -> float:
+        """The trial ``label``'s ``eval.f1_threshold``, worked out here alone: what the trial drew or logged
+        (``drawn``: a sampled trial's Tune config, or a run's params), else its grid cell's config, else
+        the plan's fixed and set values (what :func:`expand` resolves)."""
+        if "eval.f1_threshold" in drawn:
+            return float(drawn["eval.f1_threshold"])
+        cell = self.grid_cell(label)
+        return (cell.config if cell else load_config(None, {**self.fixed, **self.sets})).eval.f1_threshold
 
     def names(self, tune_config: dict[str, Any]) -> tuple[str, str]:
         """(cell name, trial label) of a Tune config, without resolving its config: for the driver's callbacks."""

@@ -8,7 +8,6 @@ The runner's end-of-sweep publishing and ``sweeps/results/publish.py`` are built
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
 import tempfile
@@ -20,7 +19,7 @@ from typing import Any
 from mlflow import MlflowClient
 from mlflow.entities import Run
 
-from cdm.config import load_config
+from cdm.io.json import read_json
 from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
@@ -125,7 +124,7 @@ def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | Non
         )
     with tempfile.TemporaryDirectory() as tmp:
         spec = load_spec(client.download_artifacts(run_id, specs[0], tmp))
-        plan = json.loads(Path(client.download_artifacts(run_id, "plan.json", tmp)).read_text())
+        plan = read_json(Path(client.download_artifacts(run_id, "plan.json", tmp)), f"sweep run {run_id}")
     children = client.search_runs([exp.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{run_id}'",
                                   order_by=["attributes.start_time ASC"], max_results=10000)
     # `cdm-lab rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
@@ -171,29 +170,18 @@ def trial_records(record: SweepRecord, objects: bool = True) -> list[TrialRecord
         rows = tuple(last_objects(record.client, run.info.run_id)) if objects and status in FINISHED else ()
         outcome = TrialOutcome(label, cell, status, metrics, _paper_label(record, planned), planned.get("paper") or {},
                                tags.get("error") if status == "failed" else None, rows,
-                               _f1_threshold(record, label, run))
+                               record.expanded.f1_threshold(label, run.data.params))
         out.append(TrialRecord(outcome, values, run.info.run_id))
     if not record.spec.search.sampled:
         outcomes = [t.outcome for t in out]
         next_round = _final_round(record, outcomes).start if record.spec.sequential is not None else None
         for label in unstarted(list(cells), outcomes, next_round):
             c = cells[label]
+            f1_threshold = record.expanded.f1_threshold(label, {})
             out.append(TrialRecord(TrialOutcome(label, split_label(label)[0], "pending", {}, _paper_label(record, c),
-                                                c.get("paper") or {}, f1_threshold=_f1_threshold(record, label, None)),
-                                   c["values"], None))
+                                                c.get("paper") or {}, f1_threshold=f1_threshold), c["values"], None))
     key = sweep_order(list(cells) if not record.spec.search.sampled else None, metric, mode)
     return sorted(out, key=lambda t: key(t.outcome))
-
-
-def _f1_threshold(record: SweepRecord, label: str, run: Run | None) -> float:
-    """A trial's ``eval.f1_threshold``: the param its run logged; for a trial that logged none, its planned
-    cell's, else the plan's (what :func:`sweeps.plan.trials.expand` resolves)."""
-    text = run.data.params.get("eval.f1_threshold") if run is not None else None
-    if text is not None:
-        return float(text)
-    plan = record.expanded
-    cell = plan.grid_cell(label)
-    return (cell.config if cell else load_config(None, {**plan.fixed, **plan.sets})).eval.f1_threshold
 
 
 def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:

@@ -20,7 +20,7 @@ import ray
 import torch
 from mlflow import MlflowClient
 
-from cdm.torch_files import load_tensors
+from cdm.io.torch import load_tensors
 from sweeps import run
 from tests.integration.local_ray import two_node_cluster
 

@@ -1,4 +1,4 @@
-"""The inert unpickler of :mod:`cdm.torch_files`: a ``data.pkl`` turned into tensors, plain data and records.
+"""The inert unpickler of :mod:`cdm.io.torch`: a ``data.pkl`` turned into tensors, plain data and records.
 
 Built on the pure-Python :class:`pickle._Unpickler` so that every opcode that calls, fills or mutates an
 object can be replaced: REDUCE calls only torch's tensor rebuilding (done here, after checking its
@@ -20,7 +20,7 @@ from typing import IO, Any
 
 import torch
 
-from cdm.torch_archive import Archive, ArchiveError
+from cdm.io.torch.archive import Archive, ArchiveError
 
 __all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "Refused", "unpickle"]
 
@@ -300,7 +300,7 @@ def _short(value: Any) -> str:
 
 def unpickle(file: IO[bytes], archive: Archive, records: bool) -> Any:
     """``data.pkl`` of ``archive`` read inertly; raises :class:`Refused` for what could run code and
-    :class:`cdm.torch_archive.ArchiveError` for a broken cap or a malformed storage reference."""
+    :class:`cdm.io.torch.archive.ArchiveError` for a broken cap or a malformed storage reference."""
     result = _Unpickler(file, archive, records).load()
     _check_nesting(result)
     return result

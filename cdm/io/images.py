@@ -4,7 +4,7 @@ A PNG's size is in its header, not in its bytes: a 130 KB 1-bit PNG of 32,768² 
 gigabytes, and a 16-bit one asks OpenCV for 8.6 GB at once (then a bare ``cv2.error``). So
 :func:`read_image` reads the header first (PIL opens a file lazily: size and mode, no pixels) and
 refuses more than :data:`MAX_IMAGE_PIXELS` pixels, naming the file, its size and what decoding it
-would take, before OpenCV decodes it. The file is opened once (:func:`cdm.safe_io.open_regular`: a
+would take, before OpenCV decodes it. The file is opened once (:func:`cdm.io.files.open_regular`: a
 FIFO or device is refused, not read) and both the header and the pixels come from the bytes read.
 """
 
@@ -18,9 +18,10 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from cdm.safe_io import MAX_ARRAY_BYTES, read_bounded
+from cdm.io.arrays import MAX_ARRAY_BYTES
+from cdm.io.files import read_bounded
 
-__all__ = ["MAX_IMAGE_PIXELS", "read_image"]
+__all__ = ["MAX_IMAGE_PIXELS", "read_image", "read_rgb"]
 
 MAX_IMAGE_PIXELS = 1 << 26
 """Most pixels (width × height) of an image read: 8,192² (Co3D's frames are about 2 megapixels)."""
@@ -40,7 +41,7 @@ def read_image(path: Path, flags: int, field: str) -> np.ndarray | None:
 
     Raises:
         ValueError: the header says more than :data:`MAX_IMAGE_PIXELS` pixels, or ``path`` is not a
-            regular file (a FIFO, a device, a folder) or is over :data:`cdm.safe_io.MAX_ARRAY_BYTES`.
+            regular file (a FIFO, a device, a folder) or is over :data:`cdm.io.files.MAX_ARRAY_BYTES`.
     """
     path = Path(path)
     if not path.exists():
@@ -59,6 +60,13 @@ def read_image(path: Path, flags: int, field: str) -> np.ndarray | None:
         need = width * height * _BYTES_PER_PIXEL[flags]
         _refuse(field, path, f"{width}×{height} pixels (decoding takes {need / 2**30:.1f} GiB)")
     return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+
+
+def read_rgb(path: Path, field: str) -> np.ndarray | None:
+    """The image at ``path`` as ``(H, W, 3)`` 8-bit RGB, read as :func:`read_image` reads it (header first,
+    regular files only); None when the file is missing or not an image."""
+    bgr = read_image(path, cv2.IMREAD_COLOR, field)
+    return None if bgr is None else np.ascontiguousarray(bgr[..., ::-1])
 
 
 def _refuse(field: str, path: Path, size: str) -> None:

@@ -8,7 +8,7 @@ import argparse
 import pytest
 import torch
 
-from cdm.torch_files import Pickled, load_inert, load_tensors
+from cdm.io.torch import Pickled, load_inert, load_tensors, pickle_bytes
 
 
 def _load(file):
@@ -96,3 +96,13 @@ def test_load_inert_refuses_what_is_not_a_torch_archive(tmp_path):
     (tmp_path / "garbage.pt").write_bytes(b"not a torch file")
     with pytest.raises(ValueError, match=r"garbage\.pt is not a readable weights file: not in torch's file format$"):
         load_inert(tmp_path / "garbage.pt", f"weights: {tmp_path / 'garbage.pt'}", "weights file")
+
+
+def test_pickle_bytes_are_the_archives_pickle_unpickled_by_no_one(tmp_path):
+    path = tmp_path / "w.pt"
+    torch.save({"point_cloud_model.weight": torch.zeros(2)}, path)
+    raw = pickle_bytes(path, str(path))
+    assert raw.startswith(b"\x80") and b"point_cloud_model.weight" in raw
+    path.write_bytes(b"not a zip at all")
+    with pytest.raises(ValueError, match=f"^{path} is not a torch archive"):
+        pickle_bytes(path, str(path))

@@ -1,9 +1,11 @@
 """Torch files a user or a neighbour could have written, read as tensors and plain data only.
 
 This module owns reading pickles: no other module calls ``torch.load``, ``torch.jit.load`` or
-``pickle.load`` (tests/test_read_audit.py walks the code). Both readers open the archive themselves
-(:class:`cdm.torch_archive.Archive`: no TorchScript, bounded members) and run one inert unpickler on its
-``data.pkl``; torch's loader never sees the file, so ``torch.jit.load`` cannot be reached:
+``pickle.load`` (tests/test_read_audit.py walks the code), and this one calls ``torch.load`` once, in
+:func:`load_own`, for files the project wrote into its own cache. The readers of a file a user names open
+the archive themselves (:class:`cdm.io.torch.archive.Archive`: no TorchScript, bounded members) and run one
+inert unpickler on its ``data.pkl``; torch's loader never sees such a file, so ``torch.jit.load`` cannot be
+reached:
 
 - :func:`load_tensors`: what ``torch.load(weights_only=True)`` reads: tensors, ``OrderedDict``, plain data.
 - :func:`load_inert`: also a pickled config, as PC²'s ``checkpoint-latest.pth`` pickles its OmegaConf ``cfg``
@@ -26,11 +28,12 @@ from typing import Any
 
 import torch
 
-from cdm.safe_io import open_regular
-from cdm.torch_archive import Archive, ArchiveError
-from cdm.torch_unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, Pickled, Refused, unpickle
+from cdm.io.files import open_regular
+from cdm.io.torch.archive import Archive, ArchiveError
+from cdm.io.torch.unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, Pickled, Refused, unpickle
 
-__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_own", "load_tensors"]
+__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_own", "load_tensors",
+           "pickle_bytes"]
 
 
 def load_tensors(file: Path, label: str, kind: str, advice: str) -> Any:
@@ -68,6 +71,20 @@ def load_inert(file: Path, label: str, kind: str) -> Any:
             f"{label} could run code from the file while loading ({exc}); refused, and nothing of it was run. "
             f"Only tensors, plain data and a config ({', '.join(CONFIG_CALLS)}) are read"
         ) from None
+
+
+def pickle_bytes(file: Path, label: str) -> bytes:
+    """The bytes of ``file``'s ``data.pkl``, within the archive's caps and nothing unpickled: what a reader
+    recognises a file by (the names its pickle holds) before choosing how to load it.
+
+    Raises:
+        ValueError: ``file`` is not a regular file or not a ``torch.save`` archive; the message starts with ``label``.
+    """
+    with open_regular(file, label, show_path=False) as f:
+        try:
+            return Archive(f).pickle()
+        except ArchiveError as exc:
+            raise ValueError(f"{label} is not a torch archive: {exc}") from None
 
 
 def _read(file: Path, label: str, kind: str, records: bool) -> Any:
