@@ -102,11 +102,15 @@ def cmd_train_prior(args: argparse.Namespace) -> int:
     return 0
 
 
-def _network(checkpoint: str, sets: dict):
+def _network(checkpoint: str, sets: dict, command: str):
     """The network of a CDM checkpoint, or of PC²'s ``checkpoint-latest.pth`` with the settings it took said."""
     from cdm.checkpoint import load_network
+    from cdm.paths import names_a_uri
     from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
 
+    if names_a_uri(checkpoint):  # the library reads local files; fetching MLflow's is the sweeps' side
+        raise ValueError(f"--checkpoint: {checkpoint} is a URI and `python -m cdm` reads local files; "
+                         f"`cdm-lab {command} --checkpoint {checkpoint}` fetches an MLflow artifact (runs:/…) first")
     if not is_pc2_checkpoint(checkpoint):
         return load_network(checkpoint, sets)
     pc2 = read_pc2_checkpoint(checkpoint)
@@ -119,7 +123,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from cdm.data import build_dataset
     from cdm.evaluate import build_eval_set, run_evaluation
 
-    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set), args.command)
     eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
     out = run_evaluation(network, diffusion, eval_set, cfg, device, Path(args.out) if args.out else None)
     names = sorted(k for k in out.metrics if k.endswith("/cd") or k.endswith("/f1"))
@@ -184,7 +188,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from cdm.evaluate import reconstruct, write_ply
 
     out_folder = _output_folder(Path(args.out))
-    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set), args.command)
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
     elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
     camera = look_at_cameras(elev, azim, dist, args.focal)
@@ -284,13 +288,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train_prior)
     p = sub.add_parser("evaluate", help="score a checkpoint on the held-out split")
     p.add_argument(
-        "--checkpoint", required=True, help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth"
+        "--checkpoint", required=True, help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s "
+        "checkpoint-latest.pth; through cdm-lab also an MLflow artifact URI (a sweep trial's runs:/<run id>/model)"
     )
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--out", help="folder for PLY/PNG/CSV outputs")
     p.set_defaults(func=cmd_evaluate)
     p = sub.add_parser("reconstruct", help="reconstruct a point cloud from one image")
-    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint or PC²'s checkpoint-latest.pth")
+    p.add_argument("--checkpoint", required=True, help="a CDM checkpoint or PC²'s checkpoint-latest.pth; through "
+                   "cdm-lab also an MLflow artifact URI (runs:/<run id>/model)")
     p.add_argument("--image", required=True)
     p.add_argument("--out", required=True, help="output .ply")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
