@@ -97,3 +97,13 @@ def test_train_evaluate_reconstruct(tmp_path):
     assert len(lines) == 7 + TINY["data"]["num_points"]
     out = run_cli("evaluate", "--checkpoint", str(tmp_path / "nope"), cwd=tmp_path)
     assert out.returncode == 2 and "checkpoint" in out.stderr
+
+
+@pytest.mark.parametrize("command", [["evaluate"], ["reconstruct", "--image", "in.png", "--out", "cloud.ply"]])
+def test_a_uri_checkpoint_is_refused_in_one_line_naming_cdm_lab(command, capsys):
+    from cdm.__main__ import main
+
+    assert main([*command, "--checkpoint", "runs:/0a1b2c/model"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "runs:/0a1b2c/model is a URI" in err
+    assert f"cdm-lab {command[0]} --checkpoint runs:/0a1b2c/model" in err
