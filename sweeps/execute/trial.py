@@ -203,7 +203,8 @@ def trial_scratch(sweep_dir: str, trial_id: str) -> Path:
     """The node-local folder a trial trains in (``train.out_dir``), in this user's private temporary folder.
 
     Only files on their way live there: a checkpoint until Ray has copied it into the sweep's storage
-    (:class:`_RayReporter` then deletes it), evaluation files once the child run has logged them. Not Tune's
+    (:class:`_RayReporter` then deletes it), evaluation files for the child run to log; the folder goes when
+    the trial ends (:func:`run_trial`; a Train worker's stays on its node, never recorded). Not Tune's
     trial folder (``get_trial_dir()``): that lies in Ray's temporary session folder, gone after ``ray stop``,
     and on the head node Tune's syncer copies it whole into the sweep folder, which then held every
     checkpoint twice.
