@@ -96,7 +96,7 @@ profiles: {smoke: {resources: {workers_per_trial: 2, cpus_per_worker: 0.99}}}
     sweep_dir = tmp_path / "results" / "ddp" / "smoke"
     (trial_dir,) = sweep_dir.glob("trial_*")
     trial_id = trial_dir.name.removeprefix("trial_")
-    rank0 = sorted((sweep_dir / "train" / trial_dir.name).glob("checkpoint_*"))
+    rank0 = sorted(p for p in (sweep_dir / "train" / trial_dir.name).glob("checkpoint_*") if p.is_dir())
     scratch = trial_scratch(str(sweep_dir), trial_id)
     assert not list(scratch.glob("checkpoints/step_*"))
     rank1 = sorted((scratch / "rank_1" / "checkpoints").glob("step_*"))
