@@ -44,7 +44,7 @@ from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_logger
 from sweeps.execute.pruning import KEEP
 from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
-from sweeps.storage import private_folder
+from sweeps.storage import private_folder, storage_location
 
 __all__ = [
     "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "sampled_cell", "train_loop", "trial_dir_name",
@@ -143,8 +143,8 @@ def train_loop(job: TrialJob) -> None:
     rank = 0 if job.local else ray.train.get_context().get_world_rank()
     checkpoint = ray.tune.get_checkpoint() if job.local else ray.train.get_checkpoint()
     with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
-        if resume_from is not None:
-            print(f"[{job.label}] resuming from {resume_from}", flush=True)
+        if resume_from is not None:  # named where it is kept: as_directory() may be a temporary download
+            print(f"[{job.label}] resuming from {storage_location(job.setup.sweep_dir, checkpoint.path)}", flush=True)
         fit_trial(job, rank, functools.partial(_trackers, job), resume_from)
 
 
@@ -285,9 +285,11 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
             callbacks=_tune_report_callbacks() if r.workers_per_trial else None,
         ),
     )
-    trainer.fit()
-    if job.local:  # its checkpoints are in storage, its evaluation files in MLflow: nothing left to keep
-        shutil.rmtree(scratch)
+    try:
+        trainer.fit()
+    finally:  # its checkpoints are in storage, its evaluation files in MLflow: nothing left to keep
+        if job.local and scratch.exists():  # (a Train worker's folder is on its own node; absent: failed early)
+            shutil.rmtree(scratch)
 
 
 def _prior_dir(sweep_dir: str, trial_dir: str) -> str:
