@@ -213,11 +213,9 @@ def trial_scratch(sweep_dir: str, trial_id: str) -> Path:
     return private_folder(Path(tempfile.gettempdir()) / f"cdm-trials-{os.getuid()}") / sweep / trial_dir_name(trial_id)
 
 
-def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, trial_dir: str, node_id: str,
-              scratch: Path) -> TrialJob:
+def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, node_id: str, scratch: Path) -> TrialJob:
     """The trial a Tune config stands for (``{"cell": label}``: a grid cell as the plan built it; sampled
-    values: :func:`sampled_cell`), training in ``scratch`` (:func:`trial_scratch`); ``trial_dir`` is Tune's
-    local trial folder, where an object-store sweep caches category priors (:func:`_prior_dir`)."""
+    values: :func:`sampled_cell`), training in ``scratch`` (:func:`trial_scratch`)."""
     plan = setup.plan
     cell = sampled_cell(plan, tune_config) if plan.spec.search.sampled else setup.cells[tune_config["cell"]]
     categories = ",".join(cell.config.data.categories) or "all"
@@ -242,7 +240,7 @@ def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, tri
         trial_id=trial_id,
         metric=plan.spec.metric.name,
         tags=tags,
-        prior_dir=_prior_dir(setup.sweep_dir, trial_dir),
+        prior_dir=_prior_dir(setup.sweep_dir, scratch),
         setup=setup,
     )
 
@@ -254,8 +252,7 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     ctx = ray.tune.get_context()
     trial_id = ctx.get_trial_id()
     scratch = trial_scratch(setup.sweep_dir, trial_id)
-    job = trial_job(setup, tune_config, trial_id, ctx.get_trial_dir(), ray.get_runtime_context().get_node_id(),
-                    scratch)
+    job = trial_job(setup, tune_config, trial_id, ray.get_runtime_context().get_node_id(), scratch)
     done = finished_trial_metrics(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, trial_id)
     if done is not None:
         print(
@@ -292,14 +289,14 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
             shutil.rmtree(scratch)
 
 
-def _prior_dir(sweep_dir: str, trial_dir: str) -> str:
+def _prior_dir(sweep_dir: str, scratch: Path) -> str:
     """Where ``prior_checkpoint: auto`` caches category priors: the sweep folder, shared by every trial.
 
     Its lock needs a file system, so with an object-store ``sweep_dir`` (``s3://…``) each node keeps
-    its own cache beside the experiment's local trial folders.
+    its own cache beside the sweep's trial scratch folders (:func:`trial_scratch`).
     """
     if "://" in sweep_dir:
-        return str(Path(trial_dir).parent / "priors")
+        return str(scratch.parent / "priors")
     return str(Path(sweep_dir) / "priors")
 
 
