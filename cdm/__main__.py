@@ -107,11 +107,15 @@ def cmd_train_prior(args: argparse.Namespace) -> int:
     return 0
 
 
-def _network(checkpoint: str, sets: dict):
+def _network(checkpoint: str, sets: dict, command: str):
     """The network of a CDM checkpoint, or of PC²'s ``checkpoint-latest.pth`` with the settings it took said."""
     from cdm.checkpoint import load_network
+    from cdm.paths import names_a_uri
     from cdm.pc2_checkpoint import is_pc2_checkpoint, read_pc2_checkpoint
 
+    if names_a_uri(checkpoint):  # the library reads local files; fetching MLflow's is the sweeps' side
+        raise ValueError(f"--checkpoint: {checkpoint} is a URI and `python -m cdm` reads local files; "
+                         f"`cdm-lab {command} --checkpoint {checkpoint}` fetches an MLflow artifact (runs:/…) first")
     if not is_pc2_checkpoint(checkpoint):
         return load_network(checkpoint, sets)
     pc2 = read_pc2_checkpoint(checkpoint)
@@ -124,7 +128,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from cdm.data import build_dataset
     from cdm.evaluate import build_eval_set, run_evaluation
 
-    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set), args.command)
     eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
     out = run_evaluation(network, diffusion, eval_set, cfg, device, Path(args.out) if args.out else None)
     names = sorted(k for k in out.metrics if k.endswith("/cd") or k.endswith("/f1"))
@@ -189,7 +193,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from cdm.evaluate import reconstruct, write_ply
 
     out_folder = _output_folder(Path(args.ply))
-    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set))
+    cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set), args.command)
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
     elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
     camera = look_at_cameras(elev, azim, dist, args.focal)

@@ -9,7 +9,7 @@ schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Fil
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -77,6 +77,15 @@ class Checkpoint:
     def weights(self) -> dict[str, Tensor]:
         """The weights to evaluate with: EMA when the run kept them, else the trained ones."""
         return self.ema or self.model
+
+    def for_inference(self) -> Checkpoint:
+        """What evaluating and reconstructing read (config, step, back-end, weights, EMA, precision, encoder),
+        without the state that only continues training (optimiser, schedule, RNGs, loss scale; AdamW keeps two
+        moments per weight) and without ``train.out_dir``: the folder the training wrote to is no part of the
+        model (:func:`cdm.provenance.config_hash` leaves it out too); reading it back gives the default."""
+        train = {k: v for k, v in self.config.get("train", {}).items() if k != "out_dir"}
+        return replace(self, config={**self.config, "train": train}, optimizer=None, scheduler=None, generator=None,
+                       torch_rng=None, loss_scale=None)
 
 
 def save_checkpoint(checkpoint: Checkpoint, folder: str | Path) -> Path:

@@ -14,6 +14,7 @@ import importlib
 import json
 import sys
 from collections.abc import Iterator
+from contextlib import ExitStack
 from importlib.metadata import PackageNotFoundError, distribution
 from pathlib import Path
 from typing import NamedTuple
@@ -144,7 +145,18 @@ def main(argv: list[str] | None = None) -> int:
         _parser().parse_args(argv[:1])  # --help exits 0; an unknown command exits 2, naming the choices
     _, command = COMMANDS[argv[0]]
     prefix = [command.subcommand] if command.subcommand is not None else []
-    return importlib.import_module(command.module).main(prefix + argv[1:])
+    if command.module != "cdm.__main__":
+        return importlib.import_module(command.module).main(prefix + argv[1:])
+    # The model commands read local files; a --checkpoint URI (runs:/<run id>/model) is fetched by MLflow first.
+    from sweeps.fetch_checkpoint import FetchError, fetched_checkpoint
+
+    with ExitStack() as stack:
+        try:
+            args = stack.enter_context(fetched_checkpoint(argv[1:]))
+        except FetchError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        return importlib.import_module(command.module).main(prefix + args)
 
 
 if __name__ == "__main__":

@@ -58,6 +58,7 @@ __all__ = [
     "write_private",
     "publish_files",
     "read_text",
+    "storage_location",
     "sweep_location",
 ]
 
@@ -223,6 +224,15 @@ def parse_state(text: str, where: str) -> dict[str, Any]:
 def is_uri(storage: str) -> bool:
     """``s3://…``, ``gs://…``, ``file://…``: kept as written and read through pyarrow; else a local path."""
     return "://" in storage
+
+
+def storage_location(sweep_dir: str, fs_path: str) -> str:
+    """A path Ray's storage file system gives (``Checkpoint.path``: a URI's scheme and query stripped, as
+    pyarrow's ``FileSystem.from_uri`` does) as the sweep's storage spells it: unchanged for a local sweep folder,
+    ``s3://bucket/…`` again for ``s3://bucket/…`` storage."""
+    if not is_uri(sweep_dir):
+        return fs_path
+    return f"{sweep_dir.split('://', 1)[0]}://{fs_path}"
 
 
 def check_name(name: str, what: str) -> None:

@@ -118,3 +118,13 @@ def test_out_and_data_kind_are_refused_in_one_line_before_anything_is_written(ar
     err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("note: ")]
     assert len(err) == 1 and err[0].startswith(f"error: {said}"), err
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("command", [["evaluate"], ["reconstruct", "--image", "in.png", "--ply", "cloud.ply"]])
+def test_a_uri_checkpoint_is_refused_in_one_line_naming_cdm_lab(command, capsys):
+    from cdm.__main__ import main
+
+    assert main([*command, "--checkpoint", "runs:/0a1b2c/model"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "runs:/0a1b2c/model is a URI" in err
+    assert f"cdm-lab {command[0]} --checkpoint runs:/0a1b2c/model" in err

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import pickle
+from pathlib import Path
 
+import mlflow.artifacts
+import torch
+import yaml
 from mlflow import MlflowClient
 
+from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import load_config
 from sweeps.execute.logged_runs import find_trial_run, last_eval_files
 from sweeps.execute.tracking import SweepRun, resolve_tracking_uri, ui_command, ui_link
@@ -36,7 +42,6 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     for step in (5, 10):
         first.on_step(step, {"train/loss": 1.0 / step})
     first.on_eval(10, {"eval/cd": 50.0, "eval/f1": 0.3}, [panel])
-    first.on_checkpoint(10, tmp_path / "ckpt")
 
     again = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg)
     assert again.run_id == first.run_id and again.logged_until == {"train": 10, "eval": 10}
@@ -53,18 +58,21 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     assert run.data.params["priors.point_size"] == "0.02" and set(run.data.params) == set(cfg.flat()) - {
         "train.out_dir"
     }
-    assert run.data.tags["mlflow.parentRunId"] == sweep.run_id and run.data.tags["checkpoint"] == str(tmp_path / "ckpt")
+    assert run.data.tags["mlflow.parentRunId"] == sweep.run_id
     assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval", "curves"}
     assert last_eval_files(client, first.run_id) == ["eval/step_0000010/panels/obj.png"]  # panels apart from clouds
 
     curve = learning_curve_png(client, first.run_id, tmp_path)
     assert curve.read_bytes()[:4] == b"\x89PNG" and curve.stat().st_size > 2000
 
-    sweep.close_trial("t0", "point_size=0.02 · seed 0", "FAILED", error="TrainingDiverged: loss became nan")
-    sweep.close_trial("t1", "point_size=0.04 · seed 0", "FAILED", error="died before training")
+    sweep.close_trial("t0", "point_size=0.02 · seed 0", "FAILED", error="TrainingDiverged: loss became nan",
+                      checkpoint="s3://bucket/sweeps/exp/smoke/trial_t0/checkpoint_000001")
+    sweep.close_trial("t1", "point_size=0.04 · seed 0", "FAILED", error="died before training", checkpoint=None)
     t1 = find_trial_run(client, sweep.experiment_id, sweep.run_id, "t1")
     assert client.get_run(first.run_id).info.status == "FAILED" and client.get_run(t1).info.status == "FAILED"
     assert client.get_run(first.run_id).data.tags["error"] == "TrainingDiverged: loss became nan"
+    assert client.get_run(first.run_id).data.tags["checkpoint"] == "s3://bucket/sweeps/exp/smoke/trial_t0/checkpoint_000001"
+    assert "checkpoint" not in client.get_run(t1).data.tags  # it died before its first checkpoint
     children = client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")
     assert sorted(r.info.run_name for r in children) == ["point_size=0.02 · seed 0", "point_size=0.04 · seed 0"]
 
@@ -121,3 +129,34 @@ def test_the_experiment_is_a_model_training_one_and_every_link_opens_that_workfl
         ui_link("#/experiments/1/runs?viewStateShareKey=k")
         == "#/experiments/1/runs?viewStateShareKey=k&workflowType=machine_learning"
     )
+
+
+def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_model_artifacts(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
+    cfg = load_config(None, {"train.steps": 20, "train.out_dir": str(tmp_path / "scratch")})
+    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, cfg)
+    trial.on_start({"git_commit": "abc", "config_hash": "0123"})
+    weights = {10: torch.full((3, 2), 1.0), 20: torch.full((3, 2), 2.0)}
+    for step, w in weights.items():  # the second evaluation's weights replace the first's
+        full = Checkpoint(config=cfg.to_dict(), step=step, voxel_backend="dense", model={"layer.weight": w},
+                          ema={"layer.weight": w / 2}, optimizer={"state": {0: {"exp_avg": torch.ones(3, 2)}}},
+                          scheduler={"last_epoch": step}, generator=torch.zeros(5, dtype=torch.uint8))
+        trial.on_checkpoint(step, save_checkpoint(full, tmp_path / f"step_{step}").parent)
+
+    client = MlflowClient(uri)
+    run = client.get_run(trial.run_id)
+    assert run.data.tags["model"] == f"runs:/{trial.run_id}/model"
+    assert sorted(a.path for a in client.list_artifacts(trial.run_id, "model")) == [
+        "model/checkpoint.pt", "model/config.yaml", "model/record.json"]
+    folder = Path(mlflow.artifacts.download_artifacts(run.data.tags["model"], dst_path=str(tmp_path / "down"),
+                                                      tracking_uri=uri))
+    model = load_checkpoint(folder)  # the project's inert reader
+    assert model.step == 20 and torch.equal(model.model["layer.weight"], weights[20])
+    assert torch.equal(model.weights["layer.weight"], weights[20] / 2)  # EMA: what evaluation samples with
+    assert (model.optimizer, model.scheduler, model.generator) == (None, None, None)
+    assert "out_dir" not in model.config["train"]  # the scratch folder is no part of the record
+    assert json.loads((folder / "record.json").read_text()) == {"step": 20, "git_commit": "abc", "config_hash": "0123"}
+    logged = yaml.safe_load((folder / "config.yaml").read_text())
+    assert "out_dir" not in logged["train"] and logged["train"]["steps"] == 20
+    assert (folder / "checkpoint.pt").stat().st_size < (tmp_path / "step_20" / "checkpoint.pt").stat().st_size

@@ -169,7 +169,7 @@ def test_point_size_walks_from_the_yaml_to_the_footprint_as_the_doc_lists(tmp_pa
                        "sqlite:///unused.db", "0", "parent", {}, None, 0)
     with Walk() as trial, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's "report outside a Tuner": this trial runs without Ray
-        fit_trial(trial_job(setup, {"cell": cell.label}, "walk", str(tmp_path / "trial"), "node"), 0, lambda c: [])
+        fit_trial(trial_job(setup, {"cell": cell.label}, "walk", "node", tmp_path / "trial"), 0, lambda c: [])
     read = [planned.chain_to("cdm/io/files.py", "read_bounded"), planned.chain_to("cdm/io/json.py", "bracket_depth")]
     plan_part = planned.chain_to("cdm/config.py", "load_config")
     trial_part = trial.chain_to("cdm/render.py", "splat_points")

@@ -167,6 +167,7 @@ class SweepRun:
         error: str | None = None,
         stopped_early: bool = False,
         last: Mapping[str, object] | None = None,
+        checkpoint: str | None = None,
     ) -> None:
         """Set a child run's final status from Tune's verdict; creates the run if the trial died before opening it.
 
@@ -174,6 +175,8 @@ class SweepRun:
             status: ``FINISHED`` or ``FAILED``.
             last: the trial's last reported result (Tune's ``trial.last_result``): the source of the
                 per-category scores, which the child logs only here, as ``final/…``.
+            checkpoint: the trial's newest checkpoint in the sweep's storage (the full training state, to
+                continue from), tagged ``checkpoint``; the weights for inference are the run's ``model/``.
         """
         run_id = find_trial_run(self.client, self.experiment_id, self.run_id, trial_id)
         if run_id is None:
@@ -184,6 +187,8 @@ class SweepRun:
             self.client.set_tag(run_id, "error", error[-5000:])
         if stopped_early:
             self.client.set_tag(run_id, "stopped_early", "true")
+        if checkpoint is not None:
+            self.client.set_tag(run_id, "checkpoint", checkpoint)
         if status == "FINISHED":
             self._log_final(run_id, last or {})
         self.client.set_terminated(run_id, status=status)

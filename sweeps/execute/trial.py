@@ -19,6 +19,10 @@ A trial's config was built once by the plan (:func:`sweeps.plan.trials.expand`) 
 from __future__ import annotations
 
 import functools
+import hashlib
+import os
+import shutil
+import tempfile
 from collections.abc import Callable, Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -40,9 +44,11 @@ from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_logger
 from sweeps.execute.pruning import KEEP
 from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
+from sweeps.storage import private_folder, storage_location
 
 __all__ = [
-    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "sampled_cell", "train_loop", "trial_job",
+    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "sampled_cell", "train_loop", "trial_dir_name",
+    "trial_job", "trial_scratch",
 ]
 
 
@@ -67,7 +73,8 @@ class TrialSetup:
 
 
 class _RayReporter(Callback):
-    """Reports each evaluation to Ray together with the checkpoint ``fit`` writes right after it."""
+    """Reports each evaluation to Ray together with the checkpoint ``fit`` writes right after it; last among a
+    trial's callbacks, since the checkpoint leaves the scratch folder once reported."""
 
     def __init__(self, local: bool, rank: int):
         self.local, self.rank = local, rank
@@ -81,13 +88,18 @@ class _RayReporter(Callback):
         self.last_eval = metrics
 
     def on_checkpoint(self, step: int, path: Path) -> None:
-        # fit() evaluates, then checkpoints, at the same step: one report carries both.
+        # fit() evaluates, then checkpoints, at the same step: one report carries both. Ray copies the
+        # checkpoint into the sweep's storage before the report returns; the scratch copy then goes, so each
+        # checkpoint is kept once (Ray Train's own delete_local_checkpoint_after_upload).
         metrics = {**self.last_train, **self.last_eval, "step": step}
         if self.local:
             ray.tune.report(metrics, checkpoint=ray.tune.Checkpoint.from_directory(path))
+            shutil.rmtree(path)
+        elif self.rank == 0:
+            ray.train.report(metrics, checkpoint=ray.train.Checkpoint.from_directory(path),
+                             delete_local_checkpoint_after_upload=True)
         else:
-            ckpt = ray.train.Checkpoint.from_directory(path) if self.rank == 0 else None
-            ray.train.report(metrics, checkpoint=ckpt)
+            ray.train.report(metrics)
 
 
 class TrialProgress(Callback):
@@ -131,8 +143,8 @@ def train_loop(job: TrialJob) -> None:
     rank = 0 if job.local else ray.train.get_context().get_world_rank()
     checkpoint = ray.tune.get_checkpoint() if job.local else ray.train.get_checkpoint()
     with checkpoint.as_directory() if checkpoint is not None else nullcontext() as resume_from:
-        if resume_from is not None:
-            print(f"[{job.label}] resuming from {resume_from}", flush=True)
+        if resume_from is not None:  # named where it is kept: as_directory() may be a temporary download
+            print(f"[{job.label}] resuming from {storage_location(job.setup.sweep_dir, checkpoint.path)}", flush=True)
         fit_trial(job, rank, functools.partial(_trackers, job), resume_from)
 
 
@@ -156,13 +168,14 @@ def fit_trial(job: TrialJob, rank: int, trackers: Callable[[Config], list[Callba
     # sampling.blend.prior_checkpoint: auto — one category prior per category, trained once per sweep
     # in its folder (the first trial to need it trains it, the others wait on its lock).
     config = ensure_priors(config, job.prior_dir, lambda line: print(f"[{job.label}] {line}", flush=True))
-    callbacks: list[Callback] = [_RayReporter(job.local, rank)]
+    callbacks: list[Callback] = []
     setup = job.setup
     lease = CoreLease(f"{setup.sweep_dir}/cores", setup.lease_cores) if setup.lease_cores else None
     if lease is not None:
         callbacks.append(lease)
     if rank == 0:
         callbacks += [TrialProgress(job.label, config.train.steps, job.metric), *trackers(config)]
+    callbacks.append(_RayReporter(job.local, rank))
     shared = None if setup.shared_root is None else SharedStore(setup.shared_root)
     try:
         fit(config, callbacks, resume_from=resume_from, shared=shared)
@@ -181,9 +194,28 @@ def sampled_cell(plan: SweepPlan, tune_config: dict[str, Any]) -> Cell:
     return Cell(name, trial_label(name, seed), values, seed, config)
 
 
-def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, trial_dir: str, node_id: str) -> TrialJob:
+def trial_dir_name(trial_id: str) -> str:
+    """The trial's folder in the sweep's storage (Tune's ``trial_dirname_creator``): its checkpoints and results."""
+    return f"trial_{trial_id}"
+
+
+def trial_scratch(sweep_dir: str, trial_id: str) -> Path:
+    """The node-local folder a trial trains in (``train.out_dir``), in this user's private temporary folder.
+
+    Only files on their way live there: a checkpoint until Ray has copied it into the sweep's storage
+    (:class:`_RayReporter` then deletes it), evaluation files for the child run to log; the folder goes when
+    the trial ends (:func:`run_trial`; a Train worker's stays on its node, never recorded). Not Tune's
+    trial folder (``get_trial_dir()``): that lies in Ray's temporary session folder, gone after ``ray stop``,
+    and on the head node Tune's syncer copies it whole into the sweep folder, which then held every
+    checkpoint twice.
+    """
+    sweep = hashlib.sha256(sweep_dir.encode()).hexdigest()[:16]
+    return private_folder(Path(tempfile.gettempdir()) / f"cdm-trials-{os.getuid()}") / sweep / trial_dir_name(trial_id)
+
+
+def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, node_id: str, scratch: Path) -> TrialJob:
     """The trial a Tune config stands for (``{"cell": label}``: a grid cell as the plan built it; sampled
-    values: :func:`sampled_cell`), writing into ``trial_dir``."""
+    values: :func:`sampled_cell`), training in ``scratch`` (:func:`trial_scratch`)."""
     plan = setup.plan
     cell = sampled_cell(plan, tune_config) if plan.spec.search.sampled else setup.cells[tune_config["cell"]]
     categories = ",".join(cell.config.data.categories) or "all"
@@ -196,18 +228,19 @@ def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, tri
         # `category` is the short name the UI's search box is documented with (docs/mlflow.md, Search box).
         "categories": categories,
         "category": categories,
-        "tune_trial_dir": trial_dir,
+        # Where Ray keeps the trial in the sweep's storage (its checkpoints, result.json), not a node's disk.
+        "tune_trial_dir": f"{setup.sweep_dir}/{trial_dir_name(trial_id)}",
         "ray_node_id": node_id,
         **{f"repro.{k}": v for k, v in setup.code.items()},
     }
     return TrialJob(
-        config=cell.config.replace(**{"train.out_dir": str(Path(trial_dir) / "cdm")}),
+        config=cell.config.replace(**{"train.out_dir": str(scratch)}),
         local=plan.profile.resources.workers_per_trial == 0,
         label=cell.label,
         trial_id=trial_id,
         metric=plan.spec.metric.name,
         tags=tags,
-        prior_dir=_prior_dir(setup.sweep_dir, trial_dir),
+        prior_dir=_prior_dir(setup.sweep_dir, scratch),
         setup=setup,
     )
 
@@ -218,7 +251,8 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     quiet_actor_exit()
     ctx = ray.tune.get_context()
     trial_id = ctx.get_trial_id()
-    job = trial_job(setup, tune_config, trial_id, ctx.get_trial_dir(), ray.get_runtime_context().get_node_id())
+    scratch = trial_scratch(setup.sweep_dir, trial_id)
+    job = trial_job(setup, tune_config, trial_id, ray.get_runtime_context().get_node_id(), scratch)
     done = finished_trial_metrics(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, trial_id)
     if done is not None:
         print(
@@ -248,17 +282,21 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
             callbacks=_tune_report_callbacks() if r.workers_per_trial else None,
         ),
     )
-    trainer.fit()
+    try:
+        trainer.fit()
+    finally:  # its checkpoints are in storage, its evaluation files in MLflow: nothing left to keep
+        if job.local and scratch.exists():  # (a Train worker's folder is on its own node; absent: failed early)
+            shutil.rmtree(scratch)
 
 
-def _prior_dir(sweep_dir: str, trial_dir: str) -> str:
+def _prior_dir(sweep_dir: str, scratch: Path) -> str:
     """Where ``prior_checkpoint: auto`` caches category priors: the sweep folder, shared by every trial.
 
     Its lock needs a file system, so with an object-store ``sweep_dir`` (``s3://…``) each node keeps
-    its own cache beside the experiment's local trial folders.
+    its own cache beside the sweep's trial scratch folders (:func:`trial_scratch`).
     """
     if "://" in sweep_dir:
-        return str(Path(trial_dir).parent / "priors")
+        return str(scratch.parent / "priors")
     return str(Path(sweep_dir) / "priors")
 
 

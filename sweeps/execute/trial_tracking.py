@@ -8,7 +8,9 @@ skips steps it had already logged: no duplicates. The driver closes it with Tune
 
 from __future__ import annotations
 
+import json
 import math
+import tempfile
 import time
 from pathlib import Path
 
@@ -16,6 +18,7 @@ import yaml
 from mlflow import MlflowClient
 from mlflow.entities import Metric, RunTag
 
+from cdm.checkpoint import load_checkpoint, save_checkpoint
 from cdm.config import F1_THRESHOLD, Config
 from cdm.io.csv import read_csv
 from cdm.metric_names import f1_at
@@ -25,7 +28,18 @@ from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_h
 from sweeps.execute.tracking import as_params, log_params
 from sweeps.store_retry import PatientClient
 
-__all__ = ["EVAL_FOLDERS", "F1_TAG", "PER_TRIAL_PARAMS", "SYSTEM_METRICS", "TrialRun", "learning_curve_png"]
+__all__ = [
+    "EVAL_FOLDERS", "F1_TAG", "MODEL_ARTIFACTS", "MODEL_TAG", "PER_TRIAL_PARAMS", "SYSTEM_METRICS", "TrialRun",
+    "learning_curve_png",
+]
+
+MODEL_ARTIFACTS = "model"
+"""The child run's artifact folder of its weights for inference: ``checkpoint.pt`` (model and EMA weights, no
+optimiser; :meth:`cdm.checkpoint.Checkpoint.for_inference`), ``config.yaml`` and ``record.json`` (the step and
+the reproducibility record). ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` reads it."""
+
+MODEL_TAG = "model"
+"""The tag holding the run's ``runs:/<run id>/model`` URI, to paste into ``cdm-lab evaluate --checkpoint``."""
 
 F1_TAG = "f1"
 """The tag naming what a trial's ``eval/f1`` and ``final/f1`` mean (:func:`cdm.metric_names.f1_at` of its
@@ -102,6 +116,11 @@ class TrialRun(Callback):
         # must not make the re-run evaluation look logged.
         self.logged_until = {"train": -1, "eval": -1}
         self.eval_set_tagged = False
+        # Where the trial wrote (node-local scratch) is no part of its config: the record's places are its tags.
+        tree = config.to_dict()
+        tree["train"].pop("out_dir")
+        self.config_yaml = yaml.safe_dump(tree, sort_keys=False)
+        self.record: dict[str, str] = {}
         if found is None:
             run = self.client.create_run(
                 experiment_id, run_name=run_name,
@@ -110,7 +129,7 @@ class TrialRun(Callback):
             self.run_id = run.info.run_id
             kept = {k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}
             log_params(self.client, self.run_id, as_params(kept))
-            self.client.log_text(self.run_id, yaml.safe_dump(config.to_dict(), sort_keys=False), "config.yaml")
+            self.client.log_text(self.run_id, self.config_yaml, "config.yaml")
         else:
             self.run_id = found
             self.client.update_run(found, status="RUNNING")
@@ -125,6 +144,7 @@ class TrialRun(Callback):
         )
 
     def on_start(self, record: dict[str, str]) -> None:
+        self.record = record
         self.client.log_batch(self.run_id, tags=[RunTag(f"repro.{k}", v) for k, v in record.items()])
 
     def on_step(self, step: int, metrics: dict[str, float]) -> None:
@@ -155,4 +175,14 @@ class TrialRun(Callback):
                 self.client.log_artifact(self.run_id, str(curve), "curves")
 
     def on_checkpoint(self, step: int, path: Path) -> None:
-        self.client.set_tag(self.run_id, "checkpoint", str(path))
+        """The checkpoint's weights for inference become the run's ``model/`` artifacts, replacing the previous
+        evaluation's: the run keeps the weights of its last checkpoint, also where ASHA stopped it early.
+        Continuing training needs the full checkpoint, which Ray keeps in the sweep's storage (tag ``checkpoint``,
+        set by the driver)."""
+        with tempfile.TemporaryDirectory(prefix="cdm-model-") as tmp:
+            folder = Path(tmp) / MODEL_ARTIFACTS
+            save_checkpoint(load_checkpoint(path).for_inference(), folder)
+            (folder / "config.yaml").write_text(self.config_yaml)
+            (folder / "record.json").write_text(json.dumps({"step": step, **self.record}, indent=2))
+            self.client.log_artifacts(self.run_id, str(folder), MODEL_ARTIFACTS)
+        self.client.set_tag(self.run_id, MODEL_TAG, f"runs:/{self.run_id}/{MODEL_ARTIFACTS}")

@@ -25,13 +25,14 @@ from sweeps.execute.cores import lease_cores
 from sweeps.execute.precompute import precompute, shared_root
 from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.tracking import SweepRun
-from sweeps.execute.trial import TrialSetup, run_trial
+from sweeps.execute.trial import TrialSetup, run_trial, trial_dir_name
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
 from sweeps.plan.trials import SweepPlan
+from sweeps.storage import storage_location
 
-__all__ = ["error_summary", "run_sweep"]
+__all__ = ["checkpoint_location", "error_summary", "run_sweep"]
 
 
 def error_summary(text: str) -> str:
@@ -43,11 +44,19 @@ def error_summary(text: str) -> str:
     return lines[-1] if lines else text
 
 
-class _TrialCloser(ray.tune.Callback):
-    """Driver side: closes each child MLflow run with Tune's verdict and prints one line per trial."""
+def checkpoint_location(sweep_dir: str, trial) -> str | None:
+    """The trial's newest checkpoint in the sweep's storage, as the storage spells it: Tune's (Train's local
+    mode) or, with Train workers, the Train run's (``TuneReportCallback`` passes its path on); None if none."""
+    fs_path = trial.checkpoint.path if trial.checkpoint is not None else trial.last_result.get("checkpoint_path")
+    return None if fs_path is None else storage_location(sweep_dir, fs_path)
 
-    def __init__(self, plan: SweepPlan, sweep_run: SweepRun):
-        self.plan, self.sweep_run = plan, sweep_run
+
+class _TrialCloser(ray.tune.Callback):
+    """Driver side: closes each child MLflow run with Tune's verdict and where its checkpoint is kept, and prints
+    one line per trial."""
+
+    def __init__(self, plan: SweepPlan, sweep_run: SweepRun, sweep_dir: str):
+        self.plan, self.sweep_run, self.sweep_dir = plan, sweep_run, sweep_dir
 
     def _label(self, trial) -> str:
         return self.plan.names(trial.config)[1]
@@ -67,7 +76,8 @@ class _TrialCloser(ray.tune.Callback):
         label = self._label(trial)
         step = trial.last_result.get("step", 0)
         early = step < self.plan.last_step(label)
-        self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result)
+        self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result,
+                                   checkpoint=checkpoint_location(self.sweep_dir, trial))
         value = trial.last_result.get(self.plan.spec.metric.name)
         shown = "no evaluation" if value is None else f"{self.plan.spec.metric.name} {value:.4g}"
         print(f"{'■ stopped early' if early else '✓ finished'} [{label}] at step {step}: {shown} "
@@ -77,7 +87,8 @@ class _TrialCloser(ray.tune.Callback):
         label = self._label(trial)
         # Tune has just written the traceback to the trial's local error file (before syncing it).
         reason = error_summary(read_text(Path(trial.error_file), "error file")) if trial.error_file else "unknown error"
-        self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason)
+        self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason,
+                                   checkpoint=checkpoint_location(self.sweep_dir, trial))
         print(f"✗ failed [{label}]: {reason} ({self._count(trials, trial)})", flush=True)
 
 
@@ -151,7 +162,7 @@ def _tuner(plan: SweepPlan, trainable, conc: Concurrency, sweep_dir: str, sweep_
             max_concurrent_trials=conc.max_concurrent,
             reuse_actors=True,
             trial_name_creator=lambda t: plan.names(t.config)[1],
-            trial_dirname_creator=lambda t: f"trial_{t.trial_id}",
+            trial_dirname_creator=lambda t: trial_dir_name(t.trial_id),
         ),
         run_config=ray.tune.RunConfig(
             # Split as a string: a URI is no Path (Path("s3://b/x") collapses the "//").
@@ -162,7 +173,7 @@ def _tuner(plan: SweepPlan, trainable, conc: Concurrency, sweep_dir: str, sweep_
             # safely: Tune's num_to_keep deletes before the state naming the newer one is uploaded.
             checkpoint_config=ray.tune.CheckpointConfig(num_to_keep=None),
             sync_config=ray.tune.SyncConfig(sync_period=1),
-            callbacks=[_TrialCloser(plan, sweep_run), CheckpointPruner(), *callbacks],
+            callbacks=[_TrialCloser(plan, sweep_run, sweep_dir), CheckpointPruner(), *callbacks],
             # Tune's own tables list every reported metric (dozens, per category); the trials'
             # step/eval lines and _TrialCloser's lines are the progress display instead.
             verbose=0,

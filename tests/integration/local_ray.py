@@ -28,6 +28,7 @@ def local_ray() -> Iterator[str]:
 class TwoNodes(NamedTuple):
     address: str  # the head's GCS address, for a driver in another process
     nodes: list[str]  # node ids, head first
+    temp_dir: str  # both nodes' Ray temporary folder: what is node-local on a real cluster
 
 
 @contextmanager
@@ -54,7 +55,7 @@ def two_node_cluster() -> Iterator[TwoNodes]:
         ray.init(address=cluster.address, logging_level="WARNING")
         nodes = [n["NodeID"] for n in ray.nodes() if n["Alive"]]
         assert len(nodes) == 2 and ray.cluster_resources()["CPU"] == 2
-        yield TwoNodes(cluster.address, nodes)
+        yield TwoNodes(cluster.address, nodes, temp_dir)
     finally:
         ray.shutdown()
         cluster.shutdown()  # stops exactly the processes of these two nodes

@@ -1,7 +1,8 @@
 """Sweeps on a real two-node Ray cluster (``ray.cluster_utils.Cluster``: two raylets of 1 CPU each on
 this machine, head on 127.0.0.1), run by the sweep runner exactly as on a cluster (issue 5).
 
-- Two concurrent smoke trials of 1 CPU each cannot share a node, so one lands on each.
+- Two concurrent smoke trials of 1 CPU each cannot share a node, so one lands on each; neither records a
+  path that only its node can read (issue 53).
 - One trial with ``workers_per_trial: 2`` (0.99 CPU each, so never both on one node) trains
   data-parallel over gloo; every rank checkpoints its own model, and rank 0's and rank 1's weights
   must be identical at every checkpoint although each rank drew different batches and noise
@@ -22,16 +23,17 @@ from mlflow import MlflowClient
 
 from cdm.io.torch import load_tensors
 from sweeps import run
-from tests.integration.local_ray import two_node_cluster
+from sweeps.execute.trial import trial_scratch
+from tests.integration.local_ray import TwoNodes, two_node_cluster
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def two_nodes() -> Iterator[list[str]]:
-    """Node ids of a head and a worker node, 1 CPU each; the driver is connected to the head."""
+def two_nodes() -> Iterator[TwoNodes]:
+    """A head and a worker node, 1 CPU each; the driver is connected to the head."""
     with two_node_cluster() as cluster:
-        yield cluster.nodes
+        yield cluster
 
 
 def _actor_nodes(class_name: str) -> list[str]:
@@ -47,7 +49,14 @@ def _sweep(tmp_path: Path, body: str) -> tuple[list[str], str]:
     return [str(spec), "--smoke", "--out", str(tmp_path / "results"), "--tracking-uri", uri], uri
 
 
-def test_concurrent_trials_run_on_both_nodes(two_nodes, tmp_path):
+def _node_local(path: str, cluster: TwoNodes, sweep_dir: Path, trial_id: str) -> bool:
+    """Whether ``path`` lies where only the node that wrote it can read it on a real cluster: a node's Ray
+    temporary folder, or the trial's scratch folder."""
+    scratch = trial_scratch(str(sweep_dir), trial_id)
+    return any(Path(path).is_relative_to(p) for p in (cluster.temp_dir, scratch.parent))
+
+
+def test_concurrent_trials_run_on_both_nodes_and_record_no_node_local_path(two_nodes, tmp_path):
     argv, uri = _sweep(tmp_path, "name: spread\ngrid: {priors.point_size: [0.02, 0.04]}\n")
     assert run.main(argv) == 0
     client = MlflowClient(uri)
@@ -56,7 +65,19 @@ def test_concurrent_trials_run_on_both_nodes(two_nodes, tmp_path):
     assert sorted(c.info.status for c in children) == ["FINISHED", "FINISHED"]
     # Each trial records the node its actor ran on (read inside the trial, not from the actor table).
     placed = [c.data.tags["ray_node_id"] for c in children]
-    assert set(placed) == set(two_nodes), placed
+    assert set(placed) == set(two_nodes.nodes), placed
+    # The trial on the worker node too: its checkpoint and folder are in the sweep's storage, its weights in
+    # MLflow's artifact store, nothing in either node's temporary folders.
+    sweep_dir = tmp_path / "results" / "spread" / "smoke"
+    for child in children:
+        tags, trial_id = child.data.tags, child.data.tags["trial_id"]
+        paths = {k: v for k, v in tags.items() if v.startswith("/")}
+        assert {"checkpoint", "tune_trial_dir"} <= set(paths)
+        for key, path in paths.items():
+            assert Path(path).is_relative_to(sweep_dir) and Path(path).exists(), f"{key} = {path}"
+            assert not _node_local(path, two_nodes, sweep_dir, trial_id), f"{key} = {path} is node-local"
+        assert Path(tags["checkpoint"], "checkpoint.pt").is_file()
+        assert "model/checkpoint.pt" in {a.path for a in client.list_artifacts(child.info.run_id, "model")}
 
 
 def test_two_worker_trial_spans_nodes_and_keeps_ranks_identical(two_nodes, tmp_path):
@@ -68,13 +89,18 @@ profiles: {smoke: {resources: {workers_per_trial: 2, cpus_per_worker: 0.99}}}
 """)
     assert run.main(argv) == 0
     workers = _actor_nodes("RayTrainWorker")[before:]
-    assert len(workers) == 2 and set(workers) == set(two_nodes), workers
+    assert len(workers) == 2 and set(workers) == set(two_nodes.nodes), workers
 
-    trial_dirs = list((tmp_path / "results" / "ddp" / "smoke").glob("trial_*/cdm"))
-    assert len(trial_dirs) == 1
-    rank0 = sorted((trial_dirs[0] / "checkpoints").glob("step_*"))
-    rank1 = sorted((trial_dirs[0] / "rank_1" / "checkpoints").glob("step_*"))
-    assert [p.name for p in rank0] == [p.name for p in rank1] == ["step_0000010", "step_0000020"]
+    # Rank 0's checkpoints as Ray Train keeps them in the sweep's storage (none left in its scratch folder);
+    # rank 1's in its own node's scratch folder (both nodes share this machine's disk).
+    sweep_dir = tmp_path / "results" / "ddp" / "smoke"
+    (trial_dir,) = sweep_dir.glob("trial_*")
+    trial_id = trial_dir.name.removeprefix("trial_")
+    rank0 = sorted(p for p in (sweep_dir / "train" / trial_dir.name).glob("checkpoint_*") if p.is_dir())
+    scratch = trial_scratch(str(sweep_dir), trial_id)
+    assert not list(scratch.glob("checkpoints/step_*"))
+    rank1 = sorted((scratch / "rank_1" / "checkpoints").glob("step_*"))
+    assert [p.name for p in rank1] == ["step_0000010", "step_0000020"] and len(rank0) == 2
     for a, b in zip(rank0, rank1):
         sa, sb = (load_tensors(next(c.glob("*.pt")), str(c), "CDM checkpoint", "") for c in (a, b))
         assert sa["step"] == sb["step"]
@@ -88,6 +114,7 @@ profiles: {smoke: {resources: {workers_per_trial: 2, cpus_per_worker: 0.99}}}
     runs = client.search_runs([client.get_experiment_by_name("ddp").experiment_id])
     children = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
     assert len(children) == 1 and children[0].info.status == "FINISHED"
+    assert Path(children[0].data.tags["checkpoint"]) == rank0[-1]  # the Train run's newest, in storage
     # Only rank 0 logs: each step once.
     steps = [m.step for m in client.get_metric_history(children[0].info.run_id, "train/loss")]
     assert sorted(steps) == [5, 10, 15, 20]

@@ -1,0 +1,140 @@
+"""A sweep's record outlives the machine's temporary folders (issue 53, "Where is my model?").
+
+One smoke grid runs on a Ray cluster the runner starts itself, its temporary folder (``RAY_TMPDIR``) of this
+module's own; then that folder is deleted, as ``ray stop`` and a reboot do. Every path the record names (MLflow
+tags, results.md/csv, the printed lines) must still exist; each child's weights, logged as MLflow artifacts,
+score through ``cdm-lab evaluate --checkpoint runs:/…`` what the trial scored; the report rebuilds and the
+trial re-runs; and the sweep folder holds no file twice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import io
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import ray
+from mlflow import MlflowClient
+
+from sweeps import run
+from sweeps.execute.trial import trial_scratch
+
+pytestmark = [pytest.mark.ray, pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parents[2]
+PATH = re.compile(r"(?<![\w.:/#])/(?:[\w.@+-]+/)*[\w.@+-]+")
+"""An absolute path in a text (not the tail of a URL, ``http://host/x``, nor a UI link, ``#/experiments/1``)."""
+
+
+@dataclass(frozen=True)
+class Swept:
+    folder: Path
+    """The sweep folder (``<storage>/<spec>/<profile>``)."""
+    uri: str
+    out: str
+    ray_tmp: Path
+    """Ray's temporary folder while the sweep ran; deleted before the tests read the record."""
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory) -> Swept:
+    tmp = tmp_path_factory.mktemp("record")
+    # Short: Ray's socket paths under it must fit ~107 characters.
+    ray_tmp = Path(tempfile.mkdtemp(prefix="cdmrec", dir="/tmp"))
+    (tmp / "spec.yaml").write_text("name: record\ngrid: {priors.point_size: [0.02, 0.04]}\n")
+    uri = f"sqlite:///{tmp}/mlflow.db"
+    argv = [str(tmp / "spec.yaml"), "--smoke", "--storage", str(tmp / "results"), "--tracking-uri", uri]
+    printed = io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
+        patch.setenv("RAY_TMPDIR", str(ray_tmp))
+        assert not ray.is_initialized()
+        assert run.main(argv) == 0
+    assert not ray.is_initialized()  # the runner stopped the cluster it started
+    assert list(ray_tmp.glob("ray/session_2*")), "Ray kept its session elsewhere: the deletion below proves nothing"
+    shutil.rmtree(ray_tmp)
+    return Swept(tmp / "results" / "record" / "smoke", uri, printed.getvalue(), ray_tmp)
+
+
+def _runs(uri: str):
+    client = MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("record").experiment_id])
+    parent = next(r for r in runs if r.data.tags.get("kind") == "sweep")
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id
+                and "trial_id" in r.data.tags and "rerun_of" not in r.data.tags]
+    return client, parent, children
+
+
+def test_every_recorded_path_exists_after_rays_temporary_folder_is_gone(swept):
+    client, parent, children = _runs(swept.uri)
+    assert len(children) == 2
+    recorded = {f"tag {k} of {r.info.run_name}": v for r in (parent, *children) for k, v in r.data.tags.items()
+                if v.startswith("/")}
+    assert parent.data.tags["sweep_dir"] == str(swept.folder)
+    for child in children:
+        tags = child.data.tags
+        assert tags["tune_trial_dir"] == f"{swept.folder}/trial_{tags['trial_id']}"
+        assert Path(tags["tune_trial_dir"], "result.json").is_file()
+        # The newest Tune checkpoint, in the sweep's storage: the full state, to continue training from.
+        assert Path(tags["checkpoint"]).parent == Path(tags["tune_trial_dir"])
+        assert Path(tags["checkpoint"], "checkpoint.pt").is_file()
+        assert tags["model"] == f"runs:/{child.info.run_id}/model"
+        # The scratch folder the trial trained in is gone: its checkpoints are in storage, its files in MLflow.
+        assert not trial_scratch(str(swept.folder), tags["trial_id"]).exists()
+    for name in ("results.md", "results.csv"):
+        text = (swept.folder / name).read_text()
+        recorded |= {f"{name}: {p}": p for p in PATH.findall(text)}
+    recorded |= {f"printed: {p}": p for p in PATH.findall(swept.out)}
+    assert {k for k in recorded if k.startswith("tag checkpoint")} and {k for k in recorded if "printed" in k}
+    for where, path in recorded.items():
+        assert not path.startswith(str(swept.ray_tmp)), f"{where} lies in Ray's temporary folder"
+        assert Path(path).exists(), f"{where} is gone with Ray's temporary folder"
+
+
+def test_each_trial_checkpoint_is_stored_once(swept):
+    by_digest: dict[str, list[Path]] = {}
+    for path in swept.folder.rglob("*"):
+        if path.is_file() and path.stat().st_size >= 1024:
+            by_digest.setdefault(hashlib.sha256(path.read_bytes()).hexdigest(), []).append(path)
+    copies = [paths for paths in by_digest.values() if len(paths) > 1]
+    assert not copies, f"byte-identical copies in the sweep folder: {copies}"
+    checkpoints = sorted(swept.folder.rglob("checkpoint.pt"))
+    # Tune's two newest per trial (sweeps/execute/pruning.py), nothing else: no cdm/ copy beside them.
+    assert [p.relative_to(swept.folder).parts[1] for p in checkpoints] == ["checkpoint_000000", "checkpoint_000001"] * 2
+
+
+def test_evaluate_scores_the_childs_weights_from_its_mlflow_run(swept, tmp_path):
+    client, _, children = _runs(swept.uri)
+    child = min(children, key=lambda r: r.info.run_name)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MLFLOW_TRACKING_URI": swept.uri}
+    out = subprocess.run([sys.executable, "-m", "sweeps.cdm_lab", "evaluate", "--checkpoint",
+                          child.data.tags["model"]], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    scores = dict(re.findall(r"^(eval/(?:f1|cd)) +([\d.]+)$", out.stdout, re.M))
+    logged = child.data.metrics  # the trial's last evaluation, at the results table's precision
+    assert abs(float(scores["eval/f1"]) - logged["eval/f1"]) <= 1e-3, (scores, logged)
+    assert abs(float(scores["eval/cd"]) - logged["eval/cd"]) <= 1e-3 * logged["eval/cd"], (scores, logged)
+    sizes = {a.path: a.file_size for a in client.list_artifacts(child.info.run_id, "model")}
+    full = Path(child.data.tags["checkpoint"], "checkpoint.pt").stat().st_size
+    assert set(sizes) == {"model/checkpoint.pt", "model/config.yaml", "model/record.json"}
+    assert sizes["model/checkpoint.pt"] < full / 2  # weights and EMA only: no optimiser state
+
+
+def test_report_and_rerun_work_from_the_record_alone(swept, tmp_path, monkeypatch, capsys):
+    _, _, children = _runs(swept.uri)
+    monkeypatch.chdir(tmp_path)
+    assert run.main(["--report", "record", "--tracking-uri", swept.uri]) == 0
+    rebuilt = tmp_path / "results" / "record" / "report" / "results.md"
+    assert rebuilt.read_text() == (swept.folder / "results.md").read_text()
+    capsys.readouterr()
+    child = min(children, key=lambda r: r.info.run_name)
+    assert run.main(["--rerun", child.info.run_id, "--tracking-uri", swept.uri, "--storage", str(tmp_path)]) == 0
+    assert "reproduced exactly" in capsys.readouterr().out
