@@ -28,6 +28,7 @@ from typing import Any, NamedTuple
 from cdm.config import Config, ConfigError, load_config
 from cdm.model.state_dicts import checked_state_dict
 from cdm.paths import input_path
+from cdm.safe_io import open_regular
 from cdm.torch_files import Pickled, load_inert
 
 __all__ = ["PC2_DEFAULTS", "PC2File", "config_data", "is_pc2_checkpoint", "read_pc2_checkpoint"]
@@ -67,10 +68,14 @@ _INTERPOLATION = re.compile(r"^\$\{([A-Za-z0-9_.]+)\}$")
 
 def is_pc2_checkpoint(path: str | Path) -> bool:
     """Whether ``path`` is a torch file whose pickle names PC²'s first PVCNN2 weight under PC²'s model
-    prefix; read from the archive's pickle bytes, nothing unpickled."""
+    prefix; read from the pickle's bytes (the zip archive's ``data.pkl``, or a pre-zip file's start),
+    nothing unpickled."""
     path = input_path(path)
-    if not path.is_file() or not zipfile.is_zipfile(path):
+    if not path.is_file():
         return False
+    if not zipfile.is_zipfile(path):  # torch < 1.6's pre-zip file: its main pickle lies in the file itself
+        with open_regular(path, str(path), show_path=False) as f:
+            return _MARKER in f.read(_PEEK_BYTES)
     with zipfile.ZipFile(path) as archive:
         pickles = [n for n in archive.namelist() if n.endswith("/data.pkl")]
         if not pickles:

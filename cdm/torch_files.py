@@ -2,8 +2,9 @@
 
 This module owns reading pickles: no other module calls ``torch.load``, ``torch.jit.load`` or
 ``pickle.load`` (tests/test_read_audit.py walks the code). Both readers open the archive themselves
-(:class:`cdm.torch_archive.Archive`: no TorchScript, bounded members) and run one inert unpickler on its
-``data.pkl``; torch's loader never sees the file, so ``torch.jit.load`` cannot be reached:
+(:class:`cdm.torch_archive.Archive`: no TorchScript, bounded members; or a pre-zip file,
+:mod:`cdm.torch_legacy`) and run one inert unpickler on its pickles; torch's loader never sees the file, so
+``torch.jit.load`` cannot be reached:
 
 - :func:`load_tensors`: what ``torch.load(weights_only=True)`` reads: tensors, ``OrderedDict``, plain data.
 - :func:`load_inert`: also a pickled config, as PC²'s ``checkpoint-latest.pth`` pickles its OmegaConf ``cfg``
@@ -20,7 +21,7 @@ Caps: :data:`MAX_PICKLE_OPS`, :data:`MAX_NESTING` and the archive's (docs/securi
 from __future__ import annotations
 
 import io
-import pickle
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,8 @@ import torch
 
 from cdm.safe_io import open_regular
 from cdm.torch_archive import Archive, ArchiveError
-from cdm.torch_unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, Pickled, Refused, unpickle
+from cdm.torch_legacy import load_legacy
+from cdm.torch_unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, PICKLE_DAMAGE, Pickled, Refused, unpickle
 
 __all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_own", "load_tensors"]
 
@@ -73,14 +75,16 @@ def load_inert(file: Path, label: str, kind: str) -> Any:
 def _read(file: Path, label: str, kind: str, records: bool) -> Any:
     with open_regular(file, label, show_path=False) as f:
         try:
+            if not zipfile.is_zipfile(f):
+                f.seek(0)
+                return load_legacy(f, records)
             archive = Archive(f)
             return unpickle(io.BytesIO(archive.pickle()), archive, records)
         except ArchiveError as exc:
             raise ValueError(f"{label} is not a readable {kind}: {exc}") from None
         except Refused:
             raise
-        except (pickle.UnpicklingError, EOFError, ValueError, TypeError, KeyError, IndexError,
-                RuntimeError, AttributeError) as exc:
+        except PICKLE_DAMAGE as exc:
             # A malformed pickle (a bad opcode, a stack underflow, an unhashable key) is damage, not a payload.
             raise ValueError(f"{label} is not a readable {kind} ({type(exc).__name__}: {exc})") from None
 
