@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from sweeps.execute.local_cluster import descendants
 from tests.datasets_fixtures import make_co3d
 from tests.hostile_files import ROOT, assert_refused, run_command, start_command, stop_command
 
@@ -134,25 +135,6 @@ def test_a_signal_ends_prepare_part_way_with_nothing_half_written(signum, co3d, 
     assert kept >= 1 and written + kept == len(list(out.rglob("*.shard")))  # each shard there was whole
 
 
-def _descendants(pid: int) -> set[int]:
-    """Every process below ``pid`` now (``/proc/<pid>/stat``'s parent field)."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-        except OSError:  # gone meanwhile
-            continue
-        children.setdefault(parent, []).append(int(entry.name))
-    found, stack = set(), [pid]
-    while stack:
-        for child in children.get(stack.pop(), []):
-            found.add(child)
-            stack.append(child)
-    return found
-
-
 def _running(pid: int) -> str:
     """``pid``'s program if it runs (a zombie has ended), else ``""``."""
     try:
@@ -170,7 +152,7 @@ def test_a_signal_while_the_local_cluster_starts_ends_within_5_s_leaving_nothing
     seen: set[int] = set()
 
     def gcs_started() -> bool:
-        seen.update(_descendants(proc.pid))
+        seen.update(descendants(proc.pid))
         return any("gcs_server" in _running(pid) for pid in seen)
 
     _wait_for(gcs_started, "the local cluster's GCS start")

@@ -43,6 +43,7 @@ __all__ = [
     "DeliberateTokenNote",
     "TOKEN_NOTE_LOGGER",
     "SESSION_RECORDS",
+    "descendants",
     "is_session_process",
     "private_token",
     "reap_stale_sessions",
@@ -188,9 +189,9 @@ def _exit_interrupted() -> None:
     os._exit(INTERRUPTED)
 
 
-def _ray_children() -> list[int]:
-    """This process's children that run Ray's programs (GCS, raylet, reaper, monitors) and all below them."""
-    parents: dict[int, list[int]] = {}
+def descendants(pid: int) -> set[int]:
+    """Every process below ``pid`` now (``/proc/<pid>/stat``'s parent field)."""
+    children: dict[int, list[int]] = {}
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
             continue
@@ -198,11 +199,18 @@ def _ray_children() -> list[int]:
             parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
         except OSError:  # gone meanwhile
             continue
-        parents.setdefault(parent, []).append(int(entry.name))
-    found = [pid for pid in parents.get(os.getpid(), []) if _runs_ray(pid)]
-    for pid in found:
-        found += [child for child in parents.get(pid, []) if child not in found]
+        children.setdefault(parent, []).append(int(entry.name))
+    found, stack = set(), [pid]
+    while stack:
+        for child in children.get(stack.pop(), []):
+            found.add(child)
+            stack.append(child)
     return found
+
+
+def _ray_children() -> list[int]:
+    """The processes below this one that run Ray's programs (GCS, raylet, reaper, monitors, workers)."""
+    return sorted(pid for pid in descendants(os.getpid()) if _runs_ray(pid))
 
 
 def _runs_ray(pid: int) -> bool:
