@@ -9,6 +9,9 @@ schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Fil
 
 from __future__ import annotations
 
+import re
+import shutil
+import stat
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -29,13 +32,17 @@ __all__ = [
     "CHECKPOINT_FILE",
     "Checkpoint",
     "LoadedNetwork",
+    "checkpoint_file",
     "load_checkpoint",
     "load_network",
     "network_config",
     "save_checkpoint",
+    "save_step",
 ]
 
 CHECKPOINT_FILE = "checkpoint.pt"
+_OUT_DIR = "train.out_dir"
+_STEP = re.compile(r"step_[0-9]{7}")
 _REQUIRED = ("config", "step", "voxel_backend", "model")
 
 
@@ -97,6 +104,53 @@ def save_checkpoint(checkpoint: Checkpoint, folder: str | Path) -> Path:
     return file
 
 
+def save_step(checkpoint: Checkpoint, out_dir: Path, keep: int = 2) -> Path:
+    """Write ``out_dir/checkpoints/step_<step>`` (7 digits) as ``.tmp_step_<step>`` renamed when complete, then
+    remove all but the newest ``keep`` of the earlier steps; returns the step's folder.
+
+    ``out_dir`` may be shared, so nothing is written, renamed or removed through a link planted in it:
+    ``checkpoints`` must lie below ``out_dir`` (checked before it is made); a link or a file where a step's
+    folder goes is refused, not followed; old steps are this run's own: real folders named ``step_<7
+    digits>`` up to this step (a link, or a planted later step, is neither removed nor counted).
+
+    Raises:
+        ValueError: one of those links or files; the message starts with ``train.out_dir:``.
+    """
+    root = make_folder(out_dir / "checkpoints", _OUT_DIR, within=out_dir)
+    final = root / f"step_{checkpoint.step:07d}"
+    tmp = root / f".tmp_{final.name}"
+    _remove_folder(tmp)  # a killed run's leftover
+    tmp.mkdir()  # a link planted since is not followed: mkdir fails on any existing name
+    save_checkpoint(checkpoint, tmp)
+    _remove_folder(final)
+    tmp.rename(final)  # a checkpoint directory is either complete or absent
+    steps = sorted(p for p in root.iterdir() if _STEP.fullmatch(p.name) and int(p.name[5:]) <= checkpoint.step
+                   and stat.S_ISDIR(p.lstat().st_mode))
+    for old in steps[:-keep]:
+        shutil.rmtree(old)
+    return final
+
+
+def _remove_folder(path: Path) -> None:
+    """Remove the folder ``path`` if it exists (``shutil.rmtree`` removes the links inside, not their
+    targets); refuse a link or a file there."""
+    try:
+        mode = path.lstat().st_mode
+    except FileNotFoundError:
+        return
+    if not stat.S_ISDIR(mode):
+        kind = "a symbolic link" if stat.S_ISLNK(mode) else "not a folder"
+        raise ValueError(f"{_OUT_DIR}: {path} is {kind} where train keeps its checkpoints; remove it (train never "
+                         "writes or removes through one)")
+    shutil.rmtree(path)
+
+
+def checkpoint_file(path: str | Path) -> Path:
+    """The ``checkpoint.pt`` a user means by ``path``: the file itself, or the one in that folder."""
+    path = Path(path)
+    return path / CHECKPOINT_FILE if path.is_dir() else path
+
+
 def load_checkpoint(path: str | Path) -> Checkpoint:
     """Read a checkpoint file or its folder safely (:func:`cdm.io.torch.load_tensors`: tensors and plain data).
 
@@ -105,8 +159,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             that are not finite tensors under string names; the message starts with ``checkpoint:`` and
             names the file.
     """
-    path = Path(path)
-    file = path / CHECKPOINT_FILE if path.is_dir() else path
+    file = checkpoint_file(path)
     if not file.exists():
         raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
     state = load_tensors(file, f"checkpoint: {file}", "CDM checkpoint", "Load only checkpoints written by cdm")

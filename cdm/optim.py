@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
+from typing import Any
 
 import torch
 from torch import Tensor, nn
 
 from cdm.config import TrainConfig
 
-__all__ = ["MAX_SKIPPED_IN_A_ROW", "Optimiser", "TrainingDiverged", "lr_factor"]
+__all__ = ["MAX_SKIPPED_IN_A_ROW", "Optimiser", "TrainingDiverged", "check_like", "lr_factor"]
 
 MAX_SKIPPED_IN_A_ROW = 32
 """Skipped steps in a row that end a mixed-precision run as diverged: fp16's scale has by then been
@@ -92,7 +93,93 @@ class Optimiser:
         self.skipped_in_a_row = 0
         return True
 
+    def restore(self, optimizer: Any, scheduler: Any, label: str) -> None:
+        """Continue from a checkpoint's ``optimizer`` and ``scheduler`` dicts, each checked first against this
+        optimiser's own (:func:`check_like`), and per parameter AdamW's step and moments against the
+        parameter's shape and dtype, the second moments ≥ 0. torch's ``load_state_dict`` checks neither:
+        it takes moments of another shape (a step then broadcasts them or fails part way) and LambdaLR's
+        copies every key of the dict into the scheduler's attributes.
+
+        Raises:
+            ValueError: ``label``, then the first entry that differs and what this run expects.
+        """
+        if not isinstance(optimizer, dict) or "state" not in optimizer:
+            raise ValueError(f"{label}: its optimizer is {_kind(optimizer)}, not an optimizer's state dict")
+        own = self.optimizer.state_dict()
+        check_like({k: v for k, v in optimizer.items() if k != "state"}, {k: v for k, v in own.items() if k != "state"},
+                   f"{label}: its optimizer")
+        if type(optimizer["state"]) is not dict or not set(optimizer["state"]) <= set(range(len(self.parameters))):
+            raise ValueError(f"{label}: its optimizer's state is not keyed by this run's "
+                             f"{len(self.parameters)} parameter indices")
+        for index, moments in optimizer["state"].items():
+            p = self.parameters[index]
+            like = {"step": torch.empty((), dtype=torch.float32, device="meta"),
+                    "exp_avg": torch.empty_like(p, device="meta"), "exp_avg_sq": torch.empty_like(p, device="meta")}
+            check_like(moments, like, f"{label}: its optimizer's state[{index}]")
+            if (moments["exp_avg_sq"] < 0).any():
+                raise ValueError(f"{label}: its optimizer's state[{index}]['exp_avg_sq'] holds a negative second "
+                                 "moment")
+        check_like(scheduler, self.scheduler.state_dict(), f"{label}: its scheduler")
+        self.optimizer.load_state_dict(optimizer)
+        self.scheduler.load_state_dict(scheduler)
+
     @property
     def lr(self) -> float:
         """The learning rate the next step uses."""
         return self.scheduler.get_last_lr()[0]
+
+
+def check_like(value: Any, reference: Any, where: str) -> None:
+    """Refuse ``value`` unless it has ``reference``'s layout: dicts with the same keys, lists and tuples of
+    the same length, tensors of the same dtype and shape and finite, floats finite and ≥ 0, ints ≥ 0
+    (counters), and every other value (flags, ``None``, parameter indices) equal to the reference's.
+
+    Raises:
+        ValueError: ``where``, then the path to the first entry that differs and what was expected.
+    """
+    stack = [(value, reference, "")]
+    while stack:
+        value, reference, path = stack.pop()
+        problem = _difference(value, reference, path)
+        if problem:
+            raise ValueError(f"{where}{path} {problem}")
+        if isinstance(reference, dict):
+            stack += [(value[key], reference[key], f"{path}[{key!r}]") for key in reference]
+        elif isinstance(reference, (list, tuple)) and not path.endswith("['params']"):
+            stack += [(v, r, f"{path}[{i}]") for i, (v, r) in enumerate(zip(value, reference))]
+
+
+def _difference(value: Any, reference: Any, path: str) -> str:
+    """What is wrong with ``value`` where ``reference`` stands (one level deep), or ``""``."""
+    if isinstance(reference, dict):
+        if not isinstance(value, dict) or set(value) != set(reference):
+            keys = sorted(map(str, value)) if isinstance(value, dict) else type(value).__name__
+            return f"is {keys}, not a dict of {sorted(map(str, reference))}"
+    elif isinstance(reference, (list, tuple)):
+        if type(value) is not type(reference) or len(value) != len(reference):
+            return f"is {_kind(value)}, not a {type(reference).__name__} of {len(reference)}"
+        if path.endswith("['params']") and value != reference:
+            return f"is {value[:8]}, not this run's parameter indices"
+    elif isinstance(reference, Tensor):
+        if not isinstance(value, Tensor) or value.dtype != reference.dtype or value.shape != reference.shape:
+            return f"is {_kind(value)}, not a {reference.dtype} tensor of shape {tuple(reference.shape)}"
+        if not torch.isfinite(value).all():
+            return "holds inf or NaN"
+    elif type(reference) is float:
+        if type(value) is not float or not math.isfinite(value) or value < 0:
+            return f"is {_kind(value)}, not a finite float ≥ 0"
+    elif type(reference) is int:
+        if type(value) is not int or value < 0:
+            return f"is {_kind(value)}, not an int ≥ 0"
+    elif type(value) is not type(reference) or value != reference:
+        return f"is {_kind(value)}; this run's is {reference!r}"
+    return ""
+
+
+def _kind(value: Any) -> str:
+    if isinstance(value, Tensor):
+        return f"a {value.dtype} tensor of shape {tuple(value.shape)}"
+    if isinstance(value, (list, tuple)):
+        return f"a {type(value).__name__} of {len(value)}"
+    text = repr(value) if isinstance(value, (int, float, str, type(None))) else f"a {type(value).__name__}"
+    return text if len(text) <= 40 else f"{text[:37]}..."

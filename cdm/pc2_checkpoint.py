@@ -63,7 +63,8 @@ _INTERPOLATION = re.compile(r"^\$\{([A-Za-z0-9_.]+)\}$")
 
 def is_pc2_checkpoint(path: str | Path) -> bool:
     """Whether ``path`` is a torch file whose pickle names PC²'s first PVCNN2 weight under PC²'s model
-    prefix; read from the archive's pickle bytes, nothing unpickled."""
+    prefix; read from the pickle's bytes (the zip archive's ``data.pkl``, or a pre-zip file's start),
+    nothing unpickled."""
     path = input_path(path)
     if not path.is_file():
         return False

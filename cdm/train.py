@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import shutil
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ import torch
 import torch.distributed
 from torch.utils.data import DataLoader
 
-from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from cdm.checkpoint import Checkpoint, checkpoint_file, load_checkpoint, save_step
 from cdm.config import Config
 from cdm.data import build_dataset
 from cdm.data.order import ByRound, StepBatches, batch_indices
@@ -33,10 +32,11 @@ from cdm.data.sample import Batch, collate
 from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import EvalSet, build_eval_set, run_evaluation
 from cdm.external_inputs import check_coverage, check_inputs
+from cdm.io.write import check_within, make_folder
 from cdm.metric_names import TRAIN_METRICS
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss
-from cdm.optim import MAX_SKIPPED_IN_A_ROW, Optimiser, TrainingDiverged
+from cdm.optim import MAX_SKIPPED_IN_A_ROW, Optimiser, TrainingDiverged, check_like
 from cdm.provenance import run_record
 from cdm.runtime import AUTOCAST_DTYPES, resolve_precision, start_run
 from cdm.shared import SharedStore, SharedViews
@@ -156,7 +156,8 @@ class Trainer:
             torch_rng=torch.get_rng_state(),
         )
 
-    def restore(self, state: Checkpoint) -> None:
+    def restore(self, state: Checkpoint, label: str = "resume") -> None:
+        """Continue from ``state``; ``label`` starts a refusal (``resume: <its file>``)."""
         if state.kind is not None:
             raise ValueError(f"resume: the checkpoint holds a {state.kind} ({state.category}), not a CDM run")
         _check_compatible(state, self.cfg, self.network)
@@ -164,18 +165,21 @@ class Trainer:
         if self.ema is not None:
             # A checkpoint from a run without EMA starts the average at its weights, not at init.
             self.ema.load_state_dict(state.weights)
-        self.optimiser.optimizer.load_state_dict(state.optimizer)
-        self.optimiser.scheduler.load_state_dict(state.scheduler)
+        self.optimiser.restore(state.optimizer, state.scheduler, label)
         trained = state.precision or "fp32"  # checkpoints before train.precision trained in fp32
         if trained != self.precision:
             # Precision changes the rounding, not the function: continue, and say so (train.precision).
             log.warning("resume: the checkpoint trained in %s, this run continues in %s (train.precision)",
                         trained, self.precision)
         elif state.loss_scale is not None:
+            check_like(state.loss_scale, self.optimiser.scaler.state_dict(), f"{label}: its loss scale")
             self.optimiser.scaler.load_state_dict(state.loss_scale)
+        check_like(state.generator, self.generator.get_state(), f"{label}: its noise generator state")
+        check_like(state.torch_rng, torch.get_rng_state(), f"{label}: its torch RNG state")
+        check_like(state.step, 0, f"{label}: its step")
         self.generator.set_state(state.generator)
         torch.set_rng_state(state.torch_rng)
-        self.step = int(state.step)
+        self.step = state.step
 
     def next_batch(self) -> Batch:
         if self.cfg.data.num_workers == 0:
@@ -245,21 +249,12 @@ class Trainer:
             self._eval_set,
             self.cfg,
             self.device,
-            self.out_dir / "eval" / f"step_{self.step:07d}",
+            make_folder(self.out_dir / "eval" / f"step_{self.step:07d}", "train.out_dir", within=self.out_dir),
         )
         return out.metrics, out.files
 
     def save_checkpoint(self, keep: int = 2) -> Path:
-        root = self.out_dir / "checkpoints"
-        final = root / f"step_{self.step:07d}"
-        tmp = root / f".tmp_step_{self.step:07d}"
-        save_checkpoint(self.state(), tmp)
-        if final.exists():
-            shutil.rmtree(final)
-        tmp.rename(final)  # a checkpoint directory is either complete or absent
-        for old in sorted(root.glob("step_*"))[:-keep]:
-            shutil.rmtree(old)
-        return final
+        return save_step(self.state(), self.out_dir, keep)
 
 
 def _ema_copy(network: CDMNetwork) -> CDMNetwork:
@@ -305,10 +300,13 @@ def fit(
         ValueError: bad data set or incompatible checkpoint (before any training).
         TrainingDiverged: the loss became NaN or infinite.
     """
+    out_dir = Path(config.train.out_dir)
+    for folder in ("checkpoints", "eval"):  # a link planted there is refused before the first step, not at a save
+        check_within(out_dir / folder, out_dir, "train.out_dir")
     state = load_checkpoint(resume_from) if resume_from is not None else None
     trainer = Trainer(config, shared)
     if state is not None:
-        trainer.restore(state)
+        trainer.restore(state, f"resume: {checkpoint_file(resume_from)}")
     record = run_record(config, trainer.train_set, trainer.val_set, trainer.device)
     for cb in callbacks:
         cb.on_start(record)

@@ -1,5 +1,6 @@
 """Hostile torch files for tests: a TorchScript archive whose ``__setstate__`` writes a file, pickles that
-poison torch's own functions or name storages wrongly, and archives small on disk that inflate when read.
+poison torch's own functions or name storages wrongly, archives small on disk that inflate when read, and
+pre-zip (torch < 1.6) files laid out by hand.
 
 Each is built here, by torch itself where it can be (``torch.jit.script``/``save``), or by writing the
 pickle opcodes and the zip by hand where torch would refuse to write it.
@@ -81,12 +82,12 @@ GOOD_ID = b"(X\x07\x00\x00\x00storagectorch\nFloatStorage\nX\x01\x00\x00\x000X\x
 """The persistent id ``torch.save`` writes for storage '0' of 3 floats."""
 
 
-def poisoning_pickle() -> bytes:
+def poisoning_pickle(storage_id: bytes = GOOD_ID) -> bytes:
     """A pickle that BUILDs ``torch._utils._rebuild_tensor_v2`` with a state tuple: done by a plain
     unpickler, it sets the function's ``__defaults__`` for the whole process (every later tensor negated
     or worse), then loads one tensor."""
     poison = b"ctorch._utils\n_rebuild_tensor_v2\nN}X\x0c\x00\x00\x00__defaults__K\x00\x85s\x86b0"
-    return b"\x80\x02" + poison + tensor_pickle(GOOD_ID)[2:]
+    return b"\x80\x02" + poison + tensor_pickle(storage_id)[2:]
 
 
 def nested_list_pickle(depth: int) -> bytes:
@@ -103,3 +104,27 @@ def reduce_call(name: str, *args: Any) -> bytes:
     """A pickle that calls ``name`` (dotted) with ``args``, as a ``__reduce__`` payload does."""
     module, attr = name.rsplit(".", 1)
     return b"\x80\x02c" + f"{module}\n{attr}\n".encode() + pickle.dumps(args, 2)[2:-1] + b"R."
+
+
+LEGACY_ID = GOOD_ID[:-1] + b"Nt"
+"""The persistent id torch < 1.6's ``torch.save`` writes for storage '0' of 3 floats (no view)."""
+MAGIC = 0x1950A86A20F9469CFC6C
+"""The magic number every legacy file starts with (torch/serialization.py ``MAGIC_NUMBER``)."""
+LITTLE_ENDIAN = {"protocol_version": 1001, "little_endian": True, "type_sizes": {"short": 2, "int": 4, "long": 8}}
+
+
+def legacy_file(path: Path, pickle_bytes: bytes, records: dict[str, bytes] | None = None, *,
+                keys: list[str] | None = None, counts: dict[str, int] | None = None,
+                header: tuple[Any, Any, Any] = (MAGIC, 1001, LITTLE_ENDIAN), tail: bytes = b"") -> None:
+    """A pre-zip file laid out as torch < 1.6's ``torch.save`` lays one out: the magic number, protocol and
+    sys-info pickles of ``header`` (each pickled, or a pickle's bytes as they are), ``pickle_bytes``, the key
+    list (``keys``, else ``records``' keys), then per
+    key its element count (``counts``, else its bytes over 4: float storages) and its bytes, then ``tail``."""
+    records = records or {}
+    keys = sorted(records) if keys is None else keys
+    parts = [value if type(value) is bytes else pickle.dumps(value, 2) for value in header]
+    parts += [pickle_bytes, pickle.dumps(keys, 2)]
+    for key in keys:
+        data = records.get(key, b"")
+        parts += [struct.pack("<q", (counts or {}).get(key, len(data) // 4)), data]
+    path.write_bytes(b"".join(parts) + tail)

@@ -125,10 +125,10 @@ def _node(modules: dict, value: Any, key: Any, parent: Any) -> Any:
 
 
 def write_pc2_checkpoint(path: Path, *, width: float = 1.0, cfg: dict | None = None, payload: Any = None,
-                         seed: int = 0) -> dict[str, torch.Tensor]:
+                         seed: int = 0, legacy: bool = False) -> dict[str, torch.Tensor]:
     """PC²'s checkpoint dict with random weights: PVCNN2 at ``width`` (both multipliers) under
     ``point_cloud_model.model.``, the ViT-S/16 under ``feature_model.model.``; ``payload`` replaces the
-    ``cfg`` when given. Returns the model state dict written."""
+    ``cfg`` when given; ``legacy`` writes torch < 1.6's pre-zip format. Returns the model state dict written."""
     g = torch.Generator().manual_seed(seed)
     pvcnn2 = PVCNN2Denoiser(389, width, width)  # S = RGB 3 + ViT 384 + mask 1 + distance 1
     model = {
@@ -144,5 +144,5 @@ def write_pc2_checkpoint(path: Path, *, width: float = 1.0, cfg: dict | None = N
                   "best_val": None, "model_ema": {}}
     with fake_omegaconf() as modules:
         checkpoint["cfg"] = payload if payload is not None else _node(modules, cfg or PC2_CFG, None, None)
-        torch.save(checkpoint, path)
+        torch.save(checkpoint, path, _use_new_zipfile_serialization=not legacy)
     return model

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from sweeps.execute.local_cluster import descendants
 from tests.datasets_fixtures import make_co3d
 from tests.hostile_files import ROOT, assert_refused, run_command, start_command, stop_command
 
@@ -132,3 +133,33 @@ def test_a_signal_ends_prepare_part_way_with_nothing_half_written(signum, co3d, 
     assert rerun.code == 0, rerun.stderr[-2000:]
     written, kept = (int(n) for n in _counts(rerun.stdout))
     assert kept >= 1 and written + kept == len(list(out.rglob("*.shard")))  # each shard there was whole
+
+
+def _running(pid: int) -> str:
+    """``pid``'s program if it runs (a zombie has ended), else ``""``."""
+    try:
+        if Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+            return ""
+        return Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0].decode(errors="replace")
+    except OSError:
+        return ""
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_while_the_local_cluster_starts_ends_within_5_s_leaving_nothing_running(signum, co3d, tmp_path):
+    """Issue 55 §3: ``ray.init`` was still starting the GCS when the signal came (4.1–8.2 s before)."""
+    proc = start_command(_prepare(co3d, tmp_path / "prepared"))
+    seen: set[int] = set()
+
+    def gcs_started() -> bool:
+        seen.update(descendants(proc.pid))
+        return any("gcs_server" in _running(pid) for pid in seen)
+
+    _wait_for(gcs_started, "the local cluster's GCS start")
+    code, err = stop_command(proc, signum)  # fails past STOP_S
+    assert code == 130 and "interrupted: python sweeps/inputs.py prepare stopped" in err, err[-2000:]
+    assert "Traceback" not in err
+    deadline = time.monotonic() + 1
+    while any(_running(pid) for pid in seen) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert [_running(pid) for pid in seen if _running(pid)] == []

@@ -20,15 +20,26 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO
 
-__all__ = ["TEMP_NAME", "make_folder", "write_atomic"]
+__all__ = ["TEMP_NAME", "check_within", "make_folder", "write_atomic"]
 
 TEMP_NAME = re.compile(r"\..+\.tmp-[0-9a-f]{16}")
 """Name of a temporary file :func:`write_atomic` makes: ``.<destination name>.tmp-<16 random hex digits>``."""
 
 
-def make_folder(path: Path, label: str) -> Path:
+def check_within(path: Path, within: Path, label: str) -> None:
+    """Refuse ``path`` unless it lies below ``within`` once the links of its existing part are resolved: a
+    folder link planted below ``--out`` leads nowhere else. Made folders included, so check before making."""
+    if not path.resolve().is_relative_to(within.resolve()):
+        raise ValueError(f"{label}: {path} would be written to {path.resolve()}, outside {within} "
+                         "(a link below it leads out); remove the link")
+
+
+def make_folder(path: Path, label: str, within: Path | None = None) -> Path:
     """``path`` as a folder (made with its parents if absent); ValueError starting with ``label`` if it is
-    a file or cannot be made (a read-only file system, no permission)."""
+    a file or cannot be made (a read-only file system, no permission), or with ``within``, if it does not
+    lie below ``within`` (:func:`check_within`, before anything is made)."""
+    if within is not None:
+        check_within(path, within, label)
     try:
         path.mkdir(parents=True, exist_ok=True)
     except FileExistsError:
@@ -66,9 +77,8 @@ def write_atomic(path: Path, data: bytes | str | Callable[[IO[bytes]], None], la
         ValueError: ``path`` is a link, not a regular file or outside ``within``, or the folder cannot be
             written (named after ``label``); nothing is left behind.
     """
-    if within is not None and not path.parent.resolve().is_relative_to(within.resolve()):
-        raise ValueError(f"{label}: {path} would be written to {path.parent.resolve()}, outside {within} "
-                         "(a link below it leads out); remove the link")
+    if within is not None:
+        check_within(path.parent, within, label)
     _refuse_existing(path, label)
     temp = (scratch or path.parent) / f".{path.name}.tmp-{secrets.token_hex(8)}"
     try:

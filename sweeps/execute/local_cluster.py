@@ -30,9 +30,12 @@ import logging
 import os
 import signal
 import stat
+import sys
 import tempfile
+import threading
 from pathlib import Path
 
+from cdm.interrupt import INTERRUPTED
 from cdm.io.json import read_json
 from sweeps.storage import StoreError, private_folder, write_private
 
@@ -41,6 +44,7 @@ __all__ = [
     "DeliberateTokenNote",
     "TOKEN_NOTE_LOGGER",
     "SESSION_RECORDS",
+    "descendants",
     "is_session_process",
     "private_token",
     "reap_stale_sessions",
@@ -161,6 +165,63 @@ class DeliberateTokenNote(logging.Filter):
         return not record.getMessage().startswith("Token authentication is enabled for this Ray cluster")
 
 
+def _abandon_start() -> None:
+    """A signal came while ``ray.init`` was starting the cluster: end what it started, now, and end the
+    process as soon as the caller's clean-up has run.
+
+    Left to themselves, the processes die with this one, but only at its end, and that end took 4.1–8.2 s
+    (docs/security.md): Ray's exit hook imports its compiled-graph modules (~1.5 s on 2 loaded cores) to
+    shut down a cluster that never came up, then the interpreter waits seconds in Ray's C++ teardown. So
+    this process's Ray children and everything below them are killed here (their command lines are Ray's
+    programs', :func:`_ray_children`), and an exit hook registered last, so run first, ends the process
+    with :data:`cdm.interrupt.INTERRUPTED` once every ``finally`` on the way out has run, skipping the rest.
+    """
+    for pid in _ray_children():
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    atexit.register(_exit_interrupted)
+
+
+def _exit_interrupted() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(INTERRUPTED)
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below ``pid`` now (``/proc/<pid>/stat``'s parent field)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except OSError:  # gone meanwhile
+            continue
+        children.setdefault(parent, []).append(int(entry.name))
+    found, stack = set(), [pid]
+    while stack:
+        for child in children.get(stack.pop(), []):
+            found.add(child)
+            stack.append(child)
+    return found
+
+
+def _ray_children() -> list[int]:
+    """The processes below this one that run Ray's programs (GCS, raylet, reaper, monitors, workers)."""
+    return sorted(pid for pid in descendants(os.getpid()) if _runs_ray(pid))
+
+
+def _runs_ray(pid: int) -> bool:
+    try:
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return False
+    return "/ray/" in cmdline or cmdline.startswith(RAY_TITLES)
+
+
 def start(**init_kwargs) -> None:
     """Start a new local Ray cluster of this process, bound to 127.0.0.1, after reaping stale sessions."""
     import ray
@@ -183,12 +244,24 @@ def start(**init_kwargs) -> None:
         note.addFilter(DeliberateTokenNote())
     saved_env, saved_flag = os.environ.get(LOOPBACK_ENV), constants.ENABLE_RAY_CLUSTER
     os.environ[LOOPBACK_ENV], constants.ENABLE_RAY_CLUSTER = "0", False
+    main = threading.current_thread() is threading.main_thread()
+    sigterm = signal.getsignal(signal.SIGTERM) if main else None
     try:
         # address="local": always a new cluster of our own; plain ray.init() would join any cluster
         # another process left running on this machine.
         ray.init(address="local", _node_ip_address="127.0.0.1", include_dashboard=False, logging_level="WARNING",
                  **init_kwargs)
+    except KeyboardInterrupt:
+        _abandon_start()
+        raise
+    except SystemExit as exc:
+        if exc.code != signal.SIGTERM:
+            raise
+        _abandon_start()  # ray.init's own SIGTERM handler (sys.exit(15)) ran: a SIGTERM is Ctrl-C here too
+        raise KeyboardInterrupt from None
     finally:
+        if main:  # ray.init replaced it with its own, which exits without running the caller's clean-up
+            signal.signal(signal.SIGTERM, sigterm)
         constants.ENABLE_RAY_CLUSTER = saved_flag
         if saved_env is None:
             os.environ.pop(LOOPBACK_ENV)

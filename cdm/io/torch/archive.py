@@ -5,8 +5,7 @@ before any pickle module sees a byte, and that runs the archive's scripted code.
 here: only the entries a ``torch.save`` of tensors and plain data writes are accepted (:data:`ENTRIES`,
 plus ``data/<key>`` storage records), each member's inflated size is capped from the zip header and again
 while reading, and storage records become CPU tensors of bytes without torch ever parsing the archive.
-Legacy (pre-zip, torch < 1.6) files are refused as not in torch's file format: nothing this project
-reads (PC²'s checkpoints, MSN/timm weights, our own) is written that way.
+Legacy (pre-zip, torch < 1.6) files are read by :mod:`cdm.io.torch.legacy`.
 
 Caps (also in docs/security.md): :data:`MAX_PICKLE_BYTES`, :data:`MAX_STORAGE_BYTES`,
 :data:`MAX_INFLATE_RATIO`, :data:`MAX_ENTRIES`.
@@ -47,6 +46,10 @@ class ArchiveError(ValueError):
 
 class Archive:
     """An open ``torch.save`` zip archive: its ``data.pkl`` and its storage records, each read once."""
+
+    byteorder: str
+    STORAGE_ID = ("type", "key", "location", "size")
+    """The fields of a storage's persistent id after ``'storage'``."""
 
     def __init__(self, f: IO[bytes]) -> None:
         if not zipfile.is_zipfile(f):

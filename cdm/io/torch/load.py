@@ -3,9 +3,9 @@
 This module owns reading pickles: no other module calls ``torch.load``, ``torch.jit.load`` or
 ``pickle.load`` (tests/test_read_audit.py walks the code), and this one calls ``torch.load`` once, in
 :func:`load_own`, for files the project wrote into its own cache. The readers of a file a user names open
-the archive themselves (:class:`cdm.io.torch.archive.Archive`: no TorchScript, bounded members) and run one
-inert unpickler on its ``data.pkl``; torch's loader never sees such a file, so ``torch.jit.load`` cannot be
-reached:
+the archive themselves (:class:`cdm.io.torch.archive.Archive`: no TorchScript, bounded members; or a
+pre-zip file, :mod:`cdm.io.torch.legacy`) and run one inert unpickler on its pickles; torch's loader never
+sees such a file, so ``torch.jit.load`` cannot be reached:
 
 - :func:`load_tensors`: what ``torch.load(weights_only=True)`` reads: tensors, ``OrderedDict``, plain data.
 - :func:`load_inert`: also a pickled config, as PC²'s ``checkpoint-latest.pth`` pickles its OmegaConf ``cfg``
@@ -22,15 +22,16 @@ Caps: :data:`MAX_PICKLE_OPS`, :data:`MAX_NESTING` and the archive's (docs/securi
 from __future__ import annotations
 
 import io
-import pickle
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from cdm.io.files import open_regular
-from cdm.io.torch.archive import Archive, ArchiveError
-from cdm.io.torch.unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, Pickled, Refused, unpickle
+from cdm.io.torch.archive import MAX_PICKLE_BYTES, Archive, ArchiveError
+from cdm.io.torch.legacy import load_legacy
+from cdm.io.torch.unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, PICKLE_DAMAGE, Pickled, Refused, unpickle
 
 __all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_own", "load_tensors",
            "pickle_bytes"]
@@ -74,13 +75,21 @@ def load_inert(file: Path, label: str, kind: str) -> Any:
 
 
 def pickle_bytes(file: Path, label: str) -> bytes:
-    """The bytes of ``file``'s ``data.pkl``, within the archive's caps and nothing unpickled: what a reader
-    recognises a file by (the names its pickle holds) before choosing how to load it.
+    """The bytes of ``file``'s pickles, within the archive's caps and nothing unpickled: what a reader
+    recognises a file by (the names its pickle holds) before choosing how to load it. That is a zip
+    archive's ``data.pkl``, or a pre-zip file's first :data:`MAX_PICKLE_BYTES` (its pickles come first,
+    its storages after them).
 
     Raises:
         ValueError: ``file`` is not a regular file or not a ``torch.save`` archive; the message starts with ``label``.
     """
     with open_regular(file, label, show_path=False) as f:
+        if not zipfile.is_zipfile(f):
+            f.seek(0)
+            head = f.read(MAX_PICKLE_BYTES)
+            if not head.startswith(b"\x80"):  # a pickle's PROTO opcode, as a pre-zip file's magic number opens
+                raise ValueError(f"{label} is not a torch archive or a pre-zip torch file")
+            return head
         try:
             return Archive(f).pickle()
         except ArchiveError as exc:
@@ -90,14 +99,16 @@ def pickle_bytes(file: Path, label: str) -> bytes:
 def _read(file: Path, label: str, kind: str, records: bool) -> Any:
     with open_regular(file, label, show_path=False) as f:
         try:
+            if not zipfile.is_zipfile(f):
+                f.seek(0)
+                return load_legacy(f, records)
             archive = Archive(f)
             return unpickle(io.BytesIO(archive.pickle()), archive, records)
         except ArchiveError as exc:
             raise ValueError(f"{label} is not a readable {kind}: {exc}") from None
         except Refused:
             raise
-        except (pickle.UnpicklingError, EOFError, ValueError, TypeError, KeyError, IndexError,
-                RuntimeError, AttributeError) as exc:
+        except PICKLE_DAMAGE as exc:
             # A malformed pickle (a bad opcode, a stack underflow, an unhashable key) is damage, not a payload.
             raise ValueError(f"{label} is not a readable {kind} ({type(exc).__name__}: {exc})") from None
 

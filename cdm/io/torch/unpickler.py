@@ -16,13 +16,14 @@ import types
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import torch
 
-from cdm.io.torch.archive import Archive, ArchiveError
+from cdm.io.torch.archive import ArchiveError
 
-__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "Refused", "unpickle"]
+__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "PICKLE_DAMAGE", "Pickled", "Refused", "Storages",
+           "unpickle"]
 
 MAX_PICKLE_OPS = 2_000_000
 """Most opcodes one ``data.pkl`` may run: each builds at most one object. PC²'s checkpoint needs tens of
@@ -36,6 +37,21 @@ CONFIG_CALLS = ("omegaconf.*", "collections.defaultdict", "builtins.type", "buil
 """What a pickled config may call, each call kept as a record: OmegaConf's containers, nodes and
 metadata (created bare, then given their state), the ``defaultdict`` of its resolver cache, and what
 type annotations pickle through (``type(None)``, ``typing.Optional[int]`` as ``getitem``)."""
+PICKLE_DAMAGE = (pickle.UnpicklingError, EOFError, ValueError, TypeError, KeyError, IndexError, RuntimeError,
+                 AttributeError)
+"""What a malformed pickle raises (a bad opcode, a stack underflow, an unhashable key): damage, not a payload
+(:class:`Refused`, a payload, is an ``UnpicklingError`` too: catch it first)."""
+
+
+class Storages(Protocol):
+    """Where a pickle's storages come from: a zip :class:`cdm.io.torch.archive.Archive` or a legacy file."""
+
+    byteorder: str
+    STORAGE_ID: tuple[str, ...]
+    """The fields of a persistent id after ``'storage'``."""
+
+    def storage(self, key: str, nbytes: int) -> torch.Tensor:
+        """Storage ``key`` as a uint8 tensor of exactly ``nbytes``."""
 
 
 class Refused(pickle.UnpicklingError):
@@ -168,7 +184,7 @@ def _counted(step: Callable[[Any], None]) -> Callable[[Any], None]:
 class _Unpickler(pickle._Unpickler):
     """``data.pkl`` as tensors, plain data and (with ``records``) :class:`Pickled` records."""
 
-    def __init__(self, file: IO[bytes], archive: Archive, records: bool) -> None:
+    def __init__(self, file: IO[bytes], archive: Storages, records: bool) -> None:
         super().__init__(file)
         self.archive, self.records, self.ops = archive, records, 0
         self.classes: dict[str, type[Pickled]] = {}
@@ -191,10 +207,13 @@ class _Unpickler(pickle._Unpickler):
         return self.classes[full]
 
     def persistent_load(self, pid: Any) -> _Storage:
-        if not (type(pid) is tuple and len(pid) == 5 and pid[0] == "storage"):
+        form = self.archive.STORAGE_ID
+        if not (type(pid) is tuple and len(pid) == 1 + len(form) and pid[0] == "storage"):
             raise ArchiveError(f"its pickle names a storage as {_short(pid)}; torch.save writes "
-                               "('storage', type, key, location, size)")
-        _, dtype, key, _location, numel = pid
+                               f"('storage', {', '.join(form)})")
+        _, dtype, key, _location, numel = pid[:5]
+        if pid[5:] not in ((), (None,)):  # a legacy view, which torch.save has not written since torch 0.4
+            raise ArchiveError(f"its pickle names a view of a storage, {_short(pid)}")
         if not isinstance(dtype, torch.dtype) or type(key) is not str or type(numel) is not int or numel < 0:
             raise ArchiveError(f"its pickle names a storage as {_short(pid)}, not (str, storage type, key, "
                                "location, size)")
@@ -298,7 +317,7 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else f"{text[:57]}..."
 
 
-def unpickle(file: IO[bytes], archive: Archive, records: bool) -> Any:
+def unpickle(file: IO[bytes], archive: Storages, records: bool) -> Any:
     """``data.pkl`` of ``archive`` read inertly; raises :class:`Refused` for what could run code and
     :class:`cdm.io.torch.archive.ArchiveError` for a broken cap or a malformed storage reference."""
     result = _Unpickler(file, archive, records).load()
