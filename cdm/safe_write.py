@@ -8,6 +8,11 @@ flushes it to disk and renames it over the destination, refusing a destination t
 a regular file. A reader sees the whole file or the old one; a killed run leaves only a temporary
 file whose name matches :data:`TEMP_NAME`. Each refusal is a ``ValueError`` naming the option and
 the path.
+
+A folder another process copies while we write (Ray Tune's driver copies a trial's folder to storage every
+second, listing then reading) must never hold a temporary file: renamed between the listing and the read,
+it makes the copier fail with a traceback. :func:`temporary_files_in` sends every write's temporary file
+to a folder of the caller's, on the same file system, for as long as it is open.
 """
 
 from __future__ import annotations
@@ -16,14 +21,37 @@ import os
 import re
 import secrets
 import stat
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import IO
 
-__all__ = ["TEMP_NAME", "make_folder", "write_atomic"]
+__all__ = ["TEMP_NAME", "make_folder", "scratch_for", "temporary_files_in", "write_atomic"]
 
 TEMP_NAME = re.compile(r"\..+\.tmp-[0-9a-f]{16}")
 """Name of a temporary file :func:`write_atomic` makes: ``.<destination name>.tmp-<16 random hex digits>``."""
+
+
+_SCRATCH: ContextVar[Path | None] = ContextVar("cdm_scratch", default=None)
+
+
+@contextmanager
+def temporary_files_in(folder: Path | None) -> Iterator[None]:
+    """Within it, :func:`write_atomic` (without its own ``scratch``) and :func:`scratch_for` put temporary
+    files in ``folder`` (made if absent; on the destinations' file system, so renames stay atomic); None
+    keeps them beside each destination."""
+    token = _SCRATCH.set(None if folder is None else make_folder(folder, "scratch"))
+    try:
+        yield
+    finally:
+        _SCRATCH.reset(token)
+
+
+def scratch_for(folder: Path) -> Path:
+    """Where something bound for ``folder`` is put together before its rename: the folder of the open
+    :func:`temporary_files_in`, else ``folder`` itself."""
+    return _SCRATCH.get() or folder
 
 
 def make_folder(path: Path, label: str) -> Path:
@@ -58,7 +86,8 @@ def write_atomic(path: Path, data: bytes | str | Callable[[IO[bytes]], None], la
     """Write ``data`` (bytes, text as UTF-8, or a function writing into a binary file) to ``path``.
 
     The temporary file lives in ``scratch`` (a folder of the caller's on the same file system, whose
-    leftovers it may remove: :data:`TEMP_NAME`) or else beside ``path``; it is renamed over ``path``
+    leftovers it may remove: :data:`TEMP_NAME`), else in the open :func:`temporary_files_in` folder, else
+    beside ``path``; it is renamed over ``path``
     only when complete and on disk. With ``within``, ``path``'s folder must lie below it once links are
     resolved: a folder link planted below ``--out`` leads nowhere else.
 
@@ -70,7 +99,7 @@ def write_atomic(path: Path, data: bytes | str | Callable[[IO[bytes]], None], la
         raise ValueError(f"{label}: {path} would be written to {path.parent.resolve()}, outside {within} "
                          "(a link below it leads out); remove the link")
     _refuse_existing(path, label)
-    temp = (scratch or path.parent) / f".{path.name}.tmp-{secrets.token_hex(8)}"
+    temp = (scratch or scratch_for(path.parent)) / f".{path.name}.tmp-{secrets.token_hex(8)}"
     try:
         fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, mode)
     except OSError as exc:

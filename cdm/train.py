@@ -39,6 +39,7 @@ from cdm.objective import LossTerms, cdm_loss
 from cdm.optim import MAX_SKIPPED_IN_A_ROW, Optimiser, TrainingDiverged
 from cdm.provenance import run_record
 from cdm.runtime import AUTOCAST_DTYPES, resolve_precision, start_run
+from cdm.safe_write import make_folder, scratch_for
 from cdm.shared import SharedStore, SharedViews
 
 __all__ = ["Callback", "FitResult", "StepLosses", "Trainer", "TrainingDiverged", "fit"]
@@ -250,9 +251,9 @@ class Trainer:
         return out.metrics, out.files
 
     def save_checkpoint(self, keep: int = 2) -> Path:
-        root = self.out_dir / "checkpoints"
+        root = make_folder(self.out_dir / "checkpoints", "train.out_dir")
         final = root / f"step_{self.step:07d}"
-        tmp = root / f".tmp_step_{self.step:07d}"
+        tmp = scratch_for(root) / f".tmp_step_{self.step:07d}"
         save_checkpoint(self.state(), tmp)
         if final.exists():
             shutil.rmtree(final)

@@ -32,6 +32,7 @@ from ray.train.torch import TorchTrainer
 
 from cdm.config import Config, load_config
 from cdm.prior_model import ensure_priors
+from cdm.safe_write import temporary_files_in
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
 from sweeps.execute.cores import CoreLease
@@ -123,6 +124,8 @@ class TrialJob:
     """Where ``prior_checkpoint: auto`` caches category priors (:func:`_prior_dir`)."""
     setup: TrialSetup
     """The sweep's side: MLflow parent run, shared store, core leases (in ``<sweep_dir>/cores``)."""
+    scratch: str
+    """Where the trial's writes put their temporary files (:func:`_scratch`)."""
 
 
 def train_loop(job: TrialJob) -> None:
@@ -165,7 +168,8 @@ def fit_trial(job: TrialJob, rank: int, trackers: Callable[[Config], list[Callba
         callbacks += [TrialProgress(job.label, config.train.steps, job.metric), *trackers(config)]
     shared = None if setup.shared_root is None else SharedStore(setup.shared_root)
     try:
-        fit(config, callbacks, resume_from=resume_from, shared=shared)
+        with temporary_files_in(Path(job.scratch) / f"rank_{rank}"):
+            fit(config, callbacks, resume_from=resume_from, shared=shared)
     finally:
         if lease is not None:  # reused actors outlive the trial: the next one must find the core free
             lease.release()
@@ -209,6 +213,7 @@ def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, tri
         tags=tags,
         prior_dir=_prior_dir(setup.sweep_dir, trial_dir),
         setup=setup,
+        scratch=_scratch(trial_dir),
     )
 
 
@@ -260,6 +265,18 @@ def _prior_dir(sweep_dir: str, trial_dir: str) -> str:
     if "://" in sweep_dir:
         return str(Path(trial_dir).parent / "priors")
     return str(Path(sweep_dir) / "priors")
+
+
+def _scratch(trial_dir: str) -> str:
+    """The trial's scratch folder: beside Tune's staging folder of the experiment (``<experiment>/driver_artifacts``,
+    which holds the trial's folder), on the same file system so renames out of it stay atomic.
+
+    Tune's driver copies that staging folder to storage every second (``TUNE_GLOBAL_CHECKPOINT_S``,
+    :mod:`sweeps.execute.tuner`), listing every file then reading it, with no way to exclude any; a
+    temporary file renamed in between made it log a ``FileNotFoundError`` traceback.
+    """
+    trial = Path(trial_dir)
+    return str(trial.parent.parent / "scratch" / trial.name)
 
 
 def _tune_report_callbacks() -> list:
