@@ -20,9 +20,11 @@ import pytest
 import ray
 from mlflow import MlflowClient
 
+from cdm.provenance import MACHINE_KEYS, machine_record
 from cdm.safe_write import TEMP_NAME
 from sweeps import run
 from sweeps.execute.logged_runs import last_eval_files
+from sweeps.execute.trial_tracking import PACKAGES_FILE
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -85,6 +87,9 @@ def test_grid_of_two_cells_end_to_end(e2e):
     )
     folder = e2e.folder / "e2e" / "smoke"
     assert (folder / "results.md").read_text().count("| point_size=0.0") == 2
+    here = machine_record()
+    assert f"- machine: {here['cpu_model']} ({here['cpu_isa']}), ATen {here['cpu_capability']}, " in (
+        folder / "results.md").read_text()
     assert (folder / "results.csv").read_text().splitlines()[0].startswith("cell,")
 
     client, parents, children = _children(uri, "e2e")
@@ -174,6 +179,8 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     child = next(c for c in children if c.info.run_name == "point_size=0.04 · seed 0")
     tags = child.data.tags
     assert tags["repro.git_commit"] and tags["repro.config_hash"] and tags["repro.version_torch"]
+    assert {k: tags[f"repro.{k}"] for k in MACHINE_KEYS} == machine_record()
+    assert client.list_artifacts(child.info.run_id, "environment")[0].path == PACKAGES_FILE
     assert tags["repro.data_fingerprint"].startswith("train ") and tags["eval_set"]
     capsys.readouterr()
     rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--storage", str(e2e.folder)]
@@ -186,6 +193,17 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     assert len(again) == 1
     assert again[0].data.metrics["eval/cd"] == child.data.metrics["eval/cd"]
     assert again[0].data.metrics["eval/f1"] == child.data.metrics["eval/f1"]
+
+    # Another CPU type: named before training, and in the rows after it; the scores still match here.
+    epyc = "AMD EPYC 7B13 64-Core Processor"
+    client.set_tag(child.info.run_id, "repro.cpu_model", epyc)
+    assert run.main(rerun_argv) == 1
+    out = capsys.readouterr().out
+    warning = "warning: this machine differs from the recorded run's; on CPU each of these can change the numbers"
+    assert out.index(warning) < out.index("step 5/") and f"\n  repro.cpu_model: recorded {epyc}, here " in out
+    assert re.search(r"\nrepro\.cpu_model +AMD EPYC 7B13 .*DIFFERENT\n", out)
+    assert re.search(r"\neval/f1 +(\S+) +\1 +same\n", out)
+    client.set_tag(child.info.run_id, "repro.cpu_model", tags["repro.cpu_model"])
 
     client.set_tag(child.info.run_id, "repro.git_commit", "0" * 40)
     assert run.main(rerun_argv) == 2
