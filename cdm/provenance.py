@@ -16,6 +16,7 @@ import os
 import platform
 import re
 import subprocess
+import sysconfig
 from importlib.metadata import PackageNotFoundError, distributions, version
 from pathlib import Path
 
@@ -69,11 +70,20 @@ def math_libraries() -> str:
     return ", ".join(parts)
 
 
-def installed_packages() -> list[str]:
-    """Every installed distribution as ``name==version`` (names normalised, PEP 503), sorted; the first on
-    ``sys.path`` of a name, as ``import`` would find it."""
+def _site_dirs() -> list[str]:
+    """The environment's site-packages folders (pure and platform), where ``pip install`` puts packages."""
+    return list(dict.fromkeys(sysconfig.get_paths()[k] for k in ("purelib", "platlib")))
+
+
+def installed_packages(paths: list[str] | None = None) -> list[str]:
+    """Every distribution installed in ``paths`` (default: the environment's site-packages) as ``name==version``
+    (names normalised, PEP 503), sorted; of one name, the first found, as ``import`` would.
+
+    Only the site-packages, not ``sys.path``: importing Ray puts its private copies of packages
+    (``ray/thirdparty_files``) on the path, which would make the list depend on what the process imported.
+    """
     found: dict[str, str] = {}
-    for dist in distributions():
+    for dist in distributions(path=_site_dirs() if paths is None else paths):
         name = re.sub(r"[-_.]+", "-", dist.metadata["Name"] or "").lower()
         if name:
             found.setdefault(name, dist.version)

@@ -55,16 +55,21 @@ def _fake_distribution(folder: Path, name: str, ver: str) -> None:
     (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {ver}\n")
 
 
-def test_every_package_is_listed_once_and_any_change_changes_the_digest(tmp_path, monkeypatch):
+def test_every_package_is_listed_once_whatever_the_process_imported():
     before = installed_packages()
     names = [line.split("==")[0] for line in before]
     assert names == sorted(set(names)) and len(names) > 50
     assert f"torch=={version('torch')}" in before and f"numpy=={version('numpy')}" in before
     assert machine_record()["packages_digest"] == json_digest(before)
+    import ray  # noqa: F401 — puts its private copies of packages (ray/thirdparty_files) on sys.path
+
+    assert installed_packages() == before
+
+
+def test_the_first_of_a_name_counts_and_any_change_changes_the_digest(tmp_path):
     _fake_distribution(tmp_path / "a", "Fake_Pkg", "1.0")
-    _fake_distribution(tmp_path / "b", "fake.pkg", "2.0")  # the same name, later on sys.path: shadowed
-    monkeypatch.syspath_prepend(str(tmp_path / "b"))
-    monkeypatch.syspath_prepend(str(tmp_path / "a"))
-    after = installed_packages()
-    assert sorted(set(after) - set(before)) == ["fake-pkg==1.0"] and len(after) == len(before) + 1
-    assert machine_record()["packages_digest"] != json_digest(before)
+    _fake_distribution(tmp_path / "b", "fake.pkg", "2.0")  # the same name, later on the path: shadowed
+    _fake_distribution(tmp_path / "b", "other", "3.1")
+    listed = installed_packages([str(tmp_path / "a"), str(tmp_path / "b")])
+    assert listed == ["fake-pkg==1.0", "other==3.1"]
+    assert json_digest(listed) != json_digest(installed_packages([str(tmp_path / "b"), str(tmp_path / "a")]))
