@@ -73,11 +73,12 @@ class Publisher:
     publish: Callable[[str, str, Path], str]
 
 
-def table_settings(plan: SweepPlan, sweep_run: SweepRun) -> list[str]:
+def table_settings(plan: SweepPlan, sweep_run: SweepRun | None = None) -> list[str]:
     """What produced the numbers, for the table's notes: budget, the cells' training target and λ, the machine
-    the trials' child runs name, the card."""
+    the trials' child runs under ``sweep_run`` name (none before there are trials), the card."""
     trials = ((c.config.diffusion.prediction, c.config.priors.lambda_3d) for c in plan.cells)
-    machines = [r.data.tags for r in trial_runs(sweep_run.client, sweep_run.experiment_id, sweep_run.run_id)]
+    machines = None if sweep_run is None else [
+        r.data.tags for r in trial_runs(sweep_run.client, sweep_run.experiment_id, sweep_run.run_id)]
     return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, plan.fixed, plan.sets,
                           plan_card(plan).lines(), trials, machines)
 
