@@ -20,6 +20,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.blend import blend_overhead  # noqa: E402
+from benchmarks.cpu_modes import cpu_modes  # noqa: E402
 from benchmarks.lean_step import lean_step  # noqa: E402
 from benchmarks.loader import loader_speed  # noqa: E402
 from benchmarks.memory import peak_rss  # noqa: E402
@@ -46,7 +47,7 @@ BENCHMARKS = {
     "loader": loader_speed,
 }
 # Minutes-long training runs: only with --only.
-SLOW = {"quality": quick_config_quality}
+SLOW = {"quality": quick_config_quality, "cpu_modes": lambda quick, out: cpu_modes(steps=10 if quick else 40)}
 # Run on --device (the others measure CPU costs per thread).
 ON_DEVICE = {"throughput": throughput}
 

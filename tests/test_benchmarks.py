@@ -134,3 +134,15 @@ def test_lean_step_refuses_a_round_count_below_one():
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and out.stdout == ""
     assert out.stderr.strip() == "error: --rounds must be >= 1, got 0"
+
+
+def test_cpu_modes_train_each_mode_in_its_own_process_with_its_pins():
+    from benchmarks.cpu_modes import cpu_modes
+    from cdm.provenance import machine_record
+
+    rows = cpu_modes(steps=1, rounds=1)
+    assert [r["case"].split(" (")[0] for r in rows] == ["avx2", "portable"]
+    assert "(MKL_CBWR=COMPATIBLE ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2; ATen " in rows[1]["case"]
+    if "avx2" in machine_record()["cpu_isa"].split():  # the pin took: ATen dispatches to AVX2 in the child
+        assert all("; ATen AVX2 against " in r["case"] for r in rows)
+    assert all(r["with_s"] > 0 and r["without_s"] > 0 and r["ratio"] > 0 for r in rows)

@@ -33,6 +33,7 @@ PURPOSE = {
     "benchmarks/run.py": "Run the benchmarks and print one Markdown table",
     "benchmarks/denoiser_step.py": "Time one training step of each denoiser on CPU",
     "benchmarks/sweep_cpu.py": "Measure the CPU a training step takes inside a real sweep",
+    "benchmarks/cpu_modes.py": "Pinned CPU kernels against the default",
     "benchmarks/gpu_check.py": "One device script: every figure a cluster user needs for the paper profile",
     "benchmarks/step_ops.py": "Ops dispatched per pvcnn2 training step, and per point operation",
     "benchmarks/lean_step.py": "The local training step, this tree ÷ the tree at a base revision, side by side",

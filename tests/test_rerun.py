@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 from mlflow import MlflowClient
 
-from sweeps.results.rerun import RerunError, rerun
+from cdm.provenance import installed_packages, machine_record
+from sweeps.results.rerun import RerunError, machine_differences, rerun
 from tests.hostile_files import ROOT, assert_refused, run_command
 
 
@@ -76,3 +77,45 @@ def test_rerun_force_of_a_record_with_torch_threads_0_exits_2_through_the_comman
                            "--out", str(tmp_path / "results")], tmp_path, timeout=300)
     assert_refused(outcome, "repro.torch_threads is '0'")
     assert not (tmp_path / "results").exists()
+
+
+def test_the_rerun_names_each_part_of_the_machine_that_differs_and_which_packages(store, tmp_path):
+    here = machine_record()
+    same = {f"repro.{k}": v for k, v in here.items()}
+    uri, run = _recorded(store, tmp_path, same)
+    client = MlflowClient(uri)
+    assert machine_differences(client, run, client.get_run(run).data.tags) == []
+
+    recorded = installed_packages()
+    numpy = next(i for i, line in enumerate(recorded) if line.startswith("numpy=="))
+    recorded[numpy] = "numpy==0.1"
+    gone = recorded.pop(0)  # installed here, absent from the record
+    recorded.append("zz-only-recorded==1.0")
+    (tmp_path / "packages.txt").write_text("\n".join(recorded) + "\n")
+    capability = "AVX2" if here["cpu_capability"] != "AVX2" else "DEFAULT"
+    other = {**same, "repro.cpu_model": "AMD EPYC 7B13 64-Core Processor", "repro.cpu_capability": capability,
+             "repro.packages_digest": "0" * 16}
+    uri, run = _recorded(store, tmp_path, other)
+    client.log_artifact(run, str(tmp_path / "packages.txt"), "environment")
+    lines = machine_differences(client, run, client.get_run(run).data.tags)
+    name, _, ver = gone.partition("==")
+    assert lines == [
+        f"repro.cpu_model: recorded AMD EPYC 7B13 64-Core Processor, here {here['cpu_model']}",
+        f"repro.cpu_capability: recorded {capability}, here {here['cpu_capability']}",
+        f"repro.packages_digest: recorded {'0' * 16}, here {here['packages_digest']}",
+        f"packages: numpy 0.1 → {_installed('numpy')}, +{name} {ver} (only here), "
+        "-zz-only-recorded 1.0 (only recorded)",
+    ]
+
+    uri, run = _recorded(store, tmp_path, {"repro.cpu_model": "a\nplanted line"})
+    lines = machine_differences(client, run, client.get_run(run).data.tags)
+    assert lines[0].startswith("repro.cpu_model: recorded 'a\\nplanted line', here ") and "\n" not in "".join(lines)
+
+    uri, run = _recorded(store, tmp_path, {})  # a run from before the machine was recorded
+    assert machine_differences(client, run, client.get_run(run).data.tags) == [
+        f"the record names no machine (a run from before it was recorded); this one: {here['cpu_model']}, "
+        f"{here['cpu_capability']}, {here['math_libraries']}"]
+
+
+def _installed(name: str) -> str:
+    return next(line.partition("==")[2] for line in installed_packages() if line.startswith(name + "=="))

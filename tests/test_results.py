@@ -13,7 +13,7 @@ import torch
 
 from cdm.metric_names import label as metric_label
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.rules import settings_note, settings_notes
+from sweeps.compare.rules import machine_note, settings_note, settings_notes
 from sweeps.compare.sequential import Decision, SeedInterval, SettleRecord
 from sweeps.compare.table import build_table
 from sweeps.plan.spec import load_spec
@@ -262,6 +262,27 @@ def test_settings_notes_without_trials_resolve_the_fixed_settings_and_sets_as_a_
     assert "prediction target eps; λ (priors.lambda_3d, Eq. 6) 0.5, from --set" in note
     note = settings_notes(spec, "local", 1400, fixed, {}, [], [("v", 0.2), ("x0", 0.2)])[0]
     assert "prediction target per cell (v, x0); λ (priors.lambda_3d, Eq. 6) 0.2, from profile local" in note
+
+
+XEON = {"repro.cpu_model": "Intel(R) Xeon(R) Processor", "repro.cpu_isa": "avx2 avx512f amx_tile",
+        "repro.cpu_capability": "AVX512", "repro.math_libraries": "BLAS mkl, MKL 2024.2 build 20240605",
+        "repro.kernel_pins": "none", "repro.packages_digest": "aced6566623b66f8"}
+
+
+def test_the_machine_note_names_the_trials_machine_or_each_of_them():
+    xeon = ("Intel(R) Xeon(R) Processor (avx2 avx512f amx_tile), ATen AVX512, BLAS mkl, MKL 2024.2 build 20240605, "
+            "kernel pins none, packages aced6566623b66f8")
+    where = " (every package: each child run's environment/packages.txt)"
+    assert machine_note([XEON, XEON, {"seed": "0"}]) == f"machine: {xeon}{where}"
+    epyc = {**XEON, "repro.cpu_model": "AMD EPYC 7B13\n- planted note", "repro.cpu_isa": "avx2",
+            "repro.cpu_capability": "AVX2"}
+    assert machine_note([epyc, XEON, XEON]) == (
+        f"machines differ between trials, and so may their numbers: 2 on {xeon}; 1 on AMD EPYC 7B13 - planted note "
+        "(avx2), ATen AVX2, BLAS mkl, MKL 2024.2 build 20240605, kernel pins none, packages aced6566623b66f8" + where)
+    assert machine_note([{"seed": "0"}]) == "machine: not recorded (trials from before the record named it)"
+    spec = load_spec(SWEEPS / "point_size.yaml")
+    notes = settings_notes(spec, "local", 1400, {}, {}, ["a line"], machines=[XEON])
+    assert notes[1] == f"machine: {xeon}{where}" and notes[2] == "protocol: a line"
 
 
 REF_F1 = [0.40, 0.50, 0.30, 0.45, 0.35, 0.50]

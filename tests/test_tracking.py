@@ -13,9 +13,10 @@ from mlflow import MlflowClient
 
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import load_config
+from cdm.provenance import installed_packages, machine_record
 from sweeps.execute.logged_runs import find_trial_run, last_eval_files
 from sweeps.execute.tracking import SweepRun, resolve_tracking_uri, ui_command, ui_link
-from sweeps.execute.trial_tracking import TrialRun, learning_curve_png
+from sweeps.execute.trial_tracking import PACKAGES_FILE, TrialRun, learning_curve_png
 
 
 def test_tracking_uri_is_absolute_and_overridable(tmp_path, monkeypatch):
@@ -160,3 +161,16 @@ def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_model_a
     logged = yaml.safe_load((folder / "config.yaml").read_text())
     assert "out_dir" not in logged["train"] and logged["train"]["steps"] == 20
     assert (folder / "checkpoint.pt").stat().st_size < (tmp_path / "step_20" / "checkpoint.pt").stat().st_size
+
+
+def test_a_child_run_is_tagged_with_its_machine_and_holds_its_package_list(tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
+    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, load_config(None))
+    machine = machine_record()
+    trial.on_start({"config_hash": "0" * 16, **machine})
+    client = MlflowClient(uri)
+    tags = client.get_run(trial.run_id).data.tags
+    assert {k: tags[f"repro.{k}"] for k in machine} == machine and tags["repro.cpu_capability"]
+    listed = Path(client.download_artifacts(trial.run_id, PACKAGES_FILE, str(tmp_path))).read_text().splitlines()
+    assert listed == installed_packages() and any(line.startswith("torch==") for line in listed)

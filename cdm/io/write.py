@@ -69,8 +69,8 @@ def write_atomic(path: Path, data: bytes | str | Callable[[IO[bytes]], None], la
     """Write ``data`` (bytes, text as UTF-8, or a function writing into a binary file) to ``path``.
 
     The temporary file lives in ``scratch`` (a folder of the caller's on the same file system, whose
-    leftovers it may remove: :data:`TEMP_NAME`) or else beside ``path``; it is renamed over ``path``
-    only when complete and on disk. With ``within``, ``path``'s folder must lie below it once links are
+    leftovers it may remove: :data:`TEMP_NAME`), else beside ``path``; it is renamed over ``path`` only
+    when complete and on disk. With ``within``, ``path``'s folder must lie below it once links are
     resolved: a folder link planted below ``--out`` leads nowhere else.
 
     Raises:

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Iterable, Sequence
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -20,6 +21,7 @@ __all__ = [
     "Stat",
     "delta_range",
     "lambda_source",
+    "machine_note",
     "number_text",
     "object_column",
     "partner",
@@ -134,8 +136,31 @@ def lambda_source(spec: Spec, profile: str, fixed: dict[str, Any], sets: dict[st
     return "the config default"
 
 
+def _machine(tags: Mapping[str, str]) -> str:
+    """One trial's machine from its ``repro.*`` tags (:func:`cdm.provenance.machine_record`), on one line."""
+    def get(key: str) -> str:
+        return " ".join(tags.get(f"repro.{key}", "?").split())  # a recorded newline must not break the list
+
+    return (f"{get('cpu_model')} ({get('cpu_isa')}), ATen {get('cpu_capability')}, {get('math_libraries')}, "
+            f"kernel pins {get('kernel_pins')}, packages {get('packages_digest')}")
+
+
+def machine_note(trials: Iterable[Mapping[str, str]]) -> str:
+    """The table's note on the machine its trials ran on, from each trial's ``repro.*`` tags: on CPU, MKL and
+    oneDNN pick their kernels per CPU, so another CPU type moves the numbers (docs/local-results.md)."""
+    seen = Counter(_machine(tags) for tags in trials if "repro.cpu_model" in tags)
+    where = " (every package: each child run's environment/packages.txt)"
+    if not seen:
+        return "machine: not recorded (trials from before the record named it)"
+    if len(seen) == 1:
+        return f"machine: {next(iter(seen))}{where}"
+    return ("machines differ between trials, and so may their numbers: "
+            + "; ".join(f"{n} on {machine}" for machine, n in seen.most_common()) + where)
+
+
 def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any], sets: dict[str, Any],
-                   card: Iterable[str], trials: Iterable[tuple[str, float]] = ()) -> list[str]:
+                   card: Iterable[str], trials: Iterable[tuple[str, float]] = (),
+                   machines: Iterable[Mapping[str, str]] | None = None) -> list[str]:
     """The table's notes on what produced the numbers, the runner's and the report's alike (the one home of
     that rule): the :func:`settings_note` (a λ the spec searches is "searched", whatever the trials drew),
     then the protocol card (:mod:`sweeps.plan.protocol`) a line per note.
@@ -143,7 +168,8 @@ def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any
     ``fixed``/``sets``: the plan's fixed overrides and ``--set`` values, where :func:`lambda_source` looks for
     λ. ``trials``: each trial's resolved (``diffusion.prediction``, ``priors.lambda_3d``); none (a sampled
     search before its trials, a sweep whose trials recorded none) stands for ``fixed`` and ``sets`` resolved
-    by :func:`cdm.config.load_config`, as every trial's config is.
+    by :func:`cdm.config.load_config`, as every trial's config is. ``machines``: each trial's tags, for the
+    :func:`machine_note` after the first note.
     """
     trials = list(trials)
     if not trials:
@@ -153,6 +179,7 @@ def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any
     searched = "priors.lambda_3d" in spec.search.space
     return [
         settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),
+        *([] if machines is None else [machine_note(machines)]),
         *(PROTOCOL_NOTE + line for line in card),
     ]
 

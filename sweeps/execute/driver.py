@@ -29,6 +29,7 @@ from sweeps.compare.settle import final_round, write_settle_json
 from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
+from sweeps.execute.logged_runs import trial_runs
 from sweeps.execute.precompute import check_space, shared_root
 from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
 from sweeps.execute.seed_search import check_searcher_state
@@ -72,11 +73,14 @@ class Publisher:
     publish: Callable[[str, str, Path], str]
 
 
-def table_settings(plan: SweepPlan) -> list[str]:
-    """What produced the numbers, for the table's notes: budget, the cells' training target and λ, the card."""
+def table_settings(plan: SweepPlan, sweep_run: SweepRun | None = None) -> list[str]:
+    """What produced the numbers, for the table's notes: budget, the cells' training target and λ, the machine
+    the trials' child runs under ``sweep_run`` name (none before there are trials), the card."""
     trials = ((c.config.diffusion.prediction, c.config.priors.lambda_3d) for c in plan.cells)
+    machines = None if sweep_run is None else [
+        r.data.tags for r in trial_runs(sweep_run.client, sweep_run.experiment_id, sweep_run.run_id)]
     return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, plan.fixed, plan.sets,
-                          plan_card(plan).lines(), trials)
+                          plan_card(plan).lines(), trials, machines)
 
 
 def _ui_hint(uri: str, path: str) -> str:
@@ -227,7 +231,7 @@ def _table(request: SweepRequest, outcomes: list[TrialOutcome], sweep_run: Sweep
     table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,
                         f"{plan.spec.name} — profile {plan.profile.name}",
                         f"{plan.spec.paper.table}: {plan.spec.paper.note}" if plan.spec.paper else "",
-                        compare_to=plan.spec.compare_to, settings=table_settings(plan), settled=settled)
+                        compare_to=plan.spec.compare_to, settings=table_settings(plan, sweep_run), settled=settled)
     sweep_run.log_artifacts(list(table.write(staging)))
     sweep_run.log_results(
         baselines_by_eval_set(outcomes),

@@ -12,6 +12,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from mlflow import MlflowClient
+from mlflow.entities import Run
 
 from cdm.io.csv import read_csv
 from sweeps.store_retry import PatientClient, wait_when_busy
@@ -25,6 +26,7 @@ __all__ = [
     "parent_baselines",
     "is_per_category",
     "trial_metrics",
+    "trial_runs",
 ]
 
 wait_when_busy()  # every process that opens a run waits for a busy SQLite store instead of failing
@@ -44,6 +46,14 @@ def parent_baselines(parent_metrics: Mapping[str, float], eval_set: str | None,
     prefix = f"eval_set {eval_set}/"
     own = {k.removeprefix(prefix): v for k, v in held.items() if k.startswith(prefix + "baseline/")}
     return own or {k: v for k, v in held.items() if k.startswith("baseline/")}
+
+
+def trial_runs(client: MlflowClient, experiment_id: str, parent_run_id: str) -> list[Run]:
+    """The sweep's child runs, one per trial, oldest first: re-runs ``run.py --rerun`` files under the same
+    parent (tagged ``rerun_of``) are checks of a trial, not trials, and are left out."""
+    children = client.search_runs([experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent_run_id}'",
+                                  order_by=["attributes.start_time ASC"], max_results=10000)
+    return [r for r in children if "rerun_of" not in r.data.tags]
 
 
 def find_trial_run(client: MlflowClient, experiment_id: str, parent_run_id: str, trial_id: str) -> str | None:

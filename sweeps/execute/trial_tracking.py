@@ -22,6 +22,7 @@ from cdm.checkpoint import load_checkpoint, save_checkpoint
 from cdm.config import F1_THRESHOLD, Config
 from cdm.io.csv import read_csv
 from cdm.metric_names import f1_at
+from cdm.provenance import installed_packages
 from cdm.train import Callback
 from sweeps.compare.rules import rounded
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
@@ -29,8 +30,8 @@ from sweeps.execute.tracking import as_params, log_params
 from sweeps.store_retry import PatientClient
 
 __all__ = [
-    "EVAL_FOLDERS", "F1_TAG", "MODEL_ARTIFACTS", "MODEL_TAG", "PER_TRIAL_PARAMS", "SYSTEM_METRICS", "TrialRun",
-    "learning_curve_png",
+    "EVAL_FOLDERS", "F1_TAG", "MODEL_ARTIFACTS", "MODEL_TAG", "PACKAGES_FILE", "PER_TRIAL_PARAMS", "SYSTEM_METRICS",
+    "TrialRun", "learning_curve_png",
 ]
 
 MODEL_ARTIFACTS = "model"
@@ -49,6 +50,10 @@ PER_TRIAL_PARAMS = ("train.out_dir",)
 """Config fields that differ in every trial by construction (its own folder): not params, so the
 compare view shows only what the cells set."""
 
+
+PACKAGES_FILE = "environment/packages.txt"
+"""The child run's artifact listing every installed package (``name==version``), the list whose digest the
+``repro.packages_digest`` tag holds (:func:`cdm.provenance.installed_packages`)."""
 
 SYSTEM_METRICS = ("train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
 """Training-loop timings a child logs as ``system/<name>``: MLflow's UI shows that prefix apart, under
@@ -146,6 +151,7 @@ class TrialRun(Callback):
     def on_start(self, record: dict[str, str]) -> None:
         self.record = record
         self.client.log_batch(self.run_id, tags=[RunTag(f"repro.{k}", v) for k, v in record.items()])
+        self.client.log_text(self.run_id, "\n".join(installed_packages()) + "\n", PACKAGES_FILE)
 
     def on_step(self, step: int, metrics: dict[str, float]) -> None:
         if step > self.logged_until["train"]:

@@ -24,7 +24,7 @@ from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstart
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
 from sweeps.compare.table import ResultsTable, build_table
-from sweeps.execute.logged_runs import last_objects, parent_baselines, trial_metrics
+from sweeps.execute.logged_runs import last_objects, parent_baselines, trial_metrics, trial_runs
 from sweeps.plan.budget import parse_budget
 from sweeps.plan.protocol import CARD_TAG
 from sweeps.plan.spec import SpaceParam, Spec, load_spec
@@ -125,11 +125,8 @@ def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | Non
     with tempfile.TemporaryDirectory() as tmp:
         spec = load_spec(client.download_artifacts(run_id, specs[0], tmp))
         plan = read_json(Path(client.download_artifacts(run_id, "plan.json", tmp)), f"sweep run {run_id}")
-    children = client.search_runs([exp.experiment_id], filter_string=f"tags.mlflow.parentRunId = '{run_id}'",
-                                  order_by=["attributes.start_time ASC"], max_results=10000)
-    # `cdm-lab rerun` files its re-runs under the same parent; they are checks of a trial, not trials.
-    children = [r for r in children if "rerun_of" not in r.data.tags]
-    return SweepRecord(client, exp.name, exp.experiment_id, parent, spec, plan, children)
+    return SweepRecord(client, exp.name, exp.experiment_id, parent, spec, plan,
+                       trial_runs(client, exp.experiment_id, run_id))
 
 
 def _sampled(run: Run, space: dict[str, SpaceParam]) -> dict[str, Any]:
@@ -194,12 +191,14 @@ def _paper_label(record: SweepRecord, planned: dict[str, Any]) -> str | None:
 
 def _settings(record: SweepRecord) -> list[str]:
     """The runner's notes (:func:`sweeps.compare.rules.settings_notes`) from what MLflow recorded: the
-    profile's budget on the parent run and each trial's resolved prediction target and λ in its params."""
+    profile's budget on the parent run, each trial's resolved prediction target and λ in its params, and its
+    machine in its tags."""
     plan = record.plan
     trials = [(r.data.params["diffusion.prediction"], float(r.data.params["priors.lambda_3d"]))
               for r in record.children if {"diffusion.prediction", "priors.lambda_3d"} <= r.data.params.keys()]
     return settings_notes(record.spec, record.profile, record.parent.data.params.get("steps", "?"),
-                          plan.get("fixed", {}), plan.get("sets", {}), protocol_card_lines(record), trials)
+                          plan.get("fixed", {}), plan.get("sets", {}), protocol_card_lines(record), trials,
+                          [r.data.tags for r in record.children])
 
 
 def protocol_card_lines(record: SweepRecord) -> list[str]:

@@ -5,6 +5,10 @@ The child run holds the resolved config (``config.yaml``) and the reproducibilit
 the recorded commit or the config no longer hashes the same (the schema changed), unless forced;
 then it trains in this process with the recorded torch thread count, logs a new run tagged
 ``rerun_of``, and prints recorded against re-run final metrics. Exit 0 when they are identical.
+
+Before training it names each part of the machine that differs from the record (CPU model and ISA, ATen's
+capability, the BLAS/oneDNN build, kernel pins, the installed packages: :data:`cdm.provenance.MACHINE_KEYS`),
+since on CPU any of them can change the numbers (docs/local-results.md).
 """
 
 from __future__ import annotations
@@ -18,10 +22,11 @@ from mlflow import MlflowClient
 from mlflow.exceptions import MlflowException
 
 from cdm.config import load_config
-from cdm.provenance import code_version, config_hash
+from cdm.io.files import read_text
+from cdm.provenance import MACHINE_KEYS, code_version, config_hash, installed_packages, machine_record
 from cdm.train import Callback, fit
 
-__all__ = ["RerunError", "rerun"]
+__all__ = ["RerunError", "machine_differences", "rerun"]
 
 COMPARED = ("eval/cd", "eval/f1")
 
@@ -38,9 +43,10 @@ class _Record(Callback):
         self.record = record
 
 
-def _shown(value: str) -> str:
-    """A recorded tag value as one short line: quoted when it is not plain (a newline, a quote, 60+ characters)."""
-    return value if value.isprintable() and len(value) <= 60 and "'" not in value else repr(value[:60])
+def _shown(value: str, width: int = 60) -> str:
+    """A recorded tag value as one short line: quoted when it is not plain (a newline, a quote, more than
+    ``width`` characters)."""
+    return value if value.isprintable() and len(value) <= width and "'" not in value else repr(value[:width])
 
 
 def _code_warnings(tags: dict[str, str], force: bool) -> list[str]:
@@ -60,6 +66,56 @@ def _code_warnings(tags: dict[str, str], force: bool) -> list[str]:
             "the code may differ from the recorded run's"
         )
     return warnings
+
+
+SHOWN_PACKAGES = 8
+"""Most differing packages named one by one; the rest are counted."""
+
+MAX_PACKAGES_FILE = 1 << 20
+"""Largest recorded package list read (bytes): a few hundred lines take ~10 KB."""
+
+
+def _recorded_packages(client: MlflowClient, run_id: str) -> dict[str, str] | None:
+    """The run's recorded package list as {name: version}; None when it holds none (or not a readable one)."""
+    from sweeps.execute.trial_tracking import PACKAGES_FILE
+
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            text = read_text(Path(client.download_artifacts(run_id, PACKAGES_FILE, tmp)), "package list",
+                             MAX_PACKAGES_FILE)
+        except (MlflowException, OSError, ValueError):
+            return None
+    return dict(line.partition("==")[::2] for line in text.splitlines() if "==" in line)
+
+
+def _package_changes(recorded: dict[str, str]) -> str:
+    """``numpy 2.1.0 → 2.2.0, +rich 13.0 (only here), -tqdm 4.6 (only recorded)``, at most :data:`SHOWN_PACKAGES`."""
+    here = dict(line.partition("==")[::2] for line in installed_packages())
+    changes = [f"{_shown(n)} {_shown(recorded[n])} → {here[n]}" for n in sorted(recorded.keys() & here.keys())
+               if recorded[n] != here[n]]
+    changes += [f"+{n} {here[n]} (only here)" for n in sorted(here.keys() - recorded.keys())]
+    changes += [f"-{_shown(n)} {_shown(recorded[n])} (only recorded)" for n in sorted(recorded.keys() - here.keys())]
+    more = len(changes) - SHOWN_PACKAGES
+    return ", ".join(changes[:SHOWN_PACKAGES]) + (f" and {more} more" if more > 0 else "")
+
+
+def machine_differences(client: MlflowClient, run_id: str, tags: dict[str, str]) -> list[str]:
+    """One line per part of this machine (:func:`cdm.provenance.machine_record`) that differs from the run's
+    ``repro.*`` record; for the packages, which ones changed (from the run's package list, where it holds one)."""
+    here = machine_record()
+    if not any(f"repro.{k}" in tags for k in MACHINE_KEYS):
+        return [f"the record names no machine (a run from before it was recorded); this one: {here['cpu_model']}, "
+                f"{here['cpu_capability']}, {here['math_libraries']}"]
+    lines = []
+    for key in MACHINE_KEYS:
+        recorded = tags.get(f"repro.{key}", "not recorded")
+        if recorded != here[key]:
+            lines.append(f"repro.{key}: recorded {_shown(recorded, 120)}, here {here[key]}")
+    if "repro.packages_digest" in tags and tags["repro.packages_digest"] != here["packages_digest"]:
+        packages = _recorded_packages(client, run_id)
+        if packages is not None:
+            lines.append(f"packages: {_package_changes(packages)}")
+    return lines
 
 
 MAX_THREADS = 4096
@@ -115,6 +171,10 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
         if not force:
             raise RerunError(message + "; pass --force to re-run anyway")
         warnings.append(message)
+    machine = machine_differences(client, run_id, tags)
+    if machine:
+        warnings.append("this machine differs from the recorded run's; on CPU each of these can change the numbers "
+                        "(docs/local-results.md, What varies):" + "".join(f"\n  {line}" for line in machine))
     for w in warnings:
         print(f"warning: {w}", flush=True)
     # Float sums depend on how work is split between threads; the trial's count makes them equal.

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import re
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +20,11 @@ import pytest
 import ray
 from mlflow import MlflowClient
 
+from cdm.io.write import TEMP_NAME
+from cdm.provenance import MACHINE_KEYS, machine_record
 from sweeps import run
 from sweeps.execute.logged_runs import last_eval_files
+from sweeps.execute.trial_tracking import PACKAGES_FILE
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -82,6 +87,9 @@ def test_grid_of_two_cells_end_to_end(e2e):
     )
     folder = e2e.folder / "e2e" / "smoke"
     assert (folder / "results.md").read_text().count("| point_size=0.0") == 2
+    here = machine_record()
+    assert f"- machine: {here['cpu_model']} ({here['cpu_isa']}), ATen {here['cpu_capability']}, " in (
+        folder / "results.md").read_text()
     assert (folder / "results.csv").read_text().splitlines()[0].startswith("cell,")
 
     client, parents, children = _children(uri, "e2e")
@@ -171,6 +179,8 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     child = next(c for c in children if c.info.run_name == "point_size=0.04 · seed 0")
     tags = child.data.tags
     assert tags["repro.git_commit"] and tags["repro.config_hash"] and tags["repro.version_torch"]
+    assert {k: tags[f"repro.{k}"] for k in MACHINE_KEYS} == machine_record()
+    assert client.list_artifacts(child.info.run_id, "environment")[0].path == PACKAGES_FILE
     assert tags["repro.data_fingerprint"].startswith("train ") and tags["eval_set"]
     capsys.readouterr()
     rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--out", str(e2e.folder)]
@@ -183,6 +193,17 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     assert len(again) == 1
     assert again[0].data.metrics["eval/cd"] == child.data.metrics["eval/cd"]
     assert again[0].data.metrics["eval/f1"] == child.data.metrics["eval/f1"]
+
+    # Another CPU type: named before training, and in the rows after it; the scores still match here.
+    epyc = "AMD EPYC 7B13 64-Core Processor"
+    client.set_tag(child.info.run_id, "repro.cpu_model", epyc)
+    assert run.main(rerun_argv) == 1
+    out = capsys.readouterr().out
+    warning = "warning: this machine differs from the recorded run's; on CPU each of these can change the numbers"
+    assert out.index(warning) < out.index("step 5/") and f"\n  repro.cpu_model: recorded {epyc}, here " in out
+    assert re.search(r"\nrepro\.cpu_model +AMD EPYC 7B13 .*DIFFERENT\n", out)
+    assert re.search(r"\neval/f1 +(\S+) +\1 +same\n", out)
+    client.set_tag(child.info.run_id, "repro.cpu_model", tags["repro.cpu_model"])
 
     client.set_tag(child.info.run_id, "repro.git_commit", "0" * 40)
     assert run.main(rerun_argv) == 2
@@ -268,3 +289,36 @@ def test_a_sweep_at_another_f1_threshold_labels_f1_so_in_its_table_store_and_rep
     assert children[0].data.tags["f1"] == "F1@0.02 sq. dist = 0.141421 world"
     assert children[0].data.params["eval.f1_threshold"] == "0.02"
     assert "eval/f1" in client.get_run(children[0].info.run_id).data.metrics
+
+
+def test_a_synced_trial_folder_never_holds_a_temporary_file_and_nothing_prints_a_traceback(cluster, tmp_path, capfd,
+                                                                                            caplog):
+    """Tune's driver copies each trial's staging folder to storage every second, listing then reading every file;
+    a temporary file renamed in between made it log a traceback. Here a trial writes its evaluation files at every
+    step while a watcher lists that folder without pause: it never sees a temporary file, and nothing prints a
+    traceback."""
+    artifacts = Path(ray._private.worker.global_worker.node.get_session_dir_path()) / "artifacts"
+    seen: set[str] = set()
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            for folder, folders, files in os.walk(artifacts):
+                if "/driver_artifacts" in folder:  # what the driver copies; the trial's scratch folder lies beside
+                    seen.update(folders, files)
+            time.sleep(0.002)  # a file lives ~ms while written; leave the trial its CPU
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    argv, _ = _sweep(tmp_path, "name: sync\ngrid: {priors.point_size: [0.02]}\n"
+                               "profiles: {smoke: {budget: {steps: 20, eval_every: 1}}}\n")
+    try:
+        assert run.main(argv) == 0
+    finally:
+        done.set()
+        watcher.join()
+    captured = capfd.readouterr()
+    # Ray's syncer logs its failure as a WARNING with the traceback (to stderr; under pytest, to the log capture).
+    assert "Traceback" not in captured.out + captured.err + caplog.text
+    assert sum(name.endswith(".ply") for name in seen) >= 8  # the watcher saw the trial's evaluation files
+    assert sorted(n for n in seen if TEMP_NAME.fullmatch(n) or n.startswith(".tmp_step_")) == []
