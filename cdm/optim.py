@@ -79,7 +79,9 @@ class Optimiser:
         if reduce_gradients is not None:
             reduce_gradients()
         self.scaler.unscale_(self.optimizer)
-        norm = torch.nn.utils.clip_grad_norm_(self.parameters, self.grad_clip)
+        # foreach: the per-tensor norms and rescales in two ops, not two per parameter (torch picks it
+        # by itself on CUDA only); the same norms, summed in the same order.
+        norm = torch.nn.utils.clip_grad_norm_(self.parameters, self.grad_clip, foreach=True)
         if self.skips_nonfinite and not torch.isfinite(norm):
             # The norm is inf/NaN exactly when a gradient is: the GradScaler's own found-inf test.
             if self.scaler.is_enabled():

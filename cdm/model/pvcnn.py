@@ -24,10 +24,10 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
-from torch.autograd.function import once_differentiable
 
 from cdm.config import Devoxelize
 from cdm.model.global_features import TOKEN_GRID, PointCrossAttention
+from cdm.model.norms import point_norm_silu
 from cdm.model.voxels import (
     VoxelBackend,
     VoxelBranch,
@@ -51,71 +51,6 @@ def timestep_embedding(t: Tensor, dim: int, max_period: float = 10_000.0) -> Ten
     angles = t.to(torch.float32)[:, None] * freqs[None]
     emb = torch.cat([torch.sin(angles), torch.cos(angles)], dim=1)
     return F.pad(emb, (0, dim % 2))
-
-
-class _PointNormSiLU(torch.autograd.Function):
-    """``SiLU(GroupNorm(h))`` on ``(B, N, C)`` point features in their own layout, forward and backward.
-
-    ``nn.GroupNorm`` wants ``(B, C, N)``: transposing there and back cost two copies forward, one
-    backward, and a SiLU backward on mixed layouts (gradient ``(B, N, C)``, input ``(B, C, N)``), ~9× a
-    contiguous one on one CPU thread (benchmarks/RESULTS.md, "Lean local step"). The same function:
-    statistics per sample and group over its points, biased variance, ``eps`` inside the root.
-
-    Every reduction runs over the points (dim 1), per channel, and channels are then pooled into groups
-    on ``(B, C)``: on CPU a sum over dim 1 of ``(B, N, C)`` took ~1 % of ``var_mean`` over ``(N, C/G)``.
-    The variance is two-pass (centred per channel, then the law of total variance over the group's channels).
-    """
-
-    @staticmethod
-    def forward(ctx, h: Tensor, groups: int, weight: Tensor, bias: Tensor, eps: float) -> Tensor:
-        n = h.shape[1]
-        mean_c = h.sum(dim=1, keepdim=True) / n  # (B, 1, C)
-        centred = h - mean_c
-        spread_c = centred.square().sum(dim=1, keepdim=True) / n  # each channel's variance about its mean
-        mean_g = _group_mean(mean_c, groups)
-        rstd = (_group_mean(spread_c + (mean_c - mean_g).square(), groups) + eps).rsqrt()
-        # x̂ = (h − μ_group)·r, pre = x̂·weight + bias, written over the centred buffer: on CPU a step is
-        # bound by memory traffic, and fresh buffers cost more than the arithmetic.
-        scale = rstd * weight
-        pre = torch.addcmul(torch.addcmul(bias, mean_c - mean_g, scale), centred, scale, out=centred)
-        ctx.save_for_backward(h, pre, mean_g, rstd, weight)
-        ctx.groups = groups
-        return F.silu(pre)
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad: Tensor):
-        h, pre, mean_g, rstd, weight = ctx.saved_tensors
-        n = h.shape[1]
-        g_pre = torch.ops.aten.silu_backward(grad.contiguous(), pre)
-        sum_g = g_pre.sum(dim=1, keepdim=True)  # (B, 1, C)
-        sum_gx = (torch.linalg.vecdot(g_pre, h, dim=1).unsqueeze(1) - mean_g * sum_g) * rstd  # Σ g_pre·x̂
-        grad_weight = sum_gx.sum(dim=(0, 1)) if ctx.needs_input_grad[2] else None
-        grad_bias = sum_g.sum(dim=(0, 1)) if ctx.needs_input_grad[3] else None
-        if not ctx.needs_input_grad[0]:
-            return None, None, grad_weight, grad_bias, None
-        # d/dh of x̂ over a group, with γ = ∂L/∂x̂ = g_pre·weight: r·(γ − mean(γ) − x̂·mean(γ·x̂)), both means
-        # pooled from the per-channel sums above; with x̂ = (h − μ)·r, affine in g_pre and h per channel.
-        mean_gamma = _group_mean(sum_g * weight, ctx.groups) / n
-        mean_gamma_x = _group_mean(sum_gx * weight, ctx.groups) / n
-        h_coeff = -mean_gamma_x * rstd * rstd
-        constant = (mean_g * mean_gamma_x * rstd - mean_gamma) * rstd
-        grad_h = torch.addcmul(constant, g_pre, weight * rstd, out=g_pre)
-        return grad_h.addcmul_(h, h_coeff), None, grad_weight, grad_bias, None
-
-
-def _group_mean(per_channel: Tensor, groups: int) -> Tensor:
-    """``(B, 1, C)`` → the mean over each channel's group (``C/G`` consecutive channels), per channel."""
-    b, _, c = per_channel.shape
-    pooled = per_channel.view(b, groups, c // groups).mean(dim=-1, keepdim=True)
-    return pooled.expand(b, groups, c // groups).reshape(b, 1, c)
-
-
-def point_norm_silu(h: Tensor, norm: nn.GroupNorm) -> Tensor:
-    """``SiLU(norm(h))`` for ``(B, N, C)`` point features: GroupNorm statistics per sample over its points.
-
-    In float32 whatever ``h``'s dtype, as autocast runs ``nn.GroupNorm``."""
-    return _PointNormSiLU.apply(h.float(), norm.num_groups, norm.weight, norm.bias, norm.eps)
 
 
 class PointVoxelBlock(nn.Module):

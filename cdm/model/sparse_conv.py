@@ -35,15 +35,11 @@ class KernelMap(NamedTuple):
         out_rows, in_rows: ``(P,)`` the occupied voxel ``in`` is the neighbour of ``out`` at the pair's offset.
         bounds: 14 ints; mirror pair ``j`` (offsets ``j`` and ``26 − j``) holds ``[bounds[j], bounds[j + 1])``,
             offset ``j``'s pairs in its first half.
-        order: ``(27,)`` the offsets in ``_PAIRED`` order, the centre last: the convolution's kernel layout.
-        slots: ``(27,)`` the inverse of ``order``: where offset ``k`` sits in that layout.
     """
 
     out_rows: Tensor
     in_rows: Tensor
     bounds: tuple[int, ...]
-    order: Tensor
-    slots: Tensor
 
 
 def build_kernel_map(keys: Tensor, table: Tensor, resolution: int) -> KernelMap:
@@ -62,16 +58,26 @@ def build_kernel_map(keys: Tensor, table: Tensor, resolution: int) -> KernelMap:
     nb_rows = torch.where(inside, table[nb_keys], -1)  # (M, 27)
     present = (nb_rows >= 0).T[_PAIRED]  # the centre pairs each row with itself: the convolution needs no map
     slot, out_rows = present.nonzero(as_tuple=True)  # by offset (mirror beside mirror), then output row
-    order = torch.tensor(_PAIRED + [_CENTRE], device=device)
-    in_rows = nb_rows[out_rows, order[slot]]
+    in_rows = nb_rows[out_rows, torch.tensor(_PAIRED, device=device)[slot]]
     bounds = F.pad(present.sum(dim=1).view(_CENTRE, 2).sum(1).cumsum(0), (1, 0)).tolist()
-    return KernelMap(out_rows, in_rows, tuple(bounds), order, torch.argsort(order))
+    return KernelMap(out_rows, in_rows, tuple(bounds))
 
 
 def _compute_dtype(x: Tensor) -> torch.dtype:
     """The precision autocast would give the products (``x``'s own outside autocast)."""
     device = x.device.type
     return torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else x.dtype
+
+
+def _offset_major(weight: Tensor) -> Tensor:
+    """``(C_out, C_in, 3, 3, 3)`` → ``(27, C_out, C_in)``, offsets in ``[kd, kh, kw]`` order: one transposing
+    copy, cheaper than gathering the offsets in another order from the strided view."""
+    return weight.flatten(2).flatten(0, 1).T.contiguous().view(27, *weight.shape[:2])
+
+
+def _mirrors(kernels: Tensor, j: int) -> Tensor:
+    """Offsets ``j`` and ``26 − j`` of offset-major ``kernels``, a ``(2, C_out, C_in)`` view (no copy)."""
+    return kernels[j : 27 - j : 26 - 2 * j]
 
 
 class _SubmanifoldConv(torch.autograd.Function):
@@ -93,17 +99,16 @@ class _SubmanifoldConv(torch.autograd.Function):
         dtype = _compute_dtype(x)
         with torch.autocast(x.device.type, enabled=False):
             x = x.to(dtype)
-            # (27, C_out, C_in) in the map's order: moves (C_in, 27) blocks, cheaper than reversing all three axes
-            kernels = weight.to(dtype).flatten(2).permute(2, 0, 1).index_select(0, kmap.order)
-            out = x @ kernels[-1].T
+            kernels = _offset_major(weight.to(dtype))
+            out = x @ kernels[_CENTRE].T
             for j in range(_CENTRE):
                 start, stop = kmap.bounds[j], kmap.bounds[j + 1]
                 if stop > start:
                     gathered = x.index_select(0, kmap.in_rows[start:stop]).view(2, (stop - start) // 2, -1)
-                    products = torch.bmm(gathered, kernels[2 * j : 2 * j + 2].transpose(1, 2))
+                    products = torch.bmm(gathered, _mirrors(kernels, j).transpose(1, 2))
                     out.index_add_(0, kmap.out_rows[start:stop], products.view(stop - start, -1))
         ctx.save_for_backward(x, kernels)
-        ctx.kmap, ctx.weight_dtype = kmap, weight.dtype
+        ctx.kmap, ctx.weight_dtype, ctx.weight_shape = kmap, weight.dtype, weight.shape
         return out
 
     @staticmethod
@@ -113,29 +118,27 @@ class _SubmanifoldConv(torch.autograd.Function):
         kmap = ctx.kmap
         x, kernels = x.to(grad.dtype), kernels.to(grad.dtype)  # autocast gives a half-precision grad
         need_x, need_w = ctx.needs_input_grad[:2]
-        grad_x = grad @ kernels[-1] if need_x else None
-        grad_k = torch.empty_like(kernels) if need_w else None  # (27, C_out, C_in), the kernels' order
+        grad_x = grad @ kernels[_CENTRE] if need_x else None
+        grad_k = torch.empty_like(kernels) if need_w else None  # (27, C_out, C_in), offset-major as the kernels
         if need_w:
-            torch.mm(grad.T, x, out=grad_k[-1])
+            torch.mm(grad.T, x, out=grad_k[_CENTRE])
         for j in range(_CENTRE):
             start, stop = kmap.bounds[j], kmap.bounds[j + 1]
             if stop == start:
                 if need_w:
-                    grad_k[2 * j : 2 * j + 2].zero_()
+                    _mirrors(grad_k, j).zero_()
                 continue
             half = (stop - start) // 2
             grad_rows = grad.index_select(0, kmap.out_rows[start:stop]).view(2, half, -1)
             if need_x:
-                products = torch.bmm(grad_rows, kernels[2 * j : 2 * j + 2])
+                products = torch.bmm(grad_rows, _mirrors(kernels, j))
                 grad_x.index_add_(0, kmap.in_rows[start:stop], products.view(stop - start, -1))
             if need_w:
                 gathered = x.index_select(0, kmap.in_rows[start:stop]).view(2, half, -1)
-                torch.bmm(grad_rows.transpose(1, 2), gathered, out=grad_k[2 * j : 2 * j + 2])
+                torch.bmm(grad_rows.transpose(1, 2), gathered, out=_mirrors(grad_k, j))
         grad_w = None
         if need_w:
-            c_out, c_in = kernels.shape[1:]
-            grad_w = grad_k.permute(1, 2, 0).index_select(2, kmap.slots).view(c_out, c_in, 3, 3, 3)
-            grad_w = grad_w.to(ctx.weight_dtype)
+            grad_w = grad_k.flatten(1).T.reshape(ctx.weight_shape).to(ctx.weight_dtype)
         return grad_x, grad_w, None
 
 

@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from cdm.config import Devoxelize
+from cdm.model.norms import rows_norm_silu
 from cdm.model.pointops import at_least_float32
 from cdm.model.sparse_conv import build_kernel_map, submanifold_conv
 
@@ -204,6 +205,10 @@ class VoxelGrid(ABC):
     def group_norm(self, voxels: Tensor, num_groups: int, weight: Tensor, bias: Tensor, eps: float) -> Tensor:
         """GroupNorm with per-sample statistics; affine ``weight``/``bias`` ``(C,)``."""
 
+    def norm_silu(self, voxels: Tensor, norm: nn.GroupNorm) -> Tensor:
+        """``SiLU(GroupNorm(voxels))`` with :meth:`group_norm`'s statistics."""
+        return F.silu(self.group_norm(voxels, norm.num_groups, norm.weight, norm.bias, norm.eps))
+
     @abstractmethod
     def _rows(self, voxels: Tensor) -> Tensor:
         """Voxel features as ``(R, C)`` rows, the row space of :meth:`_own_rows` and :meth:`_corner_rows`."""
@@ -295,6 +300,7 @@ class SparseGrid(VoxelGrid):
         self._table = torch.full((self.batch_size * r**3,), -1, dtype=torch.long, device=device)
         self._table[self.keys] = torch.arange(m, device=device)
         self.kernel_map = build_kernel_map(self.keys, self._table, r)
+        self._samples: dict[torch.dtype, Tensor] = {}  # (B, M) one-hot of row_batch, per dtype
 
     def voxelize(self, features: Tensor) -> Tensor:
         b, n, c = features.shape
@@ -318,6 +324,14 @@ class SparseGrid(VoxelGrid):
         )
         normed = centred * torch.rsqrt(var + eps)[self.row_batch][..., None]
         return normed.view(m, c) * weight + bias
+
+    def norm_silu(self, voxels: Tensor, norm: nn.GroupNorm) -> Tensor:
+        # Fused forward and backward (cdm.model.norms); at least float32, as autocast runs GroupNorm.
+        voxels = at_least_float32(voxels)
+        samples = self._samples.get(voxels.dtype)
+        if samples is None:
+            samples = self._samples[voxels.dtype] = F.one_hot(self.row_batch, self.batch_size).T.to(voxels.dtype)
+        return rows_norm_silu(voxels, norm, samples, self.row_batch)
 
     def _rows(self, voxels: Tensor) -> Tensor:
         return voxels
@@ -368,5 +382,5 @@ class VoxelBranch(nn.Module):
         v = grid.voxelize(features)
         for conv, norm in ((self.conv1, self.norm1), (self.conv2, self.norm2)):
             v = grid.conv(v, conv.weight, conv.bias)
-            v = F.silu(grid.group_norm(v, norm.num_groups, norm.weight, norm.bias, norm.eps))
+            v = grid.norm_silu(v, norm)
         return grid.devoxelize(v, self.devoxelize)
