@@ -484,7 +484,7 @@ def test_the_local_profile_starts_from_the_quick_config_and_resolves_the_main_jo
     for cell in expand(load_spec(SWEEPS / "point_size.yaml"), "local").cells:
         flat, default = cell.config.flat(), Config().flat()
         assert {k: flat[k] for k in LOCAL_BEFORE_THE_RECIPE} == LOCAL_BEFORE_THE_RECIPE
-        assert (flat["train.steps"], flat["train.eval_every"], flat["train.threads"]) == (1400, 1400, 1)
+        assert (flat["train.steps"], flat["train.eval_every"], flat["train.threads"]) == (2000, 2000, 1)
         assert flat["train.out_dir"] == default["train.out_dir"]
         # Nothing else differs from the defaults: the recipe brought no field the profile did not set before.
         changed = {k for k in flat if flat[k] != default[k]} - {"priors.point_size"}
@@ -643,7 +643,7 @@ def test_a_scheduler_that_can_stop_nothing_is_said_in_one_line_and_not_run(tmp_p
 
 
 @pytest.mark.parametrize(("steps", "eval_every", "grace", "rf", "stops"), [
-    (1400, 1400, 1, 2, []),  # the shared local profile: the only rung is the last step
+    (2000, 2000, 1, 2, []),  # the shared local profile: the only rung is the last step
     (1400, 700, 1, 2, [700]),
     (100, 10, 1, 3, [10, 30, 90]),
     (100, 10, 1, 2.5, [10, 30, 70]),  # rungs 25 and 62.5 are judged at the next evaluation
