@@ -106,5 +106,5 @@ def test_pickle_bytes_are_the_archives_pickle_unpickled_by_no_one(tmp_path):
     torch.save({"point_cloud_model.weight": torch.zeros(2)}, path, _use_new_zipfile_serialization=False)
     assert b"point_cloud_model.weight" in pickle_bytes(path, str(path))  # a pre-zip file's pickles come first
     path.write_bytes(b"not a zip at all")
-    with pytest.raises(ValueError, match=f"^{path} is not a torch archive"):
+    with pytest.raises(ValueError, match=f"^{path} is not in torch's file format"):
         pickle_bytes(path, str(path))

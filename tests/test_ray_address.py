@@ -157,7 +157,7 @@ def test_a_signal_while_the_local_cluster_starts_ends_within_5_s_leaving_nothing
 
     _wait_for(gcs_started, "the local cluster's GCS start")
     code, err = stop_command(proc, signum)  # fails past STOP_S
-    assert code == 130 and "interrupted: python sweeps/inputs.py prepare stopped" in err, err[-2000:]
+    assert code == 130 and "interrupted: cdm-lab inputs prepare stopped" in err, err[-2000:]
     assert "Traceback" not in err
     deadline = time.monotonic() + 1
     while any(_running(pid) for pid in seen) and time.monotonic() < deadline:

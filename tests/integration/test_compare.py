@@ -153,7 +153,8 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
     for child in smoke.children:  # each child explains itself and links its sweep
         note = " ".join(client.get_run(child.info.run_id).data.tags["mlflow.note.content"].split())
         assert note.startswith(f"**{child.data.tags['cell']}**, seed 0") and smoke.parent.info.run_id in note
-        assert {a.path for a in client.list_artifacts(child.info.run_id)} == {"config.yaml", "curves", "eval", "model"}
+        artifacts = {a.path for a in client.list_artifacts(child.info.run_id)}
+        assert artifacts == {"config.yaml", "curves", "environment", "eval", "model"}
 
 
 def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, monkeypatch):

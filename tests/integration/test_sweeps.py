@@ -304,7 +304,7 @@ def test_a_synced_trial_folder_never_holds_a_temporary_file_and_nothing_prints_a
     def watch() -> None:
         while not done.is_set():
             for folder, folders, files in os.walk(artifacts):
-                if "/driver_artifacts" in folder:  # what the driver copies; the trial's scratch folder lies beside
+                if "/driver_artifacts" in folder:  # what the driver copies; trials write in node-local scratch
                     seen.update(folders, files)
             time.sleep(0.002)  # a file lives ~ms while written; leave the trial its CPU
 
@@ -320,5 +320,5 @@ def test_a_synced_trial_folder_never_holds_a_temporary_file_and_nothing_prints_a
     captured = capfd.readouterr()
     # Ray's syncer logs its failure as a WARNING with the traceback (to stderr; under pytest, to the log capture).
     assert "Traceback" not in captured.out + captured.err + caplog.text
-    assert sum(name.endswith(".ply") for name in seen) >= 8  # the watcher saw the trial's evaluation files
+    assert "result.json" in seen and any(n.startswith("trial_") for n in seen)  # the watcher saw the trial's folder
     assert sorted(n for n in seen if TEMP_NAME.fullmatch(n) or n.startswith(".tmp_step_")) == []

@@ -88,7 +88,7 @@ def pickle_bytes(file: Path, label: str) -> bytes:
             f.seek(0)
             head = f.read(MAX_PICKLE_BYTES)
             if not head.startswith(b"\x80"):  # a pickle's PROTO opcode, as a pre-zip file's magic number opens
-                raise ValueError(f"{label} is not a torch archive or a pre-zip torch file")
+                raise ValueError(f"{label} is not in torch's file format (neither a zip archive nor a pre-zip file)")
             return head
         try:
             return Archive(f).pickle()
