@@ -202,12 +202,12 @@ def test_the_readme_copies_its_numbers_from_local_results() -> None:
 
 def test_a_readme_number_that_drifts_from_local_results_is_found() -> None:
     readme, local = README.read_text(encoding="utf-8"), LOCAL_RESULTS.read_text(encoding="utf-8")
-    assert "| point_size=0.02 | 0.568 | | 40.82 |" in readme and "−0.026 [−0.046, −0.006], worse |" in readme
-    drifted = readme.replace("| point_size=0.02 | 0.568 | | 40.82 |", "| point_size=0.02 | 0.568 | | 40.28 |").replace(
+    assert "| point_size=0.02 | 0.582 | | 38.18 |" in readme and "−0.026 [−0.046, −0.006], worse |" in readme
+    drifted = readme.replace("| point_size=0.02 | 0.582 | | 38.18 |", "| point_size=0.02 | 0.582 | | 38.81 |").replace(
         "−0.026 [−0.046, −0.006], worse |", "−0.062 [−0.046, −0.006], worse |"
     )
     assert copied_differences(drifted, local) == [
-        "The main job's results: point_size=0.02 eval/cd '40.28', local-results.md The main job on: '40.82'",
+        "The main job's results: point_size=0.02 eval/cd '38.81', local-results.md The main job on: '38.18'",
         "Reading an ablation: point_size=0.08 one seed: Δf1 '−0.062 [−0.046, −0.006], worse', "
         "local-results.md The main job on 2026-12-03: '−0.026 [−0.046, −0.006]'",
     ]
