@@ -9,6 +9,7 @@ from __future__ import annotations
 import ray
 
 from sweeps.plan.address import AddressError, given_address, reach
+from sweeps.ray_internals import autoscaler_max_resources, autoscaler_node_groups
 
 __all__ = ["cluster_capacity", "cluster_machines", "connect"]
 
@@ -32,7 +33,7 @@ def connect(address: str | None) -> bool:
         try:
             ray.init(address=target, logging_level="WARNING")
         except (ConnectionError, RuntimeError) as exc:  # the GCS answered, the join did not (RuntimeError: another
-            # Ray version, ray/_private/utils.py check_version_info)
+            # Ray version, Ray's utils.py check_version_info)
             first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
             raise AddressError(f"{source} {text}: Ray could not join {target}: {first}") from None
     else:
@@ -48,8 +49,7 @@ def cluster_capacity(remote: bool) -> dict[str, float]:
     autoscaler publishes in the GCS (none on a fixed cluster: then its nodes).
     """
     present = ray.cluster_resources()
-    # The record Ray Data sizes itself by (ray.data's cluster_autoscaler); no public API reads it yet.
-    bounds = (ray._private.state.state.get_max_resources_from_cluster_config() or {}) if remote else {}
+    bounds = autoscaler_max_resources() if remote else {}  # no public API reads it (sweeps/ray_internals.py)
     return {k: max(float(present.get(k, 0.0)), float(bounds.get(k, 0))) for k in ("CPU", "GPU")}
 
 
@@ -58,6 +58,6 @@ def cluster_machines(remote: bool) -> int:
     ``remote`` cluster whose autoscaler publishes its bounds, the most it could grow to (unbounded: 2).
     """
     hosts = {n["NodeManagerAddress"] for n in ray.nodes() if n["Alive"]}
-    config = ray._private.state.state.get_cluster_config() if remote else None
-    bound = sum(2 if g.max_count == -1 else g.max_count for g in config.node_group_configs) if config else 0
+    groups = autoscaler_node_groups() if remote else []
+    bound = sum(2 if most == -1 else most for _, most in groups)
     return max(len(hosts), bound)

@@ -1,7 +1,7 @@
 """The local Ray cluster of a sweep run without ``--address``: every listener on 127.0.0.1.
 
 ``ray.init(_node_ip_address="127.0.0.1")`` alone does not keep Ray on loopback: Ray 2.x resolves a
-loopback node address to the machine's routable one (``ray._private.services.resolve_ip_for_localhost``),
+loopback node address to the machine's routable one (Ray's ``services.resolve_ip_for_localhost``),
 so the GCS, raylet, object manager, driver and workers listen on every interface, the autoscaler
 monitor's and dashboard's Prometheus endpoints on 0.0.0.0, and the dashboard and runtime-env agents on
 the routable address. Ray keeps the node on loopback only while ``ray_constants.ENABLE_RAY_CLUSTER`` is
@@ -37,6 +37,7 @@ from pathlib import Path
 
 from cdm.interrupt import INTERRUPTED
 from cdm.io.json import read_json
+from sweeps.ray_internals import TOKEN_NOTE_LOGGER, loopback_flag, set_loopback_flag
 from sweeps.storage import StoreError, private_folder, write_private
 
 __all__ = [
@@ -154,9 +155,6 @@ def private_token() -> None:
         token.chmod(0o600)
 
 
-TOKEN_NOTE_LOGGER = "ray._private.authentication.authentication_token_setup"
-
-
 class DeliberateTokenNote(logging.Filter):
     """Drops Ray's 245-character warning that a new local cluster turned token authentication on: it is
     on by our choice (docs/security.md). Its warning that authentication is off still shows."""
@@ -225,7 +223,6 @@ def _runs_ray(pid: int) -> bool:
 def start(**init_kwargs) -> None:
     """Start a new local Ray cluster of this process, bound to 127.0.0.1, after reaping stale sessions."""
     import ray
-    import ray._private.ray_constants as constants
 
     private = True
     try:
@@ -236,14 +233,15 @@ def start(**init_kwargs) -> None:
     if ended:
         print(f"ended {len(ended)} leftover Ray processes of an earlier sweep whose driver was killed", flush=True)
     # The environment reaches the GCS, raylet, agents and workers started now; the constant is read
-    # at call time by ray._private.services.get_node_ip_address in this process, which may have
+    # at call time by Ray's services.get_node_ip_address in this process, which may have
     # imported ray before the variable was set. Both are put back once the node exists (its address
     # is fixed then), so a later cluster joined by address in this process is not pinned to loopback.
     note = logging.getLogger(TOKEN_NOTE_LOGGER)
     if not any(isinstance(f, DeliberateTokenNote) for f in note.filters):
         note.addFilter(DeliberateTokenNote())
-    saved_env, saved_flag = os.environ.get(LOOPBACK_ENV), constants.ENABLE_RAY_CLUSTER
-    os.environ[LOOPBACK_ENV], constants.ENABLE_RAY_CLUSTER = "0", False
+    saved_env, saved_flag = os.environ.get(LOOPBACK_ENV), loopback_flag()
+    os.environ[LOOPBACK_ENV] = "0"
+    set_loopback_flag(False)
     main = threading.current_thread() is threading.main_thread()
     sigterm = signal.getsignal(signal.SIGTERM) if main else None
     try:
@@ -262,11 +260,12 @@ def start(**init_kwargs) -> None:
     finally:
         if main:  # ray.init replaced it with its own, which exits without running the caller's clean-up
             signal.signal(signal.SIGTERM, sigterm)
-        constants.ENABLE_RAY_CLUSTER = saved_flag
+        set_loopback_flag(saved_flag)
         if saved_env is None:
             os.environ.pop(LOOPBACK_ENV)
         else:
             os.environ[LOOPBACK_ENV] = saved_env
     private_token()
     if private:
-        _record(ray._private.worker._global_node.get_session_dir_path())
+        context = ray.get_runtime_context()
+        _record(str(Path(context.get_temp_dir()) / context.get_session_name()))

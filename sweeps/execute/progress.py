@@ -20,11 +20,11 @@ from collections.abc import Callable
 from typing import TextIO
 
 import ray
-import ray._private.ray_logging as ray_logging
 import ray.tune
 from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
 from cdm.train import Callback
+from sweeps.ray_internals import set_log_dedup
 
 __all__ = [
     "QUIET_LOGGERS",
@@ -59,7 +59,7 @@ def quiet_environment(tty: bool) -> None:
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
     os.environ.setdefault("MLFLOW_LOGGING_LEVEL", "WARNING")
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
-    ray_logging.RAY_DEDUP_LOGS = os.environ["RAY_DEDUP_LOGS"].lower() in ("1", "true")  # Ray's own parsing
+    set_log_dedup(os.environ["RAY_DEDUP_LOGS"].lower() in ("1", "true"))  # Ray's own parsing
     if not tty:
         os.environ.setdefault("RAY_COLOR_PREFIX", "0")
 

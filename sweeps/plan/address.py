@@ -2,7 +2,7 @@
 runs, then its GCS asked for the cluster's id within a bounded time.
 
 ``ray.init(address=…)`` on an address where no Ray GCS answers retries for minutes inside Ray's C++ client
-(20 tries of a 5 s connect plus a 30 s wait for the cluster id, ``ray/_private/node.py`` ``_init_gcs_client``),
+(20 tries of a 5 s connect plus a 30 s wait for the cluster id, Ray's ``node.py`` ``_init_gcs_client``),
 and no Ctrl-C or SIGTERM reaches Python meanwhile. :func:`reach` asks first, from Python, where a signal
 interrupts at once: a TCP connect, then the GCS's own ``GetClusterId`` call (what Ray's client sends first),
 each within :data:`REPLY_S`, so a wrong address is one line naming where it came from.
@@ -68,13 +68,13 @@ def reach(address: str, source: str) -> str:
     """
     check_form(address, source)
     import grpc
-    from ray._private.grpc_utils import init_grpc_channel
-    from ray._private.services import canonicalize_bootstrap_address
     from ray.core.generated.gcs_service_pb2 import GetClusterIdRequest
     from ray.core.generated.gcs_service_pb2_grpc import NodeInfoGcsServiceStub
 
+    from sweeps.ray_internals import canonical_address, gcs_channel
+
     try:
-        target = canonicalize_bootstrap_address(address)
+        target = canonical_address(address)
     except ConnectionError:  # auto, and no cluster recorded or running on this machine
         raise AddressError(f"{source} auto: no Ray cluster runs on this machine; start one (`ray start --head`) "
                            f"or give {FORMS}") from None
@@ -88,7 +88,7 @@ def reach(address: str, source: str) -> str:
     except OSError as exc:
         raise AddressError(f"{where}: cannot connect ({exc.strerror or exc}); is the cluster running? "
                            f"Give {FORMS}") from None
-    channel = init_grpc_channel(target)
+    channel = gcs_channel(target)
     try:
         NodeInfoGcsServiceStub(channel).GetClusterId.future(GetClusterIdRequest(), timeout=REPLY_S).result()
     except grpc.RpcError as exc:
