@@ -4,6 +4,10 @@
     python benchmarks/gpu_check.py --device cpu --quick   # toy scale: what the test suite runs
     python benchmarks/gpu_check.py --count-flops --device cpu   # only the counted FLOPs (any device)
 
+Only a device's figures go to the committed ``benchmarks/gpu_costs.json``, which the estimate reads: a check on
+CUDA at paper scale, or ``--count-flops`` at paper scale. A check on a CPU or a ``--quick`` one writes to
+``benchmarks/out/gpu_costs.json`` (not committed), and is refused if ``--out`` names the committed file.
+
 It trains PC²'s PVCNN2 (the paper profile's denoiser) with the frozen ViT-S/16 (random weights in MSN's
 layout, its token cache off so every step pays it) and the 3D prior constraint (H=10, point size 0.04)
 on the procedural data at two sizes: Co3D's (B=8, N=16,384, 224², depth prior and renderings, mask
@@ -53,7 +57,7 @@ from sweeps.plan.spec import load_spec  # noqa: E402
 from sweeps.plan.trials import expand  # noqa: E402
 from tests.test_encoder import write_msn_checkpoint  # noqa: E402
 
-__all__ = ["SIZES", "check", "count_flops", "main", "size_config"]
+__all__ = ["SIZES", "TOY_COSTS", "check", "count_flops", "device_figures", "main", "size_config"]
 
 ROOT = Path(__file__).resolve().parents[1]
 PRECISIONS = ("fp32", "fp16", "bf16")
@@ -205,11 +209,36 @@ def check(device: str, quick: bool, deadline_s: float) -> dict:
     return figures
 
 
+TOY_COSTS = ROOT / "benchmarks" / "out" / "gpu_costs.json"
+"""Where a check on a CPU or a ``--quick`` one writes (``benchmarks/out/`` is not committed)."""
+
+
+def device_figures(device: str, quick: bool, count_flops: bool) -> bool:
+    """Whether a run measures what the committed table holds: a device (CUDA) at paper scale, or the
+    device-independent counted FLOPs at paper scale."""
+    return not quick and (count_flops or torch.device(device).type == "cuda")
+
+
+def _out_path(args: argparse.Namespace) -> Path | None:
+    """Where this run's figures go; None (said on stderr) where it would replace the committed table with a toy
+    or CPU check's figures."""
+    if device_figures(args.device, args.quick, args.count_flops):
+        return Path(args.out or GPU_COSTS)
+    out = Path(args.out or TOY_COSTS)
+    if out.resolve() == GPU_COSTS.resolve():
+        what = "--quick" if args.quick else f"--device {args.device}"
+        print(f"error: --out {args.out}: a {what} check does not replace the device figures the estimate reads; "
+              f"leave --out out (it writes {TOY_COSTS.relative_to(ROOT)}) or name another file", file=sys.stderr)
+        return None
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cuda", help="cuda (default) or cpu")
     p.add_argument("--quick", action="store_true", help="toy sizes: a check that the script runs, not figures")
-    p.add_argument("--out", default=str(GPU_COSTS), help="where the figures go (default: benchmarks/gpu_costs.json)")
+    p.add_argument("--out", help="where the figures go (default: benchmarks/gpu_costs.json for a device's figures, "
+                                 "else benchmarks/out/gpu_costs.json)")
     p.add_argument(
         "--count-flops", action="store_true", help="only count the paper-scale FLOPs into the file's flops section"
     )
@@ -222,7 +251,9 @@ def main(argv: list[str] | None = None) -> int:
             "error: --device cuda: no CUDA device here; pass --device cpu (with --quick for a toy run)", file=sys.stderr
         )
         return 2
-    out = Path(args.out)
+    out = _out_path(args)
+    if out is None:
+        return 2
     if args.count_flops:
         with tempfile.TemporaryDirectory() as tmp:
             weights = Path(tmp) / "vits16_800ep.pth.tar"

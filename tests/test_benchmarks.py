@@ -71,12 +71,17 @@ def test_median_s_reads_the_clock_it_is_given():
     assert median_s(lambda: None, repeats=4, clock=lambda: float(next(ticks))) == 1.0
 
 
+COMMITTED_COSTS = ROOT / "benchmarks" / "gpu_costs.json"
+
+
 @pytest.mark.slow  # PC²'s PVCNN2 at toy scale, three sizes × precisions on one CPU: ~1-2 min
 def test_gpu_check_runs_at_toy_scale_on_cpu_and_writes_every_figure(tmp_path):
+    committed = COMMITTED_COSTS.read_bytes()
     out = tmp_path / "gpu_costs.json"
     run = subprocess.run([sys.executable, "benchmarks/gpu_check.py", "--device", "cpu", "--quick", "--out", str(out)],
                          cwd=ROOT, capture_output=True, text=True, timeout=900)
     assert run.returncode == 0, run.stderr
+    assert COMMITTED_COSTS.read_bytes() == committed
     figures = json.loads(out.read_text())
     assert figures["device"] == "CPU" and figures["denoiser"] == "pvcnn2" and figures["quick"] is True
     assert set(figures["by_points"]) == {"256", "64"}  # Co3D's 16,384 and ShapeNet's 4,096 points, ÷ 64
@@ -95,6 +100,39 @@ def test_gpu_check_runs_at_toy_scale_on_cpu_and_writes_every_figure(tmp_path):
     # the paper profile trains in fp16, which a CPU does not run: no GPU-hours, and why
     assert figures["trial_gpu_hours"] == {"co3d.yaml": "not measured in train.precision=fp16 (fp16 needs CUDA)",
                                           "shapenet.yaml": "not measured in train.precision=fp16 (fp16 needs CUDA)"}
+
+
+def test_only_a_device_check_at_paper_scale_writes_the_committed_table_by_default():
+    import argparse
+
+    from benchmarks.gpu_check import TOY_COSTS, _out_path
+
+    def out(*argv: str):
+        args = argparse.Namespace(device="cuda", quick=False, count_flops=False, out=None)
+        for flag in argv:
+            key, _, value = flag.partition("=")
+            setattr(args, key, value or True)
+        return _out_path(args)
+
+    assert out() == COMMITTED_COSTS
+    assert out("count_flops", "device=cpu") == COMMITTED_COSTS  # counted FLOPs: the same on any device
+    assert out("device=cpu", "quick") == TOY_COSTS and TOY_COSTS.parent.name == "out"
+    assert out("device=cpu") == TOY_COSTS and out("quick") == TOY_COSTS and out("count_flops", "quick") == TOY_COSTS
+    assert out("device=cpu", "quick", "out=/tmp/x.json").as_posix() == "/tmp/x.json"
+
+
+@pytest.mark.slow  # a fresh interpreter importing torch and the library: ~6 s on a busy 2-CPU machine
+@pytest.mark.parametrize("via_link", [False, True])
+def test_a_cpu_or_toy_check_refuses_to_replace_the_device_figures(tmp_path, via_link):
+    committed = COMMITTED_COSTS.read_bytes()
+    target = tmp_path / "costs.json" if via_link else COMMITTED_COSTS
+    if via_link:
+        target.symlink_to(COMMITTED_COSTS)
+    argv = ["benchmarks/gpu_check.py", "--device", "cpu", "--quick", "--out", str(target)]
+    run = subprocess.run([sys.executable, *argv], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 2 and run.stderr.startswith(f"error: --out {target}: a --quick check does not replace")
+    assert "benchmarks/out/gpu_costs.json" in run.stderr and len(run.stderr.strip().splitlines()) == 1
+    assert COMMITTED_COSTS.read_bytes() == committed
 
 
 @pytest.mark.slow  # a fresh interpreter importing torch and the library: ~6 s on a busy 2-CPU machine

@@ -164,6 +164,24 @@ def test_the_shipped_figures_give_the_paper_profile_a_labelled_bound():
     assert f"({bound:.3f} per trial × {paper.num_trials})" in line
 
 
+@pytest.mark.parametrize("device, quick, left", [
+    ("CPU", True, set()),  # a toy check: nothing of it is read
+    ("CPU", False, {"device", "denoiser", "flops", "quick"}),  # a CPU's: only its counted FLOPs (any device's)
+    ("NVIDIA H100 80GB HBM3", True, set()),
+])
+def test_a_cpu_or_toy_checks_figures_are_never_read_as_a_devices(tmp_path, monkeypatch, device, quick, left):
+    from sweeps.plan import estimate
+
+    figures = {**_pvcnn2_figures(), "device": device, "quick": quick}
+    monkeypatch.setattr(estimate, "GPU_COSTS", tmp_path / "gpu_costs.json")
+    estimate.GPU_COSTS.write_text(json.dumps(figures))
+    read = estimate._figures()
+    assert set(read) == left and "by_points" not in read
+    paper = expand(load_spec(SWEEPS / "shapenet.yaml"), "paper")
+    assert paper_trial_gpu_hours(paper, read) == (None, "no GPU figures")
+    assert paper_trial_gpu_hours(paper, {**figures, "quick": False, "device": "NVIDIA H100 80GB HBM3"})[0] > 0
+
+
 def test_measured_figures_are_printed_with_what_gpu_check_measured_beside_them():
     figures = _pvcnn2_figures()
     figures["by_points"]["4096"].update(largest_batch=64)

@@ -194,7 +194,14 @@ def _eval_objects(cfg: Config) -> int:
 
 
 def _figures() -> dict:
-    return read_json(GPU_COSTS, "GPU costs") if GPU_COSTS.is_file() else {}
+    """``benchmarks/gpu_costs.json``; a toy check's figures (``quick``) count as none, a CPU's keep only their
+    device-independent counted FLOPs (benchmarks/gpu_check.py writes neither there, but a copy could)."""
+    figures = read_json(GPU_COSTS, "GPU costs") if GPU_COSTS.is_file() else {}
+    if figures.get("quick"):
+        return {}
+    if figures.get("device") == "CPU":
+        return {k: v for k, v in figures.items() if k != "by_points"}
+    return figures
 
 
 def _paper_config(paper: SweepPlan) -> Config:
