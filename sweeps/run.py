@@ -37,7 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="profile in sweeps/profiles.yaml or the spec: smoke, local or paper (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
     p.add_argument(
-        "--resume", action="store_true", help="continue an interrupted sweep; re-runs only unfinished trials"
+        "--resume", action="store_true",
+        help="continue an interrupted sweep: unfinished trials, and failed ones up to failure.max_retries times"
     )
     p.add_argument(
         TRUST_FLAG,

@@ -24,6 +24,7 @@ from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import lease_cores
 from sweeps.execute.precompute import precompute, shared_root
 from sweeps.execute.pruning import CheckpointPruner, prune_finished
+from sweeps.execute.resume_retries import refusing, retry_errored
 from sweeps.execute.tracking import SweepRun
 from sweeps.execute.trial import TrialSetup, run_trial, trial_dir_name
 from sweeps.plan.budget import SeedBudget
@@ -144,11 +145,13 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
 
 
 def _tuner(plan: SweepPlan, trainable, conc: Concurrency, sweep_dir: str, sweep_run: SweepRun, resume: bool,
-           callbacks: Sequence[ray.tune.Callback], budget: SeedBudget | None) -> ray.tune.Tuner:
-    """Tune's Tuner over ``trainable``: restored from ``sweep_dir`` on ``resume`` (unfinished trials only), else new."""
+           callbacks: Sequence[ray.tune.Callback], budget: SeedBudget | None, resume_errored: bool = False
+           ) -> ray.tune.Tuner:
+    """Tune's Tuner over ``trainable``: restored from ``sweep_dir`` on ``resume`` (unfinished trials, and errored ones
+    from their last checkpoint with ``resume_errored``), else new."""
     if resume:
         return ray.tune.Tuner.restore(sweep_dir, trainable=trainable, resume_unfinished=True,
-                                      resume_errored=False, restart_errored=False)
+                                      resume_errored=resume_errored, restart_errored=False)
     param_space, search_alg, num_samples = _search(plan, sweep_run, budget)
     return ray.tune.Tuner(
         trainable,
@@ -212,8 +215,9 @@ def run_sweep(
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
     ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
-    (``s3://…``, ``file://…``). Resume re-runs only unfinished trials, each from its last
-    checkpoint; errored trials stay failed. ``conc``: how trials fit the cluster
+    (``s3://…``, ``file://…``). Resume re-runs unfinished trials, each from its last checkpoint, and
+    errored ones until each was retried ``failure.max_retries`` times on resume
+    (:mod:`sweeps.execute.resume_retries`). ``conc``: how trials fit the cluster
     (:func:`sweeps.plan.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
     joined by address and may autoscale. ``callbacks`` (e.g. the
     progress line, :class:`sweeps.execute.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
@@ -233,14 +237,17 @@ def run_sweep(
     cores = 0 if "://" in sweep_dir else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
     setup = TrialSetup(plan, {c.label: c for c in plan.cells}, sweep_dir, sweep_run.uri, sweep_run.experiment_id,
                        sweep_run.run_id, code_version(), root, cores)
-    trainable = ray.tune.with_resources(ray.tune.with_parameters(run_trial, setup=setup), conc.trial_resources)
+    resume_errored, given_up = (retry_errored(sweep_dir, plan.spec.failure.max_retries, lambda c: plan.names(c)[1])
+                                if resume else (False, {}))
+    trainable = ray.tune.with_resources(ray.tune.with_parameters(refusing(run_trial, given_up), setup=setup),
+                                        conc.trial_resources)
     print(
         f"cluster{' (at most)' if remote else ''}: {conc.cpus:g} CPUs, {conc.gpus:g} GPUs → up to "
         f"{conc.max_concurrent} concurrent trials ({conc.cpus_per_trial:g} CPUs each)"
         + (f", taking turns on {cores} cores (one computing trial per core)" if cores else ""),
         flush=True,
     )
-    grid = _tuner(plan, trainable, conc, sweep_dir, sweep_run, resume, callbacks, budget).fit()
+    grid = _tuner(plan, trainable, conc, sweep_dir, sweep_run, resume, callbacks, budget, resume_errored).fit()
     prune_finished(grid)  # fit() has uploaded Tune's final state: no trial's older checkpoints are needed
     if root is not None:
         # A cache, gigabytes at the local profile: kept only while trials may still read it (a killed
