@@ -45,7 +45,7 @@ def mask_distance_transform(mask: Tensor) -> Tensor:
     """Exact Euclidean distance from each pixel to the nearest foreground pixel, divided by ``S``.
 
     PC² feeds this channel so points just outside the silhouette know how far out they are, and computes
-    it as here: OpenCV's ``distanceTransform`` of the background (``DIST_L2`` with ``DIST_MASK_PRECISE``:
+    it with OpenCV's ``distanceTransform`` of the background, as here (``DIST_L2`` with ``DIST_MASK_PRECISE``:
     exact, Felzenszwalb and Huttenlocher's linear-time passes), on the CPU, image by image. 2.7× faster
     than the former pure-torch ``O(S³)`` passes at 32²–64², 12.6× at 224² (``benchmarks/RESULTS.md``,
     "kornia and OpenCV (issue 59)"). A mask on another device is copied to the CPU and the result back.
