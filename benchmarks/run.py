@@ -21,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.blend import blend_overhead  # noqa: E402
 from benchmarks.cpu_modes import cpu_modes  # noqa: E402
+from benchmarks.kornia_ops import kornia_ops  # noqa: E402
 from benchmarks.lean_step import lean_step  # noqa: E402
 from benchmarks.loader import loader_speed  # noqa: E402
 from benchmarks.memory import peak_rss  # noqa: E402
@@ -45,6 +46,7 @@ BENCHMARKS = {
     "paper_scaling": paper_scaling,
     "blend": blend_overhead,
     "loader": loader_speed,
+    "kornia_ops": kornia_ops,
 }
 # Minutes-long training runs: only with --only.
 SLOW = {"quality": quick_config_quality, "cpu_modes": lambda quick, out: cpu_modes(steps=10 if quick else 40)}

@@ -184,3 +184,19 @@ def test_cpu_modes_train_each_mode_in_its_own_process_with_its_pins():
     if "avx2" in machine_record()["cpu_isa"].split():  # the pin took: ATen dispatches to AVX2 in the child
         assert all("; ATen AVX2 against " in r["case"] for r in rows)
     assert all(r["with_s"] > 0 and r["without_s"] > 0 and r["ratio"] > 0 for r in rows)
+
+
+def test_kornia_ops_rows_name_each_comparison_and_agree_in_value():
+    """``benchmarks/kornia_ops.py --quick``: the former torch distance transform, kornia's projection,
+    footprint filter and erosion give our values (float rounding); kornia's Canny is another detector."""
+    from benchmarks.kornia_ops import kornia_ops
+
+    rows = {r["benchmark"]: r for r in kornia_ops(quick=True, out_dir="")}
+    assert len(rows) == 6
+    difference = {name: float(r["case"].rpartition("max |a − b| ")[2]) for name, r in rows.items()}
+    assert difference["mask distance transform: torch O(S³) vs OpenCV"] < 1e-6
+    assert difference["camera projection: ours vs kornia"] < 1e-5
+    assert difference["splat footprint filter: ours vs kornia filter2d"] < 1e-4
+    assert difference["front-layer window minimum: -max_pool2d(-z) vs kornia erosion"] == 0.0
+    assert 0.0 < difference["contour prior: OpenCV Canny vs kornia canny"] < 0.5
+    assert all(r["without_s"] > 0 and r["with_s"] > 0 and r["ratio"] > 0 for r in rows.values())

@@ -290,3 +290,19 @@ def test_fp16_loss_scale_travels_with_the_checkpoint(tmp_path):
     resumed = Trainer(cfg.replace(**{"train.steps": 4}))
     resumed.restore(saved)
     assert resumed.optimiser.scaler.get_scale() == trainer.optimiser.scaler.get_scale() <= 2.0**16
+
+
+def test_mask_distance_transform_and_the_front_layer_minimum_match_the_cpu():
+    """The distance transform goes through OpenCV on the CPU and comes back on the mask's device; the
+    window minimum runs ``max_pool2d`` on CUDA and kornia's erosion on the CPU: the same values."""
+    from cdm.model.conditioning import mask_distance_transform
+    from cdm.render import _window_min
+
+    g = torch.Generator().manual_seed(0)
+    mask = (torch.rand(3, 1, 40, 40, generator=g) < 0.05).float()
+    gpu = mask_distance_transform(mask.to(CUDA))
+    assert gpu.device.type == "cuda" and torch.equal(gpu.cpu(), mask_distance_transform(mask))
+    zbuf = torch.rand(4, 1, 30, 30, generator=g) + 2.0
+    zbuf[torch.rand(zbuf.shape, generator=g) < 0.6] = float("inf")
+    for half in (1, 4):
+        assert torch.equal(_window_min(zbuf.to(CUDA), half).cpu(), _window_min(zbuf, half))

@@ -97,16 +97,24 @@ def test_image_encoder_coarse_equals_projecting_the_concatenated_maps(size):
         torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-5 * w.abs().max().item())
 
 
-def test_mask_distance_transform_matches_scipy():
-    g = torch.Generator().manual_seed(0)
-    mask = (torch.rand(3, 1, 20, 20, generator=g) > 0.93).float()
+@pytest.mark.parametrize("size, density", [(20, 0.07), (33, 0.01), (64, 0.3)])
+def test_mask_distance_transform_matches_scipy(size, density):
+    """OpenCV's precise L2 transform is exact: scipy's Euclidean transform to float32 rounding, on sparse
+    and dense random masks, a single foreground pixel in a corner, and masks with no foreground."""
+    g = torch.Generator().manual_seed(size)
+    mask = (torch.rand(4, 1, size, size, generator=g) < density).float()
     mask[2] = 0.0
+    mask[3] = 0.0
+    mask[3, 0, -1, 0] = 1.0
     got = mask_distance_transform(mask)
-    for b in range(2):
-        expected = distance_transform_edt(1 - mask[b, 0].numpy()) / 20
-        np.testing.assert_allclose(got[b, 0].numpy(), expected, atol=1e-6)
-    assert torch.allclose(got[2], torch.full((1, 20, 20), math.sqrt(2.0)))
+    assert got.shape == mask.shape and got.dtype == mask.dtype
+    for b in (0, 1, 3):
+        expected = distance_transform_edt(1 - mask[b, 0].numpy()) / size
+        np.testing.assert_allclose(got[b, 0].numpy(), expected, rtol=0, atol=1e-6)
+    assert torch.equal(got[mask > 0.5], torch.zeros(int((mask > 0.5).sum())))
+    assert torch.allclose(got[2], torch.full((1, size, size), math.sqrt(2.0)))
     assert torch.equal(mask_distance_transform(torch.ones(1, 1, 5, 5)), torch.zeros(1, 1, 5, 5))
+    assert mask_distance_transform(mask.double()).dtype == torch.float64
 
 
 def _point_at_pixel(cams: Cameras, image_size: int, row: int, col: int, depth: float) -> torch.Tensor:

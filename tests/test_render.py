@@ -7,7 +7,15 @@ import torch
 import torch.nn.functional as F
 
 from cdm.cameras import Cameras, look_at_cameras, orbit_cameras, pixel_centers_ndc, project_points
-from cdm.render import SPLAT_DEPTH_EPS, _bilinear_deposit, _footprint, _ShiftedTaps, rasterize_points, splat_points
+from cdm.render import (
+    SPLAT_DEPTH_EPS,
+    _bilinear_deposit,
+    _footprint,
+    _ShiftedTaps,
+    _window_min,
+    rasterize_points,
+    splat_points,
+)
 
 
 def _front_camera(dist: float = 3.0, batch: int = 1) -> Cameras:
@@ -356,3 +364,18 @@ def test_bilinear_deposit_equals_the_corner_by_corner_loop():
     for got, want in zip(torch.autograd.grad(got_values, (col, row), upstream),
                          torch.autograd.grad(naive_values, (col, row), upstream)):
         torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("half", [0, 1, 3, 9])  # windows 1–19 px: point sizes 0.0075–0.08 at 64²–224²
+def test_window_minimum_equals_the_negated_max_pool_it_replaced(half):
+    """kornia's erosion (``_window_min``, the nearest surface of ``_front_layer``) against the formula it
+    replaced, ``-max_pool2d(-z)``: the same values bit for bit on z-buffers with empty (+inf) pixels,
+    edges included."""
+    g = torch.Generator().manual_seed(half)
+    zbuf = torch.rand(3, 1, 30, 34, generator=g) * 4.0 + 1.0
+    zbuf[torch.rand(zbuf.shape, generator=g) < 0.6] = math.inf
+    window = 2 * half + 1
+    want = -F.max_pool2d(-zbuf, window, stride=1, padding=half)
+    got = _window_min(zbuf, half)
+    assert torch.equal(got, want)
+    assert torch.equal(got, zbuf) == (half == 0)  # a wider window pulls nearer depths in
