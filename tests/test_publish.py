@@ -149,15 +149,17 @@ def test_final_metrics_are_the_last_evaluation_under_stable_names(grid_store):
     }
     first = runs["point_size=0.02 · seed 0"]
     assert first.data.metrics["final/cd"] == 80.0 and first.data.metrics["final/f1"] == 0.42
-    assert first.data.params["final/cd/chair"] == "81.0" and first.data.params["final/f1/chair"] == "0.43"
+    assert first.data.metrics["final/cd/chair"] == 81.0 and first.data.metrics["final/f1/chair"] == 0.43
     assert [m.step for m in client.get_metric_history(first.info.run_id, "final/cd")] == [20]
-    # Per category one value each, as params: no chart of one point, no eval/<metric>/<category> series either.
-    assert not [k for k in first.data.metrics if k.count("/") >= 2]
+    # Per category one value each, a final/… metric MLflow filters on; no eval/<metric>/<category> series.
+    assert not [k for k in first.data.metrics if k.count("/") >= 2 and not k.startswith("final/")]
+    assert not [k for k in first.data.params if k.startswith("final/")]
     assert not any(k.startswith("final/") for k in runs["point_size=0.08 · seed 0"].data.metrics)  # failed: no final
-    # The parent: the baselines' overall scores as metrics, per category as params; no metric per cell.
+    # The parent: the baselines' scores, overall and per category, as metrics; no metric per cell.
     parent = client.get_run(sweep.run_id).data
-    assert parent.metrics == {"baseline/sphere/cd": 150.0, "baseline/sphere/f1": 0.2}
-    assert parent.params["baseline/sphere/f1/chair"] == "0.21"
+    assert {k: v for k, v in parent.metrics.items() if k.count("/") == 2} == {"baseline/sphere/cd": 150.0,
+                                                                             "baseline/sphere/f1": 0.2}
+    assert parent.metrics["baseline/sphere/f1/chair"] == 0.21 and not [k for k in parent.params if "baseline/" in k]
 
 
 def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, tmp_path, capsys):
