@@ -56,8 +56,9 @@ PACKAGES_FILE = "environment/packages.txt"
 
 SYSTEM_METRICS_INTERVAL_S = 10.0
 """Seconds between two samples of MLflow's system-metrics monitor (CPU, memory, disk, network; ``system/…``):
-MLflow's own default. A sample costs about a millisecond of a background thread and one read of the run, so it
-slows no trial; ``MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL`` overrides it, as MLflow documents."""
+MLflow's own default. A sample is a few psutil calls and one read of the run in a background thread, logged at
+once: nothing the training loop waits on. ``MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL`` overrides it, as MLflow
+documents."""
 
 
 def system_metrics_monitor(uri: str, run_id: str, resumed: bool):
