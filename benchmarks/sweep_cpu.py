@@ -6,7 +6,7 @@ then times every cell's step alone here: one thread, on ready batches, nothing e
 this right after the sweep, with the machine otherwise idle). Cells cost different amounts a step
 (point_size.yaml's 0.08 draws a wider footprint than 0.0075), so each cell is set against itself:
 
-- in-trial: each trial's own CPU seconds per step (``system/cpu_s_per_step``, the process's CPU time
+- in-trial: each trial's own CPU seconds per step (``train/cpu_s_per_step``, the process's CPU time
   over its logging windows, data included) ÷ that cell's mean over its first 40 batches alone; a row
   per cell and one for the sweep (the mean over cells of in-trial ÷ the mean of alone): what sharing
   the cores costs a step;
@@ -76,7 +76,7 @@ def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = 
     rows, in_trial, alone, steps = [], [], [], 0
     for r in sorted(children, key=lambda r: r.data.tags["mlflow.runName"]):
         cell = cells[r.data.tags["mlflow.runName"]]
-        trial_s = statistics.fmean(m.value for m in client.get_metric_history(r.info.run_id, "system/cpu_s_per_step"))
+        trial_s = statistics.fmean(m.value for m in client.get_metric_history(r.info.run_id, "train/cpu_s_per_step"))
         steps += int(max(m.step for m in client.get_metric_history(r.info.run_id, "train/loss")))
         alone_s = _isolated_steps(cell.config)
         in_trial.append(trial_s)
@@ -91,7 +91,7 @@ def sweep_cpu_per_step(tracking_uri: str, experiment: str, cpus: float | None = 
     return rows + [
         {
             "benchmark": "CPU per step in a sweep ÷ alone",
-            "case": f"{spec_name}, {profile}: every cell, in-trial system/cpu_s_per_step ÷ the cell's first 40 "
+            "case": f"{spec_name}, {profile}: every cell, in-trial train/cpu_s_per_step ÷ the cell's first 40 "
             "batches alone",
             "without_s": alone_s,
             "with_s": trial_s,

@@ -56,7 +56,7 @@ def sweep_efficiency(quick: bool, out_dir: str) -> list[dict]:
         children = [r for r in client.search_runs([exp.experiment_id]) if "mlflow.parentRunId" in r.data.tags]
     spans = [(r.info.start_time / 1000, r.info.end_time / 1000) for r in children]
     in_trial = [end - begin for begin, end in spans]
-    loop = [r.data.metrics["system/elapsed_s"] for r in children]
+    loop = [r.data.metrics["train/elapsed_s"] for r in children]
     wall = max(e for _, e in spans) - min(b for b, _ in spans)
     # Lanes = how many trials the runner lets run at once on this machine (its own sizing rule).
     lanes = plan_concurrency(smoke.profile.resources, float(os.cpu_count() or 1), 0.0, smoke.num_trials).max_concurrent

@@ -25,7 +25,9 @@ from cdm.data import build_dataset
 from cdm.data.sample import collate
 from cdm.evaluate import save_panel
 from sweeps.compare import rules
-from sweeps.execute.tracking import SweepRun
+from sweeps.compare.outcomes import TrialOutcome
+from sweeps.compare.table import build_table
+from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, with_logged_baselines
 from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
@@ -149,15 +151,17 @@ def test_final_metrics_are_the_last_evaluation_under_stable_names(grid_store):
     }
     first = runs["point_size=0.02 · seed 0"]
     assert first.data.metrics["final/cd"] == 80.0 and first.data.metrics["final/f1"] == 0.42
-    assert first.data.params["final/cd/chair"] == "81.0" and first.data.params["final/f1/chair"] == "0.43"
+    assert first.data.metrics["final/cd/chair"] == 81.0 and first.data.metrics["final/f1/chair"] == 0.43
     assert [m.step for m in client.get_metric_history(first.info.run_id, "final/cd")] == [20]
-    # Per category one value each, as params: no chart of one point, no eval/<metric>/<category> series either.
-    assert not [k for k in first.data.metrics if k.count("/") >= 2]
+    # Per category one value each, a final/… metric MLflow filters on; no eval/<metric>/<category> series.
+    assert not [k for k in first.data.metrics if k.count("/") >= 2 and not k.startswith("final/")]
+    assert not [k for k in first.data.params if k.startswith("final/")]
     assert not any(k.startswith("final/") for k in runs["point_size=0.08 · seed 0"].data.metrics)  # failed: no final
-    # The parent: the baselines' overall scores as metrics, per category as params; no metric per cell.
+    # The parent: the baselines' scores, overall and per category, as metrics; no metric per cell.
     parent = client.get_run(sweep.run_id).data
-    assert parent.metrics == {"baseline/sphere/cd": 150.0, "baseline/sphere/f1": 0.2}
-    assert parent.params["baseline/sphere/f1/chair"] == "0.21"
+    assert {k: v for k, v in parent.metrics.items() if k.count("/") == 2} == {"baseline/sphere/cd": 150.0,
+                                                                             "baseline/sphere/f1": 0.2}
+    assert parent.metrics["baseline/sphere/f1/chair"] == 0.21 and not [k for k in parent.params if "baseline/" in k]
 
 
 def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, tmp_path, capsys):
@@ -194,6 +198,38 @@ def test_report_rebuilds_the_table_with_the_failed_trial_as_failed(grid_store, t
     assert records[2]["failed"] == "1" and records[2]["eval/f1 mean"] == ""
     for name in ("metric_vs_value.png", "training_curves.png"):
         assert mpimg.imread(out / name).std() > 0.01  # a drawn figure, not a blank one
+
+
+def test_report_writes_the_runners_results_csv_byte_for_byte(tmp_path):
+    """Numbers no table prints whole (0.4213456789…): MLflow keeps every digit, so the report's results.csv
+    equals the runner's, made as ``sweeps/execute/driver.py`` makes it from Tune's results."""
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep, plan = _start(tmp_path, uri, GRID.replace("name: synth", "name: digits"))
+    base = {"baseline/sphere/cd": 150.01234567891, "baseline/sphere/f1": 0.2012345678901,
+            "baseline/sphere/f1/chair": 0.2112345678901, "baseline/sphere/cd/chair": 151.0987654321}
+    outcomes = []
+    for i, cell in enumerate(plan.cells[:2]):
+        last = {"eval/cd": 80.123456789 - 20 * i, "eval/f1": 0.4213456789012 + 0.06 * i, **base,
+                "eval/cd/chair": 81.98765432 - 20 * i, "eval/f1/chair": 2 / 3 + 0.01 * i}
+        objects = [{"object_id": f"o{k}", "category": "chair", "eval_set": "e1", "cd": 70.1234567 + 10 * k - 20 * i,
+                    "f1": 0.5 - k / 700 + i / 30, "baseline/sphere/cd": 150 + k / 3, "baseline/sphere/f1": 0.2 + k / 7}
+                   for k in range(3)]
+        _trial(tmp_path, sweep, f"t{i}", cell.label, cell.values, {20: last}, objects)
+        sweep.close_trial(f"t{i}", cell.label, "FINISHED", last=last)
+        outcomes.append(TrialOutcome(cell.label, cell.name, "ok", {**last, "step": 20.0}, cell.paper_label,
+                                     cell.paper, None, tuple(objects), cell.config.eval.f1_threshold))
+    sweep.close_trial("t2", plan.cells[2].label, "FAILED", error="died")
+    outcomes.append(TrialOutcome(plan.cells[2].label, plan.cells[2].name, "failed", {}, plan.cells[2].paper_label,
+                                 plan.cells[2].paper, "died", (), plan.cells[2].config.eval.f1_threshold))
+    baselines = baselines_by_eval_set(outcomes)
+    runner = build_table(with_logged_baselines(outcomes, baselines), "eval/f1", "max", "digits — profile smoke",
+                         settings=["s"])
+    _, ours = runner.write(tmp_path / "runner")
+    sweep.log_results(baselines, "digits")
+    sweep.end()
+    assert publish.main(["digits", "--tracking-uri", uri, "--out", str(tmp_path / "report")]) == 0
+    theirs = (tmp_path / "report" / "results.csv").read_bytes()
+    assert theirs == ours.read_bytes() and b"0.4213456789012," in theirs and b"0.6666666666666666," in theirs
 
 
 def test_paper_layout_puts_ours_beside_the_paper_per_cell(grid_store):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pickle
+import time
 from pathlib import Path
 
 import mlflow.artifacts
@@ -13,10 +14,10 @@ from mlflow import MlflowClient
 
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import load_config
-from cdm.provenance import installed_packages, machine_record
+from cdm.provenance import code_version, installed_packages, machine_record
 from sweeps.execute.logged_runs import find_trial_run, last_eval_files
 from sweeps.execute.tracking import SweepRun, resolve_tracking_uri, ui_command, ui_link
-from sweeps.execute.trial_tracking import PACKAGES_FILE, TrialRun, learning_curve_png
+from sweeps.execute.trial_tracking import PACKAGES_FILE, TrialRun, learning_curve_png, system_metrics_monitor
 
 
 def test_tracking_uri_is_absolute_and_overridable(tmp_path, monkeypatch):
@@ -52,7 +53,7 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
 
     client = MlflowClient(uri)
     history = [(m.step, m.value) for m in client.get_metric_history(first.run_id, "train/loss")]
-    assert sorted(history) == [(5, 0.2), (10, 0.1), (15, 0.1333)]  # 2/15 at 4 significant digits
+    assert sorted(history) == [(5, 0.2), (10, 0.1), (15, 2.0 / 15)]  # at full precision
     assert [m.value for m in client.get_metric_history(first.run_id, "eval/cd")] == [50.0]
     run = client.get_run(first.run_id)
     # Every config field but the trial's own folder (different in every trial by construction).
@@ -78,35 +79,77 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     assert sorted(r.info.run_name for r in children) == ["point_size=0.02 · seed 0", "point_size=0.04 · seed 0"]
 
 
-def test_final_and_parent_metrics_are_logged_at_the_tables_precision(tmp_path):
+def test_every_metric_is_logged_at_full_precision_and_per_category_scores_are_metrics(tmp_path, monkeypatch):
+    monkeypatch.setenv("MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL", "0.2")  # MLflow's own override of our 10 s
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
-    cfg = load_config(None, {})
-    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, cfg)
+    cfg = load_config(None, {"train.steps": 10})
+    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {"repro.git_commit": "f" * 40}, cfg)
+    trial.on_start({"config_hash": "0" * 16})
     table, cloud = tmp_path / "objects.csv", tmp_path / "o1.ply"
-    table.write_text("object_id,category,eval_set,cd,f1\no1,chair,e1,60.942297,0.42000000000000004\n")
+    table.write_text("object_id,category,eval_set,cd,f1\no1,chair,e1,60.942297,0.42000000000000004\n"
+                     "o2,lamp,e1,61.5,0.5\n")
     cloud.write_text("ply\nend_header\n")
-    for step in (5, 10):
-        trial.on_step(step, {"train/loss": 3.0 / step, "train/loss_diffusion": 1.0 / step, "train/steps_per_s": 2.0,
-                             "train/lr": 1.234567e-4})
-    trial.on_eval(10, {"eval/cd": 60.942297, "eval/f1": 0.42000000000000004}, [table, cloud])
-    sweep.close_trial("t0", "a · seed 0", "FINISHED")
-    sweep.log_results({"e1": {"baseline/sphere/cd": 150.0049}}, "a")
+    steps = {5: {"train/loss": 3.0 / 5, "train/steps_per_s": 2.0 / 3.0, "train/lr": 1.234567e-4},
+             10: {"train/loss": 2.0 / 15, "train/steps_per_s": 0.123456789, "train/lr": 1.234567e-4}}
+    for step, metrics in steps.items():
+        trial.on_step(step, metrics)
+    scores = {"eval/cd": 60.942297123456, "eval/f1": 0.42000000000000004, "eval/f1/chair": 0.6123456789012345,
+              "eval/f1/lamp": 0.5999999999999999, "eval/cd/chair": 60.942297123456, "eval/cd/lamp": 61.5,
+              "baseline/sphere/cd": 150.0049}
     client = MlflowClient(uri)
-    final = client.get_run(trial.run_id).data.metrics
-    assert (final["final/cd"], final["final/f1"]) == (60.94, 0.42) and final["eval/cd"] == 60.94
-    # Loop timings sit under MLflow's "System metrics", apart from the model charts.
-    assert final["system/steps_per_s"] == 2.0 and "train/steps_per_s" not in final
-    assert final["train/lr"] == 1.235e-4  # 4 significant digits: a small learning rate keeps its value
-    parent = client.get_run(sweep.run_id).data.metrics
-    assert parent == {"baseline/sphere/cd": 150.0}
+    for _ in range(100):  # the monitor's first sample, taken in the background, before the trial ends
+        if "system/cpu_utilization_percentage" in client.get_run(trial.run_id).data.metrics:
+            break
+        time.sleep(0.1)
+    trial.on_eval(10, scores, [table, cloud])
+    assert trial.monitor is None  # stopped at the last evaluation
+    sweep.close_trial("t0", "a · seed 0", "FINISHED", last=scores)
+    sweep.log_results({"e1": {"baseline/sphere/cd": 150.00491234, "baseline/sphere/cd/chair": 1 / 3}}, "a")
+    run = client.get_run(trial.run_id)
+    final = run.data.metrics
+    # The very floats the trainer reported: MLflow holds them unrounded, the loop's timings under their own names.
+    for step, metrics in steps.items():
+        for key, value in metrics.items():
+            assert [m.value for m in client.get_metric_history(trial.run_id, key) if m.step == step] == [value]
+    assert final["eval/cd"] == final["final/cd"] == 60.942297123456 and final["final/f1"] == 0.42000000000000004
+    assert final["final/f1/chair"] == 0.6123456789012345 and final["final/f1/lamp"] == 0.5999999999999999
+    assert not [k for k in run.data.params if k.startswith("final/")]
+    # MLflow's system-metrics monitor (psutil) fills system/, sampled in the background and flushed at the end.
+    assert final["system/cpu_utilization_percentage"] >= 0 and final["system/system_memory_usage_megabytes"] > 0
+    assert not [k for k in final if k.startswith("system/") and "steps" in k]
+    # A per-category score is a metric MLflow filters and sorts on.
+    for query in ('metrics."final/f1/chair" > 0.6', "metrics.`final/f1/lamp` < 0.6"):
+        assert [r.info.run_id for r in client.search_runs([sweep.experiment_id], query)] == [trial.run_id]
+    assert client.search_runs([sweep.experiment_id], 'metrics."final/f1/lamp" > 0.6') == []
+    assert client.get_run(sweep.run_id).data.metrics == {"baseline/sphere/cd": 150.00491234,
+                                                         "baseline/sphere/cd/chair": 1 / 3}
+    # MLflow's own source tags beside the reproducibility record, on the child and the parent.
+    tags = run.data.tags
+    assert (tags["mlflow.source.git.commit"], tags["repro.git_commit"]) == ("f" * 40, "f" * 40)
+    assert (tags["mlflow.source.name"], tags["mlflow.source.type"]) == ("sweeps/run.py", "LOCAL")
+    parent_tags = client.get_run(sweep.run_id).data.tags
+    assert parent_tags["mlflow.source.git.commit"] == code_version()["git_commit"]
+    # The evaluation set as the run's dataset input: its fingerprint the digest, its objects counted per category.
+    (used,) = run.inputs.dataset_inputs
+    assert (used.dataset.name, used.dataset.digest, used.dataset.source_type) == ("procedural quick eval", "e1", "code")
+    assert json.loads(used.dataset.profile) == {"num_objects": 2, "categories": {"chair": 1, "lamp": 1}}
+    assert [(t.key, t.value) for t in used.tags] == [("mlflow.data.context", "eval")] and tags["eval_set"] == "e1"
     assert sorted(last_eval_files(client, trial.run_id)) == [
         "eval/step_0000010/clouds/o1.ply",
         "eval/step_0000010/objects.csv",
     ]
-    assert "curves" not in {a.path for a in client.list_artifacts(trial.run_id)}  # drawn at the last evaluation only
     curve = learning_curve_png(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
     assert curve.stat().st_size > 2000
+
+
+def test_system_metrics_are_off_where_mlflows_switch_says_so(tmp_path, monkeypatch):
+    monkeypatch.setenv("MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING", "false")
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
+    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, load_config(None))
+    trial.on_start({"config_hash": "0" * 16})
+    assert trial.monitor is None and system_metrics_monitor(uri, trial.run_id, resumed=False) is None
 
 
 def test_the_experiment_is_a_model_training_one_and_every_link_opens_that_workflow(tmp_path):

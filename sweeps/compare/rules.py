@@ -1,5 +1,5 @@
 """The rules a results table reads numbers by: which metric partners which, the precision it prints
-(and MLflow shows) them at, how verdicts on two metrics combine into one, where ``objects.csv`` holds
+them at (MLflow holds them whole), how verdicts on two metrics combine into one, where ``objects.csv`` holds
 a metric, and the notes that say what produced the numbers. Plain functions of names, numbers and the
 spec."""
 
@@ -58,8 +58,8 @@ def number_text(value: float, scale: float | None = None) -> str:
 
 
 def rounded(value: float) -> float:
-    """``value`` at the precision the tables print it (3 decimals below 10, else 2): what MLflow
-    shows a reader, so the UI's columns and the tables agree digit for digit."""
+    """``value`` at the precision the tables print it (3 decimals below 10, else 2), for text a person reads (a
+    run's description); what is logged to MLflow and written to ``results.csv`` stays at full precision."""
     return float(number_text(value)) if math.isfinite(value) else value
 
 

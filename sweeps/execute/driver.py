@@ -34,7 +34,14 @@ from sweeps.execute.precompute import check_space, shared_root
 from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
 from sweeps.execute.seed_search import check_searcher_state
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
-from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, resolve_tracking_uri, ui_command, ui_link
+from sweeps.execute.tracking import (
+    SweepRun,
+    baselines_by_eval_set,
+    resolve_tracking_uri,
+    ui_command,
+    ui_link,
+    with_logged_baselines,
+)
 from sweeps.execute.tuner import run_sweep
 from sweeps.plan.address import AddressError
 from sweeps.plan.preflight import estimate_line
@@ -228,13 +235,15 @@ def _table(request: SweepRequest, outcomes: list[TrialOutcome], sweep_run: Sweep
         tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
         settled = final_round(plan, outcomes, request.budget, tags).records
         sweep_run.log_artifacts([write_settle_json(staging / "settle.json", settled, request.budget)])
-    table = build_table(outcomes, plan.spec.metric.name, plan.spec.metric.mode,
+    baselines = baselines_by_eval_set(outcomes)
+    # The numbers the parent run holds, so that `report` rebuilds this results.csv byte for byte.
+    table = build_table(with_logged_baselines(outcomes, baselines), plan.spec.metric.name, plan.spec.metric.mode,
                         f"{plan.spec.name} — profile {plan.profile.name}",
                         f"{plan.spec.paper.table}: {plan.spec.paper.note}" if plan.spec.paper else "",
                         compare_to=plan.spec.compare_to, settings=table_settings(plan, sweep_run), settled=settled)
     sweep_run.log_artifacts(list(table.write(staging)))
     sweep_run.log_results(
-        baselines_by_eval_set(outcomes),
+        baselines,
         publisher.describe(plan.spec, plan.profile.name, plan.profile.description, table, plan_card(plan).lines()),
     )
     view = publisher.publish(sweep_run.uri, sweep_run.run_id, staging / "plots")

@@ -40,8 +40,8 @@ def is_per_category(key: str) -> bool:
 def parent_baselines(parent_metrics: Mapping[str, float], eval_set: str | None,
                      parent_params: Mapping[str, str] | None = None) -> dict[str, float]:
     """The ``baseline/…`` scores the parent run holds for ``eval_set`` (see
-    :meth:`sweeps.execute.tracking.SweepRun.log_results`): the overall ones as metrics, the per-category ones as
-    params."""
+    :meth:`sweeps.execute.tracking.SweepRun.log_results`): metrics, overall and per category (sweeps before
+    full-precision logging kept the per-category ones as rounded params, read here too)."""
     held = {**{k: float(v) for k, v in (parent_params or {}).items() if "baseline/" in k}, **parent_metrics}
     prefix = f"eval_set {eval_set}/"
     own = {k.removeprefix(prefix): v for k, v in held.items() if k.startswith(prefix + "baseline/")}
@@ -86,9 +86,9 @@ def finished_trial_metrics(uri: str, experiment_id: str, parent_run_id: str, tri
 
 def trial_metrics(logged: Mapping[str, float], params: Mapping[str, str] | None = None) -> dict[str, float]:
     """A child run's metrics as its trial reported them: its series' last values, and the per-category
-    scores (``eval/f1/chair``) back from the ``final/…`` params the driver logged them as (metrics in
-    sweeps before the params)."""
-    finals = {**logged, **{k: float(v) for k, v in (params or {}).items() if k.startswith("final/")}}
+    scores (``eval/f1/chair``) back from the ``final/…`` metrics the driver logged them as (rounded params in
+    sweeps from before full-precision logging)."""
+    finals = {**{k: float(v) for k, v in (params or {}).items() if k.startswith("final/")}, **logged}
     per_category = {"eval/" + k.removeprefix("final/"): v for k, v in finals.items()
                     if k.startswith("final/") and is_per_category("eval/" + k.removeprefix("final/"))}
     return {**per_category, **{k: v for k, v in logged.items() if not k.startswith("final/")}}

@@ -14,19 +14,21 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param
 
+from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.rules import rounded
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, last_objects
 from sweeps.store_retry import PatientClient
 
 __all__ = [
     "EXPERIMENT_KIND",
+    "SOURCE_NAME",
     "WORKFLOW",
     "SweepRun",
     "artifact_location",
@@ -34,11 +36,14 @@ __all__ = [
     "baselines_by_eval_set",
     "log_params",
     "resolve_tracking_uri",
+    "source_tags",
     "ui_command",
     "ui_link",
+    "with_logged_baselines",
 ]
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
+_BATCH_METRICS = 1000  # and of metrics
 
 
 def resolve_tracking_uri(cli: str | None, cwd: Path | None = None) -> str:
@@ -109,18 +114,48 @@ def as_params(values: dict[str, Any]) -> list[Param]:
     return [Param(k, str(v)) for k, v in values.items()]
 
 
-def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[str, float]]:
-    """Evaluation-set fingerprint → the ``baseline/…`` metrics scored on it (the same in every trial on it).
+SOURCE_NAME = "sweeps/run.py"
+"""MLflow's ``mlflow.source.name`` of a sweep's runs, parent and children: the entry point that starts a sweep
+(``cdm-lab sweep`` runs it), from the checkout ``mlflow.source.git.commit`` names."""
 
-    A trial without per-object rows files its baselines under ``""``.
-    """
+
+def source_tags(git_commit: str) -> dict[str, str]:
+    """MLflow's own source tags (what ``mlflow.start_run`` sets from its context, which a run created through
+    :class:`MlflowClient` lacks): the entry point, ``LOCAL``, and the commit where the checkout has one
+    (``git_commit`` of :func:`cdm.provenance.code_version`; ``unknown`` outside git: no commit tag then).
+    The ``repro.git_commit`` tag stays beside it: ``rerun`` reads the ``repro.*`` record whole."""
+    tags = {"mlflow.source.name": SOURCE_NAME, "mlflow.source.type": "LOCAL"}
+    return tags | ({"mlflow.source.git.commit": git_commit} if git_commit != "unknown" else {})
+
+
+def _eval_set(outcome: TrialOutcome) -> str:
+    """The fingerprint of the evaluation set ``outcome`` was scored on; ``""`` without per-object rows."""
+    return str(outcome.objects[0].get("eval_set", "")) if outcome.objects else ""
+
+
+def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[str, float]]:
+    """Evaluation-set fingerprint → the ``baseline/…`` metrics scored on it (the same in every trial on it):
+    the first finished trial's, as :meth:`SweepRun.log_results` logs them. A trial without per-object rows
+    files its baselines under ``""``."""
     out: dict[str, dict[str, float]] = {}
     for o in (o for o in outcomes if o.finished):
-        eval_set = str(o.objects[0].get("eval_set", "")) if o.objects else ""
         found = {k: v for k, v in o.metrics.items() if k.startswith("baseline/")}
-        if found and eval_set not in out:
-            out[eval_set] = found
+        if found and _eval_set(o) not in out:
+            out[_eval_set(o)] = found
     return out
+
+
+def with_logged_baselines(outcomes: Sequence[TrialOutcome], baselines: Mapping[str, Mapping[str, float]]
+                          ) -> list[TrialOutcome]:
+    """``outcomes``, each finished one holding the baselines of its evaluation set as the parent run logs them
+    (``baselines``: :func:`baselines_by_eval_set`) in place of its own: the numbers the report reads back
+    (:func:`sweeps.execute.logged_runs.parent_baselines`), so the runner's ``results.csv`` and the report's are
+    written from the same floats even where two trials' baselines differed in the last bit."""
+    def held(o: TrialOutcome) -> TrialOutcome:
+        own = {k: v for k, v in o.metrics.items() if not k.startswith("baseline/")}
+        return replace(o, metrics={**own, **baselines.get(_eval_set(o), {})})
+
+    return [held(o) if o.finished and _eval_set(o) in baselines else o for o in outcomes]
 
 
 class SweepRun:
@@ -135,7 +170,8 @@ class SweepRun:
         """Create the experiment if needed and open a new parent run."""
         client = PatientClient(uri)
         experiment_id = _experiment(client, experiment, uri)
-        run = client.create_run(experiment_id, run_name=run_name, tags={"kind": "sweep", **tags})
+        source = source_tags(code_version()["git_commit"])
+        run = client.create_run(experiment_id, run_name=run_name, tags={"kind": "sweep", **source, **tags})
         client.log_batch(run.info.run_id, params=as_params(params))
         return cls(uri, experiment_id, run.info.run_id)
 
@@ -194,14 +230,14 @@ class SweepRun:
         self.client.set_terminated(run_id, status=status)
 
     def _log_final(self, run_id: str, last: Mapping[str, object]) -> None:
-        """Log the last evaluation's ``eval/cd``, ``eval/f1`` as ``final/…`` metrics, their per-category
-        scores as ``final/…`` params.
+        """Log the last evaluation's ``eval/cd``, ``eval/f1`` and their per-category scores as ``final/…`` metrics.
 
-        Stable names to sort, search and compare by in the UI (``metrics.`final/f1` > 0.4``), whatever
-        step a trial ended at (ASHA stops some early), at the results table's precision (the runs view
-        shows them as logged). Logged here, on the driver, once Tune's verdict is in: the trial itself
-        cannot tell its last evaluation from an intermediate one. The overall scores come from the
-        child's own history; the per-category ones from ``last`` (the child logs no series of them).
+        Stable names to sort, search and compare by in the UI (``metrics.`final/f1/chair` > 0.6``), whatever
+        step a trial ended at (ASHA stops some early), at full precision: the same floats the trial reported
+        to Tune, so the report rebuilds the runner's ``results.csv`` from them byte for byte. Logged here, on
+        the driver, once Tune's verdict is in: the trial itself cannot tell its last evaluation from an
+        intermediate one. The overall scores come from the child's own history; the per-category ones from
+        ``last`` (the child logs no series of them).
         """
         history = self.client.get_metric_history(run_id, "eval/cd")
         latest = self.client.get_run(run_id).data.metrics
@@ -210,11 +246,9 @@ class SweepRun:
         step = max(m.step for m in history)
         now = int(time.time() * 1000)
         scores = {**{k: v for k, v in last.items() if is_per_category(k) and isinstance(v, (int, float))}, **latest}
-        final = {"final/" + k.removeprefix("eval/"): rounded(float(v)) for k, v in scores.items()
-                 if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])}
-        # Per category one number each, not a chart of one point: a param, where MLflow lists values.
-        self.client.log_batch(run_id, metrics=[Metric(k, v, now, step) for k, v in final.items() if k.count("/") == 1],
-                              params=[Param(k, str(v)) for k, v in final.items() if k.count("/") > 1])
+        self.client.log_batch(run_id, metrics=[
+            Metric("final/" + k.removeprefix("eval/"), float(v), now, step) for k, v in scores.items()
+            if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])])
 
     def trial_objects(self, trial_id: str) -> list[dict[str, object]]:
         """Per-object rows (``objects.csv``) of the trial's last logged evaluation; empty if none."""
@@ -222,23 +256,19 @@ class SweepRun:
         return [] if run_id is None else last_objects(self.client, run_id)
 
     def log_results(self, baselines: dict[str, dict[str, float]], description: str) -> None:
-        """The sweep's results on the parent run: the baselines once per evaluation set (``baseline/sphere/f1``;
-        ``eval_set <id>/baseline/…`` when the cells were scored on several) — the overall scores as
-        metrics, the per-category ones as params (a chart of one bar says nothing) — and ``description``
-        as the run's description. The cells' results are the run's ``results.md`` and its children.
-        Values at the results table's precision: the run page lists them as logged.
+        """The sweep's results on the parent run: the baselines once per evaluation set (``baseline/sphere/f1``,
+        ``baseline/sphere/f1/chair``; ``eval_set <id>/baseline/…`` when the cells were scored on several) as
+        metrics at full precision, and ``description`` as the run's description. The cells' results are the
+        run's ``results.md`` and its children.
 
         Args:
-            baselines: evaluation-set fingerprint → ``baseline/<name>/<metric>`` → value.
+            baselines: evaluation-set fingerprint → ``baseline/<name>/<metric>[/<category>]`` → value.
         """
         now = int(time.time() * 1000)
-        metrics, params = [], []
-        for eval_set, values in baselines.items():
-            prefix = "" if len(baselines) == 1 else f"eval_set {eval_set}/"
-            metrics += [Metric(prefix + k, rounded(v), now, 0) for k, v in values.items() if k.count("/") == 2]
-            params += [Param(prefix + k, str(rounded(v))) for k, v in values.items() if k.count("/") > 2]
-        self.client.log_batch(self.run_id, metrics=metrics)
-        log_params(self.client, self.run_id, params)
+        metrics = [Metric(("" if len(baselines) == 1 else f"eval_set {eval_set}/") + k, float(v), now, 0)
+                   for eval_set, values in baselines.items() for k, v in values.items()]
+        for i in range(0, len(metrics), _BATCH_METRICS):
+            self.client.log_batch(self.run_id, metrics=metrics[i:i + _BATCH_METRICS])
         self.client.set_tag(self.run_id, "mlflow.note.content", description)
 
     def end(self, status: str = "FINISHED") -> None:

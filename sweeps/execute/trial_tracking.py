@@ -8,30 +8,29 @@ skips steps it had already logged: no duplicates. The driver closes it with Tune
 
 from __future__ import annotations
 
+import importlib.util
 import json
-import math
 import tempfile
 import time
 from pathlib import Path
 
 import yaml
 from mlflow import MlflowClient
-from mlflow.entities import Metric, RunTag
+from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, RunTag
 
 from cdm.checkpoint import load_checkpoint, save_checkpoint
 from cdm.config import F1_THRESHOLD, Config
 from cdm.io.csv import read_csv
 from cdm.metric_names import f1_at
-from cdm.provenance import installed_packages
+from cdm.provenance import code_version, installed_packages
 from cdm.train import Callback
-from sweeps.compare.rules import rounded
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
-from sweeps.execute.tracking import as_params, log_params
+from sweeps.execute.tracking import as_params, log_params, source_tags
 from sweeps.store_retry import PatientClient
 
 __all__ = [
-    "EVAL_FOLDERS", "F1_TAG", "MODEL_ARTIFACTS", "MODEL_TAG", "PACKAGES_FILE", "PER_TRIAL_PARAMS", "SYSTEM_METRICS",
-    "TrialRun", "learning_curve_png",
+    "EVAL_FOLDERS", "F1_TAG", "MODEL_ARTIFACTS", "MODEL_TAG", "PACKAGES_FILE", "PER_TRIAL_PARAMS",
+    "SYSTEM_METRICS_INTERVAL_S", "TrialRun", "eval_dataset", "learning_curve_png", "system_metrics_monitor",
 ]
 
 MODEL_ARTIFACTS = "model"
@@ -55,17 +54,50 @@ PACKAGES_FILE = "environment/packages.txt"
 """The child run's artifact listing every installed package (``name==version``), the list whose digest the
 ``repro.packages_digest`` tag holds (:func:`cdm.provenance.installed_packages`)."""
 
-SYSTEM_METRICS = ("train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
-"""Training-loop timings a child logs as ``system/<name>``: MLflow's UI shows that prefix apart, under
-"System metrics", so the model charts hold what a reader compares (metric, partner, loss terms)."""
+SYSTEM_METRICS_INTERVAL_S = 10.0
+"""Seconds between two samples of MLflow's system-metrics monitor (CPU, memory, disk, network; ``system/…``):
+MLflow's own default. A sample is a few psutil calls and one read of the run in a background thread, logged at
+once: nothing the training loop waits on. ``MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL`` overrides it, as MLflow
+documents."""
 
 
-def _shown(key: str, value: float) -> float:
-    """``value`` as a reader sees it in the UI's tables: scores at the results table's precision, losses
-    and timings at 4 significant digits (a learning rate of 1e-4 keeps its digits)."""
-    if key.startswith("eval/"):
-        return rounded(value)
-    return float(f"{value:.4g}") if math.isfinite(value) else value
+def system_metrics_monitor(uri: str, run_id: str, resumed: bool):
+    """MLflow's own system-metrics monitor on ``run_id`` (:class:`mlflow.system_metrics.system_metrics_monitor.
+    SystemMetricsMonitor`, what ``mlflow.start_run(log_system_metrics=True)`` starts), sampling every
+    :data:`SYSTEM_METRICS_INTERVAL_S`; it stops itself once the run is no longer ``RUNNING``. None, and nothing
+    started, where psutil (its source of numbers) is not installed or ``MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING``
+    is set to false. ``resumed``: a resumed trial's series continues after its earlier samples."""
+    from mlflow.environment_variables import MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING
+
+    off = MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING.is_set() and not MLFLOW_ENABLE_SYSTEM_METRICS_LOGGING.get()
+    if off or importlib.util.find_spec("psutil") is None:
+        return None
+    from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+    monitor = SystemMetricsMonitor(run_id, sampling_interval=SYSTEM_METRICS_INTERVAL_S, resume_logging=resumed,
+                                   tracking_uri=uri)
+    monitor.start()
+    return monitor
+
+
+def eval_dataset(config: Config, fingerprint: str, objects: list[dict[str, str]]) -> DatasetInput:
+    """The evaluation set as an MLflow dataset input (``log_inputs``; the run page's "Datasets used"): named by
+    the data kind and ``eval.protocol``, its digest the evaluation-set fingerprint
+    (:func:`cdm.evaluate.build_eval_set`: equal digests, comparable scores), its source the data root (a
+    ``local`` source) or, for data generated in code, the generator (a ``code`` source); the profile counts
+    ``objects`` (the scored rows of ``objects.csv``) per category. Tagged ``mlflow.data.context=eval``."""
+    data = config.data
+    if data.root:
+        source_type, source = "local", {"uri": str(data.root)}
+    else:
+        source_type, source = "code", {"tags": {"data.kind": data.kind, "data.seed": str(data.seed)}}
+    categories: dict[str, int] = {}
+    for row in objects:
+        categories[row["category"]] = categories.get(row["category"], 0) + 1
+    profile = {"num_objects": len(objects), "categories": categories}
+    dataset = Dataset(f"{data.kind} {config.eval.protocol} eval", fingerprint, source_type, json.dumps(source),
+                      profile=json.dumps(profile))
+    return DatasetInput(dataset, [InputTag("mlflow.data.context", "eval")])
 
 
 EVAL_FOLDERS = {".png": "panels", ".ply": "clouds"}
@@ -126,11 +158,14 @@ class TrialRun(Callback):
         tree["train"].pop("out_dir")
         self.config_yaml = yaml.safe_dump(tree, sort_keys=False)
         self.record: dict[str, str] = {}
+        self.config, self.monitor, self.resumed = config, None, found is not None
         if found is None:
+            # A sweep's trial carries the driver's commit; a re-run's is the checkout it runs from.
+            commit = tags.get("repro.git_commit") or code_version()["git_commit"]
             run = self.client.create_run(
                 experiment_id, run_name=run_name,
                 tags={"mlflow.parentRunId": parent_run_id, "trial_id": trial_id, F1_TAG: f1_at(self.f1_threshold),
-                      **tags})
+                      **source_tags(commit), **tags})
             self.run_id = run.info.run_id
             kept = {k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}
             log_params(self.client, self.run_id, as_params(kept))
@@ -142,16 +177,15 @@ class TrialRun(Callback):
                 self.logged_until[kind] = max((m.step for m in self.client.get_metric_history(found, key)), default=-1)
 
     def _log(self, step: int, metrics: dict[str, float]) -> None:
+        """``metrics`` at ``step`` as the trainer reported them: full float precision, under their own names."""
         now = int(time.time() * 1000)
-        named = {("system/" + k.removeprefix("train/") if k in SYSTEM_METRICS else k): v for k, v in metrics.items()}
-        self.client.log_batch(
-            self.run_id, metrics=[Metric(k, _shown(k, float(v)), now, step) for k, v in named.items()]
-        )
+        self.client.log_batch(self.run_id, metrics=[Metric(k, float(v), now, step) for k, v in metrics.items()])
 
     def on_start(self, record: dict[str, str]) -> None:
         self.record = record
         self.client.log_batch(self.run_id, tags=[RunTag(f"repro.{k}", v) for k, v in record.items()])
         self.client.log_text(self.run_id, "\n".join(installed_packages()) + "\n", PACKAGES_FILE)
+        self.monitor = system_metrics_monitor(self.client.tracking_uri, self.run_id, self.resumed)
 
     def on_step(self, step: int, metrics: dict[str, float]) -> None:
         if step > self.logged_until["train"]:
@@ -164,11 +198,7 @@ class TrialRun(Callback):
         # per-category scores become final/… when the driver closes the run (SweepRun._log_final).
         self._log(step, {k: v for k, v in metrics.items() if not k.startswith("baseline/") and not is_per_category(k)})
         if not self.eval_set_tagged:  # every evaluation of a run scores the same evaluation set
-            for path in (p for p in files if p.name == "objects.csv"):
-                first = next(iter(read_csv(path, "evaluation")), None)
-                if first is not None:
-                    self.client.set_tag(self.run_id, "eval_set", first["eval_set"])
-                    self.eval_set_tagged = True
+            self._log_eval_set(files)
         for path in files:
             sub = EVAL_FOLDERS.get(path.suffix)
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}" + (f"/{sub}" if sub else ""))
@@ -179,6 +209,21 @@ class TrialRun(Callback):
                                        self.f1_threshold)
             if curve is not None:
                 self.client.log_artifact(self.run_id, str(curve), "curves")
+        if step >= self.last_step and self.monitor is not None:  # the last evaluation: the samples so far logged
+            self.monitor.finish()
+            self.monitor = None
+
+    def _log_eval_set(self, files: list[Path]) -> None:
+        """The evaluation set the run is scored on: its fingerprint as the tag ``eval_set`` (what the results
+        stage looks the parent's baselines up by) and as the digest of the run's dataset input
+        (:func:`eval_dataset`), both from the evaluation's ``objects.csv``."""
+        for path in (p for p in files if p.name == "objects.csv"):
+            rows = list(read_csv(path, "evaluation"))
+            if rows:
+                fingerprint = rows[0]["eval_set"]
+                self.client.set_tag(self.run_id, "eval_set", fingerprint)
+                self.client.log_inputs(self.run_id, datasets=[eval_dataset(self.config, fingerprint, rows)])
+                self.eval_set_tagged = True
 
     def on_checkpoint(self, step: int, path: Path) -> None:
         """The checkpoint's weights for inference become the run's ``model/`` artifacts, replacing the previous

@@ -196,7 +196,7 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
         client.set_terminated(tracked.run_id, "FAILED")
         raise
     client.set_terminated(tracked.run_id)
-    # Both runs' scores as their child runs hold them (the tables' precision, sweeps.execute.trial_tracking).
+    # Both runs' scores as their child runs hold them: the floats the trainer reported, compared exactly.
     rerun_metrics = client.get_run(tracked.run_id).data.metrics
     rows = [(m, run.data.metrics.get(m), rerun_metrics.get(m)) for m in COMPARED]
     rows += [(f"repro.{k}", tags.get(f"repro.{k}"), v) for k, v in seen.record.items() if tags.get(f"repro.{k}") != v]

@@ -8,6 +8,7 @@ the UI screenshots the README shows into ``docs/``.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -25,7 +26,6 @@ from nbclient import NotebookClient
 
 from docs import screenshots
 from sweeps import run
-from sweeps.compare.rules import rounded
 from sweeps.execute.logged_runs import last_eval_files, last_objects
 from sweeps.results import publish
 from tests.integration.local_ray import local_ray
@@ -83,26 +83,26 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
         assert tags["category"] == tags["categories"] == "chair,airplane"
         assert child.data.params["priors.point_size"] == tags["cell"].removeprefix("point_size=")
         for name in ("cd", "f1"):
-            assert metrics[f"final/{name}"] == rounded(metrics[f"eval/{name}"])  # at the tables' precision
+            assert metrics[f"final/{name}"] == metrics[f"eval/{name}"]  # both the trial's own float
         assert {m.step for m in client.get_metric_history(child.info.run_id, "final/f1")} == {20}
         files = last_eval_files(client, child.info.run_id)
         objects = last_objects(client, child.info.run_id)
         assert len(objects) == 2
-        # Per category a single value, the param final/<metric>/<category>: here the one object each category scored.
+        # Per category a single value, the metric final/<metric>/<category>: here the one object each category
+        # scored, so the very score objects.csv holds for it (the trainer writes both from one float).
         for row in objects:
             category = str(row["category"])
             for name in ("cd", "f1"):
-                assert float(child.data.params[f"final/{name}/{category}"]) == rounded(float(row[name]))
-                assert f"eval/{name}/{category}" not in metrics and f"final/{name}/{category}" not in metrics
-        # No wall of one-point charts: at most 6 single-point metric series on a child.
+                assert metrics[f"final/{name}/{category}"] == pytest.approx(float(row[name]), rel=1e-12)
+                assert f"eval/{name}/{category}" not in metrics and f"final/{name}/{category}" not in child.data.params
+        # One-point series: the final scores, overall and per category, the swept value and a lone evaluation.
         single = [k for k in metrics if len(client.get_metric_history(child.info.run_id, k)) == 1]
-        assert len(single) <= 6 and set(single) <= {
-            "final/cd",
-            "final/f1",
-            "swept/priors.point_size",
-            "eval/cd",
-            "eval/f1",
-        }, single
+        assert set(single) <= {"final/cd", "final/f1", "swept/priors.point_size", "eval/cd", "eval/f1",
+                               *(f"final/{m}/{c}" for m in ("cd", "f1") for c in ("chair", "airplane"))}, single
+        # MLflow's own source tags, the evaluation set as a dataset input, MLflow's system metrics.
+        assert child.data.tags["mlflow.source.git.commit"] == child.data.tags["repro.git_commit"]
+        (used,) = client.get_run(child.info.run_id).inputs.dataset_inputs
+        assert used.dataset.digest == child.data.tags["eval_set"] == objects[0]["eval_set"]
         for row in objects:
             name = str(row["object_id"]).replace("/", "_")
             png = f"eval/step_0000020/panels/{name}.png"
@@ -128,11 +128,12 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
     }
     # The parent carries the results: per cell and per baseline, under readable names, and a description.
     parent = client.get_run(smoke.parent.info.run_id)
-    # The parent: at most 12 one-point metrics (the baselines' overall scores), the rest as params and results.md.
+    # The parent: the baselines' scores, overall and per category, as metrics; the cells' results in results.md.
     assert sorted(parent.data.metrics) == sorted(
-        f"baseline/{b}/{m}" for b in ("sphere", "gaussian", "category_mean", "retrieval") for m in ("cd", "f1")
+        f"baseline/{b}/{m}{c}" for b in ("sphere", "gaussian", "category_mean", "retrieval") for m in ("cd", "f1")
+        for c in ("", "/chair", "/airplane")
     )
-    assert float(parent.data.params["baseline/sphere/f1/chair"]) >= 0
+    assert parent.data.metrics["baseline/sphere/f1/chair"] >= 0
     for child in smoke.children:
         assert not [k for k in child.data.metrics if k.startswith("baseline/")]  # once, on the parent
         assert "train.out_dir" not in child.data.params
@@ -161,7 +162,12 @@ def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, 
     out = tmp_path / "report"
     assert publish.main(["compare", "--tracking-uri", smoke.uri, "--out", str(out)]) == 0
     rebuilt = (out / "results.md").read_text()
-    assert rebuilt == (smoke.folder / "results" / "compare" / "smoke" / "results.md").read_text()
+    runner = smoke.folder / "results" / "compare" / "smoke"
+    assert rebuilt == (runner / "results.md").read_text()
+    # results.csv byte for byte: MLflow holds the very floats the runner's table was made of.
+    ours, theirs = (out / "results.csv").read_bytes(), (runner / "results.csv").read_bytes()
+    assert hashlib.md5(ours).hexdigest() == hashlib.md5(theirs).hexdigest(), (ours.decode(), theirs.decode())
+    assert re.search(rb",\d+\.\d{6,}", ours)  # full precision: more digits than the printed table's
     assert "Δf1 vs point_size=0.02 [95% CI]" in rebuilt and rebuilt.count("| point_size=0.0") == 2
     capsys.readouterr()
     monkeypatch.chdir(tmp_path)  # the default --out is results/<experiment>/report under the working directory

@@ -111,10 +111,9 @@ def test_grid_of_two_cells_end_to_end(e2e):
         loss = client.get_metric_history(child.info.run_id, "train/loss")
         assert [m.step for m in sorted(loss, key=lambda m: m.step)] == [5, 10, 15, 20]
         assert [m.step for m in client.get_metric_history(child.info.run_id, "eval/f1")] in ([10, 20], [20, 10])
-        # Per category: the last evaluation's score once, as a final/… param (no chart of one point).
-        assert float(child.data.params["final/f1/chair"]) >= 0 and not client.get_metric_history(
-            child.info.run_id, "final/f1/chair"
-        )
+        # Per category: the last evaluation's score once, as a final/… metric at the last step.
+        assert [m.step for m in client.get_metric_history(child.info.run_id, "final/f1/chair")] == [20]
+        assert child.data.metrics["final/f1/chair"] >= 0 and "final/f1/chair" not in child.data.params
         assert not client.get_metric_history(child.info.run_id, "eval/f1/chair")
         files = last_eval_files(client, child.info.run_id)  # eval/step_0000020/{panels,clouds}/
         assert any(f.endswith(".ply") for f in files) and any(f.endswith(".png") for f in files)
