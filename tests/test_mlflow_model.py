@@ -133,8 +133,11 @@ def test_bad_input_is_one_error_naming_the_input_or_param(trained, tmp_path, mon
 def test_a_registered_model_is_scored_by_evaluate_as_its_run_is(trained, tmp_path, monkeypatch, capsys):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     run_id = _log_as_a_trial(uri, trained)
-    version = register_run(MlflowClient(uri), run_id, "cdm-chairs")
+    client = MlflowClient(uri)
+    version = register_run(client, run_id, "cdm-chairs")
     assert (version.name, version.version, version.run_id) == ("cdm-chairs", 1, run_id)
+    [model] = client.search_logged_models([client.get_run(run_id).info.experiment_id])
+    assert client.get_model_version("cdm-chairs", "1").model_id == model.model_id  # the Models tab links them
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     scores = {}
     for checkpoint in (str(trained), "models:/cdm-chairs/1", f"runs:/{run_id}/model"):
