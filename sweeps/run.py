@@ -135,7 +135,7 @@ def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:
 
     try:
         if args.register is not None:
-            register.check_name(args.register)
+            register.check_name(args.register, "--register")
         uri, held = claim_sweep(request, args)
     except (DriverError, register.RegisterError) as exc:
         return _fail(str(exc))

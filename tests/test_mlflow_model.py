@@ -27,12 +27,13 @@ from sweeps.cdm_lab import main
 from sweeps.execute.tracking import SweepRun
 from sweeps.execute.trial_tracking import TrialRun
 from sweeps.mlflow_model import model_checkpoint
-from sweeps.results.register import register_run
+from sweeps.results.finished import open_sweep
+from sweeps.results.register import RegisterError, best_trial, register_run
 from tests.conftest import tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
-pytestmark = pytest.mark.slow
+slow = pytest.mark.slow  # trains a network, starts a server or a new Python
 
 
 @pytest.fixture(scope="module")
@@ -91,6 +92,7 @@ def _check_prediction(report: dict, cloud: np.ndarray) -> None:
     assert cloud.shape == (128, 3) and 0 < np.abs(cloud).max() < 10
 
 
+@slow
 def test_a_trials_model_loads_in_a_fresh_python_and_samples_what_reconstruct_samples(trained, tmp_path, monkeypatch):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
@@ -114,6 +116,7 @@ def test_a_trials_model_loads_in_a_fresh_python_and_samples_what_reconstruct_sam
     assert written.shape == (128, 3) and np.abs(written - cloud).max() < 1e-5
 
 
+@slow
 def test_bad_input_is_one_error_naming_the_input_or_param(trained, tmp_path, monkeypatch):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
@@ -130,6 +133,7 @@ def test_bad_input_is_one_error_naming_the_input_or_param(trained, tmp_path, mon
     assert model.predict({"image": rgba}).shape == (128, 3)
 
 
+@slow
 def test_a_registered_model_is_scored_by_evaluate_as_its_run_is(trained, tmp_path, monkeypatch, capsys):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     run_id = _log_as_a_trial(uri, trained)
@@ -137,7 +141,7 @@ def test_a_registered_model_is_scored_by_evaluate_as_its_run_is(trained, tmp_pat
     version = register_run(client, run_id, "cdm-chairs")
     assert (version.name, version.version, version.run_id) == ("cdm-chairs", 1, run_id)
     [model] = client.search_logged_models([client.get_run(run_id).info.experiment_id])
-    assert client.get_model_version("cdm-chairs", "1").model_id == model.model_id  # the Models tab links them
+    assert json.loads(model.tags["mlflow.modelVersions"]) == [{"name": "cdm-chairs", "version": 1}]  # linked in the UI
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     scores = {}
     for checkpoint in (str(trained), "models:/cdm-chairs/1", f"runs:/{run_id}/model"):
@@ -184,6 +188,7 @@ def mlflow_server(tmp_path_factory):
     log.close()
 
 
+@slow
 def test_on_an_mlflow_server_the_model_travels_through_its_artifact_proxy(trained, mlflow_server, tmp_path,
                                                                           monkeypatch, capsys):
     uri, artifacts = mlflow_server
@@ -198,3 +203,48 @@ def test_on_an_mlflow_server_the_model_travels_through_its_artifact_proxy(traine
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     assert main(["evaluate", "--checkpoint", "models:/cdm-served/1"]) == 0
     assert re.search(r"^eval/cd +[\d.]+$", capsys.readouterr().out, re.M)
+
+
+def test_a_bad_registered_name_is_one_line_and_exit_2_before_anything_starts(tmp_path, capsys):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    assert main(["register", "exp", "--name", "cdm/chairs", "--tracking-uri", uri]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --name: 'cdm/chairs' is not a model name") and err.count("\n") == 1
+    assert main(["run", "--report", "exp", "--register", "cdm-chairs", "--tracking-uri", uri]) == 2
+    assert "registers the best cell of the sweep a spec runs" in capsys.readouterr().err
+    spec = tmp_path / "spec.yaml"
+    spec.write_text("name: named\ngrid: {priors.point_size: [0.02, 0.04]}\n")
+    out = tmp_path / "results"
+    assert main(["run", str(spec), "--smoke", "--out", str(out), "--tracking-uri", uri, "--register", "a b"]) == 2
+    assert "error: --register: 'a b' is not a model name" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "mlflow.db").exists()  # refused before the sweep's folder or store
+
+
+def _sweep_of(tmp_path: Path, f1s: dict[str, float]) -> str:
+    """A finished sweep in a new store: one child per ``"<cell> · seed <n>"`` with its ``eval/f1``; its URI."""
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    client = MlflowClient(uri)
+    experiment = client.create_experiment("t", artifact_location=(tmp_path / "mlruns").as_uri())
+    parent = client.create_run(experiment, tags={"kind": "sweep", "profile": "smoke"}).info.run_id
+    (tmp_path / "t.yaml").write_text("name: t\ngrid: {priors.point_size: [0.02, 0.04]}\n")
+    (tmp_path / "plan.json").write_text('{"cells": []}')
+    for name in ("t.yaml", "plan.json"):
+        client.log_artifact(parent, str(tmp_path / name))
+    for label, f1 in f1s.items():
+        child = client.create_run(experiment, run_name=label, tags={"mlflow.parentRunId": parent,
+                                                                     "cell": label.split(" · ")[0]}).info.run_id
+        client.log_metric(child, "eval/f1", f1)
+        client.set_terminated(child, "FINISHED")
+    return uri
+
+
+def test_the_best_trial_is_the_starred_cells_best_seed_and_a_tie_registers_nothing(tmp_path, capsys):
+    uri = _sweep_of(tmp_path / "apart", {"a · seed 0": 0.50, "b · seed 0": 0.58, "b · seed 1": 0.62})
+    assert best_trial(open_sweep(uri, "t")).outcome.label == "b · seed 1"  # eval/f1, max: the spec's metric
+    uri = _sweep_of(tmp_path / "tied", {"a · seed 0": 0.6001, "b · seed 0": 0.6002})
+    with pytest.raises(RegisterError, match=r"no best cell by eval/f1 \(max\).*leaders tie at the printed precision"):
+        best_trial(open_sweep(uri, "t"))
+    capsys.readouterr()
+    assert main(["register", "t", "--name", "cdm-t", "--tracking-uri", uri]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: sweep ") and err.count("\n") == 1 and not MlflowClient(uri).search_registered_models()

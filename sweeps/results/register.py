@@ -10,8 +10,12 @@ models:/<name>/<version>`` scores and ``mlflow.pyfunc.load_model`` loads.
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import re
 import sys
+
+from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 
 from cdm.cli import command_parser
 from sweeps.mlflow_model import MODEL_NAME
@@ -27,10 +31,10 @@ class RegisterError(ValueError):
     """Nothing to register, or a name the registry's URIs cannot hold; the message says which and why."""
 
 
-def check_name(name: str) -> str:
-    """``name`` when a ``models:/`` URI can hold it, else :class:`RegisterError` naming ``--register``'s rule."""
+def check_name(name: str, field: str = "--name") -> str:
+    """``name`` when a ``models:/`` URI can hold it, else :class:`RegisterError` naming ``field`` and the rule."""
     if not _NAME.fullmatch(name):
-        raise RegisterError(f"--name: {name!r} is not a model name: give 1 to 100 letters, digits, '.', '_' or '-', "
+        raise RegisterError(f"{field}: {name!r} is not a model name: give 1 to 100 letters, digits, '.', '_' or '-', "
                             "starting with a letter or digit")
     return name
 
@@ -67,10 +71,16 @@ def register_run(client, run_id: str, name: str, description: str = ""):
                             f"score it with cdm-lab evaluate --checkpoint runs:/{run_id}/model)")
     if not client.search_registered_models(filter_string=f"name = '{check_name(name)}'"):
         client.create_registered_model(name)
-    # The model's own artifact location, not models:/<id>: the registry would resolve that against MLflow's
-    # process-wide tracking URI, not this client's store.
-    return client.create_model_version(name, models[0].artifact_location, run_id=run_id,
-                                       model_id=models[0].model_id, description=description)
+    # The model's own artifact location, not models:/<id>: a SQLite registry would resolve that against
+    # MLflow's process-wide tracking URI, not this client's store.
+    model = models[0]
+    version = client.create_model_version(name, model.artifact_location, run_id=run_id, model_id=model.model_id,
+                                          description=description)
+    # How MLflow links a logged model to its versions (mlflow.register_model does the same): the Models tab
+    # lists the version on the model's page.
+    linked = json.loads(model.tags.get(MLFLOW_MODEL_VERSIONS, "[]")) + [{"name": name, "version": version.version}]
+    client.set_logged_model_tags(model.model_id, {MLFLOW_MODEL_VERSIONS: json.dumps(linked)})
+    return version
 
 
 def register_best(record: SweepRecord, name: str):
@@ -104,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     from sweeps.storage import StoreError, check_tracking_uri
 
     args = build_parser().parse_args(argv)
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # the spec and plan.json: two small files
     uri = resolve_tracking_uri(args.tracking_uri)
     try:
         check_name(args.name)
