@@ -33,6 +33,7 @@ from mlflow.types import ParamSchema, ParamSpec, Schema, TensorSpec
 
 from cdm.checkpoint import load_network
 from cdm.evaluate import reconstruct
+from cdm.io.yaml import read_mapping
 from cdm.single_image import DEFAULT_VIEW, LookAt, image_batch, image_tensors
 
 __all__ = ["CHECKPOINT_ARTIFACT", "MODEL_NAME", "PointCloudModel", "log_model", "model_checkpoint", "signature"]
@@ -135,17 +136,21 @@ def log_model(client, run_id: str, checkpoint: Path, metadata: dict[str, Any]) -
 
 def model_checkpoint(folder: Path) -> Path:
     """The checkpoint folder inside a downloaded MLflow model ``folder`` (its ``MLmodel`` says where), or ``folder``
-    itself when it holds no ``MLmodel`` (a checkpoint folder, as runs of 0.1.0 logged)."""
-    from mlflow.models import Model
+    itself when it holds no ``MLmodel`` (a checkpoint folder, as runs of 0.1.0 logged).
 
+    Raises:
+        ValueError: an ``MLmodel`` without the artifact, or placing it outside ``folder``; starts ``--checkpoint:``.
+    """
     if not (folder / "MLmodel").is_file():
         return folder
-    artifacts = Model.load(str(folder)).flavors.get("python_function", {}).get("artifacts") or {}
-    if CHECKPOINT_ARTIFACT not in artifacts:
+    path: Any = read_mapping(folder / "MLmodel", "--checkpoint")  # the store's text: through the project's reader
+    for key in ("flavors", "python_function", "artifacts", CHECKPOINT_ARTIFACT, "path"):
+        path = path.get(key) if isinstance(path, dict) else None
+    if not isinstance(path, str):
         raise ValueError(f"--checkpoint: {folder} is an MLflow model without a {CHECKPOINT_ARTIFACT!r} artifact; "
                          "give one a sweep trial logged (runs:/<run id>/model, models:/<name>/<version>)")
-    inside = (folder / artifacts[CHECKPOINT_ARTIFACT]["path"]).resolve()
-    if not inside.is_relative_to(folder.resolve()):  # MLmodel is the store's text: read nothing outside the model
+    inside = (folder / path).resolve()
+    if not inside.is_relative_to(folder.resolve()):  # read nothing outside the model
         raise ValueError(f"--checkpoint: {folder}/MLmodel places its checkpoint outside the model ({inside})")
     return inside
 

@@ -248,3 +248,19 @@ def test_the_best_trial_is_the_starred_cells_best_seed_and_a_tie_registers_nothi
     assert main(["register", "t", "--name", "cdm-t", "--tracking-uri", uri]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: sweep ") and err.count("\n") == 1 and not MlflowClient(uri).search_registered_models()
+
+
+@pytest.mark.parametrize("artifacts, said", [
+    ("{checkpoint: {path: ../../outside}}", "places its checkpoint outside the model"),
+    ("{weights: {path: artifacts/weights}}", "is an MLflow model without a 'checkpoint' artifact"),
+])
+def test_an_mlmodel_that_points_elsewhere_is_refused_in_one_line(tmp_path, capsys, artifacts, said):
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "MLmodel").write_text(f"flavors:\n  python_function:\n    artifacts: {artifacts}\n")
+    with pytest.raises(ValueError, match=said):
+        model_checkpoint(model)
+    assert model_checkpoint(tmp_path) == tmp_path  # no MLmodel: a checkpoint folder, as 0.1.0 logged it
+    assert main(["evaluate", "--checkpoint", model.as_uri()]) == 2
+    err = capsys.readouterr().err  # after MLflow's download progress bar
+    assert err.count("error:") == 1 and err.splitlines()[-1].startswith("error: --checkpoint: ") and said in err

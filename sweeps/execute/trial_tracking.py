@@ -26,7 +26,7 @@ from cdm.train import Callback
 from sweeps.compare.rules import rounded
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
 from sweeps.execute.tracking import as_params, log_params
-from sweeps.mlflow_model import log_model
+from sweeps.mlflow_model import MODEL_NAME, log_model
 from sweeps.store_retry import PatientClient
 
 __all__ = [
@@ -34,7 +34,7 @@ __all__ = [
     "TrialRun", "learning_curve_png",
 ]
 
-MODEL_ARTIFACTS = "model"
+MODEL_ARTIFACTS = MODEL_NAME
 """The name of the child run's MLflow model (:mod:`sweeps.mlflow_model`): its weights for inference (model and
 EMA weights, no optimiser; :meth:`cdm.checkpoint.Checkpoint.for_inference`) as the artifact ``checkpoint``, the step
 and the reproducibility record in its ``MLmodel`` metadata. ``mlflow.pyfunc.load_model("runs:/<run id>/model")``

@@ -14,10 +14,12 @@ import json
 import os
 import re
 import sys
+from pathlib import Path
 
 from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 
 from cdm.cli import command_parser
+from cdm.io.json import parse_json
 from sweeps.mlflow_model import MODEL_NAME
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 
@@ -78,7 +80,9 @@ def register_run(client, run_id: str, name: str, description: str = ""):
                                           description=description)
     # How MLflow links a logged model to its versions (mlflow.register_model does the same): the Models tab
     # lists the version on the model's page.
-    linked = json.loads(model.tags.get(MLFLOW_MODEL_VERSIONS, "[]")) + [{"name": name, "version": version.version}]
+    earlier = parse_json(model.tags.get(MLFLOW_MODEL_VERSIONS, "[]").encode(), "--name",
+                         Path(f"models:/{model.model_id}") / MLFLOW_MODEL_VERSIONS)
+    linked = (earlier if isinstance(earlier, list) else []) + [{"name": name, "version": version.version}]
     client.set_logged_model_tags(model.model_id, {MLFLOW_MODEL_VERSIONS: json.dumps(linked)})
     return version
 
