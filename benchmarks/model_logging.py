@@ -32,7 +32,7 @@ from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.model import CDMNetwork
 from sweeps.plan.profiles import load_profiles
 
-__all__ = ["logging_cost"]
+__all__ = ["logging_cost", "model_logging"]
 
 
 def _checkpoint(folder: Path) -> Path:
@@ -62,6 +62,14 @@ def logging_cost(repeats: int) -> dict[str, float]:
         size_mb = sum(p.stat().st_size for p in folder.rglob("*") if p.is_file()) / 2**20
     return {"folder_s": timing.a_s, "mlflow_model_s": timing.b_s, "ratio": timing.ratio, "first_call_s": first,
             "checkpoint_mb": size_mb}
+
+
+def model_logging(quick: bool, out_dir: str) -> list[dict]:
+    """The row of ``benchmarks/run.py``: 0.1.0's folder (a) against the MLflow model (b), per checkpoint."""
+    cost = logging_cost(3 if quick else 10)
+    return [{"benchmark": "model logging", "case": f"local profile, {cost['checkpoint_mb']:.1f} MB per checkpoint",
+             "without_s": cost["folder_s"], "with_s": cost["mlflow_model_s"], "ratio": cost["ratio"],
+             "target": "< 1 s per checkpoint"}]
 
 
 def main(argv: list[str] | None = None) -> int:
