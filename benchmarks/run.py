@@ -26,6 +26,7 @@ from benchmarks.lean_step import lean_step  # noqa: E402
 from benchmarks.loader import loader_speed  # noqa: E402
 from benchmarks.memory import peak_rss  # noqa: E402
 from benchmarks.metrics import metrics_vs_scipy  # noqa: E402
+from benchmarks.model_logging import model_logging  # noqa: E402
 from benchmarks.quality import quick_config_quality  # noqa: E402
 from benchmarks.render import rendering  # noqa: E402
 from benchmarks.scaling import paper_scaling  # noqa: E402
@@ -47,6 +48,7 @@ BENCHMARKS = {
     "blend": blend_overhead,
     "loader": loader_speed,
     "kornia_ops": kornia_ops,
+    "model_logging": model_logging,
 }
 # Minutes-long training runs: only with --only.
 SLOW = {"quality": quick_config_quality, "cpu_modes": lambda quick, out: cpu_modes(steps=10 if quick else 40)}

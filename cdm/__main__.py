@@ -10,7 +10,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from cdm.baseline_names import BASELINES
@@ -20,10 +19,8 @@ from cdm.external_inputs import check_inputs
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c
 from cdm.memory import check_memory
 from cdm.optim import TrainingDiverged
+from cdm.single_image import DEFAULT_VIEW, MIN_IMAGE_SIDE
 from cdm.train import Callback, fit
-
-MIN_IMAGE_SIDE = 16
-"""Smallest input image side accepted by ``reconstruct``, in pixels (``data.image_size``'s lower bound)."""
 
 __all__ = ["main"]
 
@@ -138,36 +135,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _load_image(path: Path, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """RGB ``(3, S, S)`` in [0, 1] and mask ``(1, S, S)``: alpha if present, else pixels unlike the corners."""
+    """RGB ``(3, S, S)`` in [0, 1] and mask ``(1, S, S)`` of the file ``path`` (:func:`cdm.single_image.image_tensors`:
+    alpha if present, else pixels unlike the corners)."""
     import cv2
 
     from cdm.io.images import read_image
+    from cdm.single_image import image_tensors
 
     raw = read_image(path, cv2.IMREAD_UNCHANGED, "--image")
     if raw is None:
         raise ValueError(f"--image: cannot read {path} as an image")
-    if raw.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"--image: {path} holds {raw.dtype} pixels; give an 8- or 16-bit image")
     height, width = raw.shape[:2]
-    if min(height, width) < MIN_IMAGE_SIDE:
-        raise ValueError(f"--image: {path} is {width}×{height} pixels; give at least {MIN_IMAGE_SIDE}×{MIN_IMAGE_SIDE} "
-                         f"(the model sees {size}×{size})")
-    if min(height, width) * 4 < size:
+    if MIN_IMAGE_SIDE <= min(height, width) and min(height, width) * 4 < size:
         print(f"warning: --image {path} is {width}×{height} pixels, enlarged {size / min(height, width):.0f}× to "
               f"{size}×{size}: expect a blurry input and a poor reconstruction", file=sys.stderr)
-    full_scale = float(np.iinfo(raw.dtype).max)  # 255 or 65535: a 16-bit PNG is not divided by 255
-    raw = cv2.resize(raw, (size, size), interpolation=cv2.INTER_AREA)
-    if raw.ndim == 2:
-        raw = np.repeat(raw[..., None], 3, axis=2)
-    if raw.shape[2] not in (3, 4):
-        raise ValueError(f"--image: {path} has {raw.shape[2]} channels; give a grey, RGB or RGBA image")
-    rgb = cv2.cvtColor(raw[..., :3], cv2.COLOR_BGR2RGB).astype(np.float32) / full_scale
-    if raw.shape[2] == 4:
-        mask = (raw[..., 3] > full_scale / 2).astype(np.float32)
-    else:
-        background = np.median(np.stack([rgb[0, 0], rgb[0, -1], rgb[-1, 0], rgb[-1, -1]]), axis=0)
-        mask = (np.abs(rgb - background).sum(-1) > 0.06).astype(np.float32)
-    return torch.from_numpy(rgb).permute(2, 0, 1), torch.from_numpy(mask)[None]
+    if raw.ndim == 3 and raw.shape[2] in (3, 4):  # OpenCV reads BGR(A)
+        raw = cv2.cvtColor(raw, cv2.COLOR_BGR2RGB if raw.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+    return image_tensors(raw, size, "--image", str(path))
 
 
 def _output_folder(out: Path) -> Path | None:
@@ -186,29 +170,15 @@ def _output_folder(out: Path) -> Path | None:
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from cdm.cameras import look_at_cameras, orbit_cameras
-    from cdm.data.priors2d import prior_2d_channels
-    from cdm.data.sample import Sample, collate
     from cdm.diffusion import SamplerSettings
     from cdm.evaluate import reconstruct, write_ply
+    from cdm.single_image import LookAt, image_batch
 
     out_folder = _output_folder(Path(args.ply))
     cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set), args.command)
     image, mask = _load_image(Path(args.image), cfg.data.image_size)
-    elev, azim, dist = (torch.tensor([v]) for v in (args.elev, args.azim, args.dist))
-    camera = look_at_cameras(elev, azim, dist, args.focal)
-    sample = Sample(
-        image=image,
-        mask=mask,
-        depth=None,
-        prior_2d=prior_2d_channels(cfg.priors.prior_2d, image, mask, None),
-        camera=camera[0],
-        view_cameras=orbit_cameras(elev, azim, dist, 1, args.focal)[0],
-        points=torch.zeros(cfg.data.num_points, 3),
-        category="unknown",
-        object_id=Path(args.image).stem,
-    )
-    batch = collate([sample]).to(device)
+    view = LookAt(args.elev, args.azim, args.dist, args.focal)
+    batch = image_batch(image, mask, cfg, view, Path(args.image).stem).to(device)
     gen = torch.Generator(device=device).manual_seed(args.seed)
     bar = tqdm(total=len(diffusion.timesteps(SamplerSettings.from_config(cfg.diffusion))), unit="step")
     cloud = reconstruct(network, diffusion, batch, cfg, gen, progress=lambda i, n: bar.update(1))
@@ -299,10 +269,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ply", required=True, metavar="FILE", help="the point cloud to write, ASCII PLY (x y z per point)")
     old_spelling(p, "--out", "--ply", "ply")
     add_set(p, "diffusion.sample_steps=50 (the checkpoint's config is the base)")
-    p.add_argument("--elev", type=float, default=20.0, help="camera elevation in degrees (default 20)")
-    p.add_argument("--azim", type=float, default=0.0, help="camera azimuth in degrees (default 0)")
-    p.add_argument("--dist", type=float, default=3.5, help="camera distance in world units (default 3.5)")
-    p.add_argument("--focal", type=float, default=2.0, help="focal length in NDC units (default 2)")
+    for name, what in (("elev", "camera elevation in degrees"), ("azim", "camera azimuth in degrees"),
+                       ("dist", "camera distance in world units"), ("focal", "focal length in NDC units")):
+        default = getattr(DEFAULT_VIEW, name)
+        p.add_argument(f"--{name}", type=float, default=default, help=f"{what} (default {default:g})")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampler's noise, an integer (default 0)")
     p.set_defaults(func=cmd_reconstruct)
     p = add_command(sub, "prepare", "convert a data set once into per-object shards that load fast "

@@ -55,6 +55,7 @@ _TOOLS = "external inputs, written once"
 COMMANDS: dict[str, tuple[str, Command]] = {
     "run": (_SWEEPS, Command("sweeps.run", "run a sweep spec: its trials on Ray, tracked in MLflow, a results table")),
     "report": (_SWEEPS, Command("sweeps.report", "rebuild a finished sweep's table, plots and panels from MLflow")),
+    "register": (_SWEEPS, Command("sweeps.register", "register a finished sweep's best cell's model in MLflow")),
     "rerun": (_SWEEPS, Command("sweeps.rerun", "re-run one finished trial from its MLflow record, checked first")),
     "inputs": (_SWEEPS, Command("sweeps.inputs", "a data set's inputs for the paper profile, made as Ray tasks")),
     "train": (_MODEL, Command("cdm.__main__", "train a model from a config file", "train")),

@@ -1,11 +1,13 @@
 """A model command's ``--checkpoint`` given as an MLflow artifact URI, fetched by MLflow before the command reads it.
 
 ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` (and ``reconstruct``) scores a sweep trial's weights where
-MLflow keeps them: MLflow resolves the URI (``runs:/``, ``models:/``, or the artifact store's own ``s3://…``,
-``mlflow-artifacts:/…``) against ``MLFLOW_TRACKING_URI`` and downloads the files into a temporary folder, and
-the command reads them from there as any local checkpoint, through the project's inert reader
-(:func:`cdm.checkpoint.load_checkpoint`). The model library itself knows nothing of MLflow
-(docs/ARCHITECTURE.md): ``python -m cdm`` refuses a URI in one line that names this command.
+MLflow keeps them: MLflow resolves the URI (``runs:/``, ``models:/<name>/<version>`` of the registry, or the
+artifact store's own ``s3://…``, ``mlflow-artifacts:/…``) against ``MLFLOW_TRACKING_URI`` and downloads the files
+into a temporary folder. A trial's MLflow model (:mod:`sweeps.mlflow_model`) holds its checkpoint as an artifact,
+which the command reads, as any local checkpoint, through the project's inert reader
+(:func:`cdm.checkpoint.load_checkpoint`); a URI naming a checkpoint folder itself is read as it is. The model
+library itself knows nothing of MLflow (docs/ARCHITECTURE.md): ``python -m cdm`` refuses a URI in one line that
+names this command.
 """
 
 from __future__ import annotations
@@ -37,16 +39,24 @@ def _checkpoint_value(argv: list[str]) -> tuple[int, str] | None:
 
 
 def _fetch(uri: str, folder: Path) -> str:
-    """The local copy of ``uri``'s files in ``folder``, downloaded by MLflow."""
+    """The checkpoint folder of ``uri``'s files, downloaded by MLflow into ``folder``: inside an MLflow model
+    (:func:`sweeps.mlflow_model.model_checkpoint`), or the files themselves."""
     import mlflow.artifacts
     from mlflow.exceptions import MlflowException
 
+    from sweeps.mlflow_model import model_checkpoint
+
     try:
-        return mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(folder))
+        local = Path(mlflow.artifacts.download_artifacts(artifact_uri=uri, dst_path=str(folder)))
     except (MlflowException, OSError) as exc:
         cause = " ".join(str(exc).split())[:300]
         raise FetchError(f"{_OPTION}: MLflow could not fetch {uri} ({cause}); a sweep trial's weights are "
-                         "runs:/<run id>/model, found with MLFLOW_TRACKING_URI set to the sweep's store") from None
+                         "runs:/<run id>/model, a registered one's models:/<name>/<version>, found with "
+                         "MLFLOW_TRACKING_URI set to the sweep's store") from None
+    try:
+        return str(model_checkpoint(local))
+    except ValueError as exc:
+        raise FetchError(str(exc)) from None
 
 
 @contextmanager

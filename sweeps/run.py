@@ -75,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-cells", type=int, default=MAX_TRIALS, metavar="N",
                    help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; docs/security.md)")
     old_spelling(p, "--report", "`cdm-lab report EXPERIMENT`", "report", metavar="EXPERIMENT", default=None)
+    p.add_argument("--register", default=None, metavar="NAME",
+                   help="when the sweep ends, register its best cell's model in MLflow's model registry as NAME "
+                        "(as `cdm-lab register`; then evaluate --checkpoint models:/NAME/<version>)")
     return p
 
 
@@ -128,22 +131,32 @@ def _rerun(args: argparse.Namespace, uri: str) -> int:
 
 def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:
     from sweeps.execute.driver import DriverError, Publisher, claim_sweep, run_claimed
+    from sweeps.results import register
     from sweeps.results.publish import describe_sweep, publish
 
     try:
+        if args.register is not None:
+            register.check_name(args.register, "--register")
         uri, held = claim_sweep(request, args)
-    except DriverError as exc:
+    except (DriverError, register.RegisterError) as exc:
         return _fail(str(exc))
     plan = request.plan
     print(describe(plan, None, None, describe_rule(plan, request.budget)), flush=True)
     try:
-        return run_claimed(request, args, uri, held, Publisher(describe_sweep, publish))
+        code = run_claimed(request, args, uri, held, Publisher(describe_sweep, publish))
     except DriverError as exc:
         return _fail(str(exc))
     finally:
         if is_uri(request.sweep_dir) and exists(request.sweep_dir):
             record_digest(request.sweep_dir)  # what this driver leaves is what the next --resume may unpickle
         held.release()
+    if args.register is None:
+        return code
+    if code != 0:
+        print(f"--register {args.register}: nothing registered, the sweep ended with exit code {code}; register it "
+              f"later with `cdm-lab register {plan.spec.name} --name {args.register}`", file=sys.stderr)
+        return code
+    return register.main([plan.spec.name, "--name", args.register, "--tracking-uri", uri])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -159,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
             missing = missing_inputs(plan, request.remote, args.dry_run)
     except (RequestError, StoreError) as exc:
         return _fail(str(exc))
+    if args.register is not None and args.spec is None:
+        return _fail(f"--register {args.register}: registers the best cell of the sweep a spec runs; a finished "
+                     f"sweep's: `cdm-lab register EXPERIMENT --name {args.register}`")
     if args.report is not None:
         return _report(args, uri)
     if args.rerun is not None:

@@ -273,7 +273,7 @@ def _stage(module: str) -> int | None:
     return STAGES.index(parts[1]) if len(parts) > 2 and parts[0] == "sweeps" and parts[1] in STAGES else None
 
 
-ENTRIES = ("sweeps.run", "sweeps.report", "sweeps.rerun", "sweeps.inputs")
+ENTRIES = ("sweeps.run", "sweeps.report", "sweeps.rerun", "sweeps.register", "sweeps.inputs")
 """The command lines of sweeps/: they may import any stage."""
 
 

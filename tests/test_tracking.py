@@ -9,8 +9,8 @@ from pathlib import Path
 
 import mlflow.artifacts
 import torch
-import yaml
 from mlflow import MlflowClient
+from mlflow.models import Model
 
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import load_config
@@ -18,6 +18,7 @@ from cdm.provenance import code_version, installed_packages, machine_record
 from sweeps.execute.logged_runs import find_trial_run, last_eval_files
 from sweeps.execute.tracking import SweepRun, resolve_tracking_uri, ui_command, ui_link
 from sweeps.execute.trial_tracking import PACKAGES_FILE, TrialRun, learning_curve_png, system_metrics_monitor
+from sweeps.mlflow_model import model_checkpoint
 
 
 def test_tracking_uri_is_absolute_and_overridable(tmp_path, monkeypatch):
@@ -175,8 +176,10 @@ def test_the_experiment_is_a_model_training_one_and_every_link_opens_that_workfl
     )
 
 
-def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_model_artifacts(tmp_path):
+def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_its_mlflow_model(tmp_path, monkeypatch):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
+    # MLflow finds a run's logged model through the process's tracking URI, whatever download_artifacts is given.
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
     cfg = load_config(None, {"train.steps": 20, "train.out_dir": str(tmp_path / "scratch")})
     trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "a · seed 0", {}, cfg)
@@ -186,24 +189,28 @@ def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_model_a
         full = Checkpoint(config=cfg.to_dict(), step=step, voxel_backend="dense", model={"layer.weight": w},
                           ema={"layer.weight": w / 2}, optimizer={"state": {0: {"exp_avg": torch.ones(3, 2)}}},
                           scheduler={"last_epoch": step}, generator=torch.zeros(5, dtype=torch.uint8))
-        trial.on_checkpoint(step, save_checkpoint(full, tmp_path / f"step_{step}").parent)
+        save_checkpoint(full, tmp_path / f"step_{step}")
+        trial.on_checkpoint(step, tmp_path / f"step_{step}")
 
     client = MlflowClient(uri)
     run = client.get_run(trial.run_id)
     assert run.data.tags["model"] == f"runs:/{trial.run_id}/model"
-    assert sorted(a.path for a in client.list_artifacts(trial.run_id, "model")) == [
-        "model/checkpoint.pt", "model/config.yaml", "model/record.json"]
-    folder = Path(mlflow.artifacts.download_artifacts(run.data.tags["model"], dst_path=str(tmp_path / "down"),
-                                                      tracking_uri=uri))
-    model = load_checkpoint(folder)  # the project's inert reader
+    models = client.search_logged_models([sweep.experiment_id])
+    assert [(m.name, m.source_run_id) for m in models] == [("model", trial.run_id)]  # one model, replaced
+    assert [o.model_id for o in run.outputs.model_outputs] == [models[0].model_id]
+    folder = Path(mlflow.artifacts.download_artifacts(run.data.tags["model"], dst_path=str(tmp_path / "down")))
+    info = Model.load(str(folder))
+    assert info.metadata == {"step": 20, "git_commit": "abc", "config_hash": "0123"} and info.run_id == trial.run_id
+    model = load_checkpoint(model_checkpoint(folder))  # the project's inert reader
     assert model.step == 20 and torch.equal(model.model["layer.weight"], weights[20])
     assert torch.equal(model.weights["layer.weight"], weights[20] / 2)  # EMA: what evaluation samples with
     assert (model.optimizer, model.scheduler, model.generator) == (None, None, None)
     assert "out_dir" not in model.config["train"]  # the scratch folder is no part of the record
-    assert json.loads((folder / "record.json").read_text()) == {"step": 20, "git_commit": "abc", "config_hash": "0123"}
-    logged = yaml.safe_load((folder / "config.yaml").read_text())
-    assert "out_dir" not in logged["train"] and logged["train"]["steps"] == 20
-    assert (folder / "checkpoint.pt").stat().st_size < (tmp_path / "step_20" / "checkpoint.pt").stat().st_size
+
+    def size(f: Path) -> int:
+        return sum(p.stat().st_size for p in f.rglob("*") if p.is_file())
+
+    assert size(model_checkpoint(folder)) < size(tmp_path / "step_20")
 
 
 def test_a_child_run_is_tagged_with_its_machine_and_holds_its_package_list(tmp_path):

@@ -26,6 +26,7 @@ from cdm.provenance import code_version, installed_packages
 from cdm.train import Callback
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
 from sweeps.execute.tracking import as_params, log_params, source_tags
+from sweeps.mlflow_model import MODEL_NAME, log_model
 from sweeps.store_retry import PatientClient
 
 __all__ = [
@@ -33,10 +34,11 @@ __all__ = [
     "SYSTEM_METRICS_INTERVAL_S", "TrialRun", "eval_dataset", "learning_curve_png", "system_metrics_monitor",
 ]
 
-MODEL_ARTIFACTS = "model"
-"""The child run's artifact folder of its weights for inference: ``checkpoint.pt`` (model and EMA weights, no
-optimiser; :meth:`cdm.checkpoint.Checkpoint.for_inference`), ``config.yaml`` and ``record.json`` (the step and
-the reproducibility record). ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` reads it."""
+MODEL_ARTIFACTS = MODEL_NAME
+"""The name of the child run's MLflow model (:mod:`sweeps.mlflow_model`): its weights for inference (model and
+EMA weights, no optimiser; :meth:`cdm.checkpoint.Checkpoint.for_inference`) as the artifact ``checkpoint``, the step
+and the reproducibility record in its ``MLmodel`` metadata. ``mlflow.pyfunc.load_model("runs:/<run id>/model")``
+samples clouds with it; ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` scores it."""
 
 MODEL_TAG = "model"
 """The tag holding the run's ``runs:/<run id>/model`` URI, to paste into ``cdm-lab evaluate --checkpoint``."""
@@ -226,14 +228,12 @@ class TrialRun(Callback):
                 self.eval_set_tagged = True
 
     def on_checkpoint(self, step: int, path: Path) -> None:
-        """The checkpoint's weights for inference become the run's ``model/`` artifacts, replacing the previous
-        evaluation's: the run keeps the weights of its last checkpoint, also where ASHA stopped it early.
-        Continuing training needs the full checkpoint, which Ray keeps in the sweep's storage (tag ``checkpoint``,
-        set by the driver)."""
+        """The checkpoint's weights for inference become the run's MLflow model ``model``
+        (:func:`sweeps.mlflow_model.log_model`), replacing the previous evaluation's: the run keeps the weights of
+        its last checkpoint, also where ASHA stopped it early. Continuing training needs the full checkpoint, which
+        Ray keeps in the sweep's storage (tag ``checkpoint``, set by the driver)."""
         with tempfile.TemporaryDirectory(prefix="cdm-model-") as tmp:
-            folder = Path(tmp) / MODEL_ARTIFACTS
+            folder = Path(tmp) / "checkpoint"
             save_checkpoint(load_checkpoint(path).for_inference(), folder)
-            (folder / "config.yaml").write_text(self.config_yaml)
-            (folder / "record.json").write_text(json.dumps({"step": step, **self.record}, indent=2))
-            self.client.log_artifacts(self.run_id, str(folder), MODEL_ARTIFACTS)
+            log_model(self.client, self.run_id, folder, {"step": step, **self.record})
         self.client.set_tag(self.run_id, MODEL_TAG, f"runs:/{self.run_id}/{MODEL_ARTIFACTS}")

@@ -2,8 +2,9 @@
 
 One smoke grid runs on a Ray cluster the runner starts itself, its temporary folder (``RAY_TMPDIR``) of this
 module's own; then that folder is deleted, as ``ray stop`` and a reboot do. Every path the record names (MLflow
-tags, results.md/csv, the printed lines) must still exist; each child's weights, logged as MLflow artifacts,
-score through ``cdm-lab evaluate --checkpoint runs:/…`` what the trial scored; the report rebuilds and the
+tags, results.md/csv, the printed lines) must still exist; each child's weights, logged as its MLflow model,
+score through ``cdm-lab evaluate --checkpoint runs:/…`` what the trial scored; the best cell's model, registered
+by ``--register``, loads with ``mlflow.pyfunc`` and scores through ``models:/…``; the report rebuilds and the
 trial re-runs; and the sweep folder holds no file twice.
 """
 
@@ -21,18 +22,26 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+import mlflow
+import numpy as np
 import pytest
 import ray
 from mlflow import MlflowClient
 
 from sweeps import run
 from sweeps.execute.trial import trial_scratch
+from sweeps.mlflow_model import model_checkpoint
+from sweeps.results.finished import open_sweep, results_table, trial_records
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[2]
 PATH = re.compile(r"(?<![\w.:/#])/(?:[\w.@+-]+/)*[\w.@+-]+")
 """An absolute path in a text (not the tail of a URL, ``http://host/x``, nor a UI link, ``#/experiments/1``)."""
+
+
+REGISTERED = "cdm-record"
+"""The registered model the sweep's best cell's model becomes (``--register``)."""
 
 
 @dataclass(frozen=True)
@@ -52,7 +61,8 @@ def swept(tmp_path_factory) -> Swept:
     ray_tmp = Path(tempfile.mkdtemp(prefix="cdmrec", dir="/tmp"))
     (tmp / "spec.yaml").write_text("name: record\ngrid: {priors.point_size: [0.02, 0.04]}\n")
     uri = f"sqlite:///{tmp}/mlflow.db"
-    argv = [str(tmp / "spec.yaml"), "--smoke", "--storage", str(tmp / "results"), "--tracking-uri", uri]
+    argv = [str(tmp / "spec.yaml"), "--smoke", "--storage", str(tmp / "results"), "--tracking-uri", uri,
+            "--register", REGISTERED]
     printed = io.StringIO()
     with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
         patch.setenv("RAY_TMPDIR", str(ray_tmp))
@@ -111,21 +121,47 @@ def test_each_trial_checkpoint_is_stored_once(swept):
     assert [p.relative_to(swept.folder).parts[1] for p in checkpoints] == ["checkpoint_000000", "checkpoint_000001"] * 2
 
 
-def test_evaluate_scores_the_childs_weights_from_its_mlflow_run(swept, tmp_path):
-    client, _, children = _runs(swept.uri)
-    child = min(children, key=lambda r: r.info.run_name)
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "MLFLOW_TRACKING_URI": swept.uri}
-    out = subprocess.run([sys.executable, "-m", "sweeps.cdm_lab", "evaluate", "--checkpoint",
-                          child.data.tags["model"]], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+def _scores_as_logged(uri: str, checkpoint: str, child, cwd: Path) -> None:
+    """``cdm-lab evaluate --checkpoint checkpoint`` (a new process) scores what ``child`` logged."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MLFLOW_TRACKING_URI": uri}
+    out = subprocess.run([sys.executable, "-m", "sweeps.cdm_lab", "evaluate", "--checkpoint", checkpoint],
+                         cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     scores = dict(re.findall(r"^(eval/(?:f1|cd)) +([\d.]+)$", out.stdout, re.M))
     logged = child.data.metrics  # the trial's last evaluation, at the results table's precision
     assert abs(float(scores["eval/f1"]) - logged["eval/f1"]) <= 1e-3, (scores, logged)
     assert abs(float(scores["eval/cd"]) - logged["eval/cd"]) <= 1e-3 * logged["eval/cd"], (scores, logged)
-    sizes = {a.path: a.file_size for a in client.list_artifacts(child.info.run_id, "model")}
-    full = Path(child.data.tags["checkpoint"], "checkpoint.pt").stat().st_size
-    assert set(sizes) == {"model/checkpoint.pt", "model/config.yaml", "model/record.json"}
-    assert sizes["model/checkpoint.pt"] < full / 2  # weights and EMA only: no optimiser state
+
+
+def _size(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+def test_evaluate_scores_the_childs_weights_from_its_mlflow_run(swept, tmp_path, monkeypatch):
+    _, _, children = _runs(swept.uri)
+    child = min(children, key=lambda r: r.info.run_name)
+    _scores_as_logged(swept.uri, child.data.tags["model"], child, tmp_path)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", swept.uri)  # where MLflow looks a run's model up
+    folder = model_checkpoint(Path(mlflow.artifacts.download_artifacts(child.data.tags["model"],
+                                                                       dst_path=str(tmp_path))))
+    assert _size(folder) < _size(Path(child.data.tags["checkpoint"])) / 2  # weights and EMA only: no optimiser state
+
+
+def test_the_best_cells_model_is_registered_and_loads_as_an_mlflow_model(swept, tmp_path, monkeypatch):
+    client, parent, children = _runs(swept.uri)
+    [version] = client.search_model_versions(f"name = '{REGISTERED}'")
+    record = open_sweep(swept.uri, parent_run_id=parent.info.run_id)
+    best = results_table(record, trial_records(record, objects=False)).best
+    registered = next(c for c in children if c.info.run_id == version.run_id)
+    assert best == registered.data.tags["cell"]  # the cell the results table stars
+    assert f"registered as models:/{REGISTERED}/1" in swept.out
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", swept.uri)
+    model = mlflow.pyfunc.load_model(registered.data.tags["model"])
+    image = np.full((32, 32, 3), 255, np.uint8)
+    image[8:24, 8:24] = (90, 90, 200)
+    cloud = model.predict({"image": image})
+    assert cloud.shape == (128, 3) and cloud.dtype == np.float32 and np.isfinite(cloud).all()  # smoke: 128 points
+    _scores_as_logged(swept.uri, f"models:/{REGISTERED}/1", registered, tmp_path)
 
 
 def test_report_and_rerun_work_from_the_record_alone(swept, tmp_path, monkeypatch, capsys):
