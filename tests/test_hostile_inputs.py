@@ -55,7 +55,7 @@ def _prepare(root, tmp_path, kind="co3d", *extra, timeout=120, env=None):
 
 def _nothing_escaped(tmp_path, name):
     assert not list(tmp_path.rglob(f"{name}*")), list(tmp_path.rglob(f"{name}*"))
-    assert not os.path.lexists(f"/{name}.shard")
+    assert not os.path.lexists(f"/{name}.safetensors")
 
 
 # --- paths from annotations ---------------------------------------------------------------------------
