@@ -116,7 +116,7 @@ def _network(checkpoint: str, sets: dict, command: str):
     if names_a_uri(checkpoint):  # the library reads local files; fetching MLflow's is the sweeps' side
         raise ValueError(f"--checkpoint: {checkpoint} is a URI and `python -m cdm` reads local files; "
                          f"`cdm-lab {command} --checkpoint {checkpoint}` fetches an MLflow artifact (runs:/…) first")
-    if not is_pc2_checkpoint(checkpoint):
+    if Path(checkpoint).suffix == ".json" or not is_pc2_checkpoint(checkpoint):  # a checkpoint.json is no torch file
         return load_network(checkpoint, sets)
     pc2 = read_pc2_checkpoint(checkpoint)
     loaded = load_network(None, pc2.config(sets).flat())

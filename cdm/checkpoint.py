@@ -197,9 +197,10 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             starts with ``checkpoint:`` and names the file.
     """
     file = checkpoint_file(path)
-    if file.name == LEGACY_FILE or (not file.exists() and (file.parent / LEGACY_FILE).exists()):
-        raise ValueError(f"checkpoint: {file.parent / LEGACY_FILE} was written by cdm 0.1.0 (torch.save); convert it "
-                         f"once with `cdm-lab convert {file.parent} NEW_FOLDER` and pass NEW_FOLDER")
+    legacy = file if file.suffix in (".pt", ".pth") else file.parent / LEGACY_FILE
+    if legacy == file or (not file.exists() and legacy.exists()):
+        raise ValueError(f"checkpoint: {legacy} was written by cdm 0.1.0 (torch.save); convert it once with "
+                         f"`cdm-lab convert {legacy} NEW_FOLDER` and pass NEW_FOLDER")
     if not file.exists():
         raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint folder or its {CHECKPOINT_FILE}")
     where = f"checkpoint: {file}"

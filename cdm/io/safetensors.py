@@ -46,15 +46,20 @@ _ALIGN = 8
 """The header is padded with spaces to a multiple of this, so each tensor starts aligned (as the package pads)."""
 
 
-def _entries(tensors: dict[str, Tensor]) -> tuple[dict[str, Any], list[Tensor]]:
+def _entries(tensors: dict[str, Tensor], label: str) -> tuple[dict[str, Any], list[Tensor]]:
     """The header, its entries in ``tensors``' order (a state dict's order survives), and the tensors in
     buffer order: widest dtype first, then by name (the package's order), so every tensor starts at a
     multiple of its element size."""
+    for name in tensors:
+        if not isinstance(name, str):
+            raise ValueError(f"{label}: a tensor's name is {name!r} ({type(name).__name__}); safetensors names are "
+                             "strings")
     order = sorted(tensors.items(), key=lambda item: (-item[1].element_size(), item[0]))
     offsets, offset = {}, 0
     for name, t in order:
         if t.dtype not in _NAMES:
-            raise ValueError(f"{name}: dtype {t.dtype} has no safetensors name here; allowed: {sorted(DTYPES)}")
+            raise ValueError(f"{label}: {name}: dtype {t.dtype} has no safetensors name here; allowed: "
+                             f"{sorted(DTYPES)}")
         size = t.numel() * t.element_size()
         offsets[name] = [offset, offset + size]
         offset += size
@@ -68,7 +73,7 @@ def write_safetensors(path: Path, tensors: dict[str, Tensor], metadata: dict[str
     """Write ``tensors`` (any device, layout or storage sharing; saved as contiguous CPU copies) and
     ``metadata`` to ``path`` atomically (:func:`cdm.io.write.write_atomic`, whose keyword arguments
     ``atomic`` passes on), one tensor at a time: no second copy of the whole file is held."""
-    header, order = _entries(tensors)
+    header, order = _entries(tensors, label)
     if metadata:
         header = {"__metadata__": metadata, **header}
     raw = json.dumps(header, separators=(",", ":")).encode()
