@@ -149,10 +149,11 @@ def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_model_a
     run = client.get_run(trial.run_id)
     assert run.data.tags["model"] == f"runs:/{trial.run_id}/model"
     assert sorted(a.path for a in client.list_artifacts(trial.run_id, "model")) == [
-        "model/checkpoint.pt", "model/config.yaml", "model/record.json"]
+        "model/checkpoint.json", "model/config.yaml", "model/ema.safetensors", "model/model.safetensors",
+        "model/record.json"]
     folder = Path(mlflow.artifacts.download_artifacts(run.data.tags["model"], dst_path=str(tmp_path / "down"),
                                                       tracking_uri=uri))
-    model = load_checkpoint(folder)  # the project's inert reader
+    model = load_checkpoint(folder)  # safetensors and JSON
     assert model.step == 20 and torch.equal(model.model["layer.weight"], weights[20])
     assert torch.equal(model.weights["layer.weight"], weights[20] / 2)  # EMA: what evaluation samples with
     assert (model.optimizer, model.scheduler, model.generator) == (None, None, None)
@@ -160,7 +161,7 @@ def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_model_a
     assert json.loads((folder / "record.json").read_text()) == {"step": 20, "git_commit": "abc", "config_hash": "0123"}
     logged = yaml.safe_load((folder / "config.yaml").read_text())
     assert "out_dir" not in logged["train"] and logged["train"]["steps"] == 20
-    assert (folder / "checkpoint.pt").stat().st_size < (tmp_path / "step_20" / "checkpoint.pt").stat().st_size
+    assert (tmp_path / "step_20" / "training.safetensors").is_file() and not (folder / "training.safetensors").exists()
 
 
 def test_a_child_run_is_tagged_with_its_machine_and_holds_its_package_list(tmp_path):

@@ -35,8 +35,9 @@ __all__ = [
 ]
 
 MODEL_ARTIFACTS = "model"
-"""The child run's artifact folder of its weights for inference: ``checkpoint.pt`` (model and EMA weights, no
-optimiser; :meth:`cdm.checkpoint.Checkpoint.for_inference`), ``config.yaml`` and ``record.json`` (the step and
+"""The child run's artifact folder of its weights for inference: a checkpoint folder (``checkpoint.json``,
+``model.safetensors`` and ``ema.safetensors``: model and EMA weights, no optimiser;
+:meth:`cdm.checkpoint.Checkpoint.for_inference`), ``config.yaml`` and ``record.json`` (the step and
 the reproducibility record). ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` reads it."""
 
 MODEL_TAG = "model"

@@ -25,6 +25,7 @@ import pytest
 import ray
 from mlflow import MlflowClient
 
+from cdm.checkpoint import CHECKPOINT_FILE
 from sweeps import run
 from sweeps.execute.trial import trial_scratch
 
@@ -85,7 +86,7 @@ def test_every_recorded_path_exists_after_rays_temporary_folder_is_gone(swept):
         assert Path(tags["tune_trial_dir"], "result.json").is_file()
         # The newest Tune checkpoint, in the sweep's storage: the full state, to continue training from.
         assert Path(tags["checkpoint"]).parent == Path(tags["tune_trial_dir"])
-        assert Path(tags["checkpoint"], "checkpoint.pt").is_file()
+        assert Path(tags["checkpoint"], CHECKPOINT_FILE).is_file()
         assert tags["model"] == f"runs:/{child.info.run_id}/model"
         # The scratch folder the trial trained in is gone: its checkpoints are in storage, its files in MLflow.
         assert not trial_scratch(str(swept.folder), tags["trial_id"]).exists()
@@ -106,9 +107,42 @@ def test_each_trial_checkpoint_is_stored_once(swept):
             by_digest.setdefault(hashlib.sha256(path.read_bytes()).hexdigest(), []).append(path)
     copies = [paths for paths in by_digest.values() if len(paths) > 1]
     assert not copies, f"byte-identical copies in the sweep folder: {copies}"
-    checkpoints = sorted(swept.folder.rglob("checkpoint.pt"))
+    checkpoints = sorted(swept.folder.rglob(CHECKPOINT_FILE))
     # Tune's two newest per trial (sweeps/execute/pruning.py), nothing else: no cdm/ copy beside them.
     assert [p.relative_to(swept.folder).parts[1] for p in checkpoints] == ["checkpoint_000000", "checkpoint_000001"] * 2
+
+
+def _is_text(path: Path) -> bool:
+    try:
+        path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+def test_the_sweep_folder_keeps_weights_in_safetensors_and_everything_else_in_text(swept):
+    files = [p for p in swept.folder.rglob("*") if p.is_file()]
+    assert not [p for p in files if p.suffix in (".pt", ".pth", ".bin", ".ckpt")]
+    weights = sorted(p.relative_to(swept.folder) for p in files if p.suffix == ".safetensors")
+    assert {p.name for p in weights} >= {"model.safetensors", "training.safetensors"}
+    other = sorted(str(p.relative_to(swept.folder)) for p in files if p.suffix != ".safetensors" and not _is_text(p))
+    assert other == []
+
+
+def test_safetensors_alone_loads_the_childs_weights(swept, tmp_path):
+    import mlflow
+    import safetensors.torch
+    import torch
+
+    from cdm.checkpoint import load_checkpoint
+
+    _, _, children = _runs(swept.uri)
+    child = min(children, key=lambda r: r.info.run_name)
+    folder = mlflow.artifacts.download_artifacts(child.data.tags["model"], dst_path=str(tmp_path),
+                                                 tracking_uri=swept.uri)
+    weights = safetensors.torch.load_file(f"{folder}/model.safetensors")
+    stored = load_checkpoint(Path(child.data.tags["checkpoint"])).model
+    assert weights.keys() == stored.keys() and all(torch.equal(weights[k], v) for k, v in stored.items())
 
 
 def test_evaluate_scores_the_childs_weights_from_its_mlflow_run(swept, tmp_path):
@@ -123,9 +157,11 @@ def test_evaluate_scores_the_childs_weights_from_its_mlflow_run(swept, tmp_path)
     assert abs(float(scores["eval/f1"]) - logged["eval/f1"]) <= 1e-3, (scores, logged)
     assert abs(float(scores["eval/cd"]) - logged["eval/cd"]) <= 1e-3 * logged["eval/cd"], (scores, logged)
     sizes = {a.path: a.file_size for a in client.list_artifacts(child.info.run_id, "model")}
-    full = Path(child.data.tags["checkpoint"], "checkpoint.pt").stat().st_size
-    assert set(sizes) == {"model/checkpoint.pt", "model/config.yaml", "model/record.json"}
-    assert sizes["model/checkpoint.pt"] < full / 2  # weights and EMA only: no optimiser state
+    full = Path(child.data.tags["checkpoint"])
+    assert {"model/checkpoint.json", "model/model.safetensors", "model/config.yaml", "model/record.json"} <= set(sizes)
+    assert "model/training.safetensors" not in sizes  # weights (and EMA) only: no optimiser state
+    assert (full / "training.safetensors").is_file()  # the full checkpoint, in storage, keeps it
+    assert sizes["model/model.safetensors"] == (full / "model.safetensors").stat().st_size
 
 
 def test_report_and_rerun_work_from_the_record_alone(swept, tmp_path, monkeypatch, capsys):
