@@ -12,9 +12,9 @@ Schedule: BDM's prior, PVD's linear β from 1e-4 to 0.02 over T = 1000 (BDM
 (PVD: ε).
 
 A prior is a checkpoint folder (:mod:`cdm.checkpoint`: ``checkpoint.json`` with the resolved config, step,
-voxel back-end, ``kind`` and ``category``; the weights in ``model.safetensors``); or PVD's own ``.pth`` checkpoint, as BDM blends with (:func:`load_prior`).
-``python -m cdm train-prior`` writes one; :func:`ensure_priors` trains and caches them for
-``sampling.blend.prior_checkpoint: auto`` (sweep trials).
+voxel back-end, ``kind`` and ``category``; the weights in ``model.safetensors``); or PVD's own ``.pth``
+checkpoint, as BDM blends with (:func:`load_prior`). ``python -m cdm train-prior`` writes one;
+:func:`ensure_priors` trains and caches them for ``sampling.blend.prior_checkpoint: auto`` (sweep trials).
 """
 
 from __future__ import annotations

@@ -112,8 +112,10 @@ def test_each_trial_checkpoint_is_stored_once(swept):
     assert [p.relative_to(swept.folder).parts[1] for p in checkpoints] == ["checkpoint_000000", "checkpoint_000001"] * 2
 
 
-TUNE_STATE = re.compile(r"tuner\.pkl|params\.pkl|basic-variant-state-[0-9_-]+\.json|searcher-state-[0-9_-]+\.pkl")
-"""Ray Tune's own state, which it pickles (docs/security.md, "What --resume trusts"): no weights of ours."""
+TUNE_STATE = re.compile(r"tuner\.pkl|params\.pkl|basic-variant-state-[0-9_-]+\.json|searcher-state-[0-9_-]+\.pkl"
+                        r"|events\.out\.tfevents\..+")
+"""Ray Tune's own state, which it pickles (docs/security.md, "What --resume trusts"), and its TensorBoard log:
+no weights of ours."""
 
 
 def _is_text(path: Path) -> bool:
@@ -129,8 +131,8 @@ def test_the_sweep_folder_keeps_weights_in_safetensors_and_everything_else_in_te
     assert not [p for p in files if p.suffix in (".pt", ".pth", ".bin", ".ckpt")]
     weights = sorted(p.relative_to(swept.folder) for p in files if p.suffix == ".safetensors")
     assert {p.name for p in weights} >= {"model.safetensors", "training.safetensors"}
-    other = sorted(str(p.relative_to(swept.folder)) for p in files if p.suffix != ".safetensors" and not _is_text(p)
-                   and not TUNE_STATE.fullmatch(p.name))
+    other = sorted(str(p.relative_to(swept.folder)) for p in files if p.suffix not in (".safetensors", ".png")
+                   and not _is_text(p) and not TUNE_STATE.fullmatch(p.name))
     assert other == [], other
 
 
