@@ -41,7 +41,7 @@ def load_tensors(file: Path, label: str, kind: str, advice: str) -> Any:
 
     Args:
         file: the torch file.
-        label: how the refusal starts: the field and the path, e.g. ``"checkpoint: /runs/a/checkpoint.pt"``.
+        label: how the refusal starts: the field and the path, e.g. ``"--checkpoint: /runs/pc2/checkpoint-latest.pth"``.
         kind: what an unreadable file is not, e.g. ``"CDM checkpoint"``.
         advice: the sentence after a refusal of pickled objects: what to pass instead.
 
