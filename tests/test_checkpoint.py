@@ -162,6 +162,9 @@ def test_a_0_1_0_checkpoint_is_refused_with_the_way_out_and_converts_bit_exact(t
     loaded = load_checkpoint(tmp_path / "new")
     assert all(_same(_plain(getattr(state, f.name), f.name), _plain(getattr(loaded, f.name), f.name))
                for f in dataclasses.fields(Checkpoint))
+    assert main(["convert", str(old), str(tmp_path / "new")]) == 2  # nothing converted over a checkpoint
+    assert capsys.readouterr().err == f"error: NEW: {tmp_path / 'new'} holds a checkpoint already; name an empty or " \
+                                      "new folder\n"
     assert main(["convert", str(tmp_path / "new"), str(tmp_path / "again")]) == 2  # not a 0.1.0 file
     assert capsys.readouterr().err == f"error: checkpoint: {tmp_path / 'new' / LEGACY_FILE} does not exist\n"
     assert not (tmp_path / "again").exists()
