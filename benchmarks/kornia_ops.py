@@ -6,9 +6,9 @@ Each row times two ways of one operation alternately in one process (``a`` ours 
 ``b`` the library's; ``ratio`` = median of per-pair ``b / a``, so > 1 means the library is slower),
 one torch thread and one OpenCV thread, and states the largest difference of their values:
 
-- the mask distance transform of the conditioning map (B = 8 masks): the former pure-torch ``O(S³)``
-  passes (:func:`torch_distance_transform`, kept here as the "before") against OpenCV's precise L2
-  transform, now :func:`cdm.model.conditioning.mask_distance_transform`; kornia's
+- the mask distance transform of the conditioning map (B = 8 masks): the pure-torch ``O(S³)`` passes
+  (:func:`cdm.model.conditioning.mask_distance_transform`) against OpenCV's precise L2 transform
+  (:func:`opencv_distance_transform`, as PC² computes it; not adopted); kornia's
   ``contrib.distance_transform`` (iterated convolutions) against OpenCV's;
 - camera projection (``cdm.cameras.project_points``, forward + backward) against kornia's
   ``transform_points`` + ``camera.project_points`` with the same cameras as 4×4 and 3×3 matrices;
@@ -28,6 +28,7 @@ from collections.abc import Callable
 
 import cv2
 import kornia
+import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.geometry import camera as kcamera
@@ -40,28 +41,20 @@ from cdm.data.priors2d import contour_map
 from cdm.model.conditioning import mask_distance_transform
 from cdm.render import _filter_and_crop, _footprint, _window_min
 
-__all__ = ["kornia_ops", "kornia_project_points", "torch_distance_transform"]
+__all__ = ["kornia_ops", "kornia_project_points", "opencv_distance_transform"]
 
 
 @torch.no_grad()
-def torch_distance_transform(mask: Tensor) -> Tensor:
-    """The pure-torch transform :func:`mask_distance_transform` replaced (same contract): exact, along rows
-    by cumulative max/min of foreground columns, then ``d²(i, j) = min_k (i − k)² + g(k, j)²`` over rows."""
-    fg = mask[:, 0] > 0.5
-    s = fg.shape[-1]
-    idx = torch.arange(s, device=mask.device)
-    far = 2 * s
-    left = torch.where(fg, idx, -far).cummax(dim=2).values
-    right = torch.where(fg, idx, s + far).flip(2).cummin(dim=2).values.flip(2)
-    g2 = torch.minimum(idx - left, right - idx).to(torch.float32).square()
-    di2 = (idx[:, None] - idx[None, :]).to(torch.float32).square()
-    d2 = g2.clone()
-    candidate = torch.empty_like(g2)
-    for k in range(s):
-        torch.add(g2[:, k : k + 1, :], di2[None, :, k : k + 1], out=candidate)
-        torch.minimum(d2, candidate, out=d2)
-    dist = torch.where(d2 >= far * far, math.sqrt(2.0) * s, d2.sqrt()) / s
-    return dist[:, None].to(mask.dtype)
+def opencv_distance_transform(mask: Tensor) -> Tensor:
+    """OpenCV's precise L2 transform with :func:`mask_distance_transform`'s contract, as PC² computes it: the
+    candidate, not adopted (its values for one mask changed between calls inside training; RESULTS.md)."""
+    background = (mask[:, 0] <= 0.5).to(dtype=torch.uint8).numpy()
+    s = background.shape[-1]
+    dist = np.full(background.shape, math.sqrt(2.0) * s, dtype=np.float32)
+    for image, out in zip(background, dist):
+        if not image.all():
+            out[...] = cv2.distanceTransform(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return torch.from_numpy(dist / s)[:, None].to(mask.dtype)
 
 
 def kornia_project_points(points: Tensor, cameras: Cameras) -> Tensor:
@@ -99,14 +92,15 @@ def _distance_rows(sizes: tuple[int, ...], repeats: int) -> list[dict]:
     rows = []
     for s in sizes:
         mask = _masks(s)
-        ours = mask_distance_transform(mask)
-        diff = float((torch_distance_transform(mask) - ours).abs().max())
+        ours = opencv_distance_transform(mask)
+        diff = float((mask_distance_transform(mask) - ours).abs().max())
         rows.append(_row("mask distance transform: torch O(S³) vs OpenCV", f"B=8, {s}²",
-                         lambda m=mask: torch_distance_transform(m), lambda m=mask: mask_distance_transform(m),
+                         lambda m=mask: mask_distance_transform(m), lambda m=mask: opencv_distance_transform(m),
                          repeats, diff, "<= 1 (OpenCV/torch)"))
         kdiff = float((kornia.contrib.distance_transform(mask[2:]) - ours[2:] * s).abs().max())  # in pixels
         rows.append(_row("mask distance transform: OpenCV vs kornia", f"B=8, {s}² (difference in pixels)",
-                         lambda m=mask: mask_distance_transform(m), lambda m=mask: kornia.contrib.distance_transform(m),
+                         lambda m=mask: opencv_distance_transform(m),
+                         lambda m=mask: kornia.contrib.distance_transform(m),
                          max(3, repeats // 4), kdiff, "report (kornia/OpenCV)"))
     return rows
 

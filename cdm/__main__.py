@@ -113,7 +113,7 @@ def _network(checkpoint: str, sets: dict, command: str):
     if names_a_uri(checkpoint):  # the library reads local files; fetching MLflow's is the sweeps' side
         raise ValueError(f"--checkpoint: {checkpoint} is a URI and `python -m cdm` reads local files; "
                          f"`cdm-lab {command} --checkpoint {checkpoint}` fetches an MLflow artifact (runs:/…) first")
-    if not is_pc2_checkpoint(checkpoint):
+    if Path(checkpoint).suffix == ".json" or not is_pc2_checkpoint(checkpoint):  # a checkpoint.json is no torch file
         return load_network(checkpoint, sets)
     pc2 = read_pc2_checkpoint(checkpoint)
     loaded = load_network(None, pc2.config(sets).flat())
@@ -229,6 +229,15 @@ def cmd_fields(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_convert(args: argparse.Namespace) -> int:
+    from cdm.checkpoint import CHECKPOINT_FILE, convert_legacy
+
+    if (Path(args.new) / CHECKPOINT_FILE).exists():
+        raise ValueError(f"NEW: {args.new} holds a checkpoint already; name an empty or new folder")
+    print(f"converted: {convert_legacy(args.old, args.new).parent}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="one of the commands below")
@@ -250,19 +259,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="YAML config (data/model/diffusion/train); BDM's prior schedule unless it sets "
                    "diffusion.beta_*")
     add_set(p, "train.steps=2000")
-    add_out(p, "checkpoint.pt (default: <train.out_dir>/prior_<category>)")
+    add_out(p, "the prior's checkpoint folder (default: <train.out_dir>/prior_<category>)")
     p.set_defaults(func=cmd_train_prior)
     p = add_command(sub, "evaluate", "score a checkpoint on the held-out split",
                     "--checkpoint runs/cdm/checkpoints/step_0001500 --out eval/")
     p.add_argument("--checkpoint", required=True, metavar="PATH",
-                   help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
+                   help="a CDM checkpoint (folder or checkpoint.json) or PC²'s checkpoint-latest.pth")
     add_set(p, "eval.num_objects=20 (the checkpoint's config is the base)")
     add_out(p, "PLY clouds, PNG panels and CSV metrics (default: print the metrics only)")
     p.set_defaults(func=cmd_evaluate)
     p = add_command(sub, "reconstruct", "reconstruct a point cloud from one image",
                     "--checkpoint runs/cdm/checkpoints/step_0001500 --image chair.png --ply chair.ply")
     p.add_argument("--checkpoint", required=True, metavar="PATH",
-                   help="a CDM checkpoint (folder or checkpoint.pt) or PC²'s checkpoint-latest.pth")
+                   help="a CDM checkpoint (folder or checkpoint.json) or PC²'s checkpoint-latest.pth")
     p.add_argument("--image", required=True, metavar="FILE",
                    help=f"the input photo: PNG/JPEG, grey, RGB or RGBA (alpha = mask), at least {MIN_IMAGE_SIDE} "
                    "pixels a side")
@@ -293,6 +302,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_check_data)
     p = add_command(sub, "fields", "list every config field with its default", "| grep priors")
     p.set_defaults(func=cmd_fields)
+    p = add_command(sub, "convert", "rewrite a cdm 0.1.0 checkpoint.pt (read inertly) as a checkpoint folder of "
+                    "safetensors and JSON", "runs/old/checkpoints/step_0001500 runs/new/step_0001500")
+    p.add_argument("old", metavar="OLD", help="a 0.1.0 checkpoint folder or its checkpoint.pt")
+    p.add_argument("new", metavar="NEW", help="the folder to write: checkpoint.json, model.safetensors, …")
+    p.set_defaults(func=cmd_convert)
     return parser
 
 

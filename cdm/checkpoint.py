@@ -1,14 +1,25 @@
-"""Checkpoints: one ``checkpoint.pt`` per folder, written atomically, read back typed and safely.
+"""Checkpoints: one folder of safetensors weights and a JSON record, written atomically, read back typed and safely.
 
 A checkpoint holds everything needed to use or continue a run without anything else (nanoGPT's
 habit): the resolved config, the step, the voxel back-end the weights were trained with (the
 back-ends compute different functions) and the weights; a CDM run adds its EMA weights, optimiser,
-schedule and RNG states, a BDM category prior its ``kind`` and ``category``. Files are read with
-:func:`cdm.io.torch.load_tensors`: tensors and plain data only, nothing executed, torch's loader never used.
+schedule and RNG states, a BDM category prior its ``kind`` and ``category``. A folder holds
+
+- ``model.safetensors``: the network's ``state_dict`` (``safetensors.torch.load_file`` reads it);
+- ``ema.safetensors``: the EMA weights, where the run kept them;
+- ``training.safetensors``: the optimiser's moments and the RNG states, in a training checkpoint only;
+- ``checkpoint.json``: everything else (config, step, back-end, precision, encoder record, loss scale,
+  the optimiser's groups and the schedule), the tensors named by their key in ``training.safetensors``
+  (:func:`cdm.io.safetensors.encode_tree`). Written last: a folder without it holds no checkpoint.
+
+No file holds code, and every one is read through :mod:`cdm.io` (:func:`cdm.io.safetensors.read_safetensors`,
+:func:`cdm.io.json.read_json`). A ``checkpoint.pt`` of cdm 0.1.0 (one ``torch.save``) is not read here:
+:func:`convert_legacy` (``cdm-lab convert``) rewrites it, reading it inertly (:func:`cdm.io.torch.load_tensors`).
 """
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import stat
@@ -22,6 +33,8 @@ from torch import Tensor
 from cdm.config import Config, load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.diffusion import GaussianDiffusion
+from cdm.io.json import read_json
+from cdm.io.safetensors import decode_tree, encode_tree, read_safetensors, write_safetensors
 from cdm.io.torch import load_tensors
 from cdm.io.write import make_folder, write_atomic
 from cdm.model import CDMNetwork, check_encoder_record
@@ -32,7 +45,9 @@ __all__ = [
     "CHECKPOINT_FILE",
     "Checkpoint",
     "LoadedNetwork",
+    "LEGACY_FILE",
     "checkpoint_file",
+    "convert_legacy",
     "load_checkpoint",
     "load_network",
     "network_config",
@@ -40,7 +55,15 @@ __all__ = [
     "save_step",
 ]
 
-CHECKPOINT_FILE = "checkpoint.pt"
+CHECKPOINT_FILE = "checkpoint.json"
+"""The record that marks a checkpoint folder (module docstring)."""
+LEGACY_FILE = "checkpoint.pt"
+"""What cdm 0.1.0 wrote instead: one ``torch.save`` of the same fields (:func:`convert_legacy`)."""
+FORMAT = "cdm-checkpoint/2"
+"""``checkpoint.json``'s ``format``: 2, the safetensors folder (1 was 0.1.0's ``checkpoint.pt``)."""
+WEIGHTS = ("model", "ema")
+"""Fields kept in a safetensors file of their own, ``<field>.safetensors``."""
+TRAINING_FILE = "training.safetensors"
 _OUT_DIR = "train.out_dir"
 _STEP = re.compile(r"step_[0-9]{7}")
 _REQUIRED = ("config", "step", "voxel_backend", "model")
@@ -48,7 +71,7 @@ _REQUIRED = ("config", "step", "voxel_backend", "model")
 
 @dataclass(frozen=True)
 class Checkpoint:
-    """The contents of one ``checkpoint.pt``."""
+    """The contents of one checkpoint folder."""
 
     config: dict[str, Any]
     """The resolved config as saved (:meth:`Config.to_dict`)."""
@@ -96,11 +119,25 @@ class Checkpoint:
 
 
 def save_checkpoint(checkpoint: Checkpoint, folder: str | Path) -> Path:
-    """Write ``folder/checkpoint.pt`` through a temporary file renamed when complete, so a reader sees
-    a whole checkpoint or none; returns the file."""
-    file = make_folder(Path(folder), "train.out_dir") / CHECKPOINT_FILE
-    write_atomic(file, lambda out: torch.save({f.name: getattr(checkpoint, f.name) for f in fields(checkpoint)}, out),
-                 "train.out_dir")
+    """Write the checkpoint's files into ``folder`` (module docstring), each through a temporary file renamed
+    when complete and ``checkpoint.json`` last, so a reader sees a whole checkpoint; files of an earlier
+    checkpoint there that this one lacks (``ema``, ``training``) are removed. Returns ``checkpoint.json``."""
+    folder = make_folder(Path(folder), _OUT_DIR)
+    record = {"format": FORMAT}
+    for name in WEIGHTS:
+        weights = getattr(checkpoint, name)
+        record[name] = None if weights is None else f"{name}.safetensors"
+        if weights is not None:
+            write_safetensors(folder / record[name], dict(weights), {"format": "pt"}, _OUT_DIR)
+    rest, tensors = encode_tree({f.name: getattr(checkpoint, f.name) for f in fields(checkpoint)
+                                 if f.name not in WEIGHTS})
+    record["training"] = TRAINING_FILE if tensors else None
+    if tensors:
+        write_safetensors(folder / TRAINING_FILE, tensors, {}, _OUT_DIR)
+    file = folder / CHECKPOINT_FILE
+    write_atomic(file, json.dumps({**record, **rest}, indent=1) + "\n", _OUT_DIR)
+    for stale in [f"{name}.safetensors" for name in WEIGHTS if record[name] is None] + [TRAINING_FILE] * (not tensors):
+        (folder / stale).unlink(missing_ok=True)  # unlink removes a link, never its target
     return file
 
 
@@ -146,33 +183,75 @@ def _remove_folder(path: Path) -> None:
 
 
 def checkpoint_file(path: str | Path) -> Path:
-    """The ``checkpoint.pt`` a user means by ``path``: the file itself, or the one in that folder."""
+    """The ``checkpoint.json`` a user means by ``path``: the file itself, or the one in that folder."""
     path = Path(path)
     return path / CHECKPOINT_FILE if path.is_dir() else path
 
 
 def load_checkpoint(path: str | Path) -> Checkpoint:
-    """Read a checkpoint file or its folder safely (:func:`cdm.io.torch.load_tensors`: tensors and plain data).
+    """Read a checkpoint folder (or its ``checkpoint.json``) through :mod:`cdm.io`: JSON and safetensors only.
 
     Raises:
-        ValueError: missing file, unreadable file, not a CDM checkpoint, or weights (``model``, ``ema``)
-            that are not finite tensors under string names; the message starts with ``checkpoint:`` and
-            names the file.
+        ValueError: a missing or unreadable file, a 0.1.0 ``checkpoint.pt`` (convert it: :func:`convert_legacy`),
+            not a CDM checkpoint, or weights (``model``, ``ema``) that are not finite tensors; the message
+            starts with ``checkpoint:`` and names the file.
     """
     file = checkpoint_file(path)
+    legacy = file if file.suffix in (".pt", ".pth") else file.parent / LEGACY_FILE
+    if legacy == file or (not file.exists() and legacy.exists()):
+        raise ValueError(f"checkpoint: {legacy} was written by cdm 0.1.0 (torch.save); convert it once with "
+                         f"`cdm-lab convert {legacy} NEW_FOLDER` and pass NEW_FOLDER")
     if not file.exists():
-        raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint directory or its {CHECKPOINT_FILE}")
-    state = load_tensors(file, f"checkpoint: {file}", "CDM checkpoint", "Load only checkpoints written by cdm")
+        raise ValueError(f"checkpoint: {file} does not exist; pass a checkpoint folder or its {CHECKPOINT_FILE}")
+    where = f"checkpoint: {file}"
+    record = read_json(file, "checkpoint")
+    if not isinstance(record, dict) or record.get("format") != FORMAT:
+        raise ValueError(f"{where} is not a CDM checkpoint (its format is not {FORMAT!r})")
+    missing = set(_REQUIRED) - set(record)
+    if missing:
+        raise ValueError(f"{where} is not a CDM checkpoint (missing {', '.join(sorted(missing))})")
+    state = decode_tree({f.name: record[f.name] for f in fields(Checkpoint) if f.name in record
+                         and f.name not in WEIGHTS}, _training(record, file), where)
+    for name in WEIGHTS:
+        if record.get(name) is not None:
+            if record[name] != f"{name}.safetensors":
+                raise ValueError(f"{where}: its {name!r} is {str(record[name])[:80]!r}; expected {name}.safetensors")
+            weights, _ = read_safetensors(file.parent / record[name], "checkpoint")
+            state[name] = checked_state_dict(weights, f"checkpoint: {file.parent / record[name]}")
+    if type(state["step"]) is not int or not isinstance(state["voxel_backend"], str):
+        raise ValueError(f"{where}: its step must be a whole number and its voxel_backend a name")
+    return Checkpoint(**state)
+
+
+def _training(record: dict[str, Any], file: Path) -> dict[str, Tensor]:
+    """The tensors of ``training.safetensors`` where ``record`` names it."""
+    if record.get("training") is None:
+        return {}
+    if record["training"] != TRAINING_FILE:
+        raise ValueError(f"checkpoint: {file}: its 'training' is {str(record['training'])[:80]!r}; expected "
+                         f"{TRAINING_FILE}")
+    return read_safetensors(file.parent / TRAINING_FILE, "checkpoint")[0]
+
+
+def convert_legacy(old: str | Path, new: str | Path) -> Path:
+    """Rewrite a cdm 0.1.0 checkpoint (its folder or ``checkpoint.pt``, read inertly: tensors and plain data,
+    nothing executed) as a checkpoint folder ``new``; returns ``new``'s ``checkpoint.json``.
+
+    Raises:
+        ValueError: ``old`` is no 0.1.0 checkpoint; the message starts with ``checkpoint:`` and names the file.
+    """
+    file = Path(old) / LEGACY_FILE if Path(old).is_dir() else Path(old)
+    state = load_tensors(file, f"checkpoint: {file}", "cdm 0.1.0 checkpoint", "Convert only checkpoints of cdm")
     missing = set(_REQUIRED) - set(state if isinstance(state, dict) else ())
     if missing:
-        raise ValueError(f"checkpoint: {file} is not a CDM checkpoint (missing {', '.join(sorted(missing))})")
-    for name in ("model", "ema"):
+        raise ValueError(f"checkpoint: {file} is not a cdm 0.1.0 checkpoint (missing {', '.join(sorted(missing))})")
+    for name in WEIGHTS:
         if state.get(name) is not None:
             if not isinstance(state[name], dict):
                 raise ValueError(f"checkpoint: {file} holds a {type(state[name]).__name__} as {name!r}, not a "
                                  "state dict")
             state[name] = checked_state_dict(state[name], f"checkpoint: {file} ({name!r})")
-    return Checkpoint(**{f.name: state[f.name] for f in fields(Checkpoint) if f.name in state})
+    return save_checkpoint(Checkpoint(**{f.name: state[f.name] for f in fields(Checkpoint) if f.name in state}), new)
 
 
 def network_config(checkpoint: Checkpoint, overrides: dict[str, Any] | None = None) -> Config:
@@ -194,7 +273,7 @@ def load_network(path: str | Path | None, overrides: dict[str, Any] | None = Non
     ``train.precision`` (as the run trained, unless overridden).
 
     Args:
-        path: a checkpoint folder or its ``checkpoint.pt``; None builds the network the default config
+        path: a checkpoint folder or its ``checkpoint.json``; None builds the network the default config
             with ``overrides`` names, with the weights of its ``model.init_from`` (PC²'s checkpoint).
         overrides: dotted config fields applied to the saved config (e.g. ``eval.num_objects``,
             ``train.device``); the voxel back-end stays the trained one.

@@ -11,10 +11,10 @@ Schedule: BDM's prior, PVD's linear β from 1e-4 to 0.02 over T = 1000 (BDM
 ``diffusion`` field to another value than cdm's default; the target follows ``diffusion.prediction``
 (PVD: ε).
 
-A prior is a folder holding ``checkpoint.pt``: resolved config, step, voxel back-end, weights,
-``kind`` and ``category``; or PVD's own ``.pth`` checkpoint, as BDM blends with (:func:`load_prior`).
-``python -m cdm train-prior`` writes one; :func:`ensure_priors` trains and caches them for
-``sampling.blend.prior_checkpoint: auto`` (sweep trials).
+A prior is a checkpoint folder (:mod:`cdm.checkpoint`: ``checkpoint.json`` with the resolved config, step,
+voxel back-end, ``kind`` and ``category``; the weights in ``model.safetensors``); or PVD's own ``.pth``
+checkpoint, as BDM blends with (:func:`load_prior`). ``python -m cdm train-prior`` writes one;
+:func:`ensure_priors` trains and caches them for ``sampling.blend.prior_checkpoint: auto`` (sweep trials).
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ class PriorResult(NamedTuple):
     """Where :func:`train_prior` wrote the prior and how training ended."""
 
     checkpoint: Path
-    """The prior's folder (holding ``checkpoint.pt``)."""
+    """The prior's checkpoint folder (:mod:`cdm.checkpoint`)."""
     steps: int
     loss: float
     """Mean diffusion loss over the last ``train.log_every`` steps."""
@@ -135,7 +135,7 @@ def train_prior(
     """Train a category prior on the ground-truth clouds of ``config``'s one category (from :func:`prior_config`).
 
     Uses ``train`` (steps, batch size, AdamW, warm-up + cosine, grad clip, seed, device, threads) and
-    writes ``out_dir/checkpoint.pt`` atomically at the end. ``progress(step, loss)`` is called every
+    writes the checkpoint folder ``out_dir`` atomically at the end. ``progress(step, loss)`` is called every
     ``train.log_every`` steps.
 
     Raises:
@@ -187,7 +187,7 @@ def prior_path(template: str, category: str) -> Path:
 
 
 def load_prior(path: str | Path, device: torch.device | str = "cpu", category: str = "") -> CategoryPrior:
-    """Read a prior onto ``device``, in eval mode: a folder or ``checkpoint.pt`` written by :func:`train_prior`,
+    """Read a prior onto ``device``, in eval mode: a folder or ``checkpoint.json`` written by :func:`train_prior`,
     or a ``.pth`` file of PVD's (BDM's priors, the paper's Table 2), for ``category``.
 
     A PVD checkpoint (``model_state`` or ``prior_model``, alexzhou907/PVD ``train_generation.py``) is PVD's

@@ -4,7 +4,9 @@ A sweep's cells usually differ in model or loss settings, not in their data: eve
 the same training samples and builds the same evaluation set (held-out views, baselines, retrieval
 bank). A :class:`SharedStore` is a folder where that work lies once, in files named by a hash of
 everything that decides their content; a run given the store reads what is there and computes, as
-it always did, what is not. Files are written whole (temporary name, then rename), so a reader sees
+it always did, what is not. Each file is a safetensors file (:mod:`cdm.io.safetensors`): its tensors,
+and the rest of what it holds as JSON in its metadata (``cdm.tree``, :func:`cdm.io.safetensors.encode_tree`).
+Files are written whole (temporary name, then rename), so a reader sees
 a complete file or none; what it reads are the same float32 tensors it would have computed, so
 results stay bit-identical with or without the store.
 
@@ -16,10 +18,11 @@ them), so one set of round files serves every seed.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
+from typing import Any
 
-import torch
 from torch import Tensor
 
 from cdm.cameras import Cameras
@@ -28,12 +31,13 @@ from cdm.data.sample import Batch, ConditionViews, Sample, collate
 from cdm.data.views import ObjectDataset
 from cdm.digest import json_digest
 from cdm.evaluate import EvalSet, build_eval_set
-from cdm.io.torch import load_own
-from cdm.io.write import make_folder, write_atomic
+from cdm.io.json import parse_json
+from cdm.io.safetensors import decode_tree, encode_tree, read_safetensors, write_safetensors
+from cdm.io.write import make_folder
 
 __all__ = ["SharedStore", "SharedViews", "eval_key", "rounds_needed", "views_key"]
 
-_FORMAT = 2
+_FORMAT = 3
 """Bumped whenever the files' layout changes, so stale files are never read."""
 
 
@@ -102,9 +106,23 @@ def _batch(d: dict) -> Batch:
     )
 
 
+_TREE = "cdm.tree"
+"""Metadata key of a shared file's JSON: what it holds besides its tensors."""
+
+
 def _save(obj: object, path: Path) -> None:
     # Atomic (cdm.io.write): the runs reading it see the whole file or none.
-    write_atomic(make_folder(path.parent, "shared cache") / path.name, lambda f: torch.save(obj, f), "shared cache")
+    tree, tensors = encode_tree(obj)
+    write_safetensors(make_folder(path.parent, "shared cache") / path.name, tensors, {_TREE: json.dumps(tree)},
+                      "shared cache")
+
+
+def _load(path: Path, mapped: bool) -> Any:
+    """What :func:`_save` wrote to ``path``; ``mapped``: tensors are views of the mapped file (shared pages)."""
+    tensors, metadata = read_safetensors(path, "shared cache", mapped=mapped)
+    if _TREE not in metadata:
+        raise ValueError(f"shared cache: {path} lacks its {_TREE!r} metadata; delete it and it is computed again")
+    return decode_tree(parse_json(metadata[_TREE].encode(), "shared cache", path), tensors, f"shared cache: {path}")
 
 
 class SharedStore:
@@ -114,10 +132,10 @@ class SharedStore:
         self.root = Path(root)
 
     def _round_path(self, key: str, view_round: int) -> Path:
-        return self.root / "views" / key / f"round_{view_round:05d}.pt"
+        return self.root / "views" / key / f"round_{view_round:05d}.safetensors"
 
     def _eval_path(self, key: str) -> Path:
-        return self.root / "eval" / f"{key}.pt"
+        return self.root / "eval" / f"{key}.safetensors"
 
     def write_round(self, cfg: Config, train: ObjectDataset, view_round: int) -> Path:
         """Render every object of ``train`` in ``view_round`` into one file (kept if already there)."""
@@ -131,14 +149,14 @@ class SharedStore:
         path = self._round_path(key, view_round)
         if not path.exists():
             return None
-        return _batch(load_own(path, mmap=True))
+        return _batch(_load(path, mapped=True))
 
     def eval_set(self, cfg: Config, val: ObjectDataset, train: ObjectDataset) -> EvalSet:
         """The evaluation set of ``cfg`` (:func:`cdm.evaluate.build_eval_set`), read when stored, else built and
         stored."""
         path = self._eval_path(eval_key(cfg, val, train))
         if path.exists():
-            d = load_own(path, mmap=False)
+            d = _load(path, mapped=False)
             return EvalSet([_batch(b) for b in d["batches"]], d["fingerprint"], d["baseline_metrics"],
                            d["baseline_rows"], d.get("baseline_clouds", {}))
         built = build_eval_set(cfg, val, train, cfg.eval.seed)

@@ -59,7 +59,7 @@ class Callback:
         """After each evaluation: ``eval/*`` and ``baseline/*`` metrics, PLY/PNG/CSV files written."""
 
     def on_checkpoint(self, step: int, path: Path) -> None:
-        """A complete checkpoint directory (holding ``checkpoint.pt``) was written at ``path``."""
+        """A complete checkpoint folder (:mod:`cdm.checkpoint`) was written at ``path``."""
 
     def should_stop(self) -> bool:
         """Polled every step; ``True`` ends training after the current step (no final evaluation)."""

@@ -66,6 +66,8 @@ COMMANDS: dict[str, tuple[str, Command]] = {
     "check-data": (_MODEL, Command("cdm.__main__", "check that ground-truth clouds project into their masks",
                                    "check-data")),
     "fields": (_MODEL, Command("cdm.__main__", "list every config field with its default", "fields")),
+    "convert": (_MODEL, Command("cdm.__main__", "rewrite a cdm 0.1.0 checkpoint.pt as a safetensors checkpoint",
+                                "convert")),
     "export-views": (_TOOLS, Command("cdm.tools.export_views", "write the images a config's data set shows the model")),
     "estimate-depth": (_TOOLS, Command("cdm.tools.estimate_depth",
                                        "write depth maps with DINOv2's DPT head or Depth Anything")),

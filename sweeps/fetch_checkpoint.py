@@ -4,7 +4,7 @@
 MLflow keeps them: MLflow resolves the URI (``runs:/``, ``models:/<name>/<version>`` of the registry, or the
 artifact store's own ``s3://…``, ``mlflow-artifacts:/…``) against ``MLFLOW_TRACKING_URI`` and downloads the files
 into a temporary folder. A trial's MLflow model (:mod:`sweeps.mlflow_model`) holds its checkpoint as an artifact,
-which the command reads, as any local checkpoint, through the project's inert reader
+which the command reads, as any local checkpoint, as safetensors and JSON
 (:func:`cdm.checkpoint.load_checkpoint`); a URI naming a checkpoint folder itself is read as it is. The model
 library itself knows nothing of MLflow (docs/ARCHITECTURE.md): ``python -m cdm`` refuses a URI in one line that
 names this command.

@@ -106,7 +106,7 @@ def _msn(inputs: Path) -> str | None:
 
 def _status(args: argparse.Namespace, views: Path, prepared: Path) -> None:
     """What is done and what remains, before anything runs."""
-    shards = sum(1 for _ in prepared.rglob("*.shard")) if prepared.is_dir() else 0
+    shards = sum(1 for _ in prepared.rglob("*.safetensors")) if prepared.is_dir() else 0
     maps = sum(1 for _ in Path(args.depth_out).rglob("*.npy")) if Path(args.depth_out).is_dir() else 0
     print(
         f"MSN weights: {'present' if (Path(args.inputs) / MSN_FILE).is_file() else 'missing'}; "

@@ -376,8 +376,9 @@ def _digest_file(sweep_dir: str) -> Path:
 
 
 def _tune_state_digests(sweep_dir: str) -> dict[str, str]:
-    """SHA-256 of every file of the sweep folder Tune may unpickle: all but the checkpoints' contents (read
-    as tensors and plain data by :func:`cdm.io.torch.load_tensors`), keyed by their path below the folder."""
+    """SHA-256 of every file of the sweep folder Tune may unpickle: all but the checkpoints' contents
+    (safetensors and JSON, read by :func:`cdm.checkpoint.load_checkpoint`: nothing there is unpickled), keyed
+    by their path below the folder."""
     from pyarrow import fs
 
     filesystem, root = fs.FileSystem.from_uri(sweep_dir)

@@ -5,14 +5,16 @@ line naming the file and the field, no traceback."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import pytest
 import torch
 
-from cdm.checkpoint import Checkpoint, load_network, save_checkpoint
+from cdm.checkpoint import CHECKPOINT_FILE, Checkpoint, load_checkpoint, load_network, save_checkpoint
 from cdm.config import load_config
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
 from cdm.model import CDMNetwork
@@ -88,13 +90,53 @@ def test_a_cdm_checkpoint_with_bad_weights_is_refused_in_one_line(tmp_path):
         model[first] = model[first].clone().fill_(float("nan"))
         return model
 
-    _cdm_checkpoint(tmp_path / "int_key", lambda m: {**m, 7: torch.zeros(1)})
     _cdm_checkpoint(tmp_path / "nan", nan_first)
     first = next(iter(CDMNetwork(load_config(None, {}).model, 1).state_dict()))
-    for name, needle in (("int_key", "('model') holds a weight under the key 7 (int)"),
-                         ("nan", f"('model') holds NaN in weight '{first}'")):
-        assert_refused(run_command(["-m", "cdm", "evaluate", "--checkpoint", name, *SETS], tmp_path),
-                       f"error: checkpoint: {name}/checkpoint.pt {needle}")
+    assert_refused(run_command(["-m", "cdm", "evaluate", "--checkpoint", "nan", *SETS], tmp_path),
+                   f"error: checkpoint: nan/model.safetensors holds NaN in weight '{first}'")
+    with pytest.raises(ValueError, match=r"^train.out_dir: a tensor's name is 7 \(int\); safetensors names are "
+                                         "strings$"):
+        _cdm_checkpoint(tmp_path / "int_key", lambda m: {**m, 7: torch.zeros(1)})
+
+
+def _damaged(raw: bytes) -> dict[str, bytes]:
+    """A model.safetensors damaged each way a header can be, by the clause its refusal names."""
+    length = int.from_bytes(raw[:8], "little")
+    header, data = raw[8:8 + length], raw[8 + length:]
+    first = next(end for begin, end in (e["data_offsets"] for e in json.loads(header).values()
+                                         if "data_offsets" in e) if begin == 0)
+
+    def edited(old: bytes, new: bytes) -> bytes:  # the header's length prefix kept true
+        changed = header.replace(old, new, 1)
+        return len(changed).to_bytes(8, "little") + changed + data
+
+    return {
+        "its tensors end at byte": raw[:-100],  # truncated in the weights
+        "shorter than its header's length": raw[:5],
+        "its header says 18446744073709551615 bytes": b"\xff" * 8 + raw[8:],  # oversized
+        "is not JSON": edited(b'"', b"{"),  # malformed
+        "has dtype 'F99'": edited(b'"F32"', b'"F99"'),
+        "spans": edited(b'"shape":[', b'"shape":[2,'),
+        "the tensors overlap or leave a gap": edited(b'"data_offsets":[0,%d]' % first,
+                                                     b'"data_offsets":[4,%d]' % (first + 4)),
+    }
+
+
+def test_a_truncated_oversized_or_malformed_safetensors_header_is_a_value_error_naming_the_file(tmp_path):
+    good = _cdm_checkpoint(tmp_path / "good", lambda m: m).parent
+    raw = (good / "model.safetensors").read_bytes()
+    for clause, damaged in _damaged(raw).items():
+        folder = tmp_path / re.sub(r"[^a-z]+", "_", clause)
+        shutil.copytree(good, folder)
+        (folder / "model.safetensors").write_bytes(damaged)
+        with pytest.raises(ValueError, match=rf"^checkpoint: {re.escape(str(folder / 'model.safetensors'))}.*"
+                                             rf"{re.escape(clause)}"):
+            load_checkpoint(folder)
+    (good / CHECKPOINT_FILE).write_text(json.dumps({**json.loads((good / CHECKPOINT_FILE).read_text()),
+                                                    "ema": "../../elsewhere.safetensors"}))
+    with pytest.raises(ValueError, match=rf"^checkpoint: .*good/{CHECKPOINT_FILE}: its 'ema' is "
+                                         r"'\.\./\.\./elsewhere\.safetensors'; expected ema\.safetensors$"):
+        load_checkpoint(good)
 
 
 def test_a_cdm_checkpoint_whose_weights_its_config_cannot_build_names_the_file_and_a_weight(tmp_path):

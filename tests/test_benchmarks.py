@@ -187,7 +187,7 @@ def test_cpu_modes_train_each_mode_in_its_own_process_with_its_pins():
 
 
 def test_kornia_ops_rows_name_each_comparison_and_agree_in_value():
-    """``benchmarks/kornia_ops.py --quick``: the former torch distance transform, kornia's projection,
+    """``benchmarks/kornia_ops.py --quick``: OpenCV's distance transform, kornia's projection,
     footprint filter and erosion give our values (float rounding); kornia's Canny is another detector."""
     from benchmarks.kornia_ops import kornia_ops
 

@@ -38,6 +38,7 @@ PURPOSE = {
     "benchmarks/gpu_check.py": "One device script: every figure a cluster user needs for the paper profile",
     "benchmarks/step_ops.py": "Ops dispatched per pvcnn2 training step, and per point operation",
     "benchmarks/model_logging.py": "What a trial pays per checkpoint to log its weights",
+    "benchmarks/checkpoint_load.py": "Loading a training checkpoint: 0.1.0's",
     "benchmarks/lean_step.py": "The local training step, this tree ÷ the tree at a base revision, side by side",
     "docs/screenshots.py": "Take the README's pictures of a finished sweep",
     "docs/cli.py": "Write docs/cli.md from the parsers of every cdm-lab command",

@@ -293,7 +293,7 @@ def test_fp16_loss_scale_travels_with_the_checkpoint(tmp_path):
 
 
 def test_mask_distance_transform_and_the_front_layer_minimum_match_the_cpu():
-    """The distance transform goes through OpenCV on the CPU and comes back on the mask's device; the
+    """The distance transform gives the CPU's values on CUDA; the
     window minimum runs ``max_pool2d`` on CUDA and kornia's erosion on the CPU: the same values."""
     from cdm.model.conditioning import mask_distance_transform
     from cdm.render import _window_min

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 
 import pytest
 import torch
@@ -91,7 +92,7 @@ def test_prepared_root_serves_a_smaller_image_size_with_the_same_cameras(trees, 
 def test_prepare_resumes_and_never_leaves_partial_files(trees, tmp_path, capsys):
     out = tmp_path / "prepared"
     assert _prepare("shapenet_r2n2", trees["shapenet_r2n2"], out) == 0
-    shards = sorted(out.rglob("*.shard"))
+    shards = sorted(out.rglob("*.safetensors"))
     assert len(shards) == 6 and (out / MANIFEST).is_file()  # 2 categories × (2 train + 1 val)
     stamps = {p: p.stat().st_mtime_ns for p in shards}
     shards[0].unlink()
@@ -117,10 +118,11 @@ def test_damaged_or_mismatched_prepared_roots_are_named(trees, tmp_path):
         build_dataset(_cfg("shapenet_r2n2", out), "train")
     with pytest.raises(ValueError, match="data.eval_split: .* prepared with splits"):
         build_dataset(_cfg("co3d", out, **{"data.eval_split": "test"}), "val")
-    shard = min((out / "train").rglob("*.shard"))
-    truncated = shard.with_name("cut.shard")
+    shard = min((out / "train").rglob("*.safetensors"))
+    truncated = shard.with_name("cut.safetensors")
     truncated.write_bytes(shard.read_bytes()[:4000])
-    with pytest.raises(ValueError, match=f"{truncated} is truncated"):
+    with pytest.raises(ValueError, match=rf"^data.root: {re.escape(str(truncated))}: its tensors end at byte [0-9]+, "
+                       r"the file at 4000 \(cut short.*rerun `python -m cdm prepare`$"):
         read_shard(truncated)
     shard.unlink()
     with pytest.raises(ValueError, match=r"incomplete: 1 of 4 shards missing .* run the same `python -m cdm prepare`"):

@@ -266,7 +266,7 @@ def test_corrupt_image_exits_2_naming_it_and_leaves_no_partial_shard(tree, tmp_p
     err = capsys.readouterr().err
     last = err.splitlines()[-1]  # after the progress bar, one error line
     assert last.startswith("error: data.root: cannot read image") and str(png) in last and err.count("error:") == 1
-    shards = sorted(out.rglob("*.shard"))
+    shards = sorted(out.rglob("*.safetensors"))
     assert len(shards) == 1 and not list(out.rglob(".*tmp*"))  # the object before it is complete; nothing half-written
 
 

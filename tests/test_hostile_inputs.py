@@ -55,7 +55,7 @@ def _prepare(root, tmp_path, kind="co3d", *extra, timeout=120, env=None):
 
 def _nothing_escaped(tmp_path, name):
     assert not list(tmp_path.rglob(f"{name}*")), list(tmp_path.rglob(f"{name}*"))
-    assert not os.path.lexists(f"/{name}.shard")
+    assert not os.path.lexists(f"/{name}.safetensors")
 
 
 # --- paths from annotations ---------------------------------------------------------------------------
@@ -258,7 +258,7 @@ def test_an_annotation_file_that_is_a_fifo_is_refused_not_waited_on(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind,said", [("fifo", "is a FIFO"), ("dev_zero", "is a character device")])
 def test_a_checkpoint_that_is_a_fifo_or_dev_zero_is_refused_not_read(tmp_path, kind, said):
-    path = tmp_path / "checkpoint.pt"
+    path = tmp_path / "checkpoint.json"
     if kind == "fifo":
         os.mkfifo(path)
     else:

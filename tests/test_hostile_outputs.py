@@ -70,7 +70,7 @@ def test_a_prepared_folder_resumes_removing_only_its_own_leftovers(co3d, tmp_pat
     out = tmp_path / "prepared"
     first = _prepare(co3d, out, tmp_path)
     assert first.code == 0, first.stderr[-2000:]
-    shards = sorted(out.rglob("*.shard"))
+    shards = sorted(out.rglob("*.safetensors"))
     assert len(shards) == 2 and not list((out / SCRATCH).iterdir())
     shards[0].unlink()
     leftover = out / SCRATCH / f".{shards[0].name}.tmp-00112233445566ff"  # what a killed run of prepare leaves
@@ -90,7 +90,7 @@ def test_prepare_refuses_a_scratch_folder_that_is_a_link(co3d, tmp_path):
     out = tmp_path / "prepared"
     assert _prepare(co3d, out, tmp_path).code == 0
     elsewhere = tmp_path / "elsewhere"
-    victim = _foreign_folder(elsewhere).with_name(".a.shard.tmp-0123456789abcdef")
+    victim = _foreign_folder(elsewhere).with_name(".a.safetensors.tmp-0123456789abcdef")
     victim.write_text("mine")
     (out / SCRATCH).rmdir()
     (out / SCRATCH).symlink_to(elsewhere)

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from cdm.checkpoint import load_checkpoint
 from cdm.config import ModelConfig, load_config
 from cdm.data import build_dataset
 from cdm.data.priors2d import PRIOR_2D_CHANNELS
@@ -123,9 +124,9 @@ def test_pc2s_checkpoint_in_the_legacy_format_evaluates_and_fine_tunes(tmp_path)
     trained = run_command(["-m", "cdm", "train", "--init-from", str(path), *SETS,
                            *[arg for pair in extra for arg in ("--set", pair)]], tmp_path, timeout=300)
     assert trained.code == 0 and "done at step 1" in trained.stdout, trained.stderr[-2000:]
-    saved = load_tensors(tmp_path / "run" / "checkpoints" / "step_0000001" / "checkpoint.pt", "c", "c", "")
+    saved = load_checkpoint(tmp_path / "run" / "checkpoints" / "step_0000001")
     stem = "sa_layers.0.0.point_features.layers.0.weight"
-    assert (saved["model"][f"denoiser.{stem}"] - model[f"point_cloud_model.model.{stem}"]).abs().max() < 1e-2
+    assert (saved.model[f"denoiser.{stem}"] - model[f"point_cloud_model.model.{stem}"]).abs().max() < 1e-2
 
 
 def _past_the_cap() -> bytes:

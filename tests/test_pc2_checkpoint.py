@@ -3,6 +3,7 @@ key for key, scored and fine-tuned in one command; a cfg carrying a payload refu
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -14,10 +15,9 @@ import pytest
 import torch
 
 from cdm.__main__ import main
-from cdm.checkpoint import load_network
+from cdm.checkpoint import load_checkpoint, load_network
 from cdm.config import ConfigError, load_config, parse_override
 from cdm.diffusion import SamplerSettings
-from cdm.io.torch import load_tensors
 from cdm.pc2_checkpoint import PC2_DEFAULTS, is_pc2_checkpoint, read_pc2_checkpoint
 from tests.pc2_files import PC2_CFG, write_pc2_checkpoint
 
@@ -242,7 +242,7 @@ def test_train_init_from_fine_tunes_from_the_weights_not_the_optimizer(pc2_file,
     out = capsys.readouterr().out
     assert "the file's optimizer, scheduler and step are not loaded (a fresh AdamW, warm-up and step 0)" in out
     assert "done at step 2" in out
-    ckpt = load_tensors(tmp_path / "run" / "checkpoints" / "step_0000002" / "checkpoint.pt", "c", "CDM checkpoint", "")
+    ckpt = dataclasses.asdict(load_checkpoint(tmp_path / "run" / "checkpoints" / "step_0000002"))
     assert ckpt["step"] == 2 and ckpt["config"]["model"]["init_from"] == str(path)
     moved = [k for k, v in ckpt["model"].items() if k.startswith("denoiser.")
              and not torch.equal(v, model[f"point_cloud_model.model.{k.removeprefix('denoiser.')}"])]

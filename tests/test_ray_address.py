@@ -123,7 +123,7 @@ def test_a_signal_ends_prepare_part_way_with_nothing_half_written(signum, co3d, 
     out = tmp_path / "prepared"
     proc = start_command(["-m", "cdm", "prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out),
                    "--set", "data.image_size=32"])
-    _wait_for(lambda: any(out.rglob("*.shard")), "a shard written")
+    _wait_for(lambda: any(out.rglob("*.safetensors")), "a shard written")
     code, err = stop_command(proc, signum)
     assert code == 130 and "interrupted: cdm-lab prepare stopped" in err, err[-2000:]
     assert "Traceback" not in err
@@ -132,7 +132,7 @@ def test_a_signal_ends_prepare_part_way_with_nothing_half_written(signum, co3d, 
                          "--set", "data.image_size=32"], ROOT)
     assert rerun.code == 0, rerun.stderr[-2000:]
     written, kept = (int(n) for n in _counts(rerun.stdout))
-    assert kept >= 1 and written + kept == len(list(out.rglob("*.shard")))  # each shard there was whole
+    assert kept >= 1 and written + kept == len(list(out.rglob("*.safetensors")))  # each shard there was whole
 
 
 def _running(pid: int) -> str:

@@ -201,16 +201,14 @@ def test_a_child_run_keeps_its_last_checkpoints_weights_for_inference_as_its_mlf
     folder = Path(mlflow.artifacts.download_artifacts(run.data.tags["model"], dst_path=str(tmp_path / "down")))
     info = Model.load(str(folder))
     assert info.metadata == {"step": 20, "git_commit": "abc", "config_hash": "0123"} and info.run_id == trial.run_id
-    model = load_checkpoint(model_checkpoint(folder))  # the project's inert reader
+    model = load_checkpoint(model_checkpoint(folder))  # safetensors and JSON
     assert model.step == 20 and torch.equal(model.model["layer.weight"], weights[20])
     assert torch.equal(model.weights["layer.weight"], weights[20] / 2)  # EMA: what evaluation samples with
     assert (model.optimizer, model.scheduler, model.generator) == (None, None, None)
     assert "out_dir" not in model.config["train"]  # the scratch folder is no part of the record
-
-    def size(f: Path) -> int:
-        return sum(p.stat().st_size for p in f.rglob("*") if p.is_file())
-
-    assert size(model_checkpoint(folder)) < size(tmp_path / "step_20")
+    checkpoint = model_checkpoint(folder)
+    assert sorted(p.name for p in checkpoint.iterdir()) == ["checkpoint.json", "ema.safetensors", "model.safetensors"]
+    assert (tmp_path / "step_20" / "training.safetensors").is_file()  # the full checkpoint keeps the optimiser
 
 
 def test_a_child_run_is_tagged_with_its_machine_and_holds_its_package_list(tmp_path):

@@ -135,24 +135,18 @@ def test_resume_accepts_auto_resolved_to_the_same_backend_and_refuses_other_math
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
-    bad = tmp_path / "checkpoint.pt"
-    bad.write_bytes(b"not a checkpoint")  # not torch's format at all: said so, not called pickled objects
-    with pytest.raises(
-        ValueError, match=r"checkpoint: .*checkpoint\.pt is not a readable CDM checkpoint: not in torch's file format"
-    ):
+    bad = tmp_path / "checkpoint.json"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match=r"^checkpoint: .*checkpoint\.json is not JSON"):
         load_checkpoint(tmp_path)
-    torch.save(
-        {"step": 0, "model": argparse.Namespace(code=1)}, bad
-    )  # weights_only refuses it, in our words (issue 23)
-    with pytest.raises(
-        ValueError,
-        match=r"checkpoint: .*checkpoint\.pt holds Python objects other than tensors and plain data; refused",
-    ) as err:
+    bad.write_text('{"format": "cdm-checkpoint/2", "config": {}, "step": 0, "voxel_backend": "dense", '
+                   '"model": "model.safetensors"}')
+    with pytest.raises(ValueError, match=r"^checkpoint: .*model\.safetensors does not exist$"):
         load_checkpoint(tmp_path)
-    assert "weights_only" not in str(err.value)
-    torch.save({"step": 0, "model": torch.zeros(1000)}, bad)
-    bad.write_bytes(bad.read_bytes()[:600])  # a truncated archive: torch cannot open it at all
-    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt is not a readable CDM checkpoint"):
+    bad.unlink()
+    torch.save({"step": 0, "model": argparse.Namespace(code=1)}, tmp_path / "checkpoint.pt")  # what 0.1.0 wrote
+    with pytest.raises(ValueError, match=r"checkpoint: .*checkpoint\.pt was written by cdm 0\.1\.0 \(torch\.save\); "
+                                         r"convert it once with `cdm-lab convert"):
         load_checkpoint(tmp_path)
 
 

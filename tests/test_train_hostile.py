@@ -11,8 +11,7 @@ import pytest
 import torch
 import yaml
 
-from cdm.checkpoint import CHECKPOINT_FILE
-from cdm.io.torch import load_tensors
+from cdm.checkpoint import CHECKPOINT_FILE, Checkpoint, load_checkpoint, save_checkpoint
 from tests.conftest import TINY
 from tests.hostile_files import Outcome, assert_refused, run_command
 
@@ -34,7 +33,7 @@ def trained(tmp_path_factory) -> tuple[Path, dict]:
     done = _train(tmp, tmp / "run")
     assert done.code == 0, done.stderr[-2000:]
     folder = tmp / "run" / "checkpoints" / "step_0000002"
-    return folder, load_tensors(folder / CHECKPOINT_FILE, "c", "CDM checkpoint", "")
+    return folder, vars(load_checkpoint(folder))
 
 
 def _first_group(state: dict) -> dict:
@@ -75,8 +74,7 @@ def test_a_hostile_optimiser_or_scheduler_is_one_line_naming_the_file_and_trains
     changed = {**state, "optimizer": _copy(state["optimizer"]), "scheduler": _copy(state["scheduler"])}
     damage(changed)
     file = tmp_path / "resume" / CHECKPOINT_FILE
-    file.parent.mkdir()
-    torch.save(changed, file)
+    save_checkpoint(Checkpoint(**changed), file.parent)
     outcome = _train(tmp_path, tmp_path / "out", "--resume", str(file.parent), steps=4)
     assert_refused(outcome, f"error: resume: {file}: ", message)
     assert not (tmp_path / "out" / "checkpoints").exists() and "step 3" not in outcome.stdout
@@ -103,7 +101,7 @@ def _outside(tmp_path: Path) -> tuple[Path, dict[str, bytes]]:
     outside = tmp_path / "elsewhere"
     (outside / "step_0000001").mkdir(parents=True)
     (outside / "precious.txt").write_bytes(b"someone's data\n")
-    (outside / "step_0000001" / "checkpoint.pt").write_bytes(b"someone's checkpoint\n")
+    (outside / "step_0000001" / CHECKPOINT_FILE).write_bytes(b"someone's checkpoint\n")
     return outside, _listing(outside)
 
 

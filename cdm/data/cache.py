@@ -3,26 +3,25 @@
 ``python -m cdm prepare --set data.kind=KIND --root RAW --out OUT`` (:mod:`cdm.data.prepare`) reads every
 object of the training split and of ``data.eval_split`` once and writes
 
-- ``OUT/<published split>/<object_id>.shard``: the object's cloud and sequence cameras in the data set's
-  frame (:mod:`cdm.normalise`) and every input view of the split already cropped and resized
+- ``OUT/<published split>/<object_id>.safetensors``: the object's shard: its cloud and sequence cameras in
+  the data set's frame (:mod:`cdm.normalise`) and every input view of the split already cropped and resized
   (``data.image_size``, 224 by default):
   RGB and mask as uint8, depth as the published float16 values with their scale, and the crop camera;
 - ``OUT/cdm_prepared.json``: the manifest (kind, image size, categories, objects per split);
 - ``OUT/.cdm_prepare_scratch/``: the temporary files of shards being written (:data:`SCRATCH`).
 
-A shard is one file: 8 magic bytes, a little-endian uint64 header length, a JSON header (``meta`` and
-each array's dtype, shape and offset), then the arrays, each aligned to 64 bytes. Reading maps the
-file and copies only the view asked for, so a sample costs one small read instead of decoding a
-JPEG, a PNG mask, a 16-bit depth PNG and a PLY. Every file is written under a temporary name and
-renamed when complete (a crash leaves no half-written shard); preparing again skips finished
-shards and empties the scratch folder of what a killed run left, so an interrupted run resumes.
+A shard is one safetensors file (:mod:`cdm.io.safetensors`): the arrays as its tensors, ``meta`` as JSON
+and the format in its metadata (``cdm.meta``, ``cdm.format``). Reading maps the file and copies only
+the view asked for, so a sample costs one small read instead of decoding a JPEG, a PNG mask, a 16-bit
+depth PNG and a PLY. Every file is written under a temporary name and renamed when complete (a crash
+leaves no half-written shard); preparing again skips finished shards and empties the scratch folder of
+what a killed run left, so an interrupted run resumes.
 Point ``data.root`` at ``OUT`` to train from it.
 """
 
 from __future__ import annotations
 
 import json
-import mmap
 from functools import lru_cache
 from pathlib import Path
 from typing import NamedTuple
@@ -34,10 +33,9 @@ from torch import Tensor
 from cdm.cameras import Cameras
 from cdm.data.lru import ByteLRU
 from cdm.data.views import interleave
-from cdm.io.files import MAX_TEXT_BYTES, open_regular
 from cdm.io.json import parse_json, read_json
 from cdm.io.names import object_id_parts
-from cdm.io.write import write_atomic
+from cdm.io.safetensors import read_safetensors, write_safetensors
 
 __all__ = [
     "DECODED",
@@ -45,6 +43,7 @@ __all__ = [
     "FORMAT",
     "MANIFEST",
     "SCRATCH",
+    "SHARD_SUFFIX",
     "ObjectRecord",
     "PreparedRoot",
     "ViewImages",
@@ -55,16 +54,18 @@ __all__ = [
 
 MANIFEST = "cdm_prepared.json"
 """Name of the manifest file that marks a prepared root."""
-FORMAT = 2
-"""Version of the manifest and shards; 2: clouds and cameras in the data set's frame, not the object's box
-(roots of format 1 are refused: prepare them again)."""
+FORMAT = 3
+"""Version of the manifest and shards; 2: clouds and cameras in the data set's frame, not the object's box;
+3: shards in safetensors (roots of earlier formats are refused: prepare them again)."""
+SHARD_SUFFIX = ".safetensors"
+"""A shard's file name is its object id and this."""
 SCRATCH = ".cdm_prepare_scratch"
 """Folder in a prepared root holding the temporary files of shards being written: the only place
 ``prepare`` removes files it finds (:data:`cdm.io.write.TEMP_NAME` names only)."""
 ESTIMATED_DEPTHS = "estimated_depths"
 """Shard array (and manifest key) of the estimated depth maps stored by ``prepare --depth-maps``."""
-_MAGIC = b"CDMSHRD1"
-_ALIGN = 64
+_META, _FORMAT_KEY = "cdm.meta", "cdm.format"
+_REDO = "delete it and rerun `python -m cdm prepare`"
 
 
 class ObjectRecord(NamedTuple):
@@ -121,25 +122,12 @@ reused worker processes, so later cells find their images here."""
 def write_shard(path: Path, arrays: dict[str, np.ndarray], meta: dict, scratch: Path) -> None:
     """Write one shard (format in the module docstring) atomically, its temporary file in ``scratch``
     (:func:`cdm.io.write.write_atomic`)."""
-    layout, offset = {}, 0
-    for name, array in arrays.items():
-        layout[name] = {"dtype": array.dtype.str, "shape": list(array.shape), "offset": offset}
-        offset += -(-array.nbytes // _ALIGN) * _ALIGN
-    header = json.dumps({"format": FORMAT, "meta": meta, "arrays": layout}).encode()
-    start = -(-(16 + len(header)) // _ALIGN) * _ALIGN
-
-    def write(f) -> None:
-        f.write(_MAGIC + len(header).to_bytes(8, "little") + header)
-        for name, array in arrays.items():
-            f.seek(start + layout[name]["offset"])
-            f.write(np.ascontiguousarray(array).tobytes())
-        f.truncate(start + offset)
-
-    write_atomic(path, write, "--out", scratch=scratch)
+    write_safetensors(path, {name: torch.from_numpy(np.ascontiguousarray(a)) for name, a in arrays.items()},
+                      {_FORMAT_KEY: str(FORMAT), _META: json.dumps(meta)}, "--out", scratch=scratch)
 
 
 class Shard(NamedTuple):
-    """A shard's ``meta`` and its arrays (read-only views of the mapped file)."""
+    """A shard's ``meta`` and its arrays (views of the mapped file)."""
 
     meta: dict
     arrays: dict[str, np.ndarray]
@@ -147,32 +135,14 @@ class Shard(NamedTuple):
 
 @lru_cache(maxsize=64)
 def read_shard(path: Path) -> Shard:
-    """Map one shard; ValueError naming the file if it is not a complete shard."""
+    """Map one shard; ValueError naming the file if it is not a complete shard of this format."""
     try:
-        with open_regular(path, "data.root") as f:
-            head = f.read(16)
-            if len(head) != 16 or head[:8] != _MAGIC:
-                raise ValueError(
-                    f"data.root: {path} is not a CDM shard (bad magic); delete it and rerun `python -m cdm prepare`"
-                )
-            length = int.from_bytes(head[8:], "little")
-            if length > MAX_TEXT_BYTES:
-                raise ValueError(
-                    f"data.root: {path} has a header of {length} bytes; delete it and rerun `python -m cdm prepare`"
-                )
-            header = parse_json(f.read(length), "data.root", path)
-            buffer = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except OSError as exc:
-        raise ValueError(f"data.root: cannot read shard {path}: {exc.strerror}") from None
-    start = -(-(16 + length) // _ALIGN) * _ALIGN
-    arrays = {}
-    for name, spec in header["arrays"].items():
-        dtype, shape = np.dtype(spec["dtype"]), tuple(spec["shape"])
-        count = int(np.prod(shape))
-        if start + spec["offset"] + count * dtype.itemsize > len(buffer):
-            raise ValueError(f"data.root: {path} is truncated; delete it and rerun `python -m cdm prepare`")
-        arrays[name] = np.frombuffer(buffer, dtype, count, start + spec["offset"]).reshape(shape)
-    return Shard(header["meta"], arrays)
+        tensors, metadata = read_safetensors(path, "data.root", mapped=True)
+    except ValueError as exc:
+        raise ValueError(f"{exc}; {_REDO}") from None
+    if metadata.get(_FORMAT_KEY) != str(FORMAT) or _META not in metadata:
+        raise ValueError(f"data.root: {path} is not a CDM shard of format {FORMAT}; {_REDO}")
+    return Shard(parse_json(metadata[_META].encode(), "data.root", path), {k: t.numpy() for k, t in tensors.items()})
 
 
 def _cameras(arrays: dict[str, np.ndarray], prefix: str, index: int | slice = slice(None)) -> Cameras:
@@ -212,7 +182,7 @@ class PreparedRoot:
         return cls(root, manifest)
 
     def shard_path(self, published: str, object_id: str) -> Path:
-        return self.root / published / f"{object_id}.shard"
+        return self.root / published / f"{object_id}{SHARD_SUFFIX}"
 
     def objects(self, published: str, categories: tuple[str, ...]) -> list[tuple[str, str]]:
         """``(category, object_id)`` of split ``published`` in ``categories``, interleaved; every shard must exist."""

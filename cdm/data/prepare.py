@@ -22,6 +22,7 @@ from cdm.data.cache import (
     FORMAT,
     MANIFEST,
     SCRATCH,
+    SHARD_SUFFIX,
     ObjectRecord,
     ViewImages,
     is_prepared,
@@ -189,7 +190,7 @@ def shard_path(prep: Preparation, split: int, index: int) -> Path:
     resolved path, before a write."""
     ds = prep.splits[split]
     object_id = ds.objects[index].object_id
-    path = prep.out / ds.published / f"{object_id}.shard"
+    path = prep.out / ds.published / f"{object_id}{SHARD_SUFFIX}"
     if not path.resolve().is_relative_to(prep.out.resolve()):
         raise ValueError(f"--out: object {object_id[:200]!r} would be written to {path.resolve()}, outside {prep.out}; "
                          "refused (its name comes from the data set's annotations)")

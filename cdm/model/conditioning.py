@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -44,11 +42,12 @@ def conditioning_channels(feature_dim: int, prior_2d_channels: int, mask_channel
 def mask_distance_transform(mask: Tensor) -> Tensor:
     """Exact Euclidean distance from each pixel to the nearest foreground pixel, divided by ``S``.
 
-    PC² feeds this channel so points just outside the silhouette know how far out they are, and computes
-    it with OpenCV's ``distanceTransform`` of the background, as here (``DIST_L2`` with ``DIST_MASK_PRECISE``:
-    exact, Felzenszwalb and Huttenlocher's linear-time passes), on the CPU, image by image. 2.7× faster
-    than the former pure-torch ``O(S³)`` passes at 32²–64², 12.6× at 224² (``benchmarks/RESULTS.md``,
-    "kornia and OpenCV (issue 59)"). A mask on another device is copied to the CPU and the result back.
+    PC² feeds this channel (OpenCV's ``distanceTransform`` of the background) so points just outside
+    the silhouette know how far out they are. Computed in pure torch in two exact passes: along rows
+    by cumulative max/min of foreground column indices, then ``d²(i, j) = min_k (i − k)² + g(k, j)²``
+    over rows (``O(S³)`` per image). OpenCV's precise transform is 2.7–12.6× faster but returned
+    different values for the same mask from one call to the next inside training, so a training no
+    longer repeated bit for bit (``benchmarks/RESULTS.md``, "kornia and OpenCV (issue 59)").
 
     Args:
         mask: ``(B, 1, S, S)`` foreground where ``> 0.5``.
@@ -59,13 +58,23 @@ def mask_distance_transform(mask: Tensor) -> Tensor:
     """
     if mask.ndim != 4 or mask.shape[1] != 1 or mask.shape[2] != mask.shape[3]:
         raise ValueError(f"mask must be (B, 1, S, S), got shape {tuple(mask.shape)}")
-    background = (mask[:, 0] <= 0.5).to(device="cpu", dtype=torch.uint8).numpy()  # (B, S, S), 1 off the object
-    s = background.shape[-1]
-    dist = np.full(background.shape, math.sqrt(2.0) * s, dtype=np.float32)
-    for image, out in zip(background, dist):
-        if not image.all():  # OpenCV measures to the nearest 0 pixel: without one there is nothing to measure
-            out[...] = cv2.distanceTransform(image, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return torch.from_numpy(dist / s)[:, None].to(device=mask.device, dtype=mask.dtype)
+    fg = mask[:, 0] > 0.5
+    s = fg.shape[-1]
+    idx = torch.arange(s, device=mask.device)
+    far = 2 * s  # farther than any distance inside the image
+    left = torch.where(fg, idx, -far).cummax(dim=2).values  # last foreground column <= j
+    right = torch.where(fg, idx, s + far).flip(2).cummin(dim=2).values.flip(2)  # first one >= j
+    g2 = torch.minimum(idx - left, right - idx).to(torch.float32).square()  # (B, S_k, S_j)
+    di2 = (idx[:, None] - idx[None, :]).to(torch.float32).square()  # (S_i, S_k)
+    # A running minimum over source rows k keeps the temporaries at (B, S, S); materialising the
+    # (B, S_i, S_k, S_j) sums was 3-9x slower on CPU.
+    d2 = g2.clone()
+    candidate = torch.empty_like(g2)
+    for k in range(s):
+        torch.add(g2[:, k : k + 1, :], di2[None, :, k : k + 1], out=candidate)
+        torch.minimum(d2, candidate, out=d2)
+    dist = torch.where(d2 >= far * far, math.sqrt(2.0) * s, d2.sqrt()) / s
+    return dist[:, None].to(mask.dtype)
 
 
 def conditioning_map(

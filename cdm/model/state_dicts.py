@@ -25,7 +25,7 @@ def checked_state_dict(state: Mapping[Any, Any], label: str) -> dict[str, Tensor
     Args:
         state: what the file holds where its weights belong.
         label: how a refusal starts, the file and the field that named it if any, e.g.
-            ``"checkpoint: /runs/a/checkpoint.pt"``; ``holds …`` follows.
+            ``"checkpoint: /runs/a/model.safetensors"``; ``holds …`` follows.
     Raises:
         ValueError: naming ``label`` and the first key that is not a string, the first value that is not
             a tensor, or the first floating-point tensor holding NaN or ±inf.

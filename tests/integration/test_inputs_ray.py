@@ -68,7 +68,7 @@ def test_shards_made_on_two_nodes_equal_the_one_process_run_byte_for_byte(
     assert inputs.main(["prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out), *SIZE]) == 0
     assert "prepared" in capsys.readouterr().out
     ours, reference = _files(out), _files(one_process)
-    assert len([k for k in reference if k.endswith(".shard")]) == 80
+    assert len([k for k in reference if k.endswith(".safetensors")]) == 80
     assert ours.keys() == reference.keys() and all(ours[k] == reference[k] for k in ours)
 
 
@@ -77,7 +77,7 @@ def test_a_killed_prepare_resumes_without_rewriting_a_finished_shard(two_nodes, 
     args = ["prepare", "--set", "data.kind=co3d", "--root", str(co3d), "--out", str(out), *SIZE]
     driver = _driver(args, two_nodes.address)
     deadline = time.monotonic() + 120
-    while not any(out.rglob("*.shard")) and driver.poll() is None and time.monotonic() < deadline:
+    while not any(out.rglob("*.safetensors")) and driver.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
     os.killpg(driver.pid, signal.SIGKILL)
     driver.wait(timeout=30)
@@ -85,10 +85,10 @@ def test_a_killed_prepare_resumes_without_rewriting_a_finished_shard(two_nodes, 
     count, still = -1, 0.0
     while still < 3.0:
         time.sleep(0.5)
-        now = sum(1 for _ in out.rglob("*.shard"))
+        now = sum(1 for _ in out.rglob("*.safetensors"))
         still, count = (still + 0.5, now) if now == count else (0.0, now)
     assert 0 < count < 80, f"the kill landed after {count} of 80 shards"
-    finished = {p: p.stat().st_mtime_ns for p in out.rglob("*.shard")}
+    finished = {p: p.stat().st_mtime_ns for p in out.rglob("*.safetensors")}
 
     rerun = _driver(args, two_nodes.address)
     stdout, stderr = rerun.communicate(timeout=300)
@@ -115,7 +115,7 @@ def test_a_bad_object_fails_alone_and_is_named(two_nodes, co3d, tmp_path):
     failed = [line for line in stderr.splitlines() if line.startswith("failed: ")]
     assert len(failed) == 1 and f"co3d/hydrant/{sequence}" in failed[0]
     assert "1 failed; the rest is made" in stderr
-    assert sum(1 for _ in out.rglob("*.shard")) == 79
+    assert sum(1 for _ in out.rglob("*.safetensors")) == 79
     assert "Traceback" not in stdout + stderr
 
 

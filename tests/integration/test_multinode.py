@@ -21,7 +21,7 @@ import ray
 import torch
 from mlflow import MlflowClient
 
-from cdm.io.torch import load_tensors
+from cdm.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from sweeps import run
 from sweeps.execute.trial import trial_scratch
 from tests.integration.local_ray import TwoNodes, two_node_cluster
@@ -76,8 +76,8 @@ def test_concurrent_trials_run_on_both_nodes_and_record_no_node_local_path(two_n
         for key, path in paths.items():
             assert Path(path).is_relative_to(sweep_dir) and Path(path).exists(), f"{key} = {path}"
             assert not _node_local(path, two_nodes, sweep_dir, trial_id), f"{key} = {path} is node-local"
-        assert Path(tags["checkpoint"], "checkpoint.pt").is_file()
-        assert "model/checkpoint.pt" in {a.path for a in client.list_artifacts(child.info.run_id, "model")}
+        assert Path(tags["checkpoint"], CHECKPOINT_FILE).is_file()
+        assert f"model/{CHECKPOINT_FILE}" in {a.path for a in client.list_artifacts(child.info.run_id, "model")}
 
 
 def test_two_worker_trial_spans_nodes_and_keeps_ranks_identical(two_nodes, tmp_path):
@@ -102,7 +102,7 @@ profiles: {smoke: {resources: {workers_per_trial: 2, cpus_per_worker: 0.99}}}
     rank1 = sorted((scratch / "rank_1" / "checkpoints").glob("step_*"))
     assert [p.name for p in rank1] == ["step_0000010", "step_0000020"] and len(rank0) == 2
     for a, b in zip(rank0, rank1):
-        sa, sb = (load_tensors(next(c.glob("*.pt")), str(c), "CDM checkpoint", "") for c in (a, b))
+        sa, sb = (vars(load_checkpoint(c)) for c in (a, b))
         assert sa["step"] == sb["step"]
         # Different data per rank (their generators are seeded by rank) ...
         assert not torch.equal(sa["generator"], sb["generator"])

@@ -28,6 +28,7 @@ import pytest
 import ray
 from mlflow import MlflowClient
 
+from cdm.checkpoint import CHECKPOINT_FILE
 from sweeps import run
 from sweeps.execute.trial import trial_scratch
 from sweeps.mlflow_model import model_checkpoint
@@ -95,7 +96,7 @@ def test_every_recorded_path_exists_after_rays_temporary_folder_is_gone(swept):
         assert Path(tags["tune_trial_dir"], "result.json").is_file()
         # The newest Tune checkpoint, in the sweep's storage: the full state, to continue training from.
         assert Path(tags["checkpoint"]).parent == Path(tags["tune_trial_dir"])
-        assert Path(tags["checkpoint"], "checkpoint.pt").is_file()
+        assert Path(tags["checkpoint"], CHECKPOINT_FILE).is_file()
         assert tags["model"] == f"runs:/{child.info.run_id}/model"
         # The scratch folder the trial trained in is gone: its checkpoints are in storage, its files in MLflow.
         assert not trial_scratch(str(swept.folder), tags["trial_id"]).exists()
@@ -116,9 +117,49 @@ def test_each_trial_checkpoint_is_stored_once(swept):
             by_digest.setdefault(hashlib.sha256(path.read_bytes()).hexdigest(), []).append(path)
     copies = [paths for paths in by_digest.values() if len(paths) > 1]
     assert not copies, f"byte-identical copies in the sweep folder: {copies}"
-    checkpoints = sorted(swept.folder.rglob("checkpoint.pt"))
+    checkpoints = sorted(swept.folder.rglob(CHECKPOINT_FILE))
     # Tune's two newest per trial (sweeps/execute/pruning.py), nothing else: no cdm/ copy beside them.
     assert [p.relative_to(swept.folder).parts[1] for p in checkpoints] == ["checkpoint_000000", "checkpoint_000001"] * 2
+
+
+TUNE_STATE = re.compile(r"tuner\.pkl|params\.pkl|basic-variant-state-[0-9_-]+\.json|searcher-state-[0-9_-]+\.pkl"
+                        r"|events\.out\.tfevents\..+")
+"""Ray Tune's own state, which it pickles (docs/security.md, "What --resume trusts"), and its TensorBoard log:
+no weights of ours."""
+
+
+def _is_text(path: Path) -> bool:
+    try:
+        path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+def test_the_sweep_folder_keeps_weights_in_safetensors_and_everything_else_in_text(swept):
+    files = [p for p in swept.folder.rglob("*") if p.is_file()]
+    assert not [p for p in files if p.suffix in (".pt", ".pth", ".bin", ".ckpt")]
+    weights = sorted(p.relative_to(swept.folder) for p in files if p.suffix == ".safetensors")
+    assert {p.name for p in weights} >= {"model.safetensors", "training.safetensors"}
+    other = sorted(str(p.relative_to(swept.folder)) for p in files if p.suffix not in (".safetensors", ".png")
+                   and not _is_text(p) and not TUNE_STATE.fullmatch(p.name))
+    assert other == [], other
+
+
+def test_safetensors_alone_loads_the_childs_weights(swept, tmp_path, monkeypatch):
+    import safetensors.torch
+    import torch
+
+    from cdm.checkpoint import load_checkpoint
+
+    _, _, children = _runs(swept.uri)
+    child = min(children, key=lambda r: r.info.run_name)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", swept.uri)  # where MLflow looks a run's model up
+    # The README's lines, as written there.
+    folder = mlflow.artifacts.download_artifacts(child.data.tags["model"], dst_path=str(tmp_path))
+    weights = safetensors.torch.load_file(f"{folder}/artifacts/checkpoint/model.safetensors")
+    stored = load_checkpoint(Path(child.data.tags["checkpoint"])).model
+    assert weights.keys() == stored.keys() and all(torch.equal(weights[k], v) for k, v in stored.items())
 
 
 def _scores_as_logged(uri: str, checkpoint: str, child, cwd: Path) -> None:
@@ -133,10 +174,6 @@ def _scores_as_logged(uri: str, checkpoint: str, child, cwd: Path) -> None:
     assert abs(float(scores["eval/cd"]) - logged["eval/cd"]) <= 1e-3 * logged["eval/cd"], (scores, logged)
 
 
-def _size(folder: Path) -> int:
-    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
-
-
 def test_evaluate_scores_the_childs_weights_from_its_mlflow_run(swept, tmp_path, monkeypatch):
     _, _, children = _runs(swept.uri)
     child = min(children, key=lambda r: r.info.run_name)
@@ -144,7 +181,10 @@ def test_evaluate_scores_the_childs_weights_from_its_mlflow_run(swept, tmp_path,
     monkeypatch.setenv("MLFLOW_TRACKING_URI", swept.uri)  # where MLflow looks a run's model up
     folder = model_checkpoint(Path(mlflow.artifacts.download_artifacts(child.data.tags["model"],
                                                                        dst_path=str(tmp_path))))
-    assert _size(folder) < _size(Path(child.data.tags["checkpoint"])) / 2  # weights and EMA only: no optimiser state
+    full = Path(child.data.tags["checkpoint"])
+    assert (folder / "model.safetensors").stat().st_size == (full / "model.safetensors").stat().st_size
+    assert not (folder / "training.safetensors").exists()  # weights and EMA only: no optimiser state
+    assert (full / "training.safetensors").is_file()  # the full checkpoint, in storage, keeps it
 
 
 def test_the_best_cells_model_is_registered_and_loads_as_an_mlflow_model(swept, tmp_path, monkeypatch):

@@ -6,10 +6,9 @@ from cdm.io.torch.load import (
                             MAX_PICKLE_OPS,
                             Pickled,
                             load_inert,
-                            load_own,
                             load_tensors,
                             pickle_bytes,
 )
 
-__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_own", "load_tensors",
+__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_tensors",
            "pickle_bytes"]

@@ -1,11 +1,12 @@
 """Torch files a user or a neighbour could have written, read as tensors and plain data only.
 
-This module owns reading pickles: no other module calls ``torch.load``, ``torch.jit.load`` or
-``pickle.load`` (tests/test_read_audit.py walks the code), and this one calls ``torch.load`` once, in
-:func:`load_own`, for files the project wrote into its own cache. The readers of a file a user names open
-the archive themselves (:class:`cdm.io.torch.archive.Archive`: no TorchScript, bounded members; or a
-pre-zip file, :mod:`cdm.io.torch.legacy`) and run one inert unpickler on its pickles; torch's loader never
-sees such a file, so ``torch.jit.load`` cannot be reached:
+This module owns reading pickles, and no module calls ``torch.load``, ``torch.jit.load`` or ``pickle.load``
+(tests/test_read_audit.py walks the code). It reads foreign releases only (PC²'s, PVD's and MSN's weights,
+a depth model's ``*.bin``) and cdm 0.1.0's ``checkpoint.pt`` for ``convert``: the project's own files are
+safetensors and JSON (:mod:`cdm.io.safetensors`). Its readers open the archive themselves
+(:class:`cdm.io.torch.archive.Archive`: no TorchScript, bounded members; or a pre-zip file,
+:mod:`cdm.io.torch.legacy`) and run one inert unpickler on its pickles; torch's loader never sees such a
+file, so ``torch.jit.load`` cannot be reached:
 
 - :func:`load_tensors`: what ``torch.load(weights_only=True)`` reads: tensors, ``OrderedDict``, plain data.
 - :func:`load_inert`: also a pickled config, as PC²'s ``checkpoint-latest.pth`` pickles its OmegaConf ``cfg``
@@ -26,14 +27,12 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-import torch
-
 from cdm.io.files import open_regular
 from cdm.io.torch.archive import MAX_PICKLE_BYTES, Archive, ArchiveError
 from cdm.io.torch.legacy import load_legacy
 from cdm.io.torch.unpickler import CONFIG_CALLS, MAX_NESTING, MAX_PICKLE_OPS, PICKLE_DAMAGE, Pickled, Refused, unpickle
 
-__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_own", "load_tensors",
+__all__ = ["CONFIG_CALLS", "MAX_NESTING", "MAX_PICKLE_OPS", "Pickled", "load_inert", "load_tensors",
            "pickle_bytes"]
 
 
@@ -42,7 +41,7 @@ def load_tensors(file: Path, label: str, kind: str, advice: str) -> Any:
 
     Args:
         file: the torch file.
-        label: how the refusal starts: the field and the path, e.g. ``"checkpoint: /runs/a/checkpoint.pt"``.
+        label: how the refusal starts: the field and the path, e.g. ``"--checkpoint: /runs/pc2/checkpoint-latest.pth"``.
         kind: what an unreadable file is not, e.g. ``"CDM checkpoint"``.
         advice: the sentence after a refusal of pickled objects: what to pass instead.
 
@@ -111,12 +110,4 @@ def _read(file: Path, label: str, kind: str, records: bool) -> Any:
         except PICKLE_DAMAGE as exc:
             # A malformed pickle (a bad opcode, a stack underflow, an unhashable key) is damage, not a payload.
             raise ValueError(f"{label} is not a readable {kind} ({type(exc).__name__}: {exc})") from None
-
-
-def load_own(path: Path, mmap: bool) -> Any:
-    """A file this project wrote itself into its own cache (``cdm.shared``), read by torch's
-    ``weights_only=True`` reader, memory-mapped where ``mmap``: the views it shares between processes are
-    gigabytes, and mapping them is what keeps every worker from holding its own copy. No user names these
-    paths; a file there that is not tensors and plain data is refused by torch's allow-list all the same."""
-    return torch.load(path, mmap=mmap, weights_only=True)
 
