@@ -19,6 +19,7 @@ Nearest neighbours come from one of two searches, same results:
 
 from __future__ import annotations
 
+from functools import cached_property
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -27,8 +28,9 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from cdm.config import F1_THRESHOLD
+from cdm.metric_names import METRICS
 
-__all__ = ["ChamferF1", "chamfer_f1", "nearest_sq_dist"]
+__all__ = ["ChamferF1", "Clouds", "chamfer_f1", "nearest_sq_dist", "scores"]
 
 
 class ChamferF1(NamedTuple):
@@ -100,3 +102,21 @@ def chamfer_f1(
     denom = precision + recall
     f1 = torch.where(denom > 0, 2.0 * precision * recall / denom.clamp(min=1e-12), torch.zeros_like(denom))
     return ChamferF1(cd, f1, precision, recall)
+
+
+class Clouds:
+    """A batch's predicted ``(B, N, 3)`` and true ``(B, M, 3)`` clouds and F1's τ: what every declared metric
+    (:data:`cdm.metric_names.METRICS`) is scored from; :func:`chamfer_f1` runs once, when first read."""
+
+    def __init__(self, pred: Tensor, gt: Tensor, threshold: float = F1_THRESHOLD) -> None:
+        self.pred, self.gt, self.threshold = pred, gt, threshold
+
+    @cached_property
+    def chamfer(self) -> ChamferF1:
+        return chamfer_f1(self.pred, self.gt, self.threshold)
+
+
+def scores(pred: Tensor, gt: Tensor, threshold: float = F1_THRESHOLD) -> dict[str, list[float]]:
+    """Every declared metric of each shape: ``{name: [B values]}``, in :data:`~cdm.metric_names.METRICS` order."""
+    clouds = Clouds(pred, gt, threshold)
+    return {name: metric.score(clouds).tolist() for name, metric in METRICS.items()}
