@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from cdm.metrics import Clouds
 
 __all__ = ["CD", "F1", "METRICS", "TRAIN_METRICS", "Metric", "declare", "declared", "delta_range", "f1_at",
-           "f1_unit", "label", "metric_names", "mode", "number_text", "object_column", "partner", "rounded"]
+           "f1_unit", "label", "metric_names", "mode", "number_text", "object_column", "partner", "record", "rounded"]
 
 TRAIN_METRICS = ("train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/skipped_steps",
                  "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
@@ -100,7 +100,7 @@ def object_column(metric: str) -> tuple[str, str | None] | None:
     return parts[1], parts[2] if len(parts) == 3 else None
 
 
-def _record(metric: str) -> Metric | None:
+def record(metric: str) -> Metric | None:
     """The record of ``eval/<name>``, ``final/<name>``, ``baseline/<b>/<name>``, each maybe ``/<category>``."""
     parts = metric.split("/")
     at = 2 if parts[0] == "baseline" else 1
@@ -115,10 +115,10 @@ def partner(metric: str) -> str | None:
 
 def mode(metric: str) -> Literal["min", "max"]:
     """Which way ``metric`` (any key naming a declared metric) is better: Chamfer distance lower, F1 higher."""
-    record = _record(metric)
-    if record is None:
+    found = record(metric)
+    if found is None:
         raise ValueError(f"{metric!r} names no declared metric; declared: {', '.join(METRICS)}")
-    return record.mode
+    return found.mode
 
 
 def delta_range(metric: str) -> tuple[float, float] | None:
