@@ -18,14 +18,12 @@ import math
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from cdm.baseline_names import BASELINES
 
 if TYPE_CHECKING:
     from torch import Tensor
-
-    from cdm.metrics import Clouds
 
 __all__ = ["CD", "F1", "METRICS", "TRAIN_METRICS", "Metric", "declare", "declared", "delta_range", "f1_at",
            "f1_unit", "label", "metric_names", "mode", "number_text", "object_column", "partner", "record", "rounded"]
@@ -41,12 +39,13 @@ Thresholds = float | Iterable[float]
 class Metric:
     """One quality metric, scored per shape.
 
-    ``score`` maps a batch's clouds to a ``(B,)`` tensor; ``mode`` says which way is better; ``unit`` names it
-    for headings, from the runs' ``eval.f1_threshold`` values; ``partner`` is the short name of the metric shown
-    beside it; ``span`` the values one score can take (so every Δ of means lies within ± its width), or None."""
+    ``score`` maps a batch's clouds (a :class:`cdm.metrics.Clouds`) to a ``(B,)`` tensor; ``mode`` says which
+    way is better; ``unit`` names it for headings, from the runs' ``eval.f1_threshold`` values; ``partner`` is
+    the short name of the metric shown beside it; ``span`` the values one score can take (so every Δ of means
+    lies within ± its width), or None."""
 
     name: str
-    score: Callable[[Clouds], Tensor]
+    score: Callable[[Any], Tensor]
     mode: Literal["min", "max"]
     unit: Callable[[Thresholds], str]
     partner: str | None = None

@@ -5,9 +5,17 @@ declared there alone reaches MLflow, the results table, the verdicts and the rep
 from __future__ import annotations
 
 import ast
+import csv
 from pathlib import Path
 
-from cdm.metric_names import METRICS
+import pytest
+import torch
+from mlflow import MlflowClient
+
+from cdm.metric_names import METRICS, Metric, declared
+from cdm.metrics import scores
+from sweeps.results import finished, publish
+from tests.test_publish import _start, _trial
 
 ROOT = Path(__file__).resolve().parents[1]
 HOME = ROOT / "cdm" / "metric_names.py"
@@ -30,3 +38,61 @@ def test_no_module_but_the_record_spells_a_metric_name():
              for path in sorted([*ROOT.glob("cdm/**/*.py"), *ROOT.glob("sweeps/**/*.py")]) if path != HOME
              for node in _strings(ast.parse(path.read_text(encoding="utf-8"))) if _names_a_metric(node.value)]
     assert found == [], "metric names belong in cdm/metric_names.py (read METRICS, CD, F1):\n" + "\n".join(found)
+
+
+SPREAD = """name: spread
+grid: {priors.point_size: [0.02, 0.04]}
+metric: {name: eval/spread, mode: min}
+"""
+
+
+@pytest.fixture
+def spread():
+    """A dummy metric declared in the record for one test: the mean distance of the predicted points from their
+    centre (world units), better lower."""
+    radius = Metric("spread", lambda c: (c.pred - c.pred.mean(1, keepdim=True)).norm(dim=-1).mean(1), "min",
+                    lambda _: "mean radius, world units")
+    with declared(radius):
+        yield radius
+    assert "spread" not in METRICS
+
+
+def _star(radii: list[float]) -> torch.Tensor:
+    """``(B, 6, 3)``: per shape the six points ±r on the axes, whose spread is exactly r."""
+    axes = torch.cat([torch.eye(3), -torch.eye(3)])
+    return torch.stack([axes * r for r in radii])
+
+
+def test_a_metric_declared_in_the_record_reaches_mlflow_the_table_the_verdicts_and_the_report(spread, tmp_path):
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep, plan = _start(tmp_path, uri, SPREAD)
+    gt = _star([0.5, 0.5, 0.5])
+    for i, cell in enumerate(plan.cells):
+        per_shape = scores(_star([0.5 + 0.25 * i, 0.75 + 0.25 * i, 1.0 + 0.25 * i]), gt)
+        assert per_shape["spread"] == pytest.approx([0.5 + 0.25 * i, 0.75 + 0.25 * i, 1.0 + 0.25 * i])
+        objects = [{"object_id": f"o{k}", "category": "chair", "eval_set": "e1",
+                    **{name: v[k] for name, v in per_shape.items()}} for k in range(3)]
+        last = {f"eval/{name}": sum(v) / 3 for name, v in per_shape.items()}
+        _trial(tmp_path, sweep, f"t{i}", cell.label, cell.values, {20: last}, objects)
+        sweep.close_trial(f"t{i}", cell.label, "FINISHED", last=last)
+    sweep.end()
+    client = MlflowClient(uri)
+    runs = {r.info.run_name: r.data.metrics
+            for r in client.search_runs([sweep.experiment_id], f"tags.mlflow.parentRunId = '{sweep.run_id}'")}
+    assert runs["point_size=0.04 · seed 0"]["final/spread"] == pytest.approx(1.0)
+    assert runs["point_size=0.02 · seed 0"]["eval/spread"] == pytest.approx(0.75)
+
+    record = finished.open_sweep(uri, "spread")
+    table = finished.results_table(record, finished.trial_records(record))
+    rows = {r["cell"]: r for r in table.records}
+    assert rows["point_size=0.02"]["eval/spread mean"] == pytest.approx(0.75)
+    # Paired on objects.csv's spread column: each object 0.25 wider, worse where lower is better.
+    assert rows["point_size=0.04"]["eval/spread delta"] == pytest.approx(0.25)
+    assert rows["point_size=0.04"]["verdict"].startswith("worse")
+
+    out = tmp_path / "report"
+    assert publish.main(["spread", "--tracking-uri", uri, "--out", str(out)]) == 0
+    report = list(csv.DictReader((out / "results.csv").open()))
+    assert [float(r["eval/spread mean"]) for r in report] == pytest.approx([0.75, 1.0])
+    described = publish.describe_trial(record, finished.trial_records(record)[0], table)
+    assert "eval/spread (mean radius, world units) 0.75" in described
