@@ -1,11 +1,9 @@
-"""The metric record: every quality metric's name, function, direction, unit, partner and range, declared once
-(:data:`METRICS`), with the names a training reports and the labels and precision a reader sees them at.
+"""The metric record: each metric's name, function, direction, unit, partner and range, declared once
+(:func:`declare`), with the names a training reports and the labels and precision a reader sees them at.
 
-Apart from :mod:`cdm.train` and :mod:`cdm.metrics` (torch), so that the plan stage checks a sweep's metric and
-the readers of finished numbers (results table, verdicts, report, MLflow) name them without importing those.
-A metric is scored per shape from the clouds (:class:`cdm.metrics.Clouds`) and read everywhere under its keys:
-``eval/<name>`` (and ``eval/<name>/<category>``), ``final/<name>`` in MLflow, ``<name>`` in ``objects.csv``.
-Adding one is one :func:`declare` call here.
+Apart from :mod:`cdm.metrics` and :mod:`cdm.train` (torch), so that the plan stage and the readers of finished
+numbers (table, verdicts, report, MLflow) name metrics without importing them. A metric is read everywhere as
+``eval/<name>[/<category>]``, ``final/<name>`` in MLflow and ``<name>`` in ``objects.csv``.
 
 The keys are stable (``eval/f1`` whatever ``eval.f1_threshold`` is): runs at different thresholds stay
 comparable by name in MLflow, whose keys allow no ``@``. The threshold lives in a run's config, so a label
@@ -15,8 +13,7 @@ is made from it (:func:`label`, :func:`f1_at`), never from the default :data:`cd
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -25,8 +22,8 @@ from cdm.baseline_names import BASELINES
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["CD", "F1", "METRICS", "TRAIN_METRICS", "Metric", "declare", "declared", "delta_range", "f1_at",
-           "f1_unit", "label", "metric_names", "mode", "number_text", "object_column", "partner", "record", "rounded"]
+__all__ = ["CD", "F1", "METRICS", "TRAIN_METRICS", "Metric", "declare", "delta_range", "f1_at",
+           "f1_unit", "label", "metric_names", "mode", "number_text", "object_column", "partner", "rounded"]
 
 TRAIN_METRICS = ("train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/skipped_steps",
                  "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
@@ -37,12 +34,9 @@ Thresholds = float | Iterable[float]
 
 @dataclass(frozen=True)
 class Metric:
-    """One quality metric, scored per shape.
-
-    ``score`` maps a batch's clouds (a :class:`cdm.metrics.Clouds`) to a ``(B,)`` tensor; ``mode`` says which
-    way is better; ``unit`` names it for headings, from the runs' ``eval.f1_threshold`` values; ``partner`` is
-    the short name of the metric shown beside it; ``span`` the values one score can take (so every Δ of means
-    lies within ± its width), or None."""
+    """``score``: a batch's clouds (:class:`cdm.metrics.Clouds`) → ``(B,)`` scores; ``mode``: which is better;
+    ``unit``: its heading's words, from the runs' ``eval.f1_threshold`` values; ``partner``: the metric shown
+    beside it; ``span``: the values one score can take (bounding every Δ of means), or None."""
 
     name: str
     score: Callable[[Any], Tensor]
@@ -56,30 +50,15 @@ class Metric:
         """What a training logs it as: ``eval/<name>``."""
         return f"eval/{self.name}"
 
-    @property
-    def final(self) -> str:
-        """What a finished trial's MLflow run holds it as: ``final/<name>``."""
-        return f"final/{self.name}"
-
 
 METRICS: dict[str, Metric] = {}
 """Every metric an evaluation scores, by short name, in the order rows and logs list them."""
 
 
 def declare(metric: Metric) -> Metric:
-    """Add ``metric`` to :data:`METRICS`: evaluation scores it, and every reader of finished numbers shows it."""
+    """Add ``metric`` to :data:`METRICS`: evaluation scores it, every reader shows it (``METRICS.pop`` drops it)."""
     METRICS[metric.name] = metric
     return metric
-
-
-@contextmanager
-def declared(metric: Metric) -> Iterator[Metric]:
-    """:func:`declare` ``metric`` for the ``with`` block only (a test's or an experiment's extra metric)."""
-    declare(metric)
-    try:
-        yield metric
-    finally:
-        del METRICS[metric.name]
 
 
 def metric_names(categories: Sequence[str] = ()) -> list[str]:
@@ -99,13 +78,6 @@ def object_column(metric: str) -> tuple[str, str | None] | None:
     return parts[1], parts[2] if len(parts) == 3 else None
 
 
-def record(metric: str) -> Metric | None:
-    """The record of ``eval/<name>``, ``final/<name>``, ``baseline/<b>/<name>``, each maybe ``/<category>``."""
-    parts = metric.split("/")
-    at = 2 if parts[0] == "baseline" else 1
-    return METRICS.get(parts[at]) if len(parts) > at and parts[0] in ("eval", "final", "baseline") else None
-
-
 def partner(metric: str) -> str | None:
     """``eval/f1`` ↔ ``eval/cd``: the other headline metric, shown beside the optimised one."""
     record = METRICS.get(metric.removeprefix("eval/")) if metric.startswith("eval/") else None
@@ -113,20 +85,16 @@ def partner(metric: str) -> str | None:
 
 
 def mode(metric: str) -> Literal["min", "max"]:
-    """Which way ``metric`` (any key naming a declared metric) is better: Chamfer distance lower, F1 higher."""
-    found = record(metric)
-    if found is None:
-        raise ValueError(f"{metric!r} names no declared metric; declared: {', '.join(METRICS)}")
-    return found.mode
+    """Which way ``eval/<name>[/<category>]`` of a declared metric is better: Chamfer distance lower, F1 higher."""
+    return METRICS[metric.split("/")[1]].mode
 
 
 def delta_range(metric: str) -> tuple[float, float] | None:
     """The values the true Δ (cell − reference) of ``metric`` can take whatever the objects, or None.
 
-    F1 lies in [0, 1] (cdm/metrics.py), so every Δ of it, and its mean, lies in [−1, 1]: an interval reaching
-    past that has too few objects (or seeds) to tell anything and is clipped to it. CD ≥ 0 bounds the true Δ
-    only from below, by minus the reference's true mean CD, which the scores estimate but do not know: no
-    bound holds exactly, so a CD interval is never clipped."""
+    F1 lies in [0, 1], so every Δ of it, and its mean, lies in [−1, 1]: an interval reaching past that has too
+    few objects (or seeds) to tell anything and is clipped to it. CD ≥ 0 bounds the true Δ only by minus the
+    reference's unknown true mean CD, so a CD interval is never clipped."""
     where = object_column(metric)
     span = None if where is None else METRICS[where[0]].span
     return None if span is None else (span[0] - span[1], span[1] - span[0])

@@ -12,7 +12,7 @@ import pytest
 import torch
 from mlflow import MlflowClient
 
-from cdm.metric_names import METRICS, Metric, declared
+from cdm.metric_names import METRICS, Metric, declare
 from cdm.metrics import scores
 from sweeps.results import finished, publish
 from tests.test_publish import _start, _trial
@@ -52,9 +52,8 @@ def spread():
     centre (world units), better lower."""
     radius = Metric("spread", lambda c: (c.pred - c.pred.mean(1, keepdim=True)).norm(dim=-1).mean(1), "min",
                     lambda _: "mean radius, world units")
-    with declared(radius):
-        yield radius
-    assert "spread" not in METRICS
+    yield declare(radius)
+    METRICS.pop(radius.name)
 
 
 def _star(radii: list[float]) -> torch.Tensor:
