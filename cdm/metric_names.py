@@ -34,12 +34,13 @@ Thresholds = float | Iterable[float]
 
 @dataclass(frozen=True)
 class Metric:
-    """``score``: a batch's clouds (:class:`cdm.metrics.Clouds`) → ``(B,)`` scores; ``mode``: which is better;
-    ``unit``: its heading's words, from the runs' ``eval.f1_threshold`` values; ``partner``: the metric shown
-    beside it; ``span``: the values one score can take (bounding every Δ of means), or None."""
+    """``score``: a batch's ``(B, N, 3)`` predicted and ``(B, M, 3)`` true clouds and their
+    :class:`cdm.metrics.ChamferF1` → ``(B,)`` scores; ``mode``: which is better; ``unit``: its heading's words,
+    from the runs' ``eval.f1_threshold`` values; ``partner``: the metric shown beside it; ``span``: the values
+    one score can take (bounding every Δ of means), or None."""
 
     name: str
-    score: Callable[[Any], Tensor]
+    score: Callable[[Tensor, Tensor, Any], Tensor]
     mode: Literal["min", "max"]
     unit: Callable[[Thresholds], str]
     partner: str | None = None
@@ -147,7 +148,7 @@ def label(metric: str, thresholds: Thresholds) -> str:
     return metric if record is None else f"{metric} ({record.unit(thresholds)})"
 
 
-CD = declare(Metric("cd", lambda clouds: clouds.chamfer.cd, "min", lambda _: "CD ×1000", partner="f1"))
+CD = declare(Metric("cd", lambda pred, gt, chamfer: chamfer.cd, "min", lambda _: "CD ×1000", partner="f1"))
 """Chamfer distance ×1000, world units² (cdm/metrics.py)."""
-F1 = declare(Metric("f1", lambda clouds: clouds.chamfer.f1, "max", f1_at, partner="cd", span=(0.0, 1.0)))
+F1 = declare(Metric("f1", lambda pred, gt, chamfer: chamfer.f1, "max", f1_at, partner="cd", span=(0.0, 1.0)))
 """F-score at ``eval.f1_threshold`` on the squared distance (cdm/metrics.py)."""

@@ -19,7 +19,6 @@ Nearest neighbours come from one of two searches, same results:
 
 from __future__ import annotations
 
-from functools import cached_property
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -30,7 +29,7 @@ from torch import Tensor
 from cdm.config import F1_THRESHOLD
 from cdm.metric_names import METRICS
 
-__all__ = ["ChamferF1", "Clouds", "chamfer_f1", "nearest_sq_dist", "scores"]
+__all__ = ["ChamferF1", "chamfer_f1", "nearest_sq_dist", "scores"]
 
 
 class ChamferF1(NamedTuple):
@@ -104,19 +103,8 @@ def chamfer_f1(
     return ChamferF1(cd, f1, precision, recall)
 
 
-class Clouds:
-    """A batch's predicted ``(B, N, 3)`` and true ``(B, M, 3)`` clouds and F1's τ: what every declared metric
-    (:data:`cdm.metric_names.METRICS`) is scored from; :func:`chamfer_f1` runs once, when first read."""
-
-    def __init__(self, pred: Tensor, gt: Tensor, threshold: float = F1_THRESHOLD) -> None:
-        self.pred, self.gt, self.threshold = pred, gt, threshold
-
-    @cached_property
-    def chamfer(self) -> ChamferF1:
-        return chamfer_f1(self.pred, self.gt, self.threshold)
-
-
 def scores(pred: Tensor, gt: Tensor, threshold: float = F1_THRESHOLD) -> dict[str, list[float]]:
-    """Every declared metric of each shape: ``{name: [B values]}``, in :data:`~cdm.metric_names.METRICS` order."""
-    clouds = Clouds(pred, gt, threshold)
-    return {name: metric.score(clouds).tolist() for name, metric in METRICS.items()}
+    """Every declared metric (:data:`cdm.metric_names.METRICS`) of each shape, ``{name: [B values]}``, from
+    ``(B, N, 3)`` predicted and ``(B, M, 3)`` true clouds; their nearest neighbours are searched once."""
+    chamfer = chamfer_f1(pred, gt, threshold)
+    return {name: metric.score(pred, gt, chamfer).tolist() for name, metric in METRICS.items()}

@@ -50,7 +50,7 @@ metric: {name: eval/spread, mode: min}
 def spread():
     """A dummy metric declared in the record for one test: the mean distance of the predicted points from their
     centre (world units), better lower."""
-    radius = Metric("spread", lambda c: (c.pred - c.pred.mean(1, keepdim=True)).norm(dim=-1).mean(1), "min",
+    radius = Metric("spread", lambda pred, gt, _: (pred - pred.mean(1, keepdim=True)).norm(dim=-1).mean(1), "min",
                     lambda _: "mean radius, world units")
     yield declare(radius)
     METRICS.pop(radius.name)
