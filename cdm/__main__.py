@@ -18,6 +18,7 @@ from cdm.config import Config, config_field_paths, load_config, parse_override
 from cdm.external_inputs import check_inputs
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c
 from cdm.memory import check_memory
+from cdm.metric_names import CD, F1, METRICS
 from cdm.optim import TrainingDiverged
 from cdm.single_image import DEFAULT_VIEW, MIN_IMAGE_SIDE
 from cdm.train import Callback, fit
@@ -43,8 +44,8 @@ class _Progress(Callback):
 
     def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
         self.bar.write(
-            f"step {step}: CD×1000 {metrics['eval/cd']:.2f}  F1 {metrics['eval/f1']:.3f}   baselines CD: "
-            + "  ".join(f"{b} {metrics[f'baseline/{b}/cd']:.2f}" for b in BASELINES)
+            f"step {step}: CD×1000 {metrics[CD.key]:.2f}  F1 {metrics[F1.key]:.3f}   baselines CD: "
+            + "  ".join(f"{b} {metrics[f'baseline/{b}/{CD.name}']:.2f}" for b in BASELINES)
         )
 
     def on_checkpoint(self, step: int, path: Path) -> None:
@@ -83,8 +84,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         result = fit(cfg, [progress], resume_from=args.resume)
     finally:  # an error then starts on its own line, not after the bar
         progress.bar.close()
-    print(f"done at step {result.step}: CD×1000 {result.metrics.get('eval/cd', float('nan')):.2f}, "
-          f"F1 {result.metrics.get('eval/f1', float('nan')):.3f}; checkpoint {result.checkpoint_dir}")
+    print(f"done at step {result.step}: CD×1000 {result.metrics.get(CD.key, float('nan')):.2f}, "
+          f"F1 {result.metrics.get(F1.key, float('nan')):.3f}; checkpoint {result.checkpoint_dir}")
     return 0
 
 
@@ -128,7 +129,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     cfg, network, diffusion, device = _network(args.checkpoint, _overrides(args.set), args.command)
     eval_set = build_eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"), cfg.eval.seed)
     out = run_evaluation(network, diffusion, eval_set, cfg, device, Path(args.out) if args.out else None)
-    names = sorted(k for k in out.metrics if k.endswith("/cd") or k.endswith("/f1"))
+    names = sorted(k for k in out.metrics if k.rsplit("/", 1)[-1] in METRICS)
     for name in names:
         print(f"{name:32s} {out.metrics[name]:10.4f}")
     return 0

@@ -40,7 +40,8 @@ from cdm.data.views import ObjectDataset
 from cdm.diffusion import GaussianDiffusion, SamplerSettings
 from cdm.digest import json_digest
 from cdm.io.write import make_folder, write_atomic
-from cdm.metrics import ChamferF1, chamfer_f1
+from cdm.metric_names import CD, F1, METRICS
+from cdm.metrics import chamfer_f1, scores
 from cdm.model import CDMNetwork
 from cdm.normalise import FRAME_VERSION
 
@@ -107,7 +108,7 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
     bank = RetrievalBank.build(train, set(per_cat), cfg.eval.retrieval_bank)
     gen = torch.Generator().manual_seed(seed)
     first_of = {cat: val.objects[idx[0]].object_id for cat, idx in per_cat.items()}
-    scores: dict[str, list[tuple[str, float, float]]] = {name: [] for name in BASELINES}
+    scored: dict[str, list[tuple[str, dict[str, float]]]] = {name: [] for name in BASELINES}
     for batch in batches:
         clouds = {**baseline_clouds(batch.points, batch.category, means, gen), "retrieval": bank.nearest(batch.mask)}
         for j, (oid, cat) in enumerate(zip(batch.object_id, batch.category)):
@@ -115,12 +116,10 @@ def build_eval_set(cfg: Config, val: ObjectDataset, train: ObjectDataset, seed: 
                 eval_set.baseline_clouds[oid] = {name: clouds[name][j].clone() for name in BASELINES}
         for name in BASELINES:
             m = _score(clouds[name], batch.points, cfg, gen)
-            scores[name] += list(zip(batch.category, m.cd.tolist(), m.f1.tolist()))
-            for oid, cd, f1 in zip(batch.object_id, m.cd.tolist(), m.f1.tolist()):
-                eval_set.baseline_rows.setdefault(oid, {}).update(
-                    {f"baseline/{name}/cd": cd, f"baseline/{name}/f1": f1}
-                )
-    for name, rows in scores.items():
+            for j, (oid, cat) in enumerate(zip(batch.object_id, batch.category)):
+                scored[name].append((cat, {k: v[j] for k, v in m.items()}))
+                eval_set.baseline_rows.setdefault(oid, {}).update({f"baseline/{name}/{k}": v[j] for k, v in m.items()})
+    for name, rows in scored.items():
         eval_set.baseline_metrics.update(_summarise(rows, f"baseline/{name}"))
     return eval_set
 
@@ -210,20 +209,19 @@ def _subsample(cloud: Tensor, n: int, gen: torch.Generator) -> Tensor:
     return cloud[:, idx.to(cloud.device)]
 
 
-def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator) -> ChamferF1:
+def _score(pred: Tensor, gt: Tensor, cfg: Config, gen: torch.Generator) -> dict[str, list[float]]:
     """BDM's protocol: ``eval.num_points`` from each cloud ``(B, N, 3)`` (the data set's frame, as given),
-    then CD and F1 at ``eval.f1_threshold``."""
-    return chamfer_f1(
+    then every declared metric (CD, F1 at ``eval.f1_threshold``, …) per shape."""
+    return scores(
         _subsample(pred, cfg.eval.num_points, gen), _subsample(gt, cfg.eval.num_points, gen), cfg.eval.f1_threshold
     )
 
 
-def _summarise(rows: list[tuple[str, float, float]], prefix: str) -> dict[str, float]:
-    out = {f"{prefix}/cd": float(np.mean([r[1] for r in rows])), f"{prefix}/f1": float(np.mean([r[2] for r in rows]))}
+def _summarise(rows: list[tuple[str, dict[str, float]]], prefix: str) -> dict[str, float]:
+    """Mean of each metric over ``(category, {metric: score})`` rows: ``<prefix>/<metric>[/<category>]``."""
+    out = {f"{prefix}/{k}": float(np.mean([r[1][k] for r in rows])) for k in METRICS}
     for cat in sorted({r[0] for r in rows}):
-        sel = [r for r in rows if r[0] == cat]
-        out[f"{prefix}/cd/{cat}"] = float(np.mean([r[1] for r in sel]))
-        out[f"{prefix}/f1/{cat}"] = float(np.mean([r[2] for r in sel]))
+        out.update({f"{prefix}/{k}/{cat}": float(np.mean([r[1][k] for r in rows if r[0] == cat])) for k in METRICS})
     return out
 
 
@@ -280,7 +278,7 @@ def run_evaluation(
         for j in range(len(batch)):
             oid = batch.object_id[j]
             rows.append({"object_id": oid, "category": batch.category[j], "eval_set": eval_set.fingerprint,
-                         "cd": m.cd[j].item(), "f1": m.f1[j].item(), **eval_set.baseline_rows[oid]})
+                         **{k: v[j] for k, v in m.items()}, **eval_set.baseline_rows[oid]})
             category = batch.category[j]
             if out_dir is not None and category not in drawn and len(drawn) < cfg.eval.save_clouds:
                 drawn.add(category)  # objects come grouped by category: this is its first one
@@ -289,10 +287,10 @@ def run_evaluation(
                 files.append(write_ply(out_dir / f"{stem}.gt.ply", batch.points[j]))
                 files += [write_ply(out_dir / f"{stem}.{name}.ply", cloud)
                           for name, cloud in eval_set.baseline_clouds.get(oid, {}).items()]
-                files.append(save_panel(out_dir / f"{stem}.png", batch, j, pred[j], m.cd[j].item(), m.f1[j].item(),
+                files.append(save_panel(out_dir / f"{stem}.png", batch, j, pred[j], m[CD.name][j], m[F1.name][j],
                                         cfg.eval.f1_threshold))
     network.train()
-    metrics = _summarise([(r["category"], r["cd"], r["f1"]) for r in rows], "eval")
+    metrics = _summarise([(str(r["category"]), {k: float(r[k]) for k in METRICS}) for r in rows], "eval")
     metrics.update(eval_set.baseline_metrics)
     if out_dir is not None:
         text = io.StringIO(newline="")

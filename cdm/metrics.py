@@ -27,8 +27,9 @@ from scipy.spatial import cKDTree
 from torch import Tensor
 
 from cdm.config import F1_THRESHOLD
+from cdm.metric_names import METRICS
 
-__all__ = ["ChamferF1", "chamfer_f1", "nearest_sq_dist"]
+__all__ = ["ChamferF1", "chamfer_f1", "nearest_sq_dist", "scores"]
 
 
 class ChamferF1(NamedTuple):
@@ -100,3 +101,10 @@ def chamfer_f1(
     denom = precision + recall
     f1 = torch.where(denom > 0, 2.0 * precision * recall / denom.clamp(min=1e-12), torch.zeros_like(denom))
     return ChamferF1(cd, f1, precision, recall)
+
+
+def scores(pred: Tensor, gt: Tensor, threshold: float = F1_THRESHOLD) -> dict[str, list[float]]:
+    """Every declared metric (:data:`cdm.metric_names.METRICS`) of each shape, ``{name: [B values]}``, from
+    ``(B, N, 3)`` predicted and ``(B, M, 3)`` true clouds; their nearest neighbours are searched once."""
+    chamfer = chamfer_f1(pred, gt, threshold)
+    return {name: metric.score(pred, gt, chamfer).tolist() for name, metric in METRICS.items()}

@@ -24,7 +24,7 @@ from scipy.ndimage import binary_dilation
 from cdm.data import build_dataset
 from cdm.data.sample import collate
 from cdm.evaluate import save_panel
-from sweeps.compare import rules
+from cdm.metric_names import rounded
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.table import build_table
 from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, with_logged_baselines
@@ -332,8 +332,8 @@ def test_description_lines_are_short_and_every_number_rounded(grid_store):
     assert max(len(line) for line in text.splitlines()) <= 200
     # The tables' precision: 3 decimals below 10, 2 above; no 16-digit float (0.42000000000000004).
     assert not re.findall(r"\d\.\d{4,}", text)
-    assert rules.rounded(0.42000000000000004) == 0.42 and rules.rounded(60.942297) == 60.94
-    assert rules.rounded(1.23456) == 1.235 and math.isnan(rules.rounded(math.nan))
+    assert rounded(0.42000000000000004) == 0.42 and rounded(60.942297) == 60.94
+    assert rounded(1.23456) == 1.235 and math.isnan(rounded(math.nan))
 
 
 def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):

@@ -14,9 +14,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+from cdm.metric_names import delta_range, object_column
+from cdm.metric_names import mode as metric_mode
 from sweeps.compare.bootstrap import PairedDifference, UnpairedError, compare, per_object_means
 from sweeps.compare.outcomes import TrialOutcome, finished
-from sweeps.compare.rules import TOO_FEW, delta_range, object_column, partner_mode, weighed
+from sweeps.compare.rules import TOO_FEW, weighed
 from sweeps.compare.sequential import Decision, SettleRecord, decide
 from sweeps.plan.trials import split_label
 
@@ -94,7 +96,7 @@ class Pairing:
               mode: Literal["min", "max"], baselines: list[str], settled: Mapping[str, SettleRecord]) -> Pairing:
         pairing = cls(reference, {}, {}, {}, {n: r for n, r in settled.items() if n in cells and n != reference}, [],
                       {})
-        metric, modes = shown[0], {m: mode if m == shown[0] else partner_mode(m) for m in shown}
+        metric, modes = shown[0], {m: mode if m == shown[0] else metric_mode(m) for m in shown}
         to_baseline: dict[tuple[str, str, str], str] = {}
         unpaired: list[str] = []
         for m in shown:
@@ -150,7 +152,7 @@ class Pairing:
         return pairing
 
     def clipped(self, shown: list[str], metric: str) -> list[str]:
-        """The shown metrics some row's Δ interval was cut on (:func:`sweeps.compare.rules.delta_range`)."""
+        """The shown metrics some row's Δ interval was cut on (:func:`cdm.metric_names.delta_range`)."""
         return [m for m in shown if any(getattr(self.delta(n, m, metric), "clipped", False) for n, _ in self.diffs)]
 
     def beats(self, name: str) -> list[str]:
@@ -159,7 +161,7 @@ class Pairing:
     def delta(self, name: str, m: str, metric: str) -> PairedDifference | str | None:
         """Row ``name``'s Δ on ``m``: on the metric, a settled cell's interval over seeds and objects (or, where
         seeds vary in a sweep of fixed seeds, its own), else the paired one; cut to the values the Δ can take
-        (:func:`sweeps.compare.rules.delta_range`)."""
+        (:func:`cdm.metric_names.delta_range`)."""
         decision = self.settled[name].decision if name in self.settled else self.seeded.get(name)
         if decision is not None and m == metric:
             return _as_difference(decision, m)

@@ -18,8 +18,8 @@ from typing import Any, Literal
 import numpy as np
 
 from cdm.io.files import read_text
+from cdm.metric_names import METRICS, object_column, partner
 from cdm.metric_names import label as metric_label
-from sweeps.compare.rules import partner
 from sweeps.storage import write_file
 
 __all__ = [
@@ -206,10 +206,8 @@ def _value_axes(ax, m: str, cells: list[str], x: Mapping[str, float], xlabel: st
             ax.set_xlabel(f"{xlabel} (log scale)", fontsize=FONT + 1)
             ax.minorticks_off()
         ax.set_xticks(sorted(x.values()), [f"{v:g}" for v in sorted(x.values())])
-    ax.set_ylabel(
-        metric_label(m, f1_thresholds) + (", lower is better" if m.endswith("cd") else ", higher is better"),
-        fontsize=FONT + 1
-    )
+    better = "lower" if (where := object_column(m)) and METRICS[where[0]].mode == "min" else "higher"
+    ax.set_ylabel(f"{metric_label(m, f1_thresholds)}, {better} is better", fontsize=FONT + 1)
     ax.tick_params(labelsize=FONT)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=FONT, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)

@@ -1,7 +1,6 @@
-"""The rules a results table reads numbers by: which metric partners which, the precision it prints
-them at (MLflow holds them whole), how verdicts on two metrics combine into one, where ``objects.csv`` holds
-a metric, and the notes that say what produced the numbers. Plain functions of names, numbers and the
-spec."""
+"""The rules a results table reads numbers by (each metric's partner, direction and precision are in its
+record, :mod:`cdm.metric_names`): how verdicts on two metrics combine into one, and the notes that say what
+produced the numbers. Plain functions of names, numbers and the spec."""
 
 from __future__ import annotations
 
@@ -10,23 +9,18 @@ import statistics
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 from cdm.config import load_config
+from cdm.metric_names import number_text
 from sweeps.plan.spec import Spec
 
 __all__ = [
     "PROTOCOL_NOTE",
     "TOO_FEW",
     "Stat",
-    "delta_range",
     "lambda_source",
     "machine_note",
-    "number_text",
-    "object_column",
-    "partner",
-    "partner_mode",
-    "rounded",
     "settings_note",
     "settings_notes",
     "weighed",
@@ -50,31 +44,6 @@ class Stat:
 
     def text(self) -> str:
         return number_text(self.mean) + ("" if self.std is None else f" ± {number_text(self.std, self.mean)}")
-
-
-def number_text(value: float, scale: float | None = None) -> str:
-    """3 decimals for F1-like numbers, 2 for CD ×1000-like ones (decided by ``scale``, default ``value``)."""
-    return f"{value:.3f}" if abs(value if scale is None else scale) < 10 else f"{value:.2f}"
-
-
-def rounded(value: float) -> float:
-    """``value`` at the precision the tables print it (3 decimals below 10, else 2), for text a person reads (a
-    run's description); what is logged to MLflow and written to ``results.csv`` stays at full precision."""
-    return float(number_text(value)) if math.isfinite(value) else value
-
-
-def partner(metric: str) -> str | None:
-    """``eval/f1`` ↔ ``eval/cd``: the other headline metric, shown beside the optimised one."""
-    swaps = {"/f1": "/cd", "/cd": "/f1"}
-    for a, b in swaps.items():
-        if metric.startswith("eval/") and metric.endswith(a) and metric.count("/") == 1:
-            return metric[: -len(a)] + b
-    return None
-
-
-def partner_mode(partner: str) -> Literal["min", "max"]:
-    """Chamfer distance is better lower, F1 higher (the only partners :func:`partner` names)."""
-    return "min" if partner.endswith("/cd") else "max"
 
 
 def weighed(verdicts: Sequence[tuple[str, str]]) -> str:
@@ -185,23 +154,4 @@ def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any
 
 
 TOO_FEW = "too few objects to tell"
-"""What a verdict adds when its interval was wider than the metric allows and was clipped (:func:`delta_range`)."""
-
-
-def delta_range(metric: str) -> tuple[float, float] | None:
-    """The values the true Δ (cell − reference) of ``metric`` can take whatever the objects, or None.
-
-    F1 lies in [0, 1] (cdm/metrics.py), so every Δ of it, and its mean, lies in [−1, 1]: an interval reaching
-    past that has too few objects (or seeds) to tell anything and is clipped to it. CD ≥ 0 bounds the true Δ
-    only from below, by minus the reference's true mean CD, which the scores estimate but do not know: no
-    bound holds exactly, so a CD interval is never clipped."""
-    where = object_column(metric)
-    return (-1.0, 1.0) if where is not None and where[0] == "f1" else None
-
-
-def object_column(metric: str) -> tuple[str, str | None] | None:
-    """``eval/cd`` → (``cd``, None), ``eval/f1/chair`` → (``f1``, ``chair``): where ``objects.csv`` holds it."""
-    parts = metric.split("/")
-    if parts[0] != "eval" or len(parts) not in (2, 3) or parts[1] not in ("cd", "f1"):
-        return None
-    return parts[1], parts[2] if len(parts) == 3 else None
+"""What a verdict adds when its interval was wider than the metric allows and was clipped (``delta_range``)."""

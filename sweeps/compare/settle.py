@@ -26,9 +26,9 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from cdm.metric_names import object_column
 from sweeps.compare.bootstrap import UnpairedError
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.rules import object_column
 from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import Cell, SweepPlan

@@ -26,10 +26,11 @@ from pathlib import Path
 from typing import Literal
 
 from cdm.baseline_names import BASELINES
-from cdm.metric_names import f1_unit
+from cdm.metric_names import F1, delta_range, f1_unit, number_text, object_column, partner
+from cdm.metric_names import mode as metric_mode
 from sweeps.compare.outcomes import TrialOutcome, finished
 from sweeps.compare.pairing import Lead, Pairing, lead_difference, paired_record, seeds_vary
-from sweeps.compare.rules import TOO_FEW, Stat, delta_range, number_text, object_column, partner, partner_mode
+from sweeps.compare.rules import TOO_FEW, Stat
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
@@ -166,7 +167,7 @@ class _Columns:
 
     metric: str
     shown: list[str]
-    """The metric and its partner (:func:`sweeps.compare.rules.partner`), each with the paper's beside."""
+    """The metric and its partner (:func:`cdm.metric_names.partner`), each with the paper's beside."""
     categories: list[str]
     """Categories with a ``<metric>/<category>`` column, in the wide table only."""
     paper_label: bool
@@ -330,7 +331,7 @@ def _notes(
     """The notes under the table: units, the paper's source, what the star and the Δ columns mean, failures."""
     metric, shown, pairing = columns.metric, columns.shown, columns.pairing
     second = shown[1] if len(shown) > 1 else None
-    has_f1 = outcomes and any(m.split("/")[1:2] == ["f1"] for m in shown)
+    has_f1 = outcomes and any(m.split("/")[1:2] == [F1.name] for m in shown)
     notes = [f1_unit(o.f1_threshold for o in outcomes)] if has_f1 else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
@@ -345,7 +346,7 @@ def _notes(
                 f"no ★: {', '.join(leaders)} tied for best by {metric} ({mode}) at the printed precision")
         notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
-        weighed = f"{metric} ({mode})" + (f" and {second} ({partner_mode(second)})" if second else "")
+        weighed = f"{metric} ({mode})" + (f" and {second} ({metric_mode(second)})" if second else "")
         notes.append(f"Δ: mean over the same objects of (row − {pairing.reference}), seeds averaged per object, "
                      f"with a 95% paired bootstrap interval over the objects; verdict and beats baselines by "
                      f"{weighed}, interval excluding 0 (a verdict names each metric when they disagree)")

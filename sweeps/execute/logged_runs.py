@@ -15,6 +15,7 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.io.csv import read_csv
+from cdm.metric_names import CD
 from sweeps.store_retry import PatientClient, wait_when_busy
 
 __all__ = [
@@ -80,7 +81,7 @@ def finished_trial_metrics(uri: str, experiment_id: str, parent_run_id: str, tri
     run = client.get_run(run_id)
     if run.info.status != "FINISHED" or not any(k.startswith("final/") for k in run.data.metrics):
         return None
-    step = max((m.step for m in client.get_metric_history(run_id, "eval/cd")), default=0)
+    step = max((m.step for m in client.get_metric_history(run_id, CD.key)), default=0)
     return {**trial_metrics(run.data.metrics, run.data.params), "step": step}
 
 

@@ -21,6 +21,7 @@ from typing import Any
 from mlflow import MlflowClient
 from mlflow.entities import Metric, Param
 
+from cdm.metric_names import CD, object_column
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, last_objects
@@ -239,7 +240,7 @@ class SweepRun:
         intermediate one. The overall scores come from the child's own history; the per-category ones from
         ``last`` (the child logs no series of them).
         """
-        history = self.client.get_metric_history(run_id, "eval/cd")
+        history = self.client.get_metric_history(run_id, CD.key)
         latest = self.client.get_run(run_id).data.metrics
         if not history or any(k.startswith("final/") for k in latest):  # logged once: a resumed trial may close twice
             return
@@ -248,7 +249,7 @@ class SweepRun:
         scores = {**{k: v for k, v in last.items() if is_per_category(k) and isinstance(v, (int, float))}, **latest}
         self.client.log_batch(run_id, metrics=[
             Metric("final/" + k.removeprefix("eval/"), float(v), now, step) for k, v in scores.items()
-            if k.split("/")[:2] in (["eval", "cd"], ["eval", "f1"])])
+            if object_column(k) is not None])
 
     def trial_objects(self, trial_id: str) -> list[dict[str, object]]:
         """Per-object rows (``objects.csv``) of the trial's last logged evaluation; empty if none."""

@@ -35,6 +35,7 @@ import ray.tune
 from ray.train.torch import TorchTrainer
 
 from cdm.config import Config, load_config
+from cdm.metric_names import METRICS
 from cdm.prior_model import ensure_priors
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
@@ -113,7 +114,7 @@ class TrialProgress(Callback):
               f"{metrics['train/steps_per_s']:.2f} steps/s", flush=True)
 
     def on_eval(self, step: int, metrics: dict[str, float], files: list[Path]) -> None:
-        keys = dict.fromkeys(("eval/cd", "eval/f1", self.metric))
+        keys = dict.fromkeys((*(m.key for m in METRICS.values()), self.metric))
         shown = "  ".join(f"{k} {metrics[k]:.4g}" for k in keys if k in metrics)
         print(f"[{self.label}] eval at step {step}: {shown}", flush=True)
 

@@ -21,7 +21,7 @@ from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, RunTag
 from cdm.checkpoint import load_checkpoint, save_checkpoint
 from cdm.config import F1_THRESHOLD, Config
 from cdm.io.csv import read_csv
-from cdm.metric_names import f1_at
+from cdm.metric_names import CD, F1, f1_at
 from cdm.provenance import code_version, installed_packages
 from cdm.train import Callback
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
@@ -43,7 +43,7 @@ samples clouds with it; ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` s
 MODEL_TAG = "model"
 """The tag holding the run's ``runs:/<run id>/model`` URI, to paste into ``cdm-lab evaluate --checkpoint``."""
 
-F1_TAG = "f1"
+F1_TAG = F1.name
 """The tag naming what a trial's ``eval/f1`` and ``final/f1`` mean (:func:`cdm.metric_names.f1_at` of its
 ``eval.f1_threshold``): the keys stay the same at every threshold, so runs compare by name."""
 
@@ -108,7 +108,7 @@ panels apart from the dozens of clouds."""
 
 
 def learning_curve_png(
-    client: MlflowClient, run_id: str, folder: Path, metric: str = "eval/cd", title: str = "",
+    client: MlflowClient, run_id: str, folder: Path, metric: str = CD.key, title: str = "",
     f1_threshold: float = F1_THRESHOLD,
 ) -> Path | None:
     """The run's training curves (:func:`sweeps.compare.plots.training_curves` for this one trial: the loss terms
@@ -144,7 +144,7 @@ class TrialRun(Callback):
         run_name: str,
         tags: dict[str, str],
         config: Config,
-        metric: str = "eval/cd",
+        metric: str = CD.key,
     ):
         self.client = PatientClient(uri)
         self.run_name, self.metric = run_name, metric
@@ -175,7 +175,7 @@ class TrialRun(Callback):
         else:
             self.run_id = found
             self.client.update_run(found, status="RUNNING")
-            for kind, key in (("train", "train/loss"), ("eval", "eval/cd")):
+            for kind, key in (("train", "train/loss"), ("eval", CD.key)):
                 self.logged_until[kind] = max((m.step for m in self.client.get_metric_history(found, key)), default=-1)
 
     def _log(self, step: int, metrics: dict[str, float]) -> None:

@@ -20,6 +20,7 @@ from pydantic import Field, TypeAdapter, ValidationError, field_validator, model
 
 from cdm.config import PaperDataSet, format_validation_error
 from cdm.io.yaml import read_mapping
+from cdm.metric_names import F1
 from sweeps.plan.profiles import Profile, Resources
 from sweeps.plan.schema_base import OWNED_FIELDS, SpecError, Strict, field_error
 from sweeps.plan.search import SEARCHES, search_kind
@@ -125,7 +126,7 @@ class Search(Strict):
 
 
 class Metric(Strict):
-    name: str = "eval/f1"
+    name: str = F1.key
     mode: Literal["min", "max"] = "max"
 
 

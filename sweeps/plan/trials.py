@@ -27,7 +27,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from cdm.config import Config, ConfigError, TrainConfig, load_config
-from cdm.metric_names import metric_names
+from cdm.metric_names import F1, metric_names
 from sweeps.plan.profiles import Budget, Profile, Resources, load_profiles
 from sweeps.plan.schema_base import SpecError, field_error
 from sweeps.plan.spec import DatasetRun, ExplicitCell, PaperRow, SequentialSeeds, Spec
@@ -254,7 +254,7 @@ def _check_metric(spec: Spec, names: set[str]) -> tuple[str, ...]:
     if spec.metric.name not in names:
         headline = sorted(n for n in names if n.count("/") == 1)
         raise SpecError(f"metric.name: {spec.metric.name!r} is not reported by the trainer; choose one of "
-                        f"{', '.join(headline)} or a per-category name like eval/f1/<category>")
+                        f"{', '.join(headline)} or a per-category name like {F1.key}/<category>")
     return tuple(sorted(names))
 
 

@@ -20,6 +20,7 @@ from mlflow import MlflowClient
 from mlflow.entities import Run
 
 from cdm.io.json import read_json
+from cdm.metric_names import CD, METRICS
 from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.settle import Round, final_round
@@ -240,7 +241,8 @@ def paper_layout(trials: list[TrialRecord]):
     """
     import pandas as pd
 
-    groups = ["all", *sorted({k.split("/")[2] for t in trials for k in t.outcome.metrics if k.startswith("eval/cd/")})]
+    keys = {k for t in trials for k in t.outcome.metrics}
+    groups = ["all", *sorted({k.split("/")[2] for k in keys if k.startswith(f"{CD.key}/")})]
     cells: dict[str, list[TrialOutcome]] = {}
     for t in trials:
         cells.setdefault(t.outcome.cell, []).append(t.outcome)
@@ -253,7 +255,7 @@ def paper_layout(trials: list[TrialRecord]):
             ("", "trials"): f"{len(done)}/{len(group)}" + (f" ({failed} failed)" if failed else ""),
         }
         for g in groups:
-            for short in ("cd", "f1"):
+            for short in METRICS:
                 key = f"eval/{short}" + ("" if g == "all" else f"/{g}")
                 values = [o.metrics[key] for o in done if key in o.metrics and math.isfinite(o.metrics[key])]
                 row[(g, f"{short.upper()} ours")] = statistics.fmean(values) if values else math.nan

@@ -28,11 +28,12 @@ import numpy as np
 from cdm.baseline_names import BASELINES
 from cdm.cli import add_out, command_parser
 from cdm.interrupt import interruptible
+from cdm.metric_names import CD, F1, METRICS, partner, rounded
 from cdm.metric_names import label as metric_label
 from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
-from sweeps.compare.rules import PROTOCOL_NOTE, partner, rounded
+from sweeps.compare.rules import PROTOCOL_NOTE
 from sweeps.compare.table import ResultsTable
 from sweeps.execute.logged_runs import last_eval_files, last_objects, metric_histories
 from sweeps.execute.tracking import resolve_tracking_uri, ui_link
@@ -177,7 +178,7 @@ def describe_sweep(
 def _best_baseline(record: SweepRecord, trials: list[TrialRecord]) -> str | None:
     """The baseline scoring best on the sweep's metric (F1 when the metric is neither CD nor F1)."""
     metric, mode = record.spec.metric.name, record.spec.metric.mode
-    short = metric.removeprefix("eval/") if metric in ("eval/cd", "eval/f1") else "f1"
+    short = metric.removeprefix("eval/") if metric.removeprefix("eval/") in METRICS else F1.name
     mode = mode if short == metric.removeprefix("eval/") else "max"
     means = {}
     for b in BASELINES:
@@ -253,9 +254,10 @@ def _object_scores(
         for row in last_objects(record.client, t.run_id):
             stem = str(row["object_id"]).replace("/", "_")  # the clouds' file names (cdm/evaluate.py)
             scores = out.setdefault(stem, {})
-            scores[cell] = (float(row["cd"]), float(row["f1"]))
-            if i == 0 and best is not None and f"baseline/{best}/cd" in row:
-                scores[f"baseline: {best}"] = (float(row[f"baseline/{best}/cd"]), float(row[f"baseline/{best}/f1"]))
+            scores[cell] = (float(row[CD.name]), float(row[F1.name]))
+            if i == 0 and best is not None and f"baseline/{best}/{CD.name}" in row:
+                scores[f"baseline: {best}"] = (float(row[f"baseline/{best}/{CD.name}"]),
+                                               float(row[f"baseline/{best}/{F1.name}"]))
     return out
 
 

@@ -23,13 +23,11 @@ from mlflow.exceptions import MlflowException
 
 from cdm.config import load_config
 from cdm.io.files import read_text
+from cdm.metric_names import CD, METRICS
 from cdm.provenance import MACHINE_KEYS, code_version, config_hash, installed_packages, machine_record
 from cdm.train import Callback, fit
 
 __all__ = ["RerunError", "machine_differences", "rerun"]
-
-COMPARED = ("eval/cd", "eval/f1")
-
 
 class RerunError(ValueError):
     """The run cannot be re-run as recorded; the message says why and what to do."""
@@ -191,14 +189,14 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     )
     seen = _Record()
     try:
-        fit(config, [TrialProgress(name, config.train.steps, "eval/cd"), tracked, seen])
+        fit(config, [TrialProgress(name, config.train.steps, CD.key), tracked, seen])
     except BaseException:  # re-raised: only marks the re-run's MLflow run failed instead of left running
         client.set_terminated(tracked.run_id, "FAILED")
         raise
     client.set_terminated(tracked.run_id)
     # Both runs' scores as their child runs hold them: the floats the trainer reported, compared exactly.
     rerun_metrics = client.get_run(tracked.run_id).data.metrics
-    rows = [(m, run.data.metrics.get(m), rerun_metrics.get(m)) for m in COMPARED]
+    rows = [(m, run.data.metrics.get(m), rerun_metrics.get(m)) for m in (r.key for r in METRICS.values())]
     rows += [(f"repro.{k}", tags.get(f"repro.{k}"), v) for k, v in seen.record.items() if tags.get(f"repro.{k}") != v]
     same = all(a == b for _, a, b in rows)
     width = max(len(r[0]) for r in rows)

@@ -20,8 +20,8 @@ from collections import Counter
 
 from mlflow.entities import Metric
 
+from cdm.metric_names import partner
 from sweeps.compare.bootstrap import interval_text
-from sweeps.compare.rules import partner
 from sweeps.compare.table import ResultsTable
 from sweeps.results.finished import SweepRecord
 
