@@ -15,11 +15,18 @@ from collections.abc import Iterable, Sequence
 
 from cdm.baseline_names import BASELINES
 
-__all__ = ["SCORES", "TRAIN_METRICS", "f1_at", "f1_unit", "label", "metric_names"]
+__all__ = ["COMPUTE_METRIC", "COMPUTE_UNIT", "SCORES", "TRAIN_METRICS", "f1_at", "f1_unit", "label", "metric_names"]
 
 TRAIN_METRICS = ("train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/skipped_steps",
                  "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
 """What :func:`cdm.train.fit` logs every ``train.log_every`` steps, in this order."""
+
+COMPUTE_METRIC = "train/compute_s"
+"""Seconds of compute training has spent (``train.compute_budget_s``'s unit: CPU seconds of the training process,
+GPU wall seconds on CUDA; evaluation not counted), reported by :func:`cdm.train.fit` with every evaluation."""
+
+COMPUTE_UNIT = "CPU seconds of the trial's process; GPU wall seconds on CUDA; evaluation not counted"
+"""What a second of :data:`COMPUTE_METRIC` (and of a budget in compute) is, in words."""
 
 SCORES = ("cd", "f1")
 """What an evaluation scores per shape (:mod:`cdm.metrics`): ``eval/<score>``, ``baseline/<name>/<score>``,
