@@ -35,7 +35,7 @@ each also per category (``eval/<score>/<category>``)."""
 
 def metric_names(categories: Sequence[str] = ()) -> list[str]:
     """Every metric name :func:`cdm.train.fit` can report (per-category names for the given categories)."""
-    names = list(TRAIN_METRICS)
+    names = [*TRAIN_METRICS, COMPUTE_METRIC]
     for prefix in ["eval"] + [f"baseline/{b}" for b in BASELINES]:
         names += [f"{prefix}/{s}" for s in SCORES]
         names += [f"{prefix}/{s}/{c}" for c in categories for s in SCORES]
