@@ -110,9 +110,11 @@ class DataConfig(_Group):
     """Held-out objects per category used for evaluation."""
     seed: int = 0
     """Seed of the procedural generator and of the object/split assignment."""
-    eval_split: Literal["val", "test"] = "val"
+    eval_split: Literal["val", "test", "tune"] = "val"
     """Published split held out for evaluation (``shapenet_r2n2``: PC15k's folder; ``co3d``: the
-    ``fewview_dev`` set list, PC²'s protocol: ``val``); training always reads ``train``."""
+    ``fewview_dev`` set list, PC²'s protocol: ``val``); training always reads ``train``. ``tune``
+    (``procedural`` only): objects ``procedural/<category>/tune/<i>``, disjoint from ``val``'s, so a recipe
+    search never scores on the objects a table reports."""
     num_workers: int = Field(0, ge=0)
     """Data-loader worker processes decoding training batches ahead of the step; 0 = in the training process."""
     condition_views: int = Field(0, ge=0, le=16)
@@ -160,6 +162,9 @@ class DataConfig(_Group):
         wrong = [name for name, changed in co3d_only.items() if changed and self.kind != "co3d"]
         if self.train_view is not None and self.kind != "shapenet_r2n2":
             wrong.insert(0, "data.train_view")
+        if self.eval_split == "tune" and self.kind != "procedural":
+            raise ValueError(f"data.eval_split: tune is the procedural data set's tuning split (got data.kind="
+                             f"{self.kind}); allowed here: val, test")
         if wrong:
             only = "shapenet_r2n2" if wrong[0] == "data.train_view" else "co3d"
             raise ValueError(
@@ -371,6 +376,16 @@ class TrainConfig(_Group):
     """Exponential moving average of weights used for evaluation; null = off."""
     eval_every: int = Field(5000, ge=1)
     """Evaluate (and checkpoint) every this many steps, and at the end."""
+    compute_budget_s: float | None = Field(None, gt=0.0)
+    """Seconds of compute training may spend before it stops (evaluates, checkpoints, ends), whichever of this
+    and ``steps`` comes first; null = ``steps`` alone. On CPU: the training process's CPU seconds
+    (``time.process_time``, all its threads), so runs sharing cores get the compute they used, not the wall time
+    they waited; on CUDA: wall seconds of the training steps on the GPU (synchronised before each reading).
+    Evaluation is not counted. The cosine decay still ends at ``steps`` (:func:`cdm.optim.lr_factor`); the
+    spent seconds restart from 0 on a resume."""
+    eval_every_s: float | None = Field(None, gt=0.0)
+    """Also evaluate (and checkpoint) each time training's compute passes a multiple of this many seconds (the
+    unit of ``compute_budget_s``): a sweep's rungs in seconds; null = by ``eval_every`` steps only."""
     log_every: int = Field(50, ge=1)
     """Report the running training loss every this many steps."""
     seed: int = 0

@@ -22,8 +22,9 @@ from cdm.baseline_names import BASELINES
 if TYPE_CHECKING:
     from torch import Tensor
 
-__all__ = ["CD", "F1", "METRICS", "TRAIN_METRICS", "Metric", "declare", "delta_range", "f1_at",
-           "f1_unit", "label", "metric_names", "mode", "number_text", "object_column", "partner", "rounded"]
+__all__ = ["CD", "COMPUTE_METRIC", "COMPUTE_UNIT", "F1", "METRICS", "TRAIN_METRICS", "Metric", "declare",
+           "delta_range", "f1_at", "f1_unit", "label", "metric_names", "mode", "number_text", "object_column",
+           "partner", "rounded"]
 
 TRAIN_METRICS = ("train/loss", "train/loss_diffusion", "train/loss_prior_3d", "train/lr", "train/skipped_steps",
                  "train/steps_per_s", "train/cpu_s_per_step", "train/elapsed_s")
@@ -61,10 +62,17 @@ def declare(metric: Metric) -> Metric:
     METRICS[metric.name] = metric
     return metric
 
+COMPUTE_METRIC = "train/compute_s"
+"""Seconds of compute training has spent (``train.compute_budget_s``'s unit: CPU seconds of the training process,
+GPU wall seconds on CUDA; evaluation not counted), reported by :func:`cdm.train.fit` with every evaluation."""
+
+COMPUTE_UNIT = "CPU seconds of the trial's process; GPU wall seconds on CUDA; evaluation not counted"
+"""What a second of :data:`COMPUTE_METRIC` (and of a budget in compute) is, in words."""
+
 
 def metric_names(categories: Sequence[str] = ()) -> list[str]:
     """Every metric name :func:`cdm.train.fit` can report (per-category names for the given categories)."""
-    names = list(TRAIN_METRICS)
+    names = [*TRAIN_METRICS, COMPUTE_METRIC]
     for prefix in ["eval"] + [f"baseline/{b}" for b in BASELINES]:
         names += [f"{prefix}/{s}" for s in METRICS]
         names += [f"{prefix}/{s}/{c}" for c in categories for s in METRICS]

@@ -15,6 +15,7 @@ import copy
 import logging
 import time
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -33,7 +34,7 @@ from cdm.diffusion import GaussianDiffusion
 from cdm.evaluate import EvalSet, build_eval_set, run_evaluation
 from cdm.external_inputs import check_coverage, check_inputs
 from cdm.io.write import check_within, make_folder
-from cdm.metric_names import TRAIN_METRICS
+from cdm.metric_names import COMPUTE_METRIC, TRAIN_METRICS
 from cdm.model import CDMNetwork, check_encoder_record
 from cdm.objective import LossTerms, cdm_loss
 from cdm.optim import MAX_SKIPPED_IN_A_ROW, Optimiser, TrainingDiverged, check_like
@@ -101,6 +102,36 @@ def _check_compatible(state: Checkpoint, config: Config, network: CDMNetwork) ->
         raise ValueError(
             f"resume: this run's {', '.join(differ)} differ from the checkpoint's; resume with the same settings"
         )
+
+
+class ComputeClock:
+    """Seconds of compute a run's training has spent (``train.compute_budget_s``'s unit): on CPU this process's
+    CPU seconds (``time.process_time``, all its threads: a run waiting for a shared core spends none); on CUDA
+    wall seconds, the device synchronised before each reading so queued kernels count. :meth:`paused` leaves a
+    span out (evaluation)."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.spent = 0.0
+        self._since = self._now()
+
+    def _now(self) -> float:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+            return time.perf_counter()
+        return time.process_time()
+
+    def seconds(self) -> float:
+        """Seconds spent so far, the running span included."""
+        return self.spent + self._now() - self._since
+
+    @contextmanager
+    def paused(self) -> Iterator[None]:
+        """Inside, no compute is counted (and :meth:`seconds` stays where it was)."""
+        self.spent = self.seconds()
+        self._since = self._now()
+        yield
+        self._since = self._now()
 
 
 class Trainer:
@@ -253,6 +284,15 @@ class Trainer:
         )
         return out.metrics, out.files
 
+    def agreed(self, seconds: float) -> float:
+        """``seconds`` of compute as every rank reads them (the most of any): ranks stop and evaluate at the same
+        step, so none waits in a collective the others left."""
+        if self.world == 1:
+            return seconds
+        value = torch.tensor([seconds], dtype=torch.float64, device=self.device)
+        torch.distributed.all_reduce(value, op=torch.distributed.ReduceOp.MAX)
+        return float(value.item())
+
     def save_checkpoint(self, keep: int = 2) -> Path:
         return save_step(self.state(), self.out_dir, keep)
 
@@ -271,9 +311,12 @@ def _ema_update(ema: torch.nn.Module, network: torch.nn.Module, decay: float) ->
         e.copy_(b)
 
 
-def _evaluate_and_save(trainer: Trainer, callbacks: Sequence[Callback]) -> tuple[dict[str, float], Path]:
-    """Evaluate, then checkpoint, telling the callbacks of each."""
+def _evaluate_and_save(trainer: Trainer, callbacks: Sequence[Callback], compute_s: float = 0.0
+                       ) -> tuple[dict[str, float], Path]:
+    """Evaluate, then checkpoint, telling the callbacks of each; the metrics carry ``compute_s``, the seconds of
+    compute training has spent so far (:data:`cdm.metric_names.COMPUTE_METRIC`)."""
     metrics, files = trainer.evaluate()
+    metrics[COMPUTE_METRIC] = compute_s
     for cb in callbacks:
         cb.on_eval(trainer.step, metrics, files)
     checkpoint = trainer.save_checkpoint()
@@ -310,22 +353,32 @@ def fit(
     record = run_record(config, trainer.train_set, trainer.val_set, trainer.device)
     for cb in callbacks:
         cb.on_start(record)
-    t_cfg = config.train
-    metrics: dict[str, float] = {}
-    checkpoint: Path | None = None
     if config.eval.only:  # PC²'s released weights scored as they are (model.init_from)
         return FitResult(trainer.step, *_evaluate_and_save(trainer, callbacks))
+    return _train(trainer, callbacks)
+
+
+def _train(trainer: Trainer, callbacks: Sequence[Callback]) -> FitResult:
+    """The loop of :func:`fit`: steps until ``train.steps`` or ``train.compute_budget_s``, evaluating every
+    ``train.eval_every`` steps, each ``train.eval_every_s`` seconds of compute, and at the end."""
+    t_cfg = trainer.cfg.train
+    metrics: dict[str, float] = {}
+    checkpoint: Path | None = None
     sums = [0.0, 0.0, 0.0]
     window = skipped = 0
+    clock = ComputeClock(trainer.device)
     start = time.perf_counter()
     window_start, cpu_start = start, time.process_time()
+    next_eval_s = t_cfg.eval_every_s
     while trainer.step < t_cfg.steps:
         losses = trainer.train_step(trainer.next_batch())
         sums = [s + v for s, v in zip(sums, losses[:3])]
         window += 1
         skipped += losses.skipped
         stop = any(cb.should_stop() for cb in callbacks)
-        if trainer.step % t_cfg.log_every == 0 or trainer.step == t_cfg.steps:
+        spent = trainer.agreed(clock.seconds()) if t_cfg.compute_budget_s or t_cfg.eval_every_s else 0.0
+        last = trainer.step == t_cfg.steps or (t_cfg.compute_budget_s is not None and spent >= t_cfg.compute_budget_s)
+        if trainer.step % t_cfg.log_every == 0 or last:
             now, cpu_now = time.perf_counter(), time.process_time()
             # This process's CPU time (all its threads) per step: what a step costs inside a sweep,
             # beside other trials, compared with benchmarks' isolated step (benchmarks/RESULTS.md).
@@ -338,10 +391,13 @@ def fit(
             sums, window, skipped, window_start, cpu_start = [0.0, 0.0, 0.0], 0, 0, now, cpu_now
         if stop:
             break
-        if trainer.step % t_cfg.eval_every == 0 or trainer.step == t_cfg.steps:
-            metrics, checkpoint = _evaluate_and_save(trainer, callbacks)
-            window_start, cpu_start = (
-                time.perf_counter(),
-                time.process_time(),
-            )  # steps/s measures training, not evaluation
+        by_compute = next_eval_s is not None and spent >= next_eval_s
+        if trainer.step % t_cfg.eval_every == 0 or last or by_compute:
+            while next_eval_s is not None and spent >= next_eval_s:
+                next_eval_s += t_cfg.eval_every_s
+            with clock.paused():
+                metrics, checkpoint = _evaluate_and_save(trainer, callbacks, clock.seconds())
+            window_start, cpu_start = time.perf_counter(), time.process_time()  # steps/s measures training only
+        if last:
+            break
     return FitResult(trainer.step, metrics, checkpoint)

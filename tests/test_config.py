@@ -155,3 +155,16 @@ def test_each_allowed_value_list_of_the_config_is_written_once_and_imported_else
     assert again == []
     planted = 'def splat(kind: Literal["depth", "planar"]) -> None: ...'
     assert frozenset({"depth", "planar"}) in _literals_written(planted)
+
+
+def test_the_tuning_split_is_the_procedural_data_sets_own_and_shares_no_object_with_val():
+    from cdm.data import build_dataset
+
+    cfg = load_config(None, {"data.categories": ["chair", "ring"], "data.val_objects": 3})
+    tune = build_dataset(cfg.replace(**{"data.eval_split": "tune"}), "val")
+    val = build_dataset(cfg, "val")
+    assert [o.object_id for o in tune.objects][:2] == ["procedural/chair/tune/00000", "procedural/ring/tune/00000"]
+    assert len(tune.objects) == len(val.objects) == 6
+    assert not {o.object_id for o in tune.objects} & {o.object_id for o in val.objects}
+    with pytest.raises(ConfigError, match="data.eval_split: tune is the procedural data set's tuning split"):
+        load_config(None, {"data.kind": "meshes", "data.root": "/nowhere", "data.eval_split": "tune"})

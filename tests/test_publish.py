@@ -210,6 +210,7 @@ def test_report_writes_the_runners_results_csv_byte_for_byte(tmp_path):
     outcomes = []
     for i, cell in enumerate(plan.cells[:2]):
         last = {"eval/cd": 80.123456789 - 20 * i, "eval/f1": 0.4213456789012 + 0.06 * i, **base,
+                "train/compute_s": 3.0123456789012 + i,
                 "eval/cd/chair": 81.98765432 - 20 * i, "eval/f1/chair": 2 / 3 + 0.01 * i}
         objects = [{"object_id": f"o{k}", "category": "chair", "eval_set": "e1", "cd": 70.1234567 + 10 * k - 20 * i,
                     "f1": 0.5 - k / 700 + i / 30, "baseline/sphere/cd": 150 + k / 3, "baseline/sphere/f1": 0.2 + k / 7}
@@ -230,6 +231,7 @@ def test_report_writes_the_runners_results_csv_byte_for_byte(tmp_path):
     assert publish.main(["digits", "--tracking-uri", uri, "--out", str(tmp_path / "report")]) == 0
     theirs = (tmp_path / "report" / "results.csv").read_bytes()
     assert theirs == ours.read_bytes() and b"0.4213456789012," in theirs and b"0.6666666666666666," in theirs
+    assert b",train/compute_s mean," in theirs and b",3.0123456789012," in theirs  # the cost column
 
 
 def test_paper_layout_puts_ours_beside_the_paper_per_cell(grid_store):

@@ -497,3 +497,31 @@ def test_an_interval_wider_than_f1_can_be_is_cut_to_its_range_and_says_too_few_o
     by_cd = build_table(_weighing_outcomes(), "eval/cd", "min", "t", settled={"cd only": cd_wide})
     row = dict(zip(by_cd.header, next(r for r in by_cd.rows if r[0].startswith("cd only"))))
     assert row["Δcd vs ref [95% CI]"] == "+3.00 [-900.00, +900.00]" and "too few" not in row["verdict"]
+
+
+def test_the_cost_column_is_each_cells_measured_compute_mean_over_its_finished_seeds(tmp_path):
+    # Seeds of a cell cost what each measured (a budget of 190 s is spent to a step's grain, or not at all when
+    # ASHA stopped it): the column is their mean, a failed trial's report left out, a cell without one "–".
+    trials = [_trial("a", 0, eval__f1=0.5, eval__cd=40.0, train__compute_s=190.4),
+              _trial("a", 1, eval__f1=0.6, eval__cd=41.0, train__compute_s=191.0),
+              _trial("b", 0, eval__f1=0.4, eval__cd=45.0, train__compute_s=95.2),
+              _trial("b", 1, "failed", train__compute_s=12.0),
+              _trial("c", 0, eval__f1=0.3, eval__cd=50.0)]
+    table = build_table(trials, "eval/f1", "max", "t")
+    cost = table.header.index("compute s")
+    assert table.header[cost - 1] == "trials"
+    assert [r[cost] for r in table.rows[:3]] == ["190.7", "95.2", "–"]
+    records = {r["cell"]: r for r in table.records}
+    assert records["a"]["train/compute_s mean"] == pytest.approx(190.7)
+    assert records["b"]["train/compute_s mean"] == 95.2 and records["c"]["train/compute_s mean"] is None
+    assert any(n.startswith("compute s: each cell's measured cost") and "CPU seconds" in n for n in table.notes)
+    _, written = table.write(tmp_path)
+    rows = list(csv.DictReader(written.open()))
+    assert [r["train/compute_s mean"] for r in rows[:3]] == ["190.7", "95.2", ""]
+    # Trials that report no compute (sweeps from before it) keep their table as it was.
+    assert "compute s" not in build_table(trials[4:], "eval/f1", "max", "t").header
+
+
+def test_a_budget_in_compute_says_its_unit_in_the_tables_first_note():
+    note = settings_note("local", 4000, ["x0"], [], "the spec's search", compute_s="190.0")
+    assert note.startswith("profile local: 190 s of compute (at most 4000 steps) per trial;")

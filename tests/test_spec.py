@@ -36,6 +36,7 @@ EXPECTED_TRIALS = {  # cells × seeds per shipped spec (Optuna: num_samples of t
     "shapenet": 10,
     "co3d": 6,
     "lambda": {"smoke": 4, "local": 8, "paper": 32},
+    "local_recipe": {"smoke": 4, "local": 24, "paper": 64},
 }
 
 
@@ -661,3 +662,21 @@ def test_asha_stops_where_rays_rungs_meet_an_evaluation(steps, eval_every, grace
         rungs = [m for m, _ in _Bracket(grace * eval_every, steps, rf, 0)._rungs]  # next evaluation
         judged = {min(steps, -(-int(-(-m // 1)) // eval_every) * eval_every) for m in rungs}
         assert sorted(s for s in judged if s < steps) == stops
+
+
+def test_a_budget_in_compute_sets_the_trials_config_and_counts_asha_in_seconds(tmp_path):
+    plan = expand(load_spec(SWEEPS / "local_recipe.yaml"), "local")
+    assert plan.profile.time_axis == ("train/compute_s", 190.0, 95.0)
+    assert {k: plan.fixed[k] for k in ("train.compute_budget_s", "train.eval_every_s", "train.steps")} == {
+        "train.compute_budget_s": 190.0, "train.eval_every_s": 95.0, "train.steps": 4000}
+    assert plan.spec.scheduler.stops(190.0, 95.0) == [95.0]
+    # Done: its compute spent (at any step), or its steps; stopped early: neither.
+    assert plan.profile.completed(1234, {"train/compute_s": 190.2}) and plan.profile.completed(4000, {})
+    assert not plan.profile.completed(2100, {"train/compute_s": 96.0})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: b\ngrid: {train.lr: [0.001]}\nprofiles: {smoke: {budget: {eval_every_s: 5}}}\n")
+    with pytest.raises(SpecError, match="budget.eval_every_s: only with budget.compute_s"):
+        load_spec(bad)
+    bad.write_text("name: b\ngrid: {train.lr: [0.001]}\nbase: {train.compute_budget_s: 5}\n")
+    with pytest.raises(SpecError, match="train.compute_budget_s.*budget.compute_s"):
+        load_spec(bad)

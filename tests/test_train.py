@@ -10,7 +10,7 @@ import torch
 
 from cdm.checkpoint import load_checkpoint
 from cdm.data.order import batch_indices
-from cdm.metric_names import metric_names
+from cdm.metric_names import COMPUTE_METRIC, metric_names
 from cdm.optim import TrainingDiverged, lr_factor
 from cdm.train import Callback, Trainer, fit
 from tests.conftest import tiny_config
@@ -286,3 +286,24 @@ def test_a_checkpoint_from_before_precision_was_recorded_resumes_in_fp32_silentl
     with caplog.at_level("WARNING", logger="cdm.train"):
         Trainer(cfg).restore(load_checkpoint(tmp_path / "old"))
     assert "resume:" not in caplog.text
+
+
+def test_a_compute_budget_stops_training_and_reports_its_seconds_with_every_evaluation(tmp_path):
+    class Evals(Callback):
+        def __init__(self):
+            self.seen: list[tuple[int, float]] = []
+
+        def on_eval(self, step, metrics, files):
+            self.seen.append((step, metrics[COMPUTE_METRIC]))
+
+    evals = Evals()
+    cfg = tiny_config(tmp_path, **{"train.steps": 100_000, "train.eval_every": 100_000,
+                                   "train.compute_budget_s": 0.6, "train.eval_every_s": 0.3})
+    result = fit(cfg, [evals])
+    # Stopped by its CPU seconds, long before its steps; evaluated at 0.3 s of training compute and at the end.
+    assert 0 < result.step < 100_000 and result.metrics[COMPUTE_METRIC] >= 0.6
+    assert len(evals.seen) >= 2 and evals.seen[-1] == (result.step, result.metrics[COMPUTE_METRIC])
+    assert evals.seen[0][1] >= 0.3 and [s for s, _ in evals.seen] == sorted({s for s, _ in evals.seen})
+    # A step budget alone reports the compute too, and stops at its steps.
+    plain = fit(tiny_config(tmp_path / "plain", **{"train.steps": 4, "train.eval_every": 4}))
+    assert plain.step == 4 and plain.metrics[COMPUTE_METRIC] > 0

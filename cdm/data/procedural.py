@@ -3,7 +3,8 @@
 
 :mod:`cdm.data.views` maps each object into its category's fixed frame (:data:`FRAMES`) and renders it.
 Objects keep their own size and place in it: a small chair is small. Every object is fixed by its id
-``procedural/<category>/<split>/<index>`` and ``data.seed``: the splits never share an object.
+``procedural/<category>/<split>/<index>`` and ``data.seed``: the splits never share an object. Held out is
+``val``, or ``tune`` with ``data.eval_split: tune`` (a recipe search's objects).
 """
 
 from __future__ import annotations
@@ -51,8 +52,10 @@ class ProceduralDataset(ObjectDataset):
 
     def _object_ids(self) -> list[tuple[str, str]]:
         count = self.cfg.data.train_objects if self.split == "train" else self.cfg.data.val_objects
+        # The tuning split: a recipe search's own held-out objects, other ids than the tables' `val`.
+        split = "tune" if self.split == "val" and self.cfg.data.eval_split == "tune" else self.split
         return interleave(
-            [[(c, f"procedural/{c}/{self.split}/{i:05d}") for i in range(count)] for c in self.categories(self.cfg)]
+            [[(c, f"procedural/{c}/{split}/{i:05d}") for i in range(count)] for c in self.categories(self.cfg)]
         )
 
     def _shape(self, index: int, rng: np.random.Generator) -> Shape:

@@ -62,13 +62,14 @@ def weighed(verdicts: Sequence[tuple[str, str]]) -> str:
 
 
 def settings_note(
-    profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float], lambda_from: str
+    profile: str, steps: object, targets: Iterable[str], lambdas: Iterable[float], lambda_from: str,
+    compute_s: object = None,
 ) -> str:
     """The table's first note: what produced the numbers (profile, budget, prediction target, λ).
 
     ``lambda_from`` says where the λ of Eq. 6 (``priors.lambda_3d``) was set (``profile local``,
     ``--set``, ``the spec``, ``the config default``): the paper gives no value, so the paper's column
-    was not measured with it.
+    was not measured with it. ``compute_s``: a budget in seconds of compute, said with its unit before the steps.
     """
     targets = sorted(set(targets))
     shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
@@ -80,7 +81,8 @@ def settings_note(
         if values
         else "searched"
     )
-    return (f"profile {profile}: {steps} steps per trial; prediction target {shown}; "
+    budget = f"{steps} steps" if compute_s is None else f"{float(compute_s):g} s of compute (at most {steps} steps)"
+    return (f"profile {profile}: {budget} per trial; prediction target {shown}; "
             f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")
 
 
@@ -129,7 +131,7 @@ def machine_note(trials: Iterable[Mapping[str, str]]) -> str:
 
 def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any], sets: dict[str, Any],
                    card: Iterable[str], trials: Iterable[tuple[str, float]] = (),
-                   machines: Iterable[Mapping[str, str]] | None = None) -> list[str]:
+                   machines: Iterable[Mapping[str, str]] | None = None, compute_s: object = None) -> list[str]:
     """The table's notes on what produced the numbers, the runner's and the report's alike (the one home of
     that rule): the :func:`settings_note` (a λ the spec searches is "searched", whatever the trials drew),
     then the protocol card (:mod:`sweeps.plan.protocol`) a line per note.
@@ -138,7 +140,7 @@ def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any
     λ. ``trials``: each trial's resolved (``diffusion.prediction``, ``priors.lambda_3d``); none (a sampled
     search before its trials, a sweep whose trials recorded none) stands for ``fixed`` and ``sets`` resolved
     by :func:`cdm.config.load_config`, as every trial's config is. ``machines``: each trial's tags, for the
-    :func:`machine_note` after the first note.
+    :func:`machine_note` after the first note. ``compute_s``: the profile's budget in seconds of compute, if any.
     """
     trials = list(trials)
     if not trials:
@@ -147,7 +149,8 @@ def settings_notes(spec: Spec, profile: str, steps: object, fixed: dict[str, Any
     targets, lambdas = [t for t, _ in trials], [lam for _, lam in trials]
     searched = "priors.lambda_3d" in spec.search.space
     return [
-        settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets)),
+        settings_note(profile, steps, targets, () if searched else lambdas, lambda_source(spec, profile, fixed, sets),
+                      compute_s),
         *([] if machines is None else [machine_note(machines)]),
         *(PROTOCOL_NOTE + line for line in card),
     ]

@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Literal
 
 from cdm.baseline_names import BASELINES
-from cdm.metric_names import F1, delta_range, f1_unit, number_text, object_column, partner
+from cdm.metric_names import COMPUTE_METRIC, COMPUTE_UNIT, F1, delta_range, f1_unit, number_text, object_column, partner
 from cdm.metric_names import mode as metric_mode
 from sweeps.compare.outcomes import TrialOutcome, finished
 from sweeps.compare.pairing import Lead, Pairing, lead_difference, paired_record, seeds_vary
@@ -35,7 +35,7 @@ from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.storage import write_file
 
-__all__ = ["ResultsTable", "build_table", "display_width"]
+__all__ = ["COST_COLUMN", "ResultsTable", "build_table", "display_width"]
 
 
 def display_width(text: str) -> int:
@@ -43,6 +43,10 @@ def display_width(text: str) -> int:
     (★, Δ, ±, λ: one column, though two or three bytes in UTF-8)."""
     return sum(0 if unicodedata.combining(c) else 2 if unicodedata.east_asian_width(c) in "WF" else 1 for c in text)
 
+
+COST_COLUMN = "compute s"
+"""The results table's cost column: a cell's seconds of compute, the mean over its finished trials of what each
+reported (:data:`cdm.metric_names.COMPUTE_METRIC`)."""
 
 _WHOLE = "[95% CI]"
 """A header's words a wrap keeps on one line."""
@@ -173,6 +177,8 @@ class _Columns:
     paper_label: bool
     """A ``paper setting`` column: some trial names the paper's row it stands for."""
     pairing: Pairing | None
+    cost: bool = False
+    """A ``compute s`` column: some trial reported its seconds of compute (:data:`cdm.metric_names.COMPUTE_METRIC`)."""
 
     @property
     def seeds(self) -> bool:
@@ -185,6 +191,7 @@ class _Columns:
 
     def header(self) -> list[str]:
         out = ["cell"] + (["paper setting"] if self.paper_label else []) + ["trials"] + ["seeds"] * self.seeds
+        out += [COST_COLUMN] * self.cost
         for m in self.shown:
             out += [m, f"paper {m}"]
         out += self.per_category
@@ -230,7 +237,8 @@ def build_table(
     pairing = None
     if object_column(metric) is not None and reference in cells and any(o.objects for o in finished(cells[reference])):
         pairing = Pairing.build(cells, reference, shown, mode, baselines, settled or {})
-    columns = _Columns(metric, shown, _categories(outcomes, metric), any(o.paper_label for o in outcomes), pairing)
+    columns = _Columns(metric, shown, _categories(outcomes, metric), any(o.paper_label for o in outcomes), pairing,
+                       any(COMPUTE_METRIC in o.metrics for o in outcomes))
 
     stats = {name: Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
              for name, group in cells.items()}
@@ -249,7 +257,7 @@ def build_table(
     notes = list(settings) + _notes(columns, outcomes, cells, paper_note, mode, leaders, best, bool(ranked))
     narrowing = [f"Δ{second.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and second else []
     # Last, the trial counts: a long verdict (a sequential cell's, with its partner aside) still fits.
-    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else []) + ["trials"]
+    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else []) + [COST_COLUMN, "trials"]
     answer = ("cell", *["seeds"] * columns.seeds, *shown,
               *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
     return ResultsTable(
@@ -287,6 +295,10 @@ def _cell_row(
         row.append(f"{settle.seeds} ({settle.reason})" if settle else "")
         record.update({"seeds": settle.seeds if settle else None, "stop reason": settle.reason if settle else ""})
     done = finished(group)
+    if columns.cost:  # measured by the trials, not their budget: a trial stopped early cost less
+        cost = Stat.of([o.metrics[COMPUTE_METRIC] for o in done if COMPUTE_METRIC in o.metrics])
+        row.append("–" if cost is None else f"{cost.mean:.1f}")
+        record[f"{COMPUTE_METRIC} mean"] = cost.mean if cost else None
     for m in columns.shown + columns.per_category:
         stat = Stat.of([o.metrics[m] for o in done if m in o.metrics])
         paper = first.paper.get(m)
@@ -306,7 +318,7 @@ def _cell_row(
 def _baseline_row(columns: _Columns, b: str, done: list[TrialOutcome]) -> tuple[list[str], dict[str, object]]:
     """Baseline ``b``'s row and record: it depends on the evaluation data only, not on the cell, so its mean
     over every finished trial is the number."""
-    row = [f"baseline: {b}"] + ([""] if columns.paper_label else []) + [""] + [""] * columns.seeds
+    row = [f"baseline: {b}"] + ([""] if columns.paper_label else []) + [""] + [""] * (columns.seeds + columns.cost)
     record: dict[str, object] = {"cell": f"baseline: {b}"}
     for m in columns.shown + columns.per_category:
         key = "baseline/" + b + "/" + m.removeprefix("eval/")
@@ -335,6 +347,9 @@ def _notes(
     notes = [f1_unit(o.f1_threshold for o in outcomes)] if has_f1 else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
+    if columns.cost:
+        notes.append(f"{COST_COLUMN}: each cell's measured cost, the mean over its finished trials of the seconds of "
+                     f"compute each reported ({COMPUTE_UNIT})")
     if any(c in o.paper for o in outcomes for c in columns.per_category):
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
     seeds = max((len(finished(group)) for group in cells.values()), default=0)

@@ -87,7 +87,7 @@ def table_settings(plan: SweepPlan, sweep_run: SweepRun | None = None) -> list[s
     machines = None if sweep_run is None else [
         r.data.tags for r in trial_runs(sweep_run.client, sweep_run.experiment_id, sweep_run.run_id)]
     return settings_notes(plan.spec, plan.profile.name, plan.profile.steps, plan.fixed, plan.sets,
-                          plan_card(plan).lines(), trials, machines)
+                          plan_card(plan).lines(), trials, machines, plan.profile.compute_s)
 
 
 def _ui_hint(uri: str, path: str) -> str:
@@ -166,7 +166,8 @@ def _open_parent_run(request: SweepRequest, args: argparse.Namespace, uri: str) 
               CARD_TAG: "\n".join(plan_card(plan).lines())},
         params={"profile": plan.profile.name, "search": plan.spec.search.kind, "trials": plan.num_trials,
                 "metric": plan.spec.metric.name, "steps": plan.profile.steps, "sets": json.dumps(request.sets),
-                **({"budget": args.budget} if args.budget else {})},
+                **({"budget": args.budget} if args.budget else {}),
+                **({"compute_s": plan.profile.compute_s} if plan.profile.compute_s is not None else {})},
     )
 
 

@@ -21,7 +21,7 @@ from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, RunTag
 from cdm.checkpoint import load_checkpoint, save_checkpoint
 from cdm.config import F1_THRESHOLD, Config
 from cdm.io.csv import read_csv
-from cdm.metric_names import CD, F1, f1_at
+from cdm.metric_names import CD, COMPUTE_METRIC, F1, f1_at
 from cdm.provenance import code_version, installed_packages
 from cdm.train import Callback
 from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
@@ -149,6 +149,7 @@ class TrialRun(Callback):
         self.client = PatientClient(uri)
         self.run_name, self.metric = run_name, metric
         self.last_step = 0 if config.eval.only else config.train.steps
+        self.budget_s = config.train.compute_budget_s
         self.f1_threshold = config.eval.f1_threshold
         found = find_trial_run(self.client, experiment_id, parent_run_id, trial_id)
         # Last step already in the run, per kind: a crash between a step's log and its evaluation
@@ -206,12 +207,13 @@ class TrialRun(Callback):
             self.client.log_artifact(self.run_id, str(path), f"eval/step_{step:07d}" + (f"/{sub}" if sub else ""))
         # The curve at the last evaluation only: MLflow charts the metrics live, and drawing it took ~0.7 s
         # per evaluation (benchmarks/RESULTS.md).
-        if files and step >= self.last_step:
+        last = step >= self.last_step or (self.budget_s is not None and metrics[COMPUTE_METRIC] >= self.budget_s)
+        if files and last:
             curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name,
                                        self.f1_threshold)
             if curve is not None:
                 self.client.log_artifact(self.run_id, str(curve), "curves")
-        if step >= self.last_step and self.monitor is not None:  # the last evaluation: the samples so far logged
+        if last and self.monitor is not None:  # the last evaluation: the samples so far logged
             self.monitor.finish()
             self.monitor = None
 

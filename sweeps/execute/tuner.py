@@ -76,7 +76,7 @@ class _TrialCloser(ray.tune.Callback):
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
         label = self._label(trial)
         step = trial.last_result.get("step", 0)
-        early = step < self.plan.last_step(label)
+        early = not self.plan.completed(label, step, trial.last_result)
         self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result,
                                    checkpoint=checkpoint_location(self.sweep_dir, trial))
         value = trial.last_result.get(self.plan.spec.metric.name)
@@ -113,15 +113,17 @@ def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> 
 
 def _scheduler(plan: SweepPlan):
     sch = plan.spec.scheduler
-    if not sch.stop_steps(plan.profile.steps, plan.profile.eval_every):
+    time_attr, total, every = plan.profile.time_axis
+    if not sch.stops(total, every):
         return None  # it could stop nothing (the dry run says so); Ray refuses a grace period past max_t
     from ray.tune.schedulers import ASHAScheduler
 
-    # Time axis = the trainer's step (reported with every evaluation), which survives a resume.
+    # Time axis = the trainer's step, or with a budget in compute its seconds of compute, so trials of
+    # different step cost meet at the same rungs (both reported with every evaluation).
     return ASHAScheduler(
-        time_attr="step",
-        max_t=plan.profile.steps,
-        grace_period=sch.grace_evals * plan.profile.eval_every,
+        time_attr=time_attr,
+        max_t=total,
+        grace_period=sch.grace_evals * every,
         reduction_factor=sch.reduction_factor,
         brackets=1,
     )
@@ -137,7 +139,7 @@ def _outcome(plan: SweepPlan, result, sweep_run: SweepRun) -> TrialOutcome:
     else:
         error = None
         step = (result.metrics or {}).get("step")
-        status = "pending" if step is None else ("stopped" if step < plan.last_step(label) else "ok")
+        status = "pending" if step is None else ("ok" if plan.completed(label, step, result.metrics) else "stopped")
     objects = tuple(sweep_run.trial_objects(trial_id)) if trial_id and status != "failed" else ()
     paper_label, paper = (cell.paper_label, cell.paper) if cell else (None, {})
     return TrialOutcome(label, name, status, metrics, paper_label, paper, error, objects,

@@ -21,8 +21,9 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
     spec, prof, r = plan.spec, plan.profile, plan.profile.resources
     out = [
         f"profile {prof.name}: {prof.description}".rstrip(": "),
-        f"budget: {prof.steps} steps, evaluation every {prof.eval_every}",
+        f"budget: {prof.budget_text()}",
         f"metric: {spec.metric.name} ({spec.metric.mode}); max retries per trial: {spec.failure.max_retries}",
+        f"scored on: {_split(plan)}",
         f"scheduler: {_scheduler(plan)}",
     ]
     mode = (
@@ -74,16 +75,27 @@ def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequ
     return wrapped("\n".join(out))
 
 
+def _split(plan: SweepPlan) -> str:
+    """The held-out split the trials are scored on (``data.eval_split``), the tuning split said as such."""
+    split = {**plan.fixed, **plan.sets}.get("data.eval_split", "val")
+    if split == "tune":
+        return ("the tuning split (data.eval_split=tune: objects procedural/<category>/tune/…, none of the val "
+                "objects a table reports)")
+    return f"the {split} split (data.eval_split={split})"
+
+
 def _scheduler(plan: SweepPlan) -> str:
     """The scheduler and where it may stop a trial, or, in one line, that under this profile it stops none."""
     sch, prof = plan.spec.scheduler, plan.profile
     if sch.kind == "none":
         return "none"
-    stops = sch.stop_steps(prof.steps, prof.eval_every)
+    _, total, every = prof.time_axis
+    at, unit, end = ("step ", "", "the last step") if prof.compute_s is None else ("", " s of compute", "the budget")
+    stops = sch.stops(total, every)
     if stops:
-        return f"{sch.kind}, may stop a trial at step {', '.join(map(str, stops))} of {prof.steps}"
-    return (f"{sch.kind} stops no trial under profile {prof.name}: its first rung (step "
-            f"{sch.grace_evals * prof.eval_every}) is not before the last step ({prof.steps})")
+        return f"{sch.kind}, may stop a trial at {at}{', '.join(f'{s:g}' for s in stops)} of {total:g}{unit}"
+    return (f"{sch.kind} stops no trial under profile {prof.name}: its first rung ({at}"
+            f"{sch.grace_evals * every:g}{unit}) is not before {end} ({total:g}{unit})")
 
 
 def wrapped(text: str, width: int = 120) -> str:

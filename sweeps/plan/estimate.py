@@ -39,7 +39,7 @@ from cdm.io.json import read_json
 from cdm.optim import TrainingDiverged
 from cdm.prior_model import ensure_priors
 from cdm.train import Trainer
-from sweeps.plan.trials import SweepPlan, expand
+from sweeps.plan.trials import ResolvedProfile, SweepPlan, expand
 
 __all__ = ["BOUND_GPU", "GPU_COSTS", "PEAK_FLOPS", "Estimate", "TrialCost", "asha_share", "calibrate", "estimate",
            "paper_gpu_line", "paper_trial_gpu_hours", "paper_trial_gpu_hours_bound", "peak_flops"]
@@ -116,7 +116,7 @@ class Estimate:
         )
 
 
-def asha_share(stops: list[int], reduction_factor: float, cost: Callable[[int], float]) -> float:
+def asha_share(stops: list[float], reduction_factor: float, cost: Callable[[float | None], float]) -> float:
     """A trial's expected cost under ASHA stopping at the steps ``stops`` (each before the last), over its
     cost run to the end: at each rung it goes on with probability 1 / ``reduction_factor`` (Ray's ASHA
     stops a trial below the rung's (1 − 1/rf) quantile of the results judged there before it; the first
@@ -315,6 +315,21 @@ def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
     )
 
 
+def _budget_steps(cost: TrialCost, prof: ResolvedProfile, spent: float | None = None) -> int:
+    """The steps a trial of ``cost`` takes within the profile's budget (to ``spent``, in its unit, if given): a
+    budget in compute buys ``compute_s / step_s`` steps (``step_s`` is one thread's, so CPU seconds), at most
+    ``steps``."""
+    if prof.compute_s is None:
+        return int(spent or prof.steps)
+    return max(1, min(prof.steps, math.ceil((spent or prof.compute_s) / cost.step_s)))
+
+
+def _trial_s(cost: TrialCost, prof: ResolvedProfile, shared: bool, spent: float | None = None) -> float:
+    """A trial's seconds under the profile's budget, or stopped at ``spent`` (a rung in the budget's unit)."""
+    every = prof.eval_every if prof.compute_s is None else _budget_steps(cost, prof, prof.time_axis[2])
+    return cost.trial_s(_budget_steps(cost, prof, spent), every, shared)
+
+
 def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False) -> Estimate:
     """Calibrate on this machine and estimate the sweep's wall time and paper-profile GPU-hours.
 
@@ -345,10 +360,10 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
         raise diverged
     for i, signature in unevaluated:
         costs[i] = replace(costs[i], eval_s=evaluated.get(signature, statistics.fmean(evaluated.values())))
-    steps = plan.profile.steps
-    trial_s = statistics.fmean(
-        replace(c, eval_set_s=costs[0].eval_set_s).trial_s(steps, plan.profile.eval_every, shared) for c in costs
-    )
+    prof = plan.profile
+    costs = [replace(c, eval_set_s=costs[0].eval_set_s) for c in costs]
+    steps = max(_budget_steps(c, prof) for c in costs)
+    trial_s = statistics.fmean(_trial_s(c, prof, shared) for c in costs)
     lanes = max(1.0, min(float(concurrent), cpus))
     if concurrent <= cpus:
         trials_wall = math.ceil(plan.num_trials / max(1, concurrent)) * trial_s
@@ -365,11 +380,11 @@ def estimate(plan: SweepPlan, cpus: float, concurrent: int, shared: bool = False
     paper = expand(plan.spec, "paper", plan.sets)
     sch = plan.spec.scheduler
     stopping, stopped = "", None
-    if stops := sch.stop_steps(steps, plan.profile.eval_every):
-        share = asha_share(stops, sch.reduction_factor, lambda at: statistics.fmean(
-            replace(c, eval_set_s=costs[0].eval_set_s).trial_s(at or steps, plan.profile.eval_every, shared)
-            for c in costs))
-        stopping = f"{sch.kind} stops 1 in {sch.reduction_factor:g} at step {', '.join(map(str, stops))}"
+    if stops := sch.stops(*prof.time_axis[1:]):
+        share = asha_share(stops, sch.reduction_factor,
+                           lambda at: statistics.fmean(_trial_s(c, prof, shared, at) for c in costs))
+        at, unit = ("step ", "") if prof.compute_s is None else ("", " s of compute")
+        stopping = f"{sch.kind} stops 1 in {sch.reduction_factor:g} at {at}{', '.join(f'{s:g}' for s in stops)}{unit}"
         stopped = shared_s + trials_wall * share
     return Estimate(plan.num_trials, trial_s, concurrent, shared_s + trials_wall, plan.sequential is not None,
                     paper_gpu_line(paper), stopping, stopped)

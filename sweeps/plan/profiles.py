@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, model_validator
 
 from cdm.config import ConfigError, PaperDataSet, format_validation_error, load_config, read_config_file
 from cdm.io.yaml import read_mapping
@@ -37,7 +37,20 @@ class Budget(Strict):
     the paper's (PC²'s ``max_steps``), which is that value's one home."""
 
     steps: int | None = Field(None, ge=1)
+    """Training steps; with ``compute_s``, the most a trial may take (and the cosine decay's length)."""
     eval_every: int | None = Field(None, ge=1)
+    compute_s: float | None = Field(None, gt=0)
+    """Seconds of compute per trial (``train.compute_budget_s``: CPU seconds of the trial's process here, GPU
+    wall seconds on CUDA, evaluation not counted): trials of different step cost train for the same compute,
+    and ASHA's rungs count in these seconds; null = a budget in steps."""
+    eval_every_s: float | None = Field(None, gt=0)
+    """With ``compute_s``: evaluate each time a trial's compute passes a multiple of this (ASHA's rung unit)."""
+
+    @model_validator(mode="after")
+    def _check(self) -> Budget:
+        if self.eval_every_s is not None and self.compute_s is None:
+            raise ValueError("budget.eval_every_s: only with budget.compute_s (a budget in seconds of compute)")
+        return self
 
 
 class Profile(Strict):
@@ -63,7 +76,8 @@ class SharedProfile(Profile):
     the sweeps differ. Its :data:`RUN_ONLY` fields are the single run's and stay out."""
 
 
-RUN_ONLY = ("train.steps", "train.eval_every", "train.threads", "train.out_dir")
+RUN_ONLY = ("train.steps", "train.eval_every", "train.compute_budget_s", "train.eval_every_s", "train.threads",
+            "train.out_dir")
 """A recipe's fields that a sweep sets per trial instead: the profile's budget and CPUs, the trial's folder."""
 
 

@@ -224,7 +224,9 @@ _COMMON: dict[str, Entry] = {
     "train.precision": Stated(
         _PAPER, f"{_PC2}: RunConfig.mixed_precision 'fp16', Accelerate's autocast and loss scale"
     ),
+    "train.compute_budget_s": Stated(_DEFAULT, f"{_PC2}: max_steps, a training length in steps (no compute budget)"),
     "train.eval_every": NoEffect("when to score; the final score is at train.steps"),
+    "train.eval_every_s": NoEffect("when to score; the final score is at the end of training"),
     "train.log_every": NoEffect("logging"),
     "train.seed": _DRAW,
     "train.device": NoEffect("where it runs"),

@@ -19,6 +19,8 @@ KNOWN_FIELDS = frozenset(config_field_paths())
 OWNED_FIELDS = {
     "train.steps": "the profile's budget.steps",
     "train.eval_every": "the profile's budget.eval_every",
+    "train.compute_budget_s": "the profile's budget.compute_s",
+    "train.eval_every_s": "the profile's budget.eval_every_s",
     "train.seed": "the spec's seeds",
 }
 

@@ -131,28 +131,34 @@ class Metric(Strict):
 
 
 class Scheduler(Strict):
-    """``asha`` stops weak trials at rungs of ``grace_evals`` × eval_every steps (time axis: train step)."""
+    """``asha`` stops weak trials at rungs of ``grace_evals`` evaluation intervals: ``eval_every`` steps, or with a
+    budget in compute (``budget.compute_s``) ``eval_every_s`` seconds of it (time axis: the budget's unit)."""
 
     kind: Literal["none", "asha"] = "none"
     grace_evals: int = Field(1, ge=1)
     reduction_factor: float = Field(2.0, gt=1.0)
 
-    def stop_steps(self, steps: int, eval_every: int) -> list[int]:
-        """The steps before the last (``steps``) at which ASHA may stop a trial: none for ``kind: none``.
+    def stops(self, total: float, every: float) -> list[float]:
+        """The points before the last (``total``, in steps or seconds of compute) at which ASHA may stop a trial
+        evaluated every ``every`` of that unit: none for ``kind: none``.
 
         Ray's one-bracket ASHA (``ray/tune/schedulers/async_hyperband.py``, ``_Bracket``) has rungs at
-        ``grace × rf^k`` (``grace = grace_evals × eval_every``, k = 0 … ⌊log_rf(steps / grace)⌋) and judges a
+        ``grace × rf^k`` (``grace = grace_evals × every``, k = 0 … ⌊log_rf(total / grace)⌋) and judges a
         trial at the first result it reports at or past a rung: the trainer reports at every evaluation
-        (each ``eval_every`` steps) and at the last step. A rung whose report is the last step stops nothing."""
-        grace = self.grace_evals * eval_every
-        if self.kind == "none" or grace >= steps:
+        (each ``every``) and at the end. A rung whose report is the end stops nothing."""
+        grace = self.grace_evals * every
+        if self.kind == "none" or grace >= total:
             return []
         rungs, rung = [], grace
-        while rung <= steps:
+        while rung <= total:
             rungs.append(rung)
             rung *= self.reduction_factor
-        judged = sorted({min(steps, -(-int(math.ceil(r)) // eval_every) * eval_every) for r in rungs})
-        return [s for s in judged if s < steps]
+        judged = sorted({min(total, math.ceil(r / every - 1e-9) * every) for r in rungs})
+        return [s for s in judged if s < total]
+
+    def stop_steps(self, steps: int, eval_every: int) -> list[int]:
+        """:meth:`stops` for a budget in steps."""
+        return [int(s) for s in self.stops(steps, eval_every)]
 
 
 class Failure(Strict):

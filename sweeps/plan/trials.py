@@ -27,7 +27,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from cdm.config import Config, ConfigError, TrainConfig, load_config
-from cdm.metric_names import F1, metric_names
+from cdm.metric_names import COMPUTE_METRIC, COMPUTE_UNIT, F1, metric_names
 from sweeps.plan.profiles import Budget, Profile, Resources, load_profiles
 from sweeps.plan.schema_base import SpecError, field_error
 from sweeps.plan.spec import DatasetRun, ExplicitCell, PaperRow, SequentialSeeds, Spec
@@ -52,6 +52,30 @@ class ResolvedProfile:
     num_samples: int | None
     datasets: dict[str, dict[str, Any]] = field(default_factory=dict)
     """Fields set when a run reads one of these data sets (:attr:`sweeps.plan.profiles.Profile.datasets`)."""
+    compute_s: float | None = None
+    """Seconds of compute per trial (:attr:`sweeps.plan.profiles.Budget.compute_s`); None: a budget in steps."""
+    eval_every_s: float | None = None
+
+    @property
+    def time_axis(self) -> tuple[str, float, float]:
+        """ASHA's time attribute, a trial's whole budget and the interval of its evaluations in that unit:
+        ``("train/compute_s", seconds, seconds)`` for a budget in compute, else ``("step", steps, eval_every)``."""
+        if self.compute_s is None:
+            return "step", self.steps, self.eval_every
+        return COMPUTE_METRIC, self.compute_s, self.eval_every_s or self.compute_s
+
+    def budget_text(self) -> str:
+        """The budget in words, with its unit (the dry run's and the results table's line)."""
+        if self.compute_s is None:
+            return f"{self.steps} steps, evaluation every {self.eval_every}"
+        return (f"{self.compute_s:g} s of compute per trial ({COMPUTE_UNIT}), evaluation every "
+                f"{self.time_axis[2]:g} s of it, at most {self.steps} steps")
+
+    def completed(self, step: int, result: Mapping[str, Any]) -> bool:
+        """Whether a trial whose last report is ``result`` at ``step`` spent its whole budget (not stopped early)."""
+        if self.compute_s is not None and float(result.get(COMPUTE_METRIC, 0.0)) >= self.compute_s:
+            return True
+        return step >= self.steps
 
 
 @dataclass(frozen=True)
@@ -126,6 +150,10 @@ class SweepPlan:
         """The trials that run whatever the results: every trial of a fixed list, round 1 of a sequential sweep."""
         return tuple(c for c in self.cells if self.round_of(c) == 1)
 
+    def completed(self, label: str, step: int, result: Mapping[str, Any]) -> bool:
+        """Whether trial ``label``, last reporting ``result`` at ``step``, ran to the end of its budget."""
+        return step >= self.last_step(label) or self.profile.completed(step, result)
+
     def last_step(self, label: str) -> int:
         """The step a trial of ``label`` ends at when it runs to the end: 0 for a cell that only scores its
         starting weights (``eval.only``: PC²'s released weights), else the profile's budget."""
@@ -173,6 +201,8 @@ def resolve_profile(spec: Spec, name: str, shared: dict[str, Profile]) -> Resolv
         description=local.description or base.description,
         steps=defaults.steps if budget.steps is None else budget.steps,
         eval_every=defaults.eval_every if budget.eval_every is None else budget.eval_every,
+        compute_s=budget.compute_s,
+        eval_every_s=budget.eval_every_s,
         overrides={**base.overrides, **spec.base, **local.overrides},
         resources=resources,
         num_samples=local.num_samples or base.num_samples,
@@ -291,6 +321,8 @@ def _shared_values(
         **(run.overrides if run else {}),
         "train.steps": prof.steps,
         "train.eval_every": prof.eval_every,
+        "train.compute_budget_s": prof.compute_s,
+        "train.eval_every_s": prof.eval_every_s,
     }
     fixed.setdefault("train.threads", max(1, int(prof.resources.cpus_per_worker)))
     try:

@@ -199,7 +199,7 @@ def _settings(record: SweepRecord) -> list[str]:
               for r in record.children if {"diffusion.prediction", "priors.lambda_3d"} <= r.data.params.keys()]
     return settings_notes(record.spec, record.profile, record.parent.data.params.get("steps", "?"),
                           plan.get("fixed", {}), plan.get("sets", {}), protocol_card_lines(record), trials,
-                          [r.data.tags for r in record.children])
+                          [r.data.tags for r in record.children], record.parent.data.params.get("compute_s"))
 
 
 def protocol_card_lines(record: SweepRecord) -> list[str]:
