@@ -18,6 +18,7 @@ The model samples as ``cdm-lab reconstruct`` does, from the same preparation (:m
 
 from __future__ import annotations
 
+import os
 import tempfile
 import warnings
 from importlib.metadata import version
@@ -119,6 +120,9 @@ def log_model(client, run_id: str, checkpoint: Path, metadata: dict[str, Any]) -
     from mlflow.entities import LoggedModelStatus
     from mlflow.models import Model
 
+    # save_model copies the artifact folder through MLflow's downloader, whose progress bar would reach the
+    # sweep's terminal from every trial at every checkpoint.
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     model = _logged_model(client, run_id)
     with tempfile.TemporaryDirectory(prefix="cdm-mlflow-model-") as tmp:
         local = Path(tmp) / MODEL_NAME

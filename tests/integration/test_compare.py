@@ -155,7 +155,9 @@ def test_children_carry_swept_values_final_metrics_and_a_panel_per_object(smoke)
         note = " ".join(client.get_run(child.info.run_id).data.tags["mlflow.note.content"].split())
         assert note.startswith(f"**{child.data.tags['cell']}**, seed 0") and smoke.parent.info.run_id in note
         artifacts = {a.path for a in client.list_artifacts(child.info.run_id)}
-        assert artifacts == {"config.yaml", "curves", "environment", "eval", "model"}
+        assert artifacts == {"config.yaml", "curves", "environment", "eval"}  # the weights: the run's MLflow model
+        models = client.search_logged_models([smoke.experiment_id])
+        assert [m.name for m in models if m.source_run_id == child.info.run_id] == ["model"]
 
 
 def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, monkeypatch):
