@@ -148,16 +148,24 @@ def test_reader_level_damage_is_one_message_each(tmp_path):
 def test_bad_storage_references_are_one_line_through_evaluate_on_both_readers(tmp_path):
     from tests.hostile_torch import PC2_FIRST_WEIGHT
 
-    for key, reader in (("w", "CDM checkpoint"), (PC2_FIRST_WEIGHT, "PC² checkpoint")):  # load_tensors, load_inert
+    # A file of ours from 0.1.0 is read (load_tensors) by convert alone; PC²'s (load_inert) by evaluate.
+    for key, reader in (("w", "cdm 0.1.0 checkpoint"), (PC2_FIRST_WEIGHT, "PC² checkpoint")):
         for what, pid in BAD_IDS.items():
             file = tmp_path / f"{what.replace(' ', '_')}-{len(key)}.pt"
             archive(file, tensor_pickle(pid, key=key), RECORDS)
-            outcome = run_command(["-m", "cdm", "evaluate", "--checkpoint", str(file), *_sets()], tmp_path)
+            outcome = run_command(_reading(file, key == "w", tmp_path), tmp_path)
             assert_refused(outcome, str(file), f"not a readable {reader}: its pickle names a storage as")
         file = tmp_path / f"middle-{len(key)}.pt"
         archive(file, tensor_pickle(GOOD_ID, key=key), RECORDS, byteorder="middle")
-        outcome = run_command(["-m", "cdm", "evaluate", "--checkpoint", str(file), *_sets()], tmp_path)
+        outcome = run_command(_reading(file, key == "w", tmp_path), tmp_path)
         assert_refused(outcome, str(file), "it gives byte order 'middle'; only 'little' or 'big'")
+
+
+def _reading(file: Path, ours: bool, folder: Path) -> list[str]:
+    """The command that reads ``file``: ``convert`` for a 0.1.0 file of ours, ``evaluate`` for PC²'s."""
+    if ours:
+        return ["-m", "cdm", "convert", str(file), str(folder / "converted")]
+    return ["-m", "cdm", "evaluate", "--checkpoint", str(file), *_sets()]
 
 
 @pytest.mark.slow
@@ -210,7 +218,7 @@ def _deflated_pickle(path: Path, size: int) -> None:
 def test_the_three_bombs_are_refused_in_bounded_memory(tmp_path):
     baseline = run_command(["-c", "import torch, cdm.io.torch"], tmp_path).peak_rss
     for name, file in _bombs(tmp_path).items():
-        outcome = run_command(["-m", "cdm", "evaluate", "--checkpoint", str(file), *_sets()], tmp_path)
+        outcome = run_command(_reading(file, True, tmp_path), tmp_path)
         assert_refused(outcome, str(file), "more than" if name != "steps" else "runs more than 2,000,000 steps")
         assert outcome.peak_rss - baseline < 300 * 2**20, (name, outcome.peak_rss, baseline)
         assert file.stat().st_size < (11 if name == "steps" else 4) * 2**20, name

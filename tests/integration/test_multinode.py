@@ -77,7 +77,8 @@ def test_concurrent_trials_run_on_both_nodes_and_record_no_node_local_path(two_n
             assert Path(path).is_relative_to(sweep_dir) and Path(path).exists(), f"{key} = {path}"
             assert not _node_local(path, two_nodes, sweep_dir, trial_id), f"{key} = {path} is node-local"
         assert Path(tags["checkpoint"], CHECKPOINT_FILE).is_file()
-        assert f"model/{CHECKPOINT_FILE}" in {a.path for a in client.list_artifacts(child.info.run_id, "model")}
+        models = client.search_logged_models([child.info.experiment_id])  # the weights: the run's MLflow model
+        assert [m.name for m in models if m.source_run_id == child.info.run_id] == ["model"]
 
 
 def test_two_worker_trial_spans_nodes_and_keeps_ranks_identical(two_nodes, tmp_path):
