@@ -12,6 +12,10 @@ write while another writer waits for its readers to finish gets "database is loc
 smoke sweep's trials failed so, 2 s into another writer's 45 s hold). :class:`PatientClient` therefore
 also retries each MLflow call that failed so, with back-off, for up to :data:`BUSY_TIMEOUT_S` (the
 failed transaction was rolled back: nothing is logged twice).
+
+Two trials logging the same evaluation set (``log_inputs``) at once both find its dataset row missing
+and both insert it; the later insert fails the table's unique key (seen in a 2-CPU smoke sweep). Its
+transaction was rolled back too, and the retry finds the row and links it: retried the same way.
 """
 
 from __future__ import annotations
@@ -24,10 +28,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["BUSY_TIMEOUT_S", "PatientClient", "StoreBusy", "check_not_locked", "retry_when_busy", "wait_when_busy"]
+__all__ = ["BUSY_TIMEOUT_S", "RETRIED", "PatientClient", "StoreBusy", "check_not_locked", "retry_when_busy",
+           "wait_when_busy"]
 
 BUSY_TIMEOUT_S = 120.0
 """How long a write waits for another writer of the SQLite store (MLflow UI, a second sweep, a backup)."""
+
+RETRIED = ("database is locked", "UNIQUE constraint failed: datasets.")
+"""The MLflow errors another writer causes and a retry clears (the module's docstring says why)."""
 
 
 class StoreBusy(RuntimeError):
@@ -76,8 +84,8 @@ def check_not_locked(path: Path) -> None:
 
 
 def retry_when_busy(call: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """``call(*args, **kwargs)``, again after 0.1, 0.2, … (at most 5) s while it fails with MLflow's "database
-    is locked", until :data:`BUSY_TIMEOUT_S` have passed; then, or on any other error, the error is raised."""
+    """``call(*args, **kwargs)``, again after 0.1, 0.2, … (at most 5) s while it fails with one of MLflow's
+    :data:`RETRIED` errors, until :data:`BUSY_TIMEOUT_S` have passed; then, or on any other error, it is raised."""
     from mlflow.exceptions import MlflowException  # deferred: the CLI checks its input before importing MLflow
 
     deadline = time.monotonic() + BUSY_TIMEOUT_S
@@ -86,7 +94,7 @@ def retry_when_busy(call: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         try:
             return call(*args, **kwargs)
         except MlflowException as exc:
-            if "database is locked" not in str(exc) or time.monotonic() + pause > deadline:
+            if not any(text in str(exc) for text in RETRIED) or time.monotonic() + pause > deadline:
                 raise
         time.sleep(pause)
         pause = min(2 * pause, 5.0)

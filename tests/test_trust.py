@@ -483,6 +483,22 @@ class _LockedThenFree:
         return value
 
 
+def test_a_dataset_two_trials_insert_at_once_is_retried_and_the_retry_links_the_stored_row(tmp_path):
+    from mlflow.entities import Dataset, DatasetInput
+
+    race = _LockedThenFree(1, "(sqlite3.IntegrityError) UNIQUE constraint failed: datasets.experiment_id, "
+                              "datasets.name, datasets.digest")
+    assert store_retry.retry_when_busy(race, 7) == 7 and race.calls == 2
+    # What the retry meets in a real store: the other trial's row, which it links instead of inserting.
+    client = store_retry.PatientClient(f"sqlite:///{tmp_path}/m.db")
+    experiment = client.create_experiment("race")
+    runs = [client.create_run(experiment).info.run_id for _ in range(2)]
+    for run_id in runs:
+        client.log_inputs(run_id, datasets=[DatasetInput(Dataset("procedural quick eval", "e1", "code", "{}"))])
+    used = [client.get_run(r).inputs.dataset_inputs[0].dataset for r in runs]
+    assert [(d.name, d.digest) for d in used] == [("procedural quick eval", "e1")] * 2
+
+
 def test_an_mlflow_call_refused_as_locked_is_retried_with_back_off_until_the_wait_ends(tmp_path, monkeypatch):
     from mlflow.exceptions import MlflowException
 
