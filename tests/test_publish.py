@@ -24,7 +24,7 @@ from scipy.ndimage import binary_dilation
 from cdm.data import build_dataset
 from cdm.data.sample import collate
 from cdm.evaluate import save_panel
-from cdm.metric_names import rounded
+from cdm.metric_names import COMPUTE_METRIC, rounded
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.table import build_table
 from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, with_logged_baselines
@@ -343,7 +343,8 @@ def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
     sweep, _ = _start(tmp_path, uri, OPTUNA)
     for i, (lam, cd) in enumerate([(0.01, 70.0), (0.1, 60.0), (1.0, 90.0)]):
         label = f"λ={lam:g} · seed 0"
-        _trial(tmp_path, sweep, f"t{i}", label, {"priors.lambda_3d": lam}, {20: {"eval/cd": cd, "eval/f1": 0.4}})
+        scores = {"eval/cd": cd, "eval/f1": 0.4 + i / 10, COMPUTE_METRIC: 10.0 * (3 - i)}
+        _trial(tmp_path, sweep, f"t{i}", label, {"priors.lambda_3d": lam}, {20: scores})
         sweep.close_trial(f"t{i}", label, "FINISHED")
     _trial(tmp_path, sweep, "t3", "λ=5 · seed 0", {"priors.lambda_3d": 5.0}, {})
     sweep.close_trial("t3", "λ=5 · seed 0", "FAILED", error="boom")
@@ -357,6 +358,7 @@ def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
         "training_curves.png",
         "optuna_history.png",
         "optuna_importance.png",
+        "optuna_pareto.png",
     ]
     for p in paths:
         assert mpimg.imread(p).std() > 0.01

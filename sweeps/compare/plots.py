@@ -18,8 +18,10 @@ from typing import Any, Literal
 import numpy as np
 
 from cdm.io.files import read_text
-from cdm.metric_names import METRICS, object_column, partner
+from cdm.metric_names import COMPUTE_METRIC, METRICS, object_column, partner
 from cdm.metric_names import label as metric_label
+from cdm.metric_names import mode as metric_mode
+from sweeps.compare.table import COST_COLUMN
 from sweeps.storage import write_file
 
 __all__ = [
@@ -287,43 +289,68 @@ def training_curves(
 
 
 def optuna_plots(
-    trials: Sequence[tuple[dict[str, Any], float | None]],
+    trials: Sequence[tuple[dict[str, Any], Mapping[str, float] | None]],
     distributions: Mapping[str, Any],
     mode: Literal["min", "max"],
     metric: str,
     folder: Path,
 ) -> list[Path]:
-    """Optuna's optimisation history and parameter importances for a search rebuilt from its trials.
+    """Optuna's optimisation history, parameter importances and Pareto front for a search rebuilt from its trials.
 
     Args:
-        trials: per trial, the sampled values and its final ``metric`` (None: failed, not counted).
+        trials: per trial, the sampled values and its last evaluation's metrics (None: failed, not counted).
         distributions: ``optuna.distributions`` of the search space, by config key.
     Returns:
-        ``optuna_history.png``, and ``optuna_importance.png`` when two or more trials finished
-        (importances need a spread of finished trials).
+        ``optuna_history.png``; ``optuna_importance.png`` when two or more trials finished (importances need a
+        spread of finished trials); ``optuna_pareto.png`` when two or more trials report ``metric``, its partner
+        and :data:`~cdm.metric_names.COMPUTE_METRIC`: the trials no other beats on all three at once.
     """
     import optuna
     from optuna.visualization import matplotlib as ovm
 
     plt = _pyplot()
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = optuna.create_study(direction="minimize" if mode == "min" else "maximize")
-    for values, value in trials:
-        state = optuna.trial.TrialState.COMPLETE if value is not None else optuna.trial.TrialState.FAIL
-        study.add_trial(
-            optuna.trial.create_trial(params=values, distributions=dict(distributions), value=value, state=state)
-        )
+    objectives = [metric, *filter(None, [partner(metric)]), COMPUTE_METRIC]
+    directions = {m: "minimize" if (mode if m == metric else _mode(m)) == "min" else "maximize" for m in objectives}
+    single = _study(optuna, [directions[metric]], [(v, [m[metric]] if m and metric in m else None) for v, m in trials],
+                    distributions)
+    scored = [(v, [m[k] for k in objectives]) for v, m in trials if m and all(k in m for k in objectives)]
     paths = []
     # Optuna's plots switch the global style to ggplot; the context restores it for every later figure.
     # Its matplotlib backend is marked experimental, which would warn on every sweep.
     with plt.rc_context(), warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        ax = ovm.plot_optimization_history(study, target_name=metric)
+        ax = ovm.plot_optimization_history(single, target_name=metric)
         paths.append(_save(ax.figure, folder / "optuna_history.png"))
-        if sum(v is not None for _, v in trials) >= 2:
-            ax = ovm.plot_param_importances(study, target_name=metric)
+        if sum(m is not None and metric in m for _, m in trials) >= 2:
+            ax = ovm.plot_param_importances(single, target_name=metric)
             paths.append(_save(ax.figure, folder / "optuna_importance.png"))
+        if len(objectives) == 3 and len(scored) >= 2:
+            front = _study(optuna, [directions[m] for m in objectives], scored, distributions)
+            ax = ovm.plot_pareto_front(front, target_names=[_short(m) for m in objectives])
+            paths.append(_save(ax.figure, folder / "optuna_pareto.png"))
     return paths
+
+
+def _study(optuna, directions: list[str], trials: Sequence[tuple[dict[str, Any], list[float] | None]],
+           distributions: Mapping[str, Any]):
+    """An in-memory Optuna study holding ``trials`` (values, objective values; None: failed)."""
+    study = optuna.create_study(directions=directions)
+    for values, scores in trials:
+        state = optuna.trial.TrialState.COMPLETE if scores is not None else optuna.trial.TrialState.FAIL
+        study.add_trial(optuna.trial.create_trial(params=values, distributions=dict(distributions), values=scores,
+                                                  state=state))
+    return study
+
+
+def _mode(metric: str) -> Literal["min", "max"]:
+    """Which way ``metric`` is better: a declared evaluation metric's own direction, compute always less."""
+    return "min" if metric == COMPUTE_METRIC else metric_mode(metric)
+
+
+def _short(metric: str) -> str:
+    """An axis name: ``eval/f1`` → ``f1``, the compute metric with its unit."""
+    return COST_COLUMN if metric == COMPUTE_METRIC else metric.removeprefix("eval/")
 
 
 def read_ply(path: Path) -> np.ndarray:

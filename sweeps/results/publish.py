@@ -99,7 +99,7 @@ def write_plots(
         paths.append(training_curves(curves, cells, metric, record.title, folder / "training_curves.png",
                                      f1_thresholds=thresholds))
     if spec.search.sampled:
-        searched = [(t.values, t.outcome.metrics.get(metric) if t.outcome.finished else None)
+        searched = [(t.values, t.outcome.metrics if t.outcome.finished and metric in t.outcome.metrics else None)
                     for t in trials if set(t.values) == set(spec.search.space)]
         if searched:
             paths += optuna_plots(searched, optuna_distributions(spec.search.space), spec.metric.mode, metric, folder)
