@@ -20,6 +20,7 @@ No file holds code, and every one is read through :mod:`cdm.io` (:func:`cdm.io.s
 from __future__ import annotations
 
 import json
+import math
 import re
 import shutil
 import stat
@@ -98,6 +99,10 @@ class Checkpoint:
     trains in ``fp32``); None in checkpoints written before it was recorded (fp32)."""
     loss_scale: dict[str, Any] | None = None
     """fp16's dynamic loss scale (``torch.amp.GradScaler.state_dict()``: plain numbers), else None."""
+    compute_s: float = 0.0
+    """Seconds of compute training had spent when this step was saved (:data:`cdm.metric_names.COMPUTE_METRIC`'s
+    unit): a run resumed under ``train.compute_budget_s`` goes on counting from it. 0 in checkpoints written before
+    it was recorded."""
     encoder: dict[str, Any] | None = None
     """The image encoder's record (``CDMNetwork.encoder.record``): ``{"encoder": "cnn"}``, or
     ``{"encoder": "vit_s16", "weights_sha256": ...}`` for the frozen ViT, whose weights are not in
@@ -220,6 +225,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             state[name] = checked_state_dict(weights, f"checkpoint: {file.parent / record[name]}")
     if type(state["step"]) is not int or not isinstance(state["voxel_backend"], str):
         raise ValueError(f"{where}: its step must be a whole number and its voxel_backend a name")
+    if type(state.get("compute_s", 0.0)) not in (int, float) or not 0 <= state.get("compute_s", 0.0) < math.inf:
+        raise ValueError(f"{where}: its compute_s must be a finite number of seconds, at least 0")
     return Checkpoint(**state)
 
 

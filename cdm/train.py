@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -110,9 +111,9 @@ class ComputeClock:
     wall seconds, the device synchronised before each reading so queued kernels count. :meth:`paused` leaves a
     span out (evaluation)."""
 
-    def __init__(self, device: torch.device):
+    def __init__(self, device: torch.device, spent: float = 0.0):
         self.device = device
-        self.spent = 0.0
+        self.spent = spent
         self._since = self._now()
 
     def _now(self) -> float:
@@ -166,6 +167,8 @@ class Trainer:
         self.world = torch.distributed.get_world_size() if distributed else 1
         self.generator = torch.Generator(device=self.device).manual_seed(t.seed + 7919 * self.rank)
         self.step = 0
+        self.compute_s = 0.0
+        """Seconds of compute spent at the last evaluation (:class:`ComputeClock`), saved with each checkpoint."""
         self.out_dir = Path(config.train.out_dir)
         self._eval_set: EvalSet | None = None
         self._loader: Iterator[Batch] | None = None
@@ -175,6 +178,7 @@ class Trainer:
         return Checkpoint(
             config=self.cfg.to_dict(),
             step=self.step,
+            compute_s=self.compute_s,
             voxel_backend=self.network.voxel_backend,
             precision=self.precision,
             loss_scale=self.optimiser.scaler.state_dict() if self.optimiser.scaler.is_enabled() else None,
@@ -211,6 +215,7 @@ class Trainer:
         self.generator.set_state(state.generator)
         torch.set_rng_state(state.torch_rng)
         self.step = state.step
+        self.compute_s = float(state.compute_s)
 
     def next_batch(self) -> Batch:
         if self.cfg.data.num_workers == 0:
@@ -316,7 +321,7 @@ def _evaluate_and_save(trainer: Trainer, callbacks: Sequence[Callback], compute_
     """Evaluate, then checkpoint, telling the callbacks of each; the metrics carry ``compute_s``, the seconds of
     compute training has spent so far (:data:`cdm.metric_names.COMPUTE_METRIC`)."""
     metrics, files = trainer.evaluate()
-    metrics[COMPUTE_METRIC] = compute_s
+    metrics[COMPUTE_METRIC] = trainer.compute_s = compute_s
     for cb in callbacks:
         cb.on_eval(trainer.step, metrics, files)
     checkpoint = trainer.save_checkpoint()
@@ -366,10 +371,11 @@ def _train(trainer: Trainer, callbacks: Sequence[Callback]) -> FitResult:
     checkpoint: Path | None = None
     sums = [0.0, 0.0, 0.0]
     window = skipped = 0
-    clock = ComputeClock(trainer.device)
+    clock = ComputeClock(trainer.device, trainer.compute_s)  # a resumed run goes on counting its budget
     start = time.perf_counter()
     window_start, cpu_start = start, time.process_time()
-    next_eval_s = t_cfg.eval_every_s
+    every_s = t_cfg.eval_every_s
+    next_eval_s = None if every_s is None else every_s * (math.floor(trainer.compute_s / every_s) + 1)
     while trainer.step < t_cfg.steps:
         losses = trainer.train_step(trainer.next_batch())
         sums = [s + v for s, v in zip(sums, losses[:3])]

@@ -207,3 +207,13 @@ def test_a_prior_whose_weights_its_config_cannot_build_and_a_pvd_file_with_nan_a
     with pytest.raises(ValueError, match=rf"not a PVD checkpoint we can read \(.*prior\.pth holds inf in weight "
                                          rf"'{re.escape(first)}'"):
         load_prior(tmp_path / "prior.pth")
+
+
+@pytest.mark.parametrize("value", [-1.0, "7", None, 1e400])
+def test_a_compute_count_that_is_no_finite_number_of_seconds_is_refused(tmp_path, value):
+    file = _cdm_checkpoint(tmp_path / "ck", lambda m: m)
+    record = json.loads(file.read_text())
+    assert record["compute_s"] == 0.0
+    file.write_text(json.dumps({**record, "compute_s": value}).replace("Infinity", "1e400"))
+    with pytest.raises(ValueError, match=r"checkpoint\.json: its compute_s must be a finite number of seconds"):
+        load_checkpoint(tmp_path / "ck")

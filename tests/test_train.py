@@ -307,3 +307,16 @@ def test_a_compute_budget_stops_training_and_reports_its_seconds_with_every_eval
     # A step budget alone reports the compute too, and stops at its steps.
     plain = fit(tiny_config(tmp_path / "plain", **{"train.steps": 4, "train.eval_every": 4}))
     assert plain.step == 4 and plain.metrics[COMPUTE_METRIC] > 0
+
+
+def test_a_resumed_run_goes_on_counting_its_compute_budget(tmp_path):
+    first = fit(tiny_config(tmp_path / "first", **{"train.steps": 3, "train.eval_every": 3}))
+    spent = load_checkpoint(first.checkpoint_dir).compute_s
+    assert spent == first.metrics[COMPUTE_METRIC] > 0
+    # A budget the checkpoint has already spent: the resumed run takes one step, evaluates once and stops,
+    # where a count starting again at 0 would train on.
+    cfg = tiny_config(tmp_path / "again", **{"train.steps": 100_000, "train.eval_every": 100_000,
+                                             "train.compute_budget_s": spent, "train.eval_every_s": spent / 2})
+    resumed = fit(cfg, resume_from=first.checkpoint_dir)
+    assert resumed.step == 4 and resumed.metrics[COMPUTE_METRIC] > spent
+    assert load_checkpoint(resumed.checkpoint_dir).compute_s == resumed.metrics[COMPUTE_METRIC]
