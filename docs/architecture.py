@@ -13,6 +13,7 @@ import ast
 import re
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "ARCHITECTURE.md"
@@ -170,6 +171,31 @@ def with_block(text: str, block: str) -> str:
 def doc_block(text: str) -> str:
     """The generated block as the doc holds it now."""
     return BEGIN + text.split(BEGIN, 1)[1].split(END, 1)[0] + END
+
+
+WALK = "## The walk of one hyperparameter"
+STEP = re.compile(r"^(\d+)\. `([^`:]+):([\w.]+)` → `([^`:]+):([\w.]+)`(?: \(through ([^)]*)\))?", re.M)
+"""A step of the doc's walk: ``N. `file:caller` → `file:callee` (through `helper`, …)``."""
+
+
+class Step(NamedTuple):
+    """One call of the walk: ``caller`` in ``caller_file`` calls ``callee`` in ``callee_file`` (``f`` or
+    ``Class.method``), directly or through the named ``through`` helpers, in that order."""
+
+    caller_file: str
+    caller: str
+    through: list[str]
+    callee_file: str
+    callee: str
+
+
+def walk_steps(text: str) -> list[Step]:
+    """The steps of the doc's section :data:`WALK`, numbered 1, 2, … (ValueError otherwise)."""
+    section = text.split(WALK, 1)[1].split("\n## ", 1)[0]
+    found = STEP.findall(section)
+    if [int(n) for n, *_ in found] != list(range(1, len(found) + 1)):
+        raise ValueError(f"number the steps of {WALK!r} 1, 2, …")
+    return [Step(a, f, re.findall(r"`([\w.]+)`", through), b, g) for _, a, f, b, g, through in found]
 
 
 def main(argv: list[str] | None = None) -> int:

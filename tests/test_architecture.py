@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import ast
 import importlib.util
-import re
 from pathlib import Path
 
 import pytest
@@ -200,17 +199,7 @@ def test_the_architecture_doc_explains_in_at_most_13_kb():
     assert size <= DOC_BYTES, f"docs/ARCHITECTURE.md is {size} bytes: explain in fewer words, at most {DOC_BYTES}"
 
 
-STEP = re.compile(r"^(\d+)\. `([^`:]+):([\w.]+)` → `([^`:]+):([\w.]+)`(?: \(through ([^)]*)\))?", re.M)
-"""A step of the doc's walk: ``N. `file:caller` → `file:callee` (through `helper`, …)``."""
 MAX_STEPS = 15
-
-
-def _walk(text: str) -> list[tuple[str, str, list[str], str, str]]:
-    """The walk's steps: ``(caller file, caller, [helpers it goes through], callee file, callee)``."""
-    section = text.split("## The walk of one hyperparameter", 1)[1].split("\n## ", 1)[0]
-    steps = STEP.findall(section)
-    assert [int(n) for n, *_ in steps] == list(range(1, len(steps) + 1)), "number the steps 1, 2, …"
-    return [(a, f, re.findall(r"`([\w.]+)`", through), b, g) for _, a, f, b, g, through in steps]
 
 
 def _function(path: Path, name: str) -> ast.AST | None:
@@ -259,11 +248,11 @@ def test_the_walk_check_catches_a_step_that_is_no_call(tmp_path):
     assert _step_errors(tmp_path, "a.py", "_go", [], "b.py", "Trainer.gone") == [
         "b.py:Trainer.gone is not defined", "a.py:_go does not call Trainer.gone"]
     text = "## The walk of one hyperparameter\n\n1. `a.py:main` → `b.py:Trainer.fit` (through `_go`): it trains.\n"
-    assert _walk(text) == [("a.py", "main", ["_go"], "b.py", "Trainer.fit")]
+    assert arch.walk_steps(text) == [("a.py", "main", ["_go"], "b.py", "Trainer.fit")]
 
 
 def test_each_step_of_the_walk_is_a_real_call_from_the_front_door_on():
-    steps = _walk(DOC.read_text())
+    steps = arch.walk_steps(DOC.read_text())
     assert 0 < len(steps) <= MAX_STEPS
     assert steps[0][:2] == ("sweeps/run.py", "main")
     reached = {("sweeps/run.py", "main")}
