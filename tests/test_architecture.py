@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import re
 from pathlib import Path
 
 import pytest
@@ -197,6 +198,18 @@ def test_the_architecture_doc_holds_the_picture_the_code_draws_now():
 def test_the_architecture_doc_explains_in_at_most_13_kb():
     size = len(DOC.read_bytes())
     assert size <= DOC_BYTES, f"docs/ARCHITECTURE.md is {size} bytes: explain in fewer words, at most {DOC_BYTES}"
+
+
+DOC_PATH = re.compile(r"(?<![\w/.])((?:cdm|sweeps)/(?:[A-Za-z_]\w*/)*(?:[A-Za-z_]\w*\.py)?)(?![\w*.])")
+"""A file or folder of the code as the doc's prose writes it: ``cdm/data/views.py``, ``cdm/io/``."""
+
+
+def test_the_doc_names_only_files_and_folders_that_exist():
+    text = DOC.read_text()
+    named = set(DOC_PATH.findall(text.replace(arch.doc_block(text), "")))
+    assert {"cdm/config.py", "cdm/io/", "sweeps/run.py"} <= named  # the reader found the prose's paths
+    gone = sorted(p for p in named if not (ROOT / p).exists())
+    assert not gone, f"docs/ARCHITECTURE.md names {gone}, which do not exist: name where the job lives"
 
 
 MAX_STEPS = 15
