@@ -156,7 +156,7 @@ def render(root: Path = ROOT) -> str:
             members.setdefault(label, []).append(f"`{member}`" if member.startswith("_") else member)
     for label in sorted(edges):
         names = ", ".join(sorted(members.get(label, []), key=lambda m: m.strip("`")))
-        lines.append(f"| `{label}` | {names} | {', '.join(f'`{b}`' for b in sorted(edges[label])) or '—'} |")
+        lines.append(f"| `{label}` | {names} | {', '.join(sorted(edges[label])) or '—'} |")
     return "\n".join([BEGIN, *lines, END])
 
 

@@ -178,7 +178,7 @@ def test_the_picture_groups_modules_into_boxes_and_draws_only_the_arrows_no_long
     assert arch.drawn({"a": {"b"}, "b": {"a"}}) == {"a": {"b"}, "b": {"a"}}
     block = arch.render(tmp_path)
     assert "  cdm_model --> cdm_base\n" in block and "cdm_model --> cdm_io" not in block
-    assert "| `cdm/io/` | files, torch/load | — |" in block
+    assert "| `cdm/io/` | files, torch/load | — |" in block and "| `cdm/model/` | net | cdm/ base, cdm/io/ |" in block
 
 
 def test_the_writer_replaces_only_the_generated_block():
