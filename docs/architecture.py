@@ -99,12 +99,12 @@ def _reach(edges: dict[str, set[str]], start: str) -> set[str]:
     return seen
 
 
-def boxes(root: Path = ROOT) -> dict[str, str]:
-    """Module → the picture's box: its folder, two levels at most (``cdm/io/torch/`` is in ``cdm/io/``). Two
-    folders split in two: sweeps/'s own modules into the commands (:data:`ENTRIES`) and what the stages share;
-    cdm/'s own modules into ``cdm/ top``, those importing cdm/data/ or cdm/model/ (directly or not), and
-    ``cdm/ base``, the rest, which the data and the network build on."""
-    found, edges = modules(root), graph(root)
+def boxes(found: dict[str, Path], edges: dict[str, set[str]]) -> dict[str, str]:
+    """Module of ``found`` (:func:`modules`) → the picture's box, given the import graph ``edges``: its folder,
+    two levels at most (``cdm/io/torch/`` is in ``cdm/io/``). Two folders split in two: sweeps/'s own modules
+    into the commands (:data:`ENTRIES`) and what the stages share; cdm/'s own modules into ``cdm/ top``, those
+    importing cdm/data/ or cdm/model/ (directly or not), and ``cdm/ base``, the rest, which the data and the
+    network build on."""
     out = {}
     for name, path in found.items():
         folder = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
@@ -118,11 +118,11 @@ def boxes(root: Path = ROOT) -> dict[str, str]:
     return out
 
 
-def box_edges(root: Path = ROOT) -> dict[str, set[str]]:
-    """Box → the boxes its modules import (a box's imports of itself left out)."""
-    of = boxes(root)
+def box_edges(of: dict[str, str], edges: dict[str, set[str]]) -> dict[str, set[str]]:
+    """Box → the boxes its modules import, given each module's box ``of`` and the import graph ``edges`` (a box's
+    imports of itself left out)."""
     out: dict[str, set[str]] = {label: set() for label in of.values()}
-    for name, targets in graph(root).items():
+    for name, targets in edges.items():
         out[of[name]] |= {of[t] for t in targets} - {of[name]}
     return out
 
@@ -142,7 +142,9 @@ def _node(label: str) -> str:
 def render(root: Path = ROOT) -> str:
     """The generated block: a Mermaid picture of the boxes' imports, and a table of each box's modules and of
     every box it imports."""
-    edges, found = box_edges(root), modules(root)
+    found, imports = modules(root), graph(root)
+    of = boxes(found, imports)
+    edges = box_edges(of, imports)
     arrows = drawn(edges)
     lines = ["```mermaid", "flowchart TD"]
     lines += [f'  {_node(label)}["{label}"]' for label in sorted(edges)]
@@ -150,7 +152,7 @@ def render(root: Path = ROOT) -> str:
               for a in sorted(arrows) for b in sorted(arrows[a]) if a not in arrows[b] or a < b]
     lines += ["```", "", "| box | its modules | imports |", "|---|---|---|"]
     members: dict[str, list[str]] = {}
-    for name, label in boxes(root).items():
+    for name, label in of.items():
         member = found[name].relative_to(root / label.split(" ")[0]).with_suffix("").as_posix()
         if not member.endswith("__init__"):  # a package's public names: its folder says it
             members.setdefault(label, []).append(f"`{member}`" if member.startswith("_") else member)

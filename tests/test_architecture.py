@@ -166,12 +166,13 @@ def test_the_picture_groups_modules_into_boxes_and_draws_only_the_arrows_no_long
     for name, text in files.items():
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text(text)
-    assert arch.boxes(tmp_path) == {
+    found, imports = arch.modules(tmp_path), arch.graph(tmp_path)
+    assert arch.boxes(found, imports) == {
         "cdm": "cdm/ base", "cdm.config": "cdm/ base", "cdm.train": "cdm/ top", "cdm.io": "cdm/io/",
         "cdm.io.files": "cdm/io/", "cdm.io.torch": "cdm/io/", "cdm.io.torch.load": "cdm/io/", "cdm.model": "cdm/model/",
         "cdm.model.net": "cdm/model/", "sweeps": "sweeps/ shared", "sweeps.run": "sweeps/ commands",
         "sweeps.storage": "sweeps/ shared"}
-    edges = arch.box_edges(tmp_path)
+    edges = arch.box_edges(arch.boxes(found, imports), imports)
     assert edges["cdm/model/"] == {"cdm/ base", "cdm/io/"} and edges["sweeps/ commands"] == {"cdm/ top"}
     # model → io is drawn through cdm/ base; a cycle keeps both its arrows.
     assert arch.drawn(edges)["cdm/model/"] == {"cdm/ base"}
