@@ -42,6 +42,7 @@ PURPOSE = {
     "benchmarks/lean_step.py": "The local training step, this tree ÷ the tree at a base revision, side by side",
     "docs/screenshots.py": "Take the README's pictures of a finished sweep",
     "docs/cli.py": "Write docs/cli.md from the parsers of every cdm-lab command",
+    "docs/architecture.py": "Draw the import picture of docs/ARCHITECTURE.md from the code",
 }
 
 

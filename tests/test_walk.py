@@ -1,13 +1,15 @@
 """The walk of one hyperparameter (docs/ARCHITECTURE.md): ``priors.point_size`` followed for real, by tracing
 every call that receives it, from ``sweeps/point_size.yaml`` through the read of that file, the plan stage and
 a trial's fit to the footprint in ``cdm/render.py``. The value is received as the spec file's path, its line
-of text, or a record holding the number. The moves and the files they pass, counted as a newcomer reading the
-code counts them, must be the doc's list and its figures, no file entered twice on one call chain."""
+of text, or a record holding the number. It must reach the footprint, enter no file twice on one call chain,
+and pass every function the doc's walk names on the parts traced here (its steps' code is checked by
+tests/test_architecture.py)."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import re
 import sys
 import warnings
@@ -21,6 +23,9 @@ from sweeps.execute.trial import TrialSetup, fit_trial, trial_job
 from sweeps.plan.request import plan_request
 
 ROOT = Path(__file__).resolve().parents[1]
+_SPEC = importlib.util.spec_from_file_location("docs_architecture", ROOT / "docs" / "architecture.py")
+arch = importlib.util.module_from_spec(_SPEC)
+_SPEC.loader.exec_module(arch)
 SENTINEL = 0.0371
 """The point size planted in the YAML: no default or profile holds it, so any float equal to it is the value."""
 LINE = f"priors.point_size: [{SENTINEL}]"
@@ -85,12 +90,15 @@ class Walk:
 
     def __init__(self):
         self.calls: list[tuple[str, str, list[str]]] = []
+        self.seen: set[tuple[str, str]] = set()
+        """Every project function called, value or not: ``(file, function name)``."""
         self.footprints: list[float] = []
         """The radius (pixels) of every ``cdm/render.py`` footprint made: the value's use, derived from it."""
 
     def _profile(self, frame, event, arg):
         if event != "call" or (path := _project_file(frame)) is None:
             return
+        self.seen.add((path, frame.f_code.co_name))
         if (path, frame.f_code.co_name) == ("cdm/render.py", "_footprint"):
             self.footprints.append(frame.f_locals["radius_px"])
         if not _receives(frame) or _in_own_record(frame):
@@ -113,24 +121,24 @@ class Walk:
         return next(chain for p, f, chain in self.calls if (p, f) == (path, function))
 
 
-def _doc_walk() -> tuple[list[tuple[str, str]], int, int]:
-    """The doc's numbered moves ``N. `A` → `B`: …`` (each starting in a file an earlier move reached, the
-    first in the spec), and its figures: files passed and moves."""
-    text = (ROOT / "docs" / "ARCHITECTURE.md").read_text()
-    section = text.split("## The walk of one hyperparameter", 1)[1].split("\n## ", 1)[0]
-    moves = re.findall(r"^(\d+)\. `([^`]+)` → `([^`]+)`", section, flags=re.M)
-    assert [int(n) for n, _, _ in moves] == list(range(1, len(moves) + 1)), "number the moves 1, 2, …"
-    reached = [moves[0][1]]
-    for _, start, end in moves:
-        assert start in reached, f"move from {start}, which no earlier move reached"
-        reached.append(end)
-    figures = re.search(r"passes \*\*(\d+) files\*\* in \*\*(\d+) moves\*\*", section)
-    assert figures, "say the walk's figures: passes **N files** in **M moves**"
-    return [(a, b) for _, a, b in moves], int(figures[1]), int(figures[2])
+def _doc_functions(start: str) -> set[tuple[str, str]]:
+    """``(file, function name)`` of every function the doc's walk reaches from ``start`` (``file:function``), and
+    ``("", name)`` of each helper it names on the way; a step into a callback the traced fit leaves out (the
+    MLflow ``TrialRun``) is not followed."""
+    steps = arch.walk_steps((ROOT / "docs" / "ARCHITECTURE.md").read_text())
+    reached, out = {start}, set()
+    for step in steps:
+        if f"{step.caller_file}:{step.caller}" in reached and not step.callee.startswith("TrialRun."):
+            reached.add(f"{step.callee_file}:{step.callee}")
+            out |= {(step.callee_file, step.callee.rpartition(".")[2])}
+            out |= {("", helper.rpartition(".")[2]) for helper in step.through}
+    return out
 
 
-def _moves(chain: list[str]) -> list[tuple[str, str]]:
-    return list(zip(chain, chain[1:]))
+def _not_called(wanted: set[tuple[str, str]], seen: set[tuple[str, str]]) -> set[tuple[str, str]]:
+    """Functions of ``wanted`` that ``seen`` lacks; a helper's empty file matches any file."""
+    names = {name for _, name in seen}
+    return {(f, name) for f, name in wanted if ((f, name) not in seen if f else name not in names)}
 
 
 def _climbs(chain: list[str]) -> set[str]:
@@ -138,21 +146,21 @@ def _climbs(chain: list[str]) -> set[str]:
     return {f for i, f in enumerate(chain) if f in chain[:i]}
 
 
-def test_the_doc_reader_reads_the_moves_and_the_climb_finder_finds_one():
+def test_the_climb_finder_finds_one_and_the_doc_reader_follows_the_walk_from_a_function():
     assert _climbs(["sweeps/plan/trials.py", "cdm/config.py", "sweeps/plan/trials.py"]) == {"sweeps/plan/trials.py"}
     assert _climbs(["cdm/train.py", "cdm/objective.py", "cdm/render.py"]) == set()
-    moves, files, count = _doc_walk()
-    assert moves[0][0] == "sweeps/point_size.yaml" and moves[-1][1] == "cdm/render.py"
-    assert count == len(moves) and files == len({f for move in moves for f in move})
+    assert ("cdm/render.py", "splat_points") in _doc_functions("sweeps/execute/trial.py:fit_trial")
+    assert ("cdm/render.py", "splat_points") not in _doc_functions("sweeps/plan/request.py:plan_request")
+    assert _not_called({("a.py", "f"), ("", "_g"), ("b.py", "h")}, {("a.py", "f"), ("c.py", "_g")}) == {("b.py", "h")}
     assert _holds(Path("x.yaml")) is False and _holds(f"a: 1\n{LINE}\n") and _holds(LINE.encode())
 
 
 @pytest.mark.slow
 def test_point_size_walks_from_the_yaml_to_the_footprint_as_the_doc_lists(tmp_path, monkeypatch):
     """The plan stage's entry reads and expands a copy of point_size.yaml holding the sentinel; the trial side
-    takes the config handed down in :class:`TrialSetup` and fits one step. Traced, the value must make the
-    doc's moves, in its order, and pass as many files as the doc says; no call chain may enter a file twice;
-    the trial side must not call back into a file of the plan's part."""
+    takes the config handed down in :class:`TrialSetup` and fits one step. Traced, the value must reach the
+    footprint, every function the doc's walk names on these parts must run, no call chain may enter a file
+    twice, and the trial side must not call back into a file of the plan's part."""
     monkeypatch.chdir(tmp_path)
     text = (ROOT / "sweeps" / "point_size.yaml").read_text()
     spec_file = tmp_path / "point_size.yaml"
@@ -170,18 +178,12 @@ def test_point_size_walks_from_the_yaml_to_the_footprint_as_the_doc_lists(tmp_pa
     with Walk() as trial, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # Ray's "report outside a Tuner": this trial runs without Ray
         fit_trial(trial_job(setup, {"cell": cell.label}, "walk", "node", tmp_path / "trial"), 0, lambda c: [])
-    read = [planned.chain_to("cdm/io/files.py", "read_bounded"), planned.chain_to("cdm/io/json.py", "bracket_depth")]
     plan_part = planned.chain_to("cdm/config.py", "load_config")
     trial_part = trial.chain_to("cdm/render.py", "splat_points")
-    # The spec hands its path to the entry; the plan's hand-down to the trial is one move (the doc).
-    traced = [("sweeps/point_size.yaml", plan_part[0])]
-    for move in [m for chain in (*read, plan_part) for m in _moves(chain)] + [(plan_part[-1], trial_part[0])]:
-        if move not in traced:
-            traced.append(move)
-    traced += _moves(trial_part)
-    moves, files, count = _doc_walk()
-    assert traced == moves
-    assert (len({f for move in traced for f in move}), len(traced)) == (files, count)
+    assert plan_part[0] == "sweeps/plan/request.py" and trial_part[0] == "sweeps/execute/trial.py"
+    # Every function the doc's walk names from the plan's entry and from the trial's fit on was called.
+    assert _not_called(_doc_functions("sweeps/plan/request.py:plan_request"), planned.seen) == set()
+    assert _not_called(_doc_functions("sweeps/execute/trial.py:fit_trial"), trial.seen) == set()
     # splat_points turns the radius in NDC into pixels (S/2 of them per NDC unit) for its footprint.
     assert SENTINEL * cell.config.priors.render_size / 2 in trial.footprints
     for calls in (planned.calls, trial.calls):
