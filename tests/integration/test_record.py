@@ -62,7 +62,7 @@ def swept(tmp_path_factory) -> Swept:
     ray_tmp = Path(tempfile.mkdtemp(prefix="cdmrec", dir="/tmp"))
     (tmp / "spec.yaml").write_text("name: record\ngrid: {priors.point_size: [0.02, 0.04]}\n")
     uri = f"sqlite:///{tmp}/mlflow.db"
-    argv = [str(tmp / "spec.yaml"), "--smoke", "--storage", str(tmp / "results"), "--tracking-uri", uri,
+    argv = [str(tmp / "spec.yaml"), "--smoke", "--out", str(tmp / "results"), "--tracking-uri", uri,
             "--register", REGISTERED]
     printed = io.StringIO()
     with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
