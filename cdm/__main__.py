@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from cdm.baseline_names import BASELINES
-from cdm.cli import PROG, add_command, add_out, add_set, old_spelling
+from cdm.cli import PROG, add_command, add_out, add_set
 from cdm.config import Config, config_field_paths, load_config, parse_override
 from cdm.external_inputs import check_inputs
 from cdm.interrupt import said_interrupted, sigterm_as_ctrl_c
@@ -249,7 +249,6 @@ def build_parser() -> argparse.ArgumentParser:
     add_out(p, "checkpoints/ and the evaluation's files (default: train.out_dir, runs/cdm)")
     p.add_argument("--resume-from", dest="resume", metavar="DIR",
                    help="a CDM checkpoint folder (<out>/checkpoints/step_N) to continue from, step and optimizer too")
-    old_spelling(p, "--resume", "--resume-from", "resume")
     p.add_argument("--init-from", metavar="FILE",
                    help="PC²'s checkpoint-latest.pth: fine-tune its network from its weights (not its optimizer)")
     p.set_defaults(func=cmd_train)
@@ -277,7 +276,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"the input photo: PNG/JPEG, grey, RGB or RGBA (alpha = mask), at least {MIN_IMAGE_SIDE} "
                    "pixels a side")
     p.add_argument("--ply", required=True, metavar="FILE", help="the point cloud to write, ASCII PLY (x y z per point)")
-    old_spelling(p, "--out", "--ply", "ply")
     add_set(p, "diffusion.sample_steps=50 (the checkpoint's config is the base)")
     for name, what in (("elev", "camera elevation in degrees"), ("azim", "camera azimuth in degrees"),
                        ("dist", "camera distance in world units"), ("focal", "focal length in NDC units")):
@@ -293,8 +291,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-maps", metavar="DIR", help="estimated depth maps (<object_id>/<position>.npy) to store in "
                    "the shards for priors.depth_source=maps")
     add_set(p, "data.kind=co3d (required: shapenet_r2n2 or co3d), data.image_size=224 (crop side, pixels)")
-    old_spelling(p, "--data-kind", "--set data.kind=", "set", key="data.kind")
-    old_spelling(p, "--image-size", "--set data.image_size=", "set", key="data.image_size")
     p.set_defaults(func=cmd_prepare)
     p = add_command(sub, "check-data", "check that every ground-truth cloud projects into its own masks (exit 1 if "
                     "not)", "--set data.kind=co3d --set data.root=prepared/")

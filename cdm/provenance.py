@@ -2,7 +2,7 @@
 and the machine.
 
 :func:`fit` hands :func:`run_record` to its callbacks once, before the first step; the sweep runner
-stores it on each MLflow child run and ``sweeps/run.py --rerun`` checks it before running the cell
+stores it on each MLflow child run and ``cdm-lab rerun`` checks it before running the cell
 again. All values are strings so they fit tracking tags.
 
 The machine matters on CPU: MKL and oneDNN pick their kernels per CPU at run time, so the same code,

@@ -1,4 +1,4 @@
-"""Write docs/cli.md from the parsers of every cdm-lab command: usage, flags, example, old spellings.
+"""Write docs/cli.md from the parsers of every cdm-lab command: usage, flags, example.
 
 ``python docs/cli.py`` rewrites the page; ``tests/test_cdm_lab.py`` fails while the page differs from what
 this prints, so a flag added to a parser without rerunning this is caught.
@@ -13,7 +13,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python docs/cli.py` puts docs/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from cdm.cli import PROG, OldSpelling
+from cdm.cli import PROG
 from sweeps.cdm_lab import COMMANDS, parsers
 
 PAGE = Path(__file__).resolve().parent / "cli.md"
@@ -34,9 +34,10 @@ One grammar holds for every command:
   `{PROG} fields` lists the fields.
 - A flag means one thing everywhere: `run --resume` continues a sweep, `train --resume-from DIR` continues a
   training.
+- A flag is typed whole (no prefix of it stands for it). The spellings 0.2.0 removed, each with the one that
+  replaced it, are in [CHANGELOG.md](../CHANGELOG.md).
 - The old forms run the same commands: `python sweeps/run.py SPEC` is `{PROG} run SPEC`, `python -m cdm train`
-  is `{PROG} train`, `python -m cdm.tools.export_views` is `{PROG} export-views`. A renamed flag keeps its old
-  spelling for one release, with a one-line note on stderr naming the new one (listed under each command).
+  is `{PROG} train`, `python -m cdm.tools.export_views` is `{PROG} export-views`.
 """
 
 
@@ -53,19 +54,15 @@ def _usage(parser: argparse.ArgumentParser) -> str:
 
 def _section(name: str, parser: argparse.ArgumentParser) -> str:
     formatter = argparse.HelpFormatter(parser.prog, width=WIDTH)
-    rows, old = [], []
+    rows = []
     for action in parser._actions:
-        if isinstance(action, OldSpelling):
-            old.append(f"`{action.option_strings[0]}` → `{action.new.strip('`')}`")
-        elif not isinstance(action, argparse._HelpAction):
+        if not isinstance(action, argparse._HelpAction):
             flag = formatter._format_action_invocation(action).replace("|", "\\|")  # in code: no tag, no emphasis
             rows.append(f"| `{flag}` | {_cell(action.help)} |")
     lines = [f"## {PROG} {name}", "", _cell(parser.description), "", "```", _usage(parser), "```", ""]
     if rows:
         lines += ["| argument | meaning |", "|---|---|", *rows, ""]
     lines += [f"Example: `{parser.epilog.splitlines()[1].strip()}`", ""]
-    if old:
-        lines += [f"Old spellings, kept for one release: {', '.join(old)}.", ""]
     return "\n".join(lines)
 
 

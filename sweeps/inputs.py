@@ -24,7 +24,7 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python sweeps/inputs.py` puts sweeps/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from cdm.cli import add_command, add_out, add_set, command_parser, old_spelling
+from cdm.cli import add_command, add_out, add_set, command_parser
 from cdm.config import load_config, parse_override
 from cdm.data.prepare import check_out, prepare_config, start
 from cdm.external_inputs import MSN_URL
@@ -139,8 +139,6 @@ def build_parser() -> argparse.ArgumentParser:
     data.add_argument("--root", required=True, metavar="DIR", help="the data set as published")
     add_out(data, "the prepared shards; rerun to resume", required=True)
     add_set(data, "data.kind=co3d (required: shapenet_r2n2 or co3d), data.image_size=224 (crop side, pixels)")
-    old_spelling(data, "--data-kind", "--set data.kind=", "set", key="data.kind")
-    old_spelling(data, "--image-size", "--set data.image_size=", "set", key="data.image_size")
     model = argparse.ArgumentParser(add_help=False)
     model.add_argument("--model", required=True, metavar="DIR_OR_HUB_ID",
                        help="depth model: a local folder, or a hub id where the hub is reachable")

@@ -1,8 +1,5 @@
 """Run a sweep: train every trial of a spec on Ray, track it in MLflow and print the results table.
 
-``cdm-lab rerun RUN_ID`` re-runs one finished trial and ``cdm-lab report EXPERIMENT`` rebuilds a finished sweep's
-report; ``--rerun`` and ``--report`` here are their old spellings, kept for one release.
-
 The spec is expanded and every cell's config validated before Ray starts; a bad spec exits with
 code 2 and one message naming the field, having written nothing. Then the trials run on Ray (a local
 cluster bound to 127.0.0.1, or ``--address``/``RAY_ADDRESS``), tracked in MLflow, and the results
@@ -18,21 +15,21 @@ from pathlib import Path
 if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sys.path, not the repo root
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from cdm.cli import add_out, add_set, command_parser, old_spelling
+from cdm.cli import add_out, add_set, command_parser
 from sweeps.compare.settle import describe_rule
 from sweeps.execute.precompute import shared_root
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import MAX_TRIALS
 from sweeps.plan.preflight import dry_run
-from sweeps.plan.request import RequestError, SweepRequest, check_mode, missing_inputs, plan_request
-from sweeps.storage import TRUST_FLAG, StoreError, check_tracking_uri, exists, is_uri, record_digest
+from sweeps.plan.request import RequestError, SweepRequest, missing_inputs, plan_request
+from sweeps.storage import TRUST_FLAG, StoreError, exists, is_uri, record_digest
 
 __all__ = ["build_parser", "main"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = command_parser("run", __doc__.split("\n\n")[0].replace("\n", " "), "sweeps/point_size.yaml --smoke")
-    p.add_argument("spec", type=Path, nargs="?", metavar="SPEC", help="sweep spec YAML, e.g. sweeps/point_size.yaml")
+    p.add_argument("spec", type=Path, metavar="SPEC", help="sweep spec YAML, e.g. sweeps/point_size.yaml")
     p.add_argument("--profile", default=None, metavar="NAME",
                    help="profile in sweeps/profiles.yaml or the spec: smoke, local or paper (default: local)")
     p.add_argument("--smoke", action="store_true", help="same as --profile smoke")
@@ -67,14 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_set(p, "priors.lambda_3d=0.5 (every trial)")
     add_out(p, "one folder per sweep, <spec>/<profile>/: a path (shared by every node on a cluster) or a URI "
                "(s3://, gs://, file://) (default: ./results)", dest="storage", default="results")
-    old_spelling(p, "--storage", "--out", "storage")
     p.add_argument("--tracking-uri", default=None, metavar="URI",
                    help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
-    old_spelling(p, "--rerun", "`cdm-lab rerun RUN_ID`", "rerun", metavar="RUN_ID", default=None)
-    old_spelling(p, "--force", "`cdm-lab rerun RUN_ID --force`", "force", nargs=0, const=True, default=False)
     p.add_argument("--max-cells", type=int, default=MAX_TRIALS, metavar="N",
                    help=f"refuse a sweep of more than N trials (default {MAX_TRIALS}; docs/security.md)")
-    old_spelling(p, "--report", "`cdm-lab report EXPERIMENT`", "report", metavar="EXPERIMENT", default=None)
     p.add_argument("--register", default=None, metavar="NAME",
                    help="when the sweep ends, register its best cell's model in MLflow's model registry as NAME "
                         "(as `cdm-lab register`; then evaluate --checkpoint models:/NAME/<version>)")
@@ -90,14 +83,6 @@ def _fail(message: str) -> int:
 # only on the path that runs them, so --help, a dry run and a refused spec answer at once.
 
 
-def _tracking_uri(args: argparse.Namespace) -> str:
-    from sweeps.execute.tracking import resolve_tracking_uri
-
-    uri = resolve_tracking_uri(args.tracking_uri)
-    check_tracking_uri(uri)
-    return uri
-
-
 def _destinations(args: argparse.Namespace, request: SweepRequest) -> list[str]:
     """Where a run of this request would keep its files and log its runs (the dry run's lines); a resumed
     sweep's MLflow store is the one it started with, as the run's own (``claim_sweep``)."""
@@ -111,22 +96,6 @@ def _destinations(args: argparse.Namespace, request: SweepRequest) -> list[str]:
         f"MLflow tracking URI: {uri}, experiment {name}"
         + (f" (artifacts: {artifacts.removeprefix('file://')})" if artifacts else " (artifacts: the server's store)"),
     ]
-
-
-def _report(args: argparse.Namespace, uri: str) -> int:
-    from sweeps.results import publish
-
-    return publish.main([args.report, "--tracking-uri", uri])
-
-
-def _rerun(args: argparse.Namespace, uri: str) -> int:
-    from sweeps import rerun
-
-    if is_uri(args.storage):
-        return _fail("--rerun trains in this process and writes its files here: give --out a local folder, "
-                     f"not {args.storage}")
-    reruns = str(Path(args.storage) / "reruns")
-    return rerun.main([args.rerun, "--tracking-uri", uri, "--out", reruns, *(["--force"] if args.force else [])])
 
 
 def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:
@@ -162,23 +131,12 @@ def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        check_mode(args)
-        if args.spec is None:  # --report or --rerun: a finished sweep, read back from its MLflow store
-            uri = _tracking_uri(args)
-        else:
-            request = plan_request(args)
-            plan = request.plan
-            print(wrapped(f"spec {plan.spec.name} ({args.spec}): {plan.spec.description}"), flush=True)
-            missing = missing_inputs(plan, request.remote, args.dry_run)
+        request = plan_request(args)
+        plan = request.plan
+        print(wrapped(f"spec {plan.spec.name} ({args.spec}): {plan.spec.description}"), flush=True)
+        missing = missing_inputs(plan, request.remote, args.dry_run)
     except (RequestError, StoreError) as exc:
         return _fail(str(exc))
-    if args.register is not None and args.spec is None:
-        return _fail(f"--register {args.register}: registers the best cell of the sweep a spec runs; a finished "
-                     f"sweep's: `cdm-lab register EXPERIMENT --name {args.register}`")
-    if args.report is not None:
-        return _report(args, uri)
-    if args.rerun is not None:
-        return _rerun(args, uri)
     if args.dry_run:
         shared = shared_root(request.sweep_dir, request.remote) is not None and bool(plan.cells)
         return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate, shared, missing,

@@ -22,7 +22,6 @@ from pathlib import Path
 import pytest
 
 from cdm.__main__ import build_parser
-from cdm.cli import OldSpelling, old_spelling
 from cdm.config import config_field_paths
 from sweeps.cdm_lab import COMMANDS, main, parsers, version
 from tests.test_commands import _commands
@@ -128,17 +127,14 @@ def grammar_faults(name: str, parser: argparse.ArgumentParser) -> list[str]:
         faults.append("no example")
     for action in parser._actions:
         flag = "/".join(action.option_strings) or action.dest
-        if isinstance(action, OldSpelling):
-            if not action.new:
-                faults.append(f"{flag}: an old spelling naming no new one")
-        elif not action.help or action.help == argparse.SUPPRESS:
+        if not action.help or action.help == argparse.SUPPRESS:
             faults.append(f"{flag}: no help")
         elif action.type in (int, float) and not any(unit in action.help for unit in UNITS):
             faults.append(f"{flag}: a number whose help names no unit ({action.help!r})")
-        if "--out" in action.option_strings and not isinstance(action, OldSpelling) and (
+        if "--out" in action.option_strings and (
                 action.metavar != "DIR" or not action.help.startswith("folder")):
             faults.append(f"--out is not a folder: {action.metavar} {action.help!r}")
-    has_set = any("--set" in a.option_strings and not isinstance(a, OldSpelling) for a in parser._actions)
+    has_set = any("--set" in a.option_strings for a in parser._actions)
     if has_set != (name in CONFIG_COMMANDS):
         faults.append("builds a config without --set" if not has_set else "--set on a command without a config")
     return faults
@@ -151,7 +147,7 @@ def test_every_command_keeps_the_grammar():
     assert not faults, "\n".join(faults)
     takes = {}  # a flag is a switch everywhere or takes a value everywhere: one name, one meaning
     for parser in walked.values():
-        for action in (a for a in parser._actions if not isinstance(a, OldSpelling)):
+        for action in parser._actions:
             for flag in action.option_strings:
                 takes.setdefault(flag, set()).add(action.nargs == 0)
     assert [flag for flag, kinds in takes.items() if len(kinds) > 1] == []
@@ -194,20 +190,38 @@ def test_an_argument_error_of_an_old_form_names_the_cdm_lab_command(path, args, 
     assert err[-1].startswith(f"cdm-lab {name}: error: ")
 
 
-def test_an_old_spelling_does_the_new_ones_job_and_says_its_name(capsys):
-    parser = argparse.ArgumentParser(prog="cdm-lab prepare")
-    parser.add_argument("--set", action="append", default=[])
-    parser.add_argument("--ply", required=True)
-    old_spelling(parser, "--data-kind", "--set data.kind=", "set", key="data.kind")
-    old_spelling(parser, "--out", "--ply", "ply")
-    args = parser.parse_args(["--set", "a=1", "--data-kind", "co3d", "--out", "c.ply"])
-    assert (args.set, args.ply) == (["a=1", "data.kind=co3d"], "c.ply")
-    assert capsys.readouterr().err.splitlines() == [
-        "note: cdm-lab prepare --data-kind is now --set data.kind=; the old spelling goes in the next release",
-        "note: cdm-lab prepare --out is now --ply; the old spelling goes in the next release",
-    ]
-    assert "--data-kind" not in parser.format_help() and "--out" not in parser.format_help()
-    assert parser.parse_args(["--ply", "a.ply"]).set == []  # the default list was not appended to
+_DATA = ["--root", "RAW", "--out", "prepared/"]
+REMOVED = [
+    ("train", ["--resume", "runs/quick/checkpoints/step_0000010"], []),
+    ("reconstruct", ["--out", "chair.ply"], ["--checkpoint", "c/", "--image", "chair.png", "--ply", "chair.ply"]),
+    ("prepare", ["--data-kind", "co3d"], _DATA),
+    ("prepare", ["--image-size", "224"], _DATA),
+    ("inputs prepare", ["--data-kind", "co3d"], _DATA),
+    ("inputs prepare", ["--image-size", "224"], _DATA),
+    ("inputs all", ["--data-kind", "co3d"], [*_DATA, "--model", "m/", "--inputs", "i/"]),
+    ("inputs all", ["--image-size", "224"], [*_DATA, "--model", "m/", "--inputs", "i/"]),
+    ("run", ["--storage", "results"], ["s.yaml"]),
+    ("run", ["--rerun", "3f2a9c0d1e4b47a5"], ["s.yaml"]),
+    ("run", ["--force"], ["s.yaml"]),
+    ("run", ["--report", "point_size"], ["s.yaml"]),
+    ("openclip-embeddings", ["--out", "image.npz"], ["--views", "v/", "--kind", "image", "--npz", "image.npz"]),
+]
+"""Each spelling 0.2.0 removed (CHANGELOG.md): the command, the removed flag as typed, and arguments that the
+command takes without it."""
+
+
+@pytest.mark.parametrize("name,removed,rest", REMOVED)
+def test_a_removed_spelling_is_an_argument_error_and_the_changelog_names_it(name, removed, rest, capsys):
+    """Not a prefix of another flag either (``--resume`` of ``--resume-from``): argparse's usage error, exit 2."""
+    parser = dict(parsers())[name]
+    parser.parse_args(rest)
+    with pytest.raises(SystemExit) as exit_:
+        parser.parse_args([*rest, *removed])
+    err = capsys.readouterr().err.splitlines()
+    assert exit_.value.code == 2 and err[0].startswith(f"usage: cdm-lab {name} ")
+    assert err[-1] == f"cdm-lab {name}: error: unrecognized arguments: {' '.join(removed)}"
+    changes = (ROOT / "CHANGELOG.md").read_text(encoding="utf-8")
+    assert f"`cdm-lab {name} {removed[0]}" in changes.split("\n### Removed\n", 1)[1].split("\n#")[0]
 
 
 def test_docs_cli_md_is_what_the_parsers_write():

@@ -7,7 +7,7 @@ import json
 import pytest
 
 from sweeps import run
-from sweeps.plan.request import RequestError, check_mode, plan_request
+from sweeps.plan.request import RequestError, plan_request
 
 SPEC = "name: s\ngrid: {priors.point_size: [0.02, 0.04]}\n"
 
@@ -39,13 +39,6 @@ def test_resume_plans_the_spec_and_sets_the_sweep_started_with_and_names_a_damag
     (folder / "sweep.json").write_text(json.dumps({**started, "spec": {"name": "s", "grid": {"priors.nope": [1]}}}))
     with pytest.raises(RequestError, match=r"--resume: .*sweep.json is damaged \(.*\); remove the folder"):
         plan_request(_args(tmp_path, "--resume"))
-
-
-def test_exactly_one_of_a_spec_a_rerun_and_a_report(tmp_path):
-    check_mode(run.build_parser().parse_args(["--report", "s"]))
-    for argv in ([], ["spec.yaml", "--report", "s"], ["--rerun", "r", "--report", "s"]):
-        with pytest.raises(RequestError, match="give one sweep spec"):
-            check_mode(run.build_parser().parse_args(argv))
 
 
 def test_a_dry_run_says_where_the_results_and_the_mlflow_runs_will_go(tmp_path, monkeypatch, capsys):

@@ -1,4 +1,4 @@
-"""sweeps/results/rerun.py: every value read back from a recorded child run is checked before it is used."""
+"""sweeps/rerun.py: every value read back from a recorded child run is checked before it is used."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 from mlflow import MlflowClient
 
 from cdm.provenance import installed_packages, machine_record
-from sweeps.results.rerun import RerunError, machine_differences, rerun
+from sweeps.rerun import RerunError, machine_differences, rerun
 from tests.hostile_files import ROOT, assert_refused, run_command
 
 

@@ -75,7 +75,7 @@ def test_a_hostile_optimiser_or_scheduler_is_one_line_naming_the_file_and_trains
     damage(changed)
     file = tmp_path / "resume" / CHECKPOINT_FILE
     save_checkpoint(Checkpoint(**changed), file.parent)
-    outcome = _train(tmp_path, tmp_path / "out", "--resume", str(file.parent), steps=4)
+    outcome = _train(tmp_path, tmp_path / "out", "--resume-from", str(file.parent), steps=4)
     assert_refused(outcome, f"error: resume: {file}: ", message)
     assert not (tmp_path / "out" / "checkpoints").exists() and "step 3" not in outcome.stdout
 
@@ -91,7 +91,7 @@ def _copy(value):
 def test_the_undamaged_checkpoint_resumes(trained, tmp_path):
     """The control of the cases above: the same file, undamaged, continues to step 4."""
     folder, _ = trained
-    outcome = _train(tmp_path, tmp_path / "out", "--resume", str(folder), steps=4)
+    outcome = _train(tmp_path, tmp_path / "out", "--resume-from", str(folder), steps=4)
     assert outcome.code == 0 and "done at step 4" in outcome.stdout, outcome.stderr[-2000:]
     assert sorted(p.name for p in (tmp_path / "out" / "checkpoints").iterdir()) == ["step_0000004"]
 

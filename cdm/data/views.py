@@ -349,7 +349,7 @@ class ObjectDataset(Dataset, ABC):
         """
         identity = [self.kind, self.split, self.cfg.data.model_dump(mode="json"), [list(o) for o in self.objects],
                     self._content_version(), f"frame {FRAME_VERSION}"]
-        # Unsorted, as recorded on every run so far: --rerun compares against those records.
+        # Unsorted, as recorded on every run so far: `cdm-lab rerun` compares against those records.
         return json_digest(identity, sort_keys=False)
 
     def _content_version(self) -> str:

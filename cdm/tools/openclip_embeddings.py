@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cdm.cli import command_parser, old_spelling
+from cdm.cli import command_parser
 from cdm.interrupt import interruptible
 from cdm.io.arrays import load_npy
 from cdm.io.images import read_rgb
@@ -66,7 +66,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="what is embedded: the reference view, 'a photo of a {category}', or its depth drawn grey")
     p.add_argument("--npz", required=True, type=Path, metavar="FILE",
                    help="the embeddings to write: .npz, one unit-norm float32 vector per object id")
-    old_spelling(p, "--out", "--npz", "npz", type=Path)
     p.add_argument("--depth-maps", type=Path, metavar="DIR",
                    help="estimated maps (<object_id>/<position>.npy) instead of rendered depth, with --kind depth")
     p.add_argument("--model", default="ViT-B-32", metavar="NAME", help="OpenCLIP model name (default ViT-B-32)")

@@ -50,7 +50,7 @@ def parent_baselines(parent_metrics: Mapping[str, float], eval_set: str | None,
 
 
 def trial_runs(client: MlflowClient, experiment_id: str, parent_run_id: str) -> list[Run]:
-    """The sweep's child runs, one per trial, oldest first: re-runs ``run.py --rerun`` files under the same
+    """The sweep's child runs, one per trial, oldest first: the re-runs ``cdm-lab rerun`` files under the same
     parent (tagged ``rerun_of``) are checks of a trial, not trials, and are left out."""
     children = client.search_runs([experiment_id], filter_string=f"tags.mlflow.parentRunId = '{parent_run_id}'",
                                   order_by=["attributes.start_time ASC"], max_results=10000)

@@ -28,7 +28,7 @@ from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import SweepPlan, expand
 from sweeps.storage import StoreError, exists, is_uri, parse_state, read_text, sweep_location
 
-__all__ = ["STATE_FILE", "RequestError", "SweepRequest", "check_mode", "missing_inputs", "plan_request"]
+__all__ = ["STATE_FILE", "RequestError", "SweepRequest", "missing_inputs", "plan_request"]
 
 STATE_FILE = "sweep.json"
 """What ``--resume`` reads in the sweep folder: the spec, ``--set`` values, budget and MLflow run it started with."""
@@ -56,15 +56,6 @@ class SweepRequest:
     @property
     def state_file(self) -> str:
         return f"{self.sweep_dir}/{STATE_FILE}"
-
-
-def check_mode(args: argparse.Namespace) -> None:
-    """Exactly one of a spec, ``--rerun`` and ``--report``."""
-    if sum(a is not None for a in (args.spec, args.rerun, args.report)) != 1:
-        raise RequestError(
-            "give one sweep spec (e.g. sweeps/point_size.yaml); a finished trial is re-run by `cdm-lab rerun RUN_ID`, "
-            "a finished sweep's report rebuilt by `cdm-lab report EXPERIMENT`"
-        )
 
 
 def plan_request(args: argparse.Namespace) -> SweepRequest:

@@ -173,7 +173,7 @@ def test_report_rebuilds_the_runners_table_from_mlflow(smoke, tmp_path, capsys, 
     assert "Δf1 vs point_size=0.02 [95% CI]" in rebuilt and rebuilt.count("| point_size=0.0") == 2
     capsys.readouterr()
     monkeypatch.chdir(tmp_path)  # the default --out is results/<experiment>/report under the working directory
-    assert run.main(["--report", "compare", "--tracking-uri", smoke.uri]) == 0
+    assert publish.main(["compare", "--tracking-uri", smoke.uri]) == 0
     assert (tmp_path / "results" / "compare" / "report" / "results.md").read_text() == rebuilt
     assert "compare — profile smoke" in capsys.readouterr().out
 

@@ -29,7 +29,7 @@ import ray
 from mlflow import MlflowClient
 
 from cdm.checkpoint import CHECKPOINT_FILE
-from sweeps import run
+from sweeps import report, rerun, run
 from sweeps.execute.trial import trial_scratch
 from sweeps.mlflow_model import model_checkpoint
 from sweeps.results.finished import open_sweep, results_table, trial_records
@@ -62,7 +62,7 @@ def swept(tmp_path_factory) -> Swept:
     ray_tmp = Path(tempfile.mkdtemp(prefix="cdmrec", dir="/tmp"))
     (tmp / "spec.yaml").write_text("name: record\ngrid: {priors.point_size: [0.02, 0.04]}\n")
     uri = f"sqlite:///{tmp}/mlflow.db"
-    argv = [str(tmp / "spec.yaml"), "--smoke", "--storage", str(tmp / "results"), "--tracking-uri", uri,
+    argv = [str(tmp / "spec.yaml"), "--smoke", "--out", str(tmp / "results"), "--tracking-uri", uri,
             "--register", REGISTERED]
     printed = io.StringIO()
     with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(printed):
@@ -207,10 +207,10 @@ def test_the_best_cells_model_is_registered_and_loads_as_an_mlflow_model(swept, 
 def test_report_and_rerun_work_from_the_record_alone(swept, tmp_path, monkeypatch, capsys):
     _, _, children = _runs(swept.uri)
     monkeypatch.chdir(tmp_path)
-    assert run.main(["--report", "record", "--tracking-uri", swept.uri]) == 0
+    assert report.main(["record", "--tracking-uri", swept.uri]) == 0
     rebuilt = tmp_path / "results" / "record" / "report" / "results.md"
     assert rebuilt.read_text() == (swept.folder / "results.md").read_text()
     capsys.readouterr()
     child = min(children, key=lambda r: r.info.run_name)
-    assert run.main(["--rerun", child.info.run_id, "--tracking-uri", swept.uri, "--storage", str(tmp_path)]) == 0
+    assert rerun.main([child.info.run_id, "--tracking-uri", swept.uri]) == 0
     assert "reproduced exactly" in capsys.readouterr().out

@@ -22,7 +22,7 @@ from mlflow import MlflowClient
 
 from cdm.io.write import TEMP_NAME
 from cdm.provenance import MACHINE_KEYS, machine_record
-from sweeps import run
+from sweeps import rerun, run
 from sweeps.execute.logged_runs import last_eval_files
 from sweeps.execute.trial_tracking import PACKAGES_FILE
 
@@ -182,8 +182,8 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     assert client.list_artifacts(child.info.run_id, "environment")[0].path == PACKAGES_FILE
     assert tags["repro.data_fingerprint"].startswith("train ") and tags["eval_set"]
     capsys.readouterr()
-    rerun_argv = ["--rerun", child.info.run_id, "--tracking-uri", uri, "--out", str(e2e.folder)]
-    assert run.main(rerun_argv) == 0
+    rerun_argv = [child.info.run_id, "--tracking-uri", uri, "--out", str(e2e.folder / "reruns")]
+    assert rerun.main(rerun_argv) == 0
     out = capsys.readouterr().out
     assert "reproduced exactly" in out and "DIFFERENT" not in out
     again = [
@@ -196,7 +196,7 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     # Another CPU type: named before training, and in the rows after it; the scores still match here.
     epyc = "AMD EPYC 7B13 64-Core Processor"
     client.set_tag(child.info.run_id, "repro.cpu_model", epyc)
-    assert run.main(rerun_argv) == 1
+    assert rerun.main(rerun_argv) == 1
     out = capsys.readouterr().out
     warning = "warning: this machine differs from the recorded run's; on CPU each of these can change the numbers"
     assert out.index(warning) < out.index("step 5/") and f"\n  repro.cpu_model: recorded {epyc}, here " in out
@@ -205,12 +205,12 @@ def test_rerun_reproduces_a_trial_exactly_and_reports_another_commit(e2e, capsys
     client.set_tag(child.info.run_id, "repro.cpu_model", tags["repro.cpu_model"])
 
     client.set_tag(child.info.run_id, "repro.git_commit", "0" * 40)
-    assert run.main(rerun_argv) == 2
+    assert rerun.main(rerun_argv) == 2
     err = capsys.readouterr().err
     assert f"recorded commit {'0' * 40}" in err and "--force" in err
     client.set_tag(child.info.run_id, "repro.git_commit", tags["repro.git_commit"])
     client.set_tag(child.info.run_id, "repro.config_hash", "0" * 16)
-    assert run.main(rerun_argv) == 2
+    assert rerun.main(rerun_argv) == 2
     assert f"differs from the recorded {'0' * 16}" in capsys.readouterr().err
     client.set_tag(child.info.run_id, "repro.config_hash", tags["repro.config_hash"])
 

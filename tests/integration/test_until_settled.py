@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 from mlflow import MlflowClient
 
-from sweeps import run
+from sweeps import report, run
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -65,7 +65,7 @@ def _settle(client: MlflowClient, parent_id: str, tmp_path: Path) -> dict:
 
 
 def test_a_planted_null_and_a_large_effect_are_told_apart_by_their_seeds(cluster, tmp_path, capsys, monkeypatch):
-    monkeypatch.chdir(tmp_path)  # --report writes its folder under ./results
+    monkeypatch.chdir(tmp_path)  # report writes its folder under ./results
     argv, uri = _sweep(tmp_path, "settle", large=True, low=4, high=5)
     t0 = time.perf_counter()
     assert run.main(argv) == 0
@@ -90,7 +90,7 @@ def test_a_planted_null_and_a_large_effect_are_told_apart_by_their_seeds(cluster
     description = parents[0].data.tags["mlflow.note.content"]  # the parent run's page says it too
     assert "better, settled after 4 seeds" in description and "open at 5 seeds" in description
     # Rebuilt from MLflow alone: the same stops, and no row for the seed the large cell never needed.
-    assert run.main(["--report", "settle", "--tracking-uri", uri]) == 0
+    assert report.main(["settle", "--tracking-uri", uri]) == 0
     rebuilt = capsys.readouterr().out
     assert "better, settled after 4 seeds" in rebuilt and "open at 5 seeds" in rebuilt
     assert re.search(r"^large\b.*\s4/4\s", rebuilt, re.M) and re.search(r"^null\b.*\s5/5\s", rebuilt, re.M), rebuilt
