@@ -1,13 +1,12 @@
 """Seeds until settled on Ray Tune's own machinery: a ``Searcher`` that proposes each cell's next seed.
 
-The rule is :mod:`sweeps.compare.settle`'s :func:`~sweeps.compare.settle.next_round`; this searcher applies it to the
-trials it proposed and the results they logged. It proposes ``{"cell": <trial label>}``, the grid's own
-Tune config, so every trial is built, named and tracked as a grid trial is (one MLflow child run per
-seed). It keeps no results of its own: per-object scores are read from each finished trial's MLflow run
-(:meth:`sweeps.execute.tracking.SweepRun.trial_objects`), and after ``--resume`` from the runs again, so a restored
+It applies :func:`sweeps.execute.settle.rule.next_round` to the trials it proposed and the results they logged,
+proposing ``{"cell": <trial label>}``, the grid's own Tune config, so every trial is built, named and tracked
+as a grid trial is (one MLflow child run per seed). It keeps no results of its own: per-object scores are
+read from each finished trial's MLflow run, and after ``--resume`` from the runs again, so a restored
 searcher needs from Tune's snapshot only which trials it had proposed and the time spent (a JSON file, no
-pickle of its own): no seed runs twice, none is lost. Concurrency is Tune's: ``max_concurrent_trials``
-wraps the searcher in a ``ConcurrencyLimiter``, on 2 CPUs and on a cluster alike.
+pickle): no seed runs twice, none is lost. Concurrency is Tune's (``max_concurrent_trials`` wraps the
+searcher in a ``ConcurrencyLimiter``).
 """
 
 from __future__ import annotations
@@ -24,8 +23,8 @@ from ray.tune.search import Searcher
 from cdm.io.files import read_bounded
 from cdm.io.json import parse_json
 from cdm.io.write import write_atomic
-from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.execute.logged_runs import last_objects
+from sweeps.execute.settle.rule import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.execute.tracking import SweepRun
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import SweepPlan
@@ -136,9 +135,7 @@ class SeedSearcher(Searcher):
 
     def current(self) -> Round:
         """The rule applied to what this searcher has proposed and seen finish."""
-        left = None if self.budget is None or self.budget.trials is None else self.budget.trials - len(self.proposed)
-        return next_round(self.plan, set(self.proposed.values()), self.results, trials_left=left,
-                          out_of_time=self._check_time())
+        return next_round(self.plan, set(self.proposed.values()), self.results, self.budget, self._check_time())
 
     def suggest(self, trial_id: str) -> dict[str, Any] | str | None:
         now = self.current()
