@@ -1,7 +1,6 @@
-"""Seeds until settled, one unit: which trials a sequential sweep starts next, the Tune searcher that starts
-them, and where each cell stopped. :class:`UntilSettled` is its one entry point.
-
-A sweep whose spec says ``seeds: {min, max, until: settled}`` (or ``--until-settled``) runs in rounds:
+"""Seeds until settled: which trials a sequential sweep starts next, the Tune searcher that starts them, and
+where each cell stopped; :class:`UntilSettled` is the one entry point. A sweep whose spec says
+``seeds: {min, max, until: settled}`` (or ``--until-settled``) runs in rounds:
 
 - round 1 trains every cell at its first ``min`` seeds;
 - once a cell's seeds and the reference's same seeds (``compare_to``, default the first cell) have
@@ -13,11 +12,10 @@ A sweep whose spec says ``seeds: {min, max, until: settled}`` (or ``--until-sett
 - a cell whose trial (or the reference's) failed, or that was scored on other objects, stops without a
   record: the results table shows why.
 
-Its parts: :mod:`.rule`, the rule as a pure function of what has started and finished, and :mod:`.searcher`,
-the Ray Tune ``Searcher`` that applies it (imported only when a sweep runs). Two inputs sit in the stages
-below, which read them without it: the interval each look reads (:mod:`sweeps.compare.sequential`, also every
-comparison over seeds) and ``--budget`` (:mod:`sweeps.plan.budget`, checked with the request). The one fact a
-sweep's outcomes cannot show, that the wall-time budget ended, is a tag on the parent run (:data:`BUDGET_TAG`).
+Its parts: :mod:`.rule`, that rule as a pure function of what has started and finished, and :mod:`.searcher`,
+the Tune ``Searcher`` applying it (Ray is imported only when a sweep runs). Its two inputs sit in the stages
+below, which read them on their own: the interval (:mod:`sweeps.compare.sequential`, every comparison over
+seeds reads it) and ``--budget`` (:mod:`sweeps.plan.budget`, checked with the request).
 """
 
 from __future__ import annotations

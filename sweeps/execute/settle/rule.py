@@ -1,8 +1,5 @@
-"""The rule of seeds until settled as a pure function of what has started and finished (no Ray, no MLflow).
-
-The searcher applies it to the trials it proposed and the scores they logged; the runner and the report
-apply it to a sweep's outcomes, so the results table shows the searcher's decisions (:mod:`sweeps.execute.settle`).
-"""
+"""The rule of seeds until settled (:mod:`sweeps.execute.settle`) as a pure function of what has started and
+finished: the searcher applies it to what it proposed, the runner and the report to a sweep's outcomes."""
 
 from __future__ import annotations
 
@@ -19,7 +16,8 @@ from sweeps.plan.trials import Cell, SweepPlan
 __all__ = ["BUDGET_TAG", "Results", "Round", "by_cell", "next_round", "object_scores", "outcome_results"]
 
 BUDGET_TAG = "settle.budget_ended"
-"""Parent-run tag set when the wall-time budget ends (its value: seconds spent): no seed starts after it."""
+"""Parent-run tag set when the wall-time budget ends (its value: seconds spent), the one fact a sweep's
+outcomes cannot show: no seed starts after it."""
 
 Results = Mapping[str, Mapping[str, float] | None]
 """Trial label → its ``object_id → score`` in the spec's metric (None: the trial failed or scored nothing)."""
@@ -53,8 +51,7 @@ def object_scores(rows: Iterable[Mapping[str, object]], metric: str) -> dict[str
 
 
 def outcome_results(plan: SweepPlan, outcomes: Iterable[TrialOutcome]) -> tuple[set[str], dict[str, dict | None]]:
-    """(started labels, results) of a sweep's outcomes: what :func:`next_round` reads, from the trials'
-    outcomes instead of the searcher's memory."""
+    """(started labels, results) of a sweep's outcomes, as :func:`next_round` reads them."""
     started, results = set(), {}
     for o in outcomes:
         started.add(o.label)

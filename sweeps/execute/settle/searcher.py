@@ -1,12 +1,9 @@
-"""Seeds until settled on Ray Tune's own machinery: a ``Searcher`` that proposes each cell's next seed.
+"""Seeds until settled on Ray Tune's machinery: a ``Searcher`` proposing ``{"cell": <trial label>}``, the grid's
+own Tune config, so each seed is built, named and tracked as a grid trial (one MLflow child run per seed).
 
-It applies :func:`sweeps.execute.settle.rule.next_round` to the trials it proposed and the results they logged,
-proposing ``{"cell": <trial label>}``, the grid's own Tune config, so every trial is built, named and tracked
-as a grid trial is (one MLflow child run per seed). It keeps no results of its own: per-object scores are
-read from each finished trial's MLflow run, and after ``--resume`` from the runs again, so a restored
-searcher needs from Tune's snapshot only which trials it had proposed and the time spent (a JSON file, no
-pickle): no seed runs twice, none is lost. Concurrency is Tune's (``max_concurrent_trials`` wraps the
-searcher in a ``ConcurrencyLimiter``).
+It keeps no results of its own: per-object scores are read from each finished trial's MLflow run, after
+``--resume`` too, so a restored searcher needs from Tune's snapshot only what it had proposed and the time
+spent (JSON, no pickle): no seed runs twice, none is lost. Concurrency is Tune's ``ConcurrencyLimiter``.
 """
 
 from __future__ import annotations
@@ -94,14 +91,8 @@ def check_searcher_state(sweep_dir: str, plan: SweepPlan) -> None:
 
 
 class SeedSearcher(Searcher):
-    """Proposes the trials of a sequential sweep round by round (module docstring); ``None`` while a round's
-    results are out, ``Searcher.FINISHED`` once every cell has stopped.
-
-    Args:
-        plan: the expanded sequential sweep (every seed up to ``max`` has its trial label).
-        sweep_run: the parent MLflow run, where finished trials' per-object scores are read.
-        budget: ``--budget`` (None: until ``max``).
-    """
+    """Proposes a sequential sweep's trials round by round (:meth:`sweeps.execute.settle.UntilSettled.searcher`);
+    ``None`` while a round's results are out, ``Searcher.FINISHED`` once every cell has stopped."""
 
     CKPT_FILE_TMPL = "seed-searcher-{}.json"
 
