@@ -180,12 +180,13 @@ def test_restore_asks_mlflow_a_bounded_number_of_times_whatever_the_file_says(tm
     plan = _plan()
     proposed = {f"t{i}": c.label for i, c in enumerate(plan.cells)}
     for trial_id, label in proposed.items():
-        _finish(sweep_run, trial_id, label, tmp_path)
+        _finish(sweep_run, trial_id, label, tmp_path, status="FAILED" if label == "null · seed 2" else "FINISHED")
     (tmp_path / "state.json").write_text(json.dumps({"proposed": proposed, "spent_s": 5.0}))
     restored = UntilSettled(plan).searcher(SweepRun(uri, sweep_run.experiment_id, sweep_run.run_id))
     restored.sweep_run.client = Counting(uri)
     restored.restore(str(tmp_path / "state.json"))
     assert set(restored.results) == set(proposed.values()) and restored.spent_before == 5.0
+    assert restored.results["null · seed 2"] is None and restored.results["ref · seed 2"]["o1"] == 0.2
     assert Counting.calls == {"search_runs": 1, "get_run": 1}
 
 

@@ -1,16 +1,12 @@
-"""Seeds until settled: which trials a sequential sweep starts next, the Tune searcher that starts them, and
-where each cell stopped; :class:`UntilSettled` is the one entry point. A sweep whose spec says
-``seeds: {min, max, until: settled}`` (or ``--until-settled``) runs in rounds:
-
-- round 1 trains every cell at its first ``min`` seeds;
-- once a cell's seeds and the reference's same seeds (``compare_to``, default the first cell) have
-  finished, :func:`sweeps.compare.sequential.decide` looks at their per-object scores (look ``k − min + 1`` of
-  ``max − min + 1`` at ``k`` seeds); a settled cell (better, worse, or level within ``settle.margin``)
-  stops, an open one gets its next seed, and the reference that seed too, until ``max`` seeds or the
-  budget ends (``--budget``: no seed starts once the trials would pass the trial count, or once the time
-  spent plus a typical trial's would pass the wall time);
-- a cell whose trial (or the reference's) failed, or that was scored on other objects, stops without a
-  record: the results table shows why.
+"""Seeds until settled (``seeds: {min, max, until: settled}`` or ``--until-settled``); :class:`UntilSettled` is
+its one entry point. The sweep runs in rounds: round 1 trains every cell at its first ``min`` seeds; once a
+cell's seeds and the reference's same seeds (``compare_to``, default the first cell) have finished,
+:func:`sweeps.compare.sequential.decide` looks at their per-object scores (look ``k − min + 1`` of
+``max − min + 1`` at ``k`` seeds). A settled cell (better, worse, or level within ``settle.margin``) stops;
+an open one gets its next seed, the reference that seed too, until ``max`` seeds or the ``--budget`` ends
+(no seed starts once the trials would pass its count, or the time spent plus a typical trial's its wall
+time). A cell whose trial (or the reference's) failed, or was scored on other objects, stops without a
+record: the results table shows why.
 
 Its parts: :mod:`.rule`, that rule as a pure function of what has started and finished, and :mod:`.searcher`,
 the Tune ``Searcher`` applying it (Ray is imported only when a sweep runs). Its two inputs sit in the stages

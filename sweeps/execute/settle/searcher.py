@@ -167,9 +167,16 @@ class SeedSearcher(Searcher):
         self.out_of_time = BUDGET_TAG in self.sweep_run.client.get_run(self.sweep_run.run_id).data.tags
         self.results = {}
         children = self._children()
+        # A trial whose run the driver closed as FINISHED or FAILED has its result; any other is still to run
+        # (Tune re-queues it and reports its end to on_trial_complete).
         for trial_id, label in self.proposed.items():
-            if (found := self._finished_record(children.get(trial_id))) is not None:
-                self.results[label] = found or None
+            child = children.get(trial_id)
+            status = None if child is None else child.info.status
+            if status == "FAILED":
+                self.results[label] = None
+            elif status == "FINISHED":
+                rows = last_objects(self.sweep_run.client, child.info.run_id)
+                self.results[label] = object_scores(rows, self.plan.spec.metric.name) or None
 
     def _children(self) -> dict[str, Any]:
         """The parent's child runs by trial id, in one query; the child runs of trials Tune's last
@@ -187,14 +194,3 @@ class SeedSearcher(Searcher):
             else:
                 client.delete_run(child.info.run_id)
         return kept
-
-    def _finished_record(self, child: Any) -> dict[str, float] | None:
-        """Scores of a trial whose MLflow run the driver closed as FINISHED ({} for FAILED); None while it
-        is still to run (Tune re-queues it and reports its end to :meth:`on_trial_complete`)."""
-        if child is None:
-            return None
-        if child.info.status == "FAILED":
-            return {}
-        if child.info.status != "FINISHED":
-            return None
-        return object_scores(last_objects(self.sweep_run.client, child.info.run_id), self.plan.spec.metric.name)
