@@ -16,8 +16,8 @@ if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sy
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from cdm.cli import add_out, add_set, command_parser
-from sweeps.compare.settle import describe_rule
 from sweeps.execute.precompute import shared_root
+from sweeps.execute.settle import UntilSettled
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import MAX_TRIALS
 from sweeps.plan.preflight import dry_run
@@ -110,7 +110,7 @@ def _sweep(args: argparse.Namespace, request: SweepRequest) -> int:
     except (DriverError, register.RegisterError) as exc:
         return _fail(str(exc))
     plan = request.plan
-    print(describe(plan, None, None, describe_rule(plan, request.budget)), flush=True)
+    print(describe(plan, None, None, UntilSettled(plan, request.budget).lines()), flush=True)
     try:
         code = run_claimed(request, args, uri, held, Publisher(describe_sweep, publish))
     except DriverError as exc:
@@ -139,8 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(str(exc))
     if args.dry_run:
         shared = shared_root(request.sweep_dir, request.remote) is not None and bool(plan.cells)
-        return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate, shared, missing,
-                       _destinations(args, request))
+        return dry_run(plan, request.remote, UntilSettled(plan, request.budget).lines(), not args.no_estimate, shared,
+                       missing, _destinations(args, request))
     return _sweep(args, request)
 
 

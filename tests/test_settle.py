@@ -1,12 +1,16 @@
-"""The rule of seeds until settled (sweeps/compare/settle.py), round by round on planted scores: no Ray, no MLflow."""
+"""Seeds until settled (sweeps/execute/settle/): the rule round by round on planted scores, the entry point's
+dry-run lines and final round; no Ray, no MLflow."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 
 from sweeps.compare.outcomes import TrialOutcome
-from sweeps.compare.settle import describe_rule, next_round, object_scores, outcome_results
+from sweeps.execute.settle import BUDGET_TAG, UntilSettled
+from sweeps.execute.settle.rule import next_round, object_scores, outcome_results
 from sweeps.plan.budget import SeedBudget, check_budget, parse_budget
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.spec import Spec
@@ -35,17 +39,13 @@ def _score(label: str) -> dict[str, float]:
     return {o: 0.3 + 0.01 * i + shift + EFFECT[cell] for i, o in enumerate(OBJECTS)}
 
 
-def _limits(started: set[str], trials: int | None, out_of_time: bool) -> dict:
-    """What the searcher passes: the trials its budget still allows, the wall time's end."""
-    return {"trials_left": None if trials is None else trials - len(started), "out_of_time": out_of_time}
-
-
 def _drive(plan: SweepPlan, trials: int | None = None, out_of_time: bool = False) -> list[tuple[str, ...]]:
     """The searcher's loop without Tune: start what the rule says, finish it, ask again; the rounds started."""
     started: set[str] = set()
     results: dict[str, dict[str, float] | None] = {}
     rounds = []
-    while not (now := next_round(plan, started, results, **_limits(started, trials, out_of_time))).finished:
+    budget = None if trials is None else SeedBudget(trials=trials)
+    while not (now := next_round(plan, started, results, budget, out_of_time)).finished:
         rounds.append(now.start)
         started |= set(now.start)
         results |= {label: _score(label) for label in now.start}
@@ -87,9 +87,8 @@ def test_the_budget_stops_open_cells_with_reason_budget(trials, out_of_time, see
     rounds = _drive(plan, trials, out_of_time)
     started = {label for r in rounds for label in r}
     assert len(started) == 6 + 2 * (seeds - 2)
-    records = next_round(
-        plan, started, {label: _score(label) for label in started}, **_limits(started, trials, out_of_time)
-    ).records
+    records = next_round(plan, started, {label: _score(label) for label in started},
+                         None if trials is None else SeedBudget(trials=trials), out_of_time).records
     assert (records["null"].seeds, records["null"].reason) == (seeds, "budget")
     assert records["large"].reason == "settled"
 
@@ -141,11 +140,29 @@ def test_a_budget_must_fit_round_1_and_needs_seeds_until_settled(tmp_path):
     fixed = expand(Spec.model_validate({"name": "t", "cells": REFERENCE_NULL_LARGE, "seeds": [0, 1]}), "smoke")
     with pytest.raises(SpecError, match="--budget: only seeds run until settled spend a budget; add --until-settled"):
         check_budget(fixed, SeedBudget(seconds=60.0))
-    assert describe_rule(fixed, None) == []
-    lines = describe_rule(plan, SeedBudget(seconds=2700.0))
+    assert UntilSettled(fixed).lines() == []
+    lines = UntilSettled(plan, SeedBudget(seconds=2700.0)).lines()
     assert lines[0] == (
         "search: grid, seeds until settled: round 1 = 3 cells × 2 seeds = 6 trials; worst case 12 trials "
         "(3 cells × 4 seeds, 3 looks)"
     )
     assert "(better/worse) (no settle.margin: no level verdict); else" in lines[1] and "Bonferroni" in lines[2]
     assert lines[3] == "budget: 45 min wall time"
+
+
+def test_the_final_round_reads_outcomes_and_the_parent_runs_budget_tag_and_writes_settle_json(tmp_path):
+    plan = _plan(REFERENCE_NULL_LARGE)
+    rule = UntilSettled(plan, SeedBudget(trials=12))
+    rows = {label: tuple({"object_id": o, "f1": v} for o, v in _score(label).items())
+            for label in next_round(plan, set(), {}).start}
+    outcomes = [TrialOutcome(label, label.split(" · ")[0], "ok", objects=r) for label, r in rows.items()]
+    open_round = rule.final(outcomes, {})
+    assert open_round.start == ("ref · seed 2", "null · seed 2") and set(open_round.records) == {"large"}
+    ended = rule.final(outcomes, {BUDGET_TAG: "60"})
+    assert ended.start == () and (ended.records["null"].seeds, ended.records["null"].reason) == (2, "budget")
+    written = json.loads(rule.write_json(tmp_path / "settle.json", ended.records).read_text())
+    assert written["budget"] == "12 trials"
+    assert {k: v for k, v in written["cells"]["large"].items() if k != "interval"} == {
+        "seeds": 2, "verdict": "better", "reason": "settled", "text": "better, settled after 2 seeds"}
+    assert written["cells"]["null"]["interval"] == {"mean": 0.0, "low": 0.0, "high": 0.0, "objects": 20,
+                                                    "covers": "seeds and objects"}

@@ -147,12 +147,15 @@ def test_settle_json_plots_and_the_viewer_are_never_written_through_a_planted_li
     import numpy as np
 
     from sweeps.compare.gallery import grid_png, viewer_html
-    from sweeps.compare.settle import write_settle_json
+    from sweeps.execute.settle import UntilSettled
+    from sweeps.plan.spec import Spec
+    from sweeps.plan.trials import expand
 
     victim = tmp_path / "victim.txt"
     victim.write_text("precious\n")
     clouds = {"o1": {"a": np.zeros((8, 3))}}
-    write = {"settle.json": lambda path: write_settle_json(path, {}, None),
+    plan = expand(Spec.model_validate({"name": "t", "cells": [{"label": "a"}]}), "smoke")
+    write = {"settle.json": lambda path: UntilSettled(plan).write_json(path, {}),
              "plot": lambda path: grid_png(clouds, ["a"], "t", path, f1_thresholds=0.01),
              "viewer": lambda path: viewer_html(clouds, ["a"], "t", path)}[kind]
     clean = tmp_path / "clean" / "out"

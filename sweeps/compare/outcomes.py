@@ -1,7 +1,7 @@
 """How each trial of a sweep ended, and the order a sweep's trials are listed in.
 
 Knows nothing of Ray or MLflow: the runner and the report turn finished trials into
-:class:`TrialOutcome` s, :mod:`sweeps.compare.table` aggregates them, and :mod:`sweeps.compare.settle`
+:class:`TrialOutcome` s, :mod:`sweeps.compare.table` aggregates them, and :mod:`sweeps.execute.settle`
 decides on them which seeds run next.
 """
 
@@ -68,7 +68,7 @@ def unstarted(
 ) -> list[str]:
     """Labels of a grid's ``planned`` trials with no outcome, in plan order: the rows an interrupted sweep
     lists as pending, the runner's table and the report's alike. ``next_round``: a sequential sweep's
-    trials its rule would start next (:func:`sweeps.compare.settle.final_round`); the seeds it never
+    trials its rule would start next (:meth:`sweeps.execute.settle.UntilSettled.final`); the seeds it never
     needed are no trials of it."""
     seen = {o.label for o in outcomes}
     return [label for label in planned if label not in seen and (next_round is None or label in next_round)]

@@ -25,14 +25,13 @@ import ray
 from cdm.interrupt import take_sigterm_as_ctrl_c
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.rules import PROTOCOL_NOTE, settings_notes
-from sweeps.compare.settle import final_round, write_settle_json
 from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
 from sweeps.execute.logged_runs import trial_runs
 from sweeps.execute.precompute import check_space, shared_root
 from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
-from sweeps.execute.seed_search import check_searcher_state
+from sweeps.execute.settle import UntilSettled
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
 from sweeps.execute.tracking import (
     SweepRun,
@@ -130,7 +129,7 @@ def claim_sweep(request: SweepRequest, args: argparse.Namespace) -> tuple[str, S
             if not args.trust_storage:
                 check_resume_trust(sweep_dir)
             if request.plan.sequential is not None:
-                check_searcher_state(sweep_dir, request.plan)  # Tune would start a fresh searcher on a damaged one
+                UntilSettled(request.plan).check_resume(sweep_dir)  # Tune would start a fresh searcher on a damaged one
         except StoreError as exc:
             held.release()
             raise DriverError(str(exc)) from None
@@ -234,8 +233,9 @@ def _table(request: SweepRequest, outcomes: list[TrialOutcome], sweep_run: Sweep
     settled = None
     if plan.sequential is not None:
         tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
-        settled = final_round(plan, outcomes, request.budget, tags).records
-        sweep_run.log_artifacts([write_settle_json(staging / "settle.json", settled, request.budget)])
+        rule = UntilSettled(plan, request.budget)
+        settled = rule.final(outcomes, tags).records
+        sweep_run.log_artifacts([rule.write_json(staging / "settle.json", settled)])
     baselines = baselines_by_eval_set(outcomes)
     # The numbers the parent run holds, so that `report` rebuilds this results.csv byte for byte.
     table = build_table(with_logged_baselines(outcomes, baselines), plan.spec.metric.name, plan.spec.metric.mode,

@@ -25,6 +25,7 @@ from sweeps.execute.cores import lease_cores
 from sweeps.execute.precompute import precompute, shared_root
 from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.resume_retries import refusing, retry_errored
+from sweeps.execute.settle import UntilSettled
 from sweeps.execute.tracking import SweepRun
 from sweeps.execute.trial import TrialSetup, run_trial, trial_dir_name
 from sweeps.plan.budget import SeedBudget
@@ -95,13 +96,11 @@ class _TrialCloser(ray.tune.Callback):
 
 def _search(plan: SweepPlan, sweep_run: SweepRun, budget: SeedBudget | None) -> tuple[dict[str, Any], Any, int]:
     """Tune param space, search algorithm and sample count: grid cells by label, seeds until settled
-    (:class:`sweeps.execute.seed_search.SeedSearcher`, at most every cell at ``max`` seeds), or the searcher
+    (:meth:`sweeps.execute.settle.UntilSettled.searcher`, at most every cell at ``max`` seeds), or the searcher
     of a kind that samples ``search.space`` (:data:`sweeps.plan.search.SEARCHES`)."""
     s = plan.spec.search
     if plan.sequential is not None:
-        from sweeps.execute.seed_search import SeedSearcher
-
-        return {}, SeedSearcher(plan, sweep_run, budget), plan.num_trials
+        return {}, UntilSettled(plan, budget).searcher(sweep_run), plan.num_trials
     if not s.sampled:
         return {"cell": ray.tune.grid_search([c.label for c in plan.cells])}, None, 1
     study = (
@@ -193,10 +192,8 @@ def _outcomes(plan: SweepPlan, grid, sweep_run: SweepRun, budget: SeedBudget | N
     if not plan.spec.search.sampled:  # trials Tune had not created when the sweep was interrupted get their row
         next_round = None
         if plan.sequential is not None:
-            from sweeps.compare.settle import final_round
-
             tags = sweep_run.client.get_run(sweep_run.run_id).data.tags
-            next_round = final_round(plan, outcomes, budget, tags).start
+            next_round = UntilSettled(plan, budget).final(outcomes, tags).start
         for cell in map(plan.grid_cell, unstarted([c.label for c in plan.cells], outcomes, next_round)):
             outcomes.append(TrialOutcome(cell.label, cell.name, "pending", {}, cell.paper_label, cell.paper,
                                          f1_threshold=cell.config.eval.f1_threshold))

@@ -17,7 +17,7 @@ __all__ = ["describe", "wrapped"]
 
 def describe(plan: SweepPlan, cpus: float | None, gpus: float | None, rule: Sequence[str] = ()) -> str:
     """The dry-run text: profile, search, resource plan and every trial (or a sampled search's space); ``rule``:
-    a sequential sweep's lines (its rule, worst case and budget, :func:`sweeps.compare.settle.describe_rule`)."""
+    a sequential sweep's lines (its rule, worst case and budget, :meth:`sweeps.execute.settle.UntilSettled.lines`)."""
     spec, prof, r = plan.spec, plan.profile, plan.profile.resources
     out = [
         f"profile {prof.name}: {prof.description}".rstrip(": "),

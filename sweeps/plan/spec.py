@@ -184,7 +184,7 @@ class DatasetRun(Strict):
 
 class SequentialSeeds(Strict):
     """``seeds: {min: 2, max: 5, until: settled}``: seeds ``0, 1, …, max − 1`` run in rounds until each
-    cell's comparison with its reference settles (:mod:`sweeps.execute.seed_search`, :mod:`sweeps.compare.sequential`).
+    cell's comparison with its reference settles (:mod:`sweeps.execute.settle`, :mod:`sweeps.compare.sequential`).
 
     Round 1 trains every cell at ``min`` seeds; after each round a cell whose interval against the
     reference still holds 0 (and is not inside ``settle.margin``) gets one more seed, the reference

@@ -23,9 +23,9 @@ from cdm.io.json import read_json
 from cdm.metric_names import CD, METRICS
 from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
-from sweeps.compare.settle import Round, final_round
 from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.logged_runs import last_objects, parent_baselines, trial_metrics, trial_runs
+from sweeps.execute.settle import Round, UntilSettled
 from sweeps.plan.budget import parse_budget
 from sweeps.plan.protocol import CARD_TAG
 from sweeps.plan.spec import SpaceParam, Spec, load_spec
@@ -212,7 +212,8 @@ def protocol_card_lines(record: SweepRecord) -> list[str]:
 def _final_round(record: SweepRecord, outcomes: list[TrialOutcome]) -> Round:
     """A sequential sweep's rule on its recorded outcomes, as its searcher last applied it."""
     budget = record.parent.data.params.get("budget")
-    return final_round(record.expanded, outcomes, parse_budget(budget) if budget else None, record.parent.data.tags)
+    return UntilSettled(record.expanded, parse_budget(budget) if budget else None).final(outcomes,
+                                                                                        record.parent.data.tags)
 
 
 def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTable:
@@ -222,7 +223,7 @@ def results_table(record: SweepRecord, trials: list[TrialRecord]) -> ResultsTabl
     settled = None
     if (
         spec.sequential is not None
-    ):  # where each cell stopped, as the runner's searcher decided (sweeps/compare/settle.py)
+    ):  # where each cell stopped, as the runner's searcher decided (sweeps/execute/settle/)
         settled = _final_round(record, outcomes).records
     return build_table(outcomes, spec.metric.name, spec.metric.mode, record.title,
                        f"{spec.paper.table}: {spec.paper.note}" if spec.paper else "", compare_to=spec.compare_to,

@@ -1,5 +1,5 @@
-"""The Tune searcher of seeds until settled (sweeps/execute/seed_search.py) against a real MLflow SQLite store, driven
-the way Tune drives it (suggest, on_trial_complete, save, restore), without a Ray cluster."""
+"""The Tune searcher of seeds until settled (sweeps/execute/settle/searcher.py) against a real MLflow SQLite
+store, driven the way Tune drives it (suggest, on_trial_complete, save, restore), without a Ray cluster."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from ray.tune.search import Searcher
 
-from sweeps.compare.settle import BUDGET_TAG
-from sweeps.execute.seed_search import SeedSearcher, check_searcher_state
+from sweeps.execute.settle import BUDGET_TAG, UntilSettled
+from sweeps.execute.settle.searcher import SeedSearcher
 from sweeps.execute.tracking import SweepRun
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.spec import Spec
@@ -59,7 +59,7 @@ def _suggest_all(searcher: SeedSearcher, first_id: int) -> dict[str, str]:
 def test_a_restored_searcher_keeps_its_proposals_reads_results_from_mlflow_and_runs_no_seed_twice(tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     sweep_run = SweepRun.start(uri, "t", "t", tags={}, params={})
-    searcher = SeedSearcher(_plan(), sweep_run)
+    searcher = UntilSettled(_plan()).searcher(sweep_run)
     first = _suggest_all(searcher, 0)
     assert sorted(first.values()) == ["null · seed 0", "null · seed 1", "ref · seed 0", "ref · seed 1"]
     for trial_id, label in first.items():
@@ -73,7 +73,7 @@ def test_a_restored_searcher_keeps_its_proposals_reads_results_from_mlflow_and_r
     _finish(sweep_run, ref_id, "ref · seed 2", tmp_path)
     _finish(sweep_run, "unseen", "null · seed 2", tmp_path, status="RUNNING")
 
-    restored = SeedSearcher(_plan(), SweepRun(uri, sweep_run.experiment_id, sweep_run.run_id))
+    restored = UntilSettled(_plan()).searcher(SweepRun(uri, sweep_run.experiment_id, sweep_run.run_id))
     restored.restore(str(tmp_path / "state.json"))
     assert restored.proposed == {**first, **second}
     assert set(restored.results) == {*first.values(), "ref · seed 2"}  # read back from MLflow, not from the file
@@ -92,7 +92,7 @@ def test_a_restored_searcher_keeps_its_proposals_reads_results_from_mlflow_and_r
 def test_the_wall_time_budget_ends_on_the_parent_run_and_a_trial_budget_counts_proposals(tmp_path):
     uri = f"sqlite:///{tmp_path}/mlflow.db"
     sweep_run = SweepRun.start(uri, "t", "t", tags={}, params={})
-    searcher = SeedSearcher(_plan(), sweep_run, SeedBudget(seconds=1e-6))
+    searcher = UntilSettled(_plan(), SeedBudget(seconds=1e-6)).searcher(sweep_run)
     first = _suggest_all(searcher, 0)
     assert len(first) == 4  # round 1 runs whatever the budget
     for trial_id, label in first.items():
@@ -102,7 +102,7 @@ def test_the_wall_time_budget_ends_on_the_parent_run_and_a_trial_budget_counts_p
     assert searcher.current().records["null"].reason == "budget"
     assert BUDGET_TAG in sweep_run.client.get_run(sweep_run.run_id).data.tags
 
-    counted = SeedSearcher(_plan(), SweepRun.start(uri, "u", "u", tags={}, params={}), SeedBudget(trials=5))
+    counted = UntilSettled(_plan(), SeedBudget(trials=5)).searcher(SweepRun.start(uri, "u", "u", tags={}, params={}))
     assert len(_suggest_all(counted, 0)) == 4
     counted.results = {label: {"o0": 0.0, "o1": 1.0} for label in counted.proposed.values()}
     assert counted.suggest("t10") == Searcher.FINISHED  # the null cell's next seed needs the reference's too: 2 > 1
@@ -144,19 +144,19 @@ def _state_folder(tmp_path, text: str | bytes, name: str = "seed-searcher-2026-1
 def test_a_damaged_or_oversized_searcher_state_is_refused_before_tune_restores_it(tmp_path, text, said):
     folder = _state_folder(tmp_path, text)
     with pytest.raises(StoreError, match=re.escape(said)) as refused:
-        check_searcher_state(str(folder), _plan())
+        UntilSettled(_plan()).check_resume(str(folder))
     assert str(refused.value).startswith("--resume: ") and "\n" not in str(refused.value)
     assert "without it a finished seed could run again" in str(refused.value)
 
 
 def test_the_state_tune_restores_is_the_one_checked_and_a_missing_one_is_refused(tmp_path):
     with pytest.raises(StoreError, match="holds no seed searcher state"):
-        check_searcher_state(str(tmp_path), _plan())
+        UntilSettled(_plan()).check_resume(str(tmp_path))
     folder = _state_folder(tmp_path, "not json", "seed-searcher-2026-01-01_00-00-00.json")
     _state_folder(
         tmp_path, json.dumps({"proposed": {"t0": "ref · seed 0"}, "spent_s": 3.0})
     )  # the later name: Tune's pick
-    check_searcher_state(str(folder), _plan())
+    UntilSettled(_plan()).check_resume(str(folder))
 
 
 def test_restore_asks_mlflow_a_bounded_number_of_times_whatever_the_file_says(tmp_path):
@@ -180,12 +180,13 @@ def test_restore_asks_mlflow_a_bounded_number_of_times_whatever_the_file_says(tm
     plan = _plan()
     proposed = {f"t{i}": c.label for i, c in enumerate(plan.cells)}
     for trial_id, label in proposed.items():
-        _finish(sweep_run, trial_id, label, tmp_path)
+        _finish(sweep_run, trial_id, label, tmp_path, status="FAILED" if label == "null · seed 2" else "FINISHED")
     (tmp_path / "state.json").write_text(json.dumps({"proposed": proposed, "spent_s": 5.0}))
-    restored = SeedSearcher(plan, SweepRun(uri, sweep_run.experiment_id, sweep_run.run_id))
+    restored = UntilSettled(plan).searcher(SweepRun(uri, sweep_run.experiment_id, sweep_run.run_id))
     restored.sweep_run.client = Counting(uri)
     restored.restore(str(tmp_path / "state.json"))
     assert set(restored.results) == set(proposed.values()) and restored.spent_before == 5.0
+    assert restored.results["null · seed 2"] is None and restored.results["ref · seed 2"]["o1"] == 0.2
     assert Counting.calls == {"search_runs": 1, "get_run": 1}
 
 

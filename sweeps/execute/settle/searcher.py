@@ -1,13 +1,9 @@
-"""Seeds until settled on Ray Tune's own machinery: a ``Searcher`` that proposes each cell's next seed.
+"""Seeds until settled on Ray Tune's machinery: a ``Searcher`` proposing ``{"cell": <trial label>}``, the grid's
+own Tune config, so each seed is built, named and tracked as a grid trial (one MLflow child run per seed).
 
-The rule is :mod:`sweeps.compare.settle`'s :func:`~sweeps.compare.settle.next_round`; this searcher applies it to the
-trials it proposed and the results they logged. It proposes ``{"cell": <trial label>}``, the grid's own
-Tune config, so every trial is built, named and tracked as a grid trial is (one MLflow child run per
-seed). It keeps no results of its own: per-object scores are read from each finished trial's MLflow run
-(:meth:`sweeps.execute.tracking.SweepRun.trial_objects`), and after ``--resume`` from the runs again, so a restored
-searcher needs from Tune's snapshot only which trials it had proposed and the time spent (a JSON file, no
-pickle of its own): no seed runs twice, none is lost. Concurrency is Tune's: ``max_concurrent_trials``
-wraps the searcher in a ``ConcurrencyLimiter``, on 2 CPUs and on a cluster alike.
+It keeps no results of its own: per-object scores are read from each finished trial's MLflow run, after
+``--resume`` too, so a restored searcher needs from Tune's snapshot only what it had proposed and the time
+spent (JSON, no pickle): no seed runs twice, none is lost. Concurrency is Tune's ``ConcurrencyLimiter``.
 """
 
 from __future__ import annotations
@@ -24,8 +20,8 @@ from ray.tune.search import Searcher
 from cdm.io.files import read_bounded
 from cdm.io.json import parse_json
 from cdm.io.write import write_atomic
-from sweeps.compare.settle import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.execute.logged_runs import last_objects
+from sweeps.execute.settle.rule import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.execute.tracking import SweepRun
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import SweepPlan
@@ -95,14 +91,8 @@ def check_searcher_state(sweep_dir: str, plan: SweepPlan) -> None:
 
 
 class SeedSearcher(Searcher):
-    """Proposes the trials of a sequential sweep round by round (module docstring); ``None`` while a round's
-    results are out, ``Searcher.FINISHED`` once every cell has stopped.
-
-    Args:
-        plan: the expanded sequential sweep (every seed up to ``max`` has its trial label).
-        sweep_run: the parent MLflow run, where finished trials' per-object scores are read.
-        budget: ``--budget`` (None: until ``max``).
-    """
+    """Proposes a sequential sweep's trials round by round (:meth:`sweeps.execute.settle.UntilSettled.searcher`);
+    ``None`` while a round's results are out, ``Searcher.FINISHED`` once every cell has stopped."""
 
     CKPT_FILE_TMPL = "seed-searcher-{}.json"
 
@@ -136,9 +126,7 @@ class SeedSearcher(Searcher):
 
     def current(self) -> Round:
         """The rule applied to what this searcher has proposed and seen finish."""
-        left = None if self.budget is None or self.budget.trials is None else self.budget.trials - len(self.proposed)
-        return next_round(self.plan, set(self.proposed.values()), self.results, trials_left=left,
-                          out_of_time=self._check_time())
+        return next_round(self.plan, set(self.proposed.values()), self.results, self.budget, self._check_time())
 
     def suggest(self, trial_id: str) -> dict[str, Any] | str | None:
         now = self.current()
@@ -179,9 +167,16 @@ class SeedSearcher(Searcher):
         self.out_of_time = BUDGET_TAG in self.sweep_run.client.get_run(self.sweep_run.run_id).data.tags
         self.results = {}
         children = self._children()
+        # A trial whose run the driver closed as FINISHED or FAILED has its result; any other is still to run
+        # (Tune re-queues it and reports its end to on_trial_complete).
         for trial_id, label in self.proposed.items():
-            if (found := self._finished_record(children.get(trial_id))) is not None:
-                self.results[label] = found or None
+            child = children.get(trial_id)
+            status = None if child is None else child.info.status
+            if status == "FAILED":
+                self.results[label] = None
+            elif status == "FINISHED":
+                rows = last_objects(self.sweep_run.client, child.info.run_id)
+                self.results[label] = object_scores(rows, self.plan.spec.metric.name) or None
 
     def _children(self) -> dict[str, Any]:
         """The parent's child runs by trial id, in one query; the child runs of trials Tune's last
@@ -199,14 +194,3 @@ class SeedSearcher(Searcher):
             else:
                 client.delete_run(child.info.run_id)
         return kept
-
-    def _finished_record(self, child: Any) -> dict[str, float] | None:
-        """Scores of a trial whose MLflow run the driver closed as FINISHED ({} for FAILED); None while it
-        is still to run (Tune re-queues it and reports its end to :meth:`on_trial_complete`)."""
-        if child is None:
-            return None
-        if child.info.status == "FAILED":
-            return {}
-        if child.info.status != "FINISHED":
-            return None
-        return object_scores(last_objects(self.sweep_run.client, child.info.run_id), self.plan.spec.metric.name)
