@@ -216,7 +216,7 @@ def _trials(request: SweepRequest, args: argparse.Namespace, conc: Concurrency, 
     """The trials on Tune, with the sweep's progress line (a resumed sweep keeps the callbacks it started with)."""
     plan = request.plan
     progress = None if args.resume else SweepProgress(
-        sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.names(t.config)[1],
+        sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.label(t.config),
         predicted.wall_s if predicted else None, tty, rounds=plan.rounds,
         round_of=(lambda t: plan.round_of(plan.grid_cell(t.config["cell"]))) if plan.sequential else None)
     try:

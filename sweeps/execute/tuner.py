@@ -59,9 +59,6 @@ class _TrialCloser(ray.tune.Callback):
     def __init__(self, plan: SweepPlan, sweep_run: SweepRun, sweep_dir: str):
         self.plan, self.sweep_run, self.sweep_dir = plan, sweep_run, sweep_dir
 
-    def _label(self, trial) -> str:
-        return self.plan.names(trial.config)[1]
-
     def _count(self, trials, ending=None) -> str:
         # Counted from Tune's trial list, so trials finished before a resume count too.
         done = {t.trial_id for t in trials if t.status in ("TERMINATED", "ERROR")} | (
@@ -71,10 +68,10 @@ class _TrialCloser(ray.tune.Callback):
         return f"{len(done)}/{at_most}{self.plan.num_trials} trials done"
 
     def on_trial_start(self, iteration, trials, trial, **info) -> None:
-        print(f"▶ started [{self._label(trial)}] ({self._count(trials)})", flush=True)
+        print(f"▶ started [{self.plan.label(trial.config)}] ({self._count(trials)})", flush=True)
 
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
-        label = self._label(trial)
+        label = self.plan.label(trial.config)
         step = trial.last_result.get("step", 0)
         early = not self.plan.completed(label, step, trial.last_result)
         self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result,
@@ -85,7 +82,7 @@ class _TrialCloser(ray.tune.Callback):
               f"({self._count(trials, trial)})", flush=True)
 
     def on_trial_error(self, iteration, trials, trial, **info) -> None:
-        label = self._label(trial)
+        label = self.plan.label(trial.config)
         # Tune has just written the traceback to the trial's local error file (before syncing it).
         reason = error_summary(read_text(Path(trial.error_file), "error file")) if trial.error_file else "unknown error"
         self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason,
@@ -166,7 +163,7 @@ def _tuner(plan: SweepPlan, trainable, conc: Concurrency, sweep_dir: str, sweep_
             num_samples=num_samples,
             max_concurrent_trials=conc.max_concurrent,
             reuse_actors=True,
-            trial_name_creator=lambda t: plan.names(t.config)[1],
+            trial_name_creator=lambda t: plan.label(t.config),
             trial_dirname_creator=lambda t: trial_dir_name(t.trial_id),
         ),
         run_config=ray.tune.RunConfig(
@@ -239,7 +236,7 @@ def run_sweep(
     cores = 0 if "://" in sweep_dir else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
     setup = TrialSetup(plan, {c.label: c for c in plan.cells}, sweep_dir, sweep_run.uri, sweep_run.experiment_id,
                        sweep_run.run_id, code_version(), root, cores)
-    resume_errored, given_up = (retry_errored(sweep_dir, plan.spec.failure.max_retries, lambda c: plan.names(c)[1])
+    resume_errored, given_up = (retry_errored(sweep_dir, plan.spec.failure.max_retries, plan.label)
                                 if resume else (False, {}))
     trainable = ray.tune.with_resources(ray.tune.with_parameters(refusing(run_trial, given_up), setup=setup),
                                         conc.trial_resources)

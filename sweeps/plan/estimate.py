@@ -32,7 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from cdm.config import Config, load_config
+from cdm.config import Config
 from cdm.data import build_dataset, list_categories
 from cdm.evaluate import build_eval_set
 from cdm.io.json import read_json
@@ -171,7 +171,7 @@ def _eval_signature(cfg: Config) -> str:
 
 def _calibration_configs(plan: SweepPlan) -> list[Config]:
     if not plan.cells:  # Optuna: the spec's fixed settings stand for every sampled trial
-        return [load_config(None, {**plan.fixed, **plan.sets, "train.seed": plan.spec.seed_values[0]})]
+        return [plan.shared_config(**{"train.seed": plan.spec.seed_values[0]})]
     distinct = list({c.name: c.config for c in plan.cells}.values())
     picks = sorted({round(i * (len(distinct) - 1) / max(1, CALIBRATED_CELLS - 1)) for i in range(CALIBRATED_CELLS)})
     return [distinct[i] for i in picks]
@@ -202,10 +202,6 @@ def _figures() -> dict:
     if figures.get("device") == "CPU":
         return {k: v for k, v in figures.items() if k != "by_points"}
     return figures
-
-
-def _paper_config(paper: SweepPlan) -> Config:
-    return paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
 
 
 def _trial_gpus(paper: SweepPlan) -> float:
@@ -250,7 +246,7 @@ def paper_trial_gpu_hours(paper: SweepPlan, figures: dict | None = None) -> tupl
     ``train.precision`` taken) at ``batch_size`` objects, scaled linearly to the profile's batch.
     """
     figures = _figures() if figures is None else figures
-    cfg = _paper_config(paper)
+    cfg = paper.configs[0]
     measured = _measured(figures, cfg)
     if isinstance(measured, str):
         return None, measured
@@ -284,7 +280,7 @@ def paper_trial_gpu_hours_bound(paper: SweepPlan, figures: dict | None = None) -
     sampling steps (``figures["flops"]``, at the counted batch, scaled linearly to the profile's) at
     :data:`BOUND_GPU`'s dense peak in the profile's precision; None and why where nothing is counted."""
     figures = _figures() if figures is None else figures
-    cfg = _paper_config(paper)
+    cfg = paper.configs[0]
     counted = figures.get("flops", {}).get("by_points", {}).get(str(cfg.data.num_points))
     if counted is None or cfg.model.denoiser != "pvcnn2":
         return None, f"no counted FLOPs for model.denoiser={cfg.model.denoiser} at {cfg.data.num_points} points"
@@ -304,7 +300,7 @@ def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
     hours, gpu = paper_trial_gpu_hours(paper, figures)
     if hours is not None:
         return (f"{hours * paper.num_trials:.1f} GPU-hours with the paper profile ({hours:.2f} per trial × "
-                f"{paper.num_trials} trials, measured on {gpu}: {_measured_details(figures, _paper_config(paper))})")
+                f"{paper.num_trials} trials, measured on {gpu}: {_measured_details(figures, paper.configs[0])})")
     line = f"paper-profile GPU-hours: {gpu} (on a GPU: python benchmarks/gpu_check.py)"
     bound, basis = paper_trial_gpu_hours_bound(paper, figures)
     if bound is None:

@@ -12,7 +12,6 @@ import os
 import sys
 from collections.abc import Sequence
 
-from cdm.config import load_config
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import LISTED_TRIALS
 from sweeps.plan.resources import plan_concurrency
@@ -31,7 +30,7 @@ def check_inputs(plan: SweepPlan, remote: bool) -> None:
     from cdm.external_inputs import check_coverage, describe_inputs, required_inputs
     from cdm.external_inputs import check_inputs as check_present
 
-    configs = [cell.config for cell in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
+    configs = plan.configs
     names = [c.label for c in plan.cells] or ["every trial"]
     if not any(required_inputs(cfg) for cfg in configs):
         print("external inputs: none (everything is generated or in data.root)", flush=True)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
-from cdm.config import Config, config_field_paths, load_config
+from cdm.config import Config, config_field_paths
 from cdm.registry import DATA_SETS as DATA_SETS_BY_KIND
 from sweeps.plan.references import DATA_SETS, TABLES, Entry, Kind, NotStated, Stated, record, show
 
@@ -174,10 +174,8 @@ def plan_card(plan: SweepPlan) -> ProtocolCard:
     A table without a record is compared with the paper's CDM and the card says so.
     """
     spec = plan.spec
-    configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    swept = {*spec.grid, *spec.search.space, *(key for cell in spec.cells for key in cell.set)}
     table = spec.paper.table if spec.paper else None
-    card = sweep_card(configs, spec.datasets, spec.stand_in, table if table in TABLES else None, swept)
+    card = sweep_card(plan.configs, spec.datasets, spec.stand_in, table if table in TABLES else None, plan.swept)
     if table is None or table in TABLES:
         return card
     return ProtocolCard(card.deviations, (*card.notes, f"{table}: no reference record; compared with the paper's CDM"))

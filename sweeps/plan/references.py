@@ -61,8 +61,17 @@ def show(value: Any) -> str:
     return str(value)
 
 
+class _Conditional:
+    """An entry read only where the config's other fields hold one of the values its ``when`` allows."""
+
+    when: Mapping[str, tuple[Any, ...]]
+
+    def applies(self, flat: Mapping[str, Any]) -> bool:
+        return all(k in flat and flat[k] in allowed for k, allowed in self.when.items())
+
+
 @dataclass(frozen=True)
-class Stated:
+class Stated(_Conditional):
     """A value the paper or a reference code fixes, in this config's terms (as :meth:`Config.flat` gives it)."""
 
     value: Any
@@ -74,9 +83,6 @@ class Stated:
     accepts: Callable[[Any], bool] | None = None
     """For a source that fixes a property rather than one value (``value`` then describes it)."""
 
-    def applies(self, flat: Mapping[str, Any]) -> bool:
-        return all(k in flat and flat[k] in allowed for k, allowed in self.when.items())
-
     def holds(self, value: Any) -> bool:
         return self.accepts(value) if self.accepts is not None else value == self.value
 
@@ -86,7 +92,7 @@ class Stated:
 
 
 @dataclass(frozen=True)
-class NotStated:
+class NotStated(_Conditional):
     """No source fixes this field: a free choice of ours."""
 
     why: str
@@ -94,9 +100,6 @@ class NotStated:
     """Name the choice on the card (those that shape a result and a reader could not guess)."""
     when: Mapping[str, tuple[Any, ...]] = field(default_factory=dict)
     """As :attr:`Stated.when`: where the field is read, so where the note applies."""
-
-    def applies(self, flat: Mapping[str, Any]) -> bool:
-        return all(k in flat and flat[k] in allowed for k, allowed in self.when.items())
 
 
 @dataclass(frozen=True)
