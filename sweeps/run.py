@@ -20,7 +20,7 @@ if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sy
 
 from cdm.cli import add_out, add_set, command_parser, old_spelling
 from sweeps.compare.settle import describe_rule
-from sweeps.execute.precompute import shared_root
+from sweeps.execute.precompute import precomputes
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import MAX_TRIALS
 from sweeps.plan.preflight import dry_run
@@ -180,9 +180,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.rerun is not None:
         return _rerun(args, uri)
     if args.dry_run:
-        shared = shared_root(request.sweep_dir, request.remote) is not None and bool(plan.cells)
-        return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate, shared, missing,
-                       _destinations(args, request))
+        return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate,
+                       precomputes(plan, request.sweep_dir, request.remote), missing, _destinations(args, request))
     return _sweep(args, request)
 
 

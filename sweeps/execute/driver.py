@@ -30,7 +30,7 @@ from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
 from sweeps.execute.logged_runs import trial_runs
-from sweeps.execute.precompute import check_space, shared_root
+from sweeps.execute.precompute import check_space, precomputes, shared_root
 from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
 from sweeps.execute.seed_search import check_searcher_state
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
@@ -203,7 +203,7 @@ def _estimate(request: SweepRequest, conc: Concurrency, sweep_run: SweepRun):
             return None
     try:
         return estimate_line(plan, cluster.get("CPU", 1.0), now.max_concurrent,
-                             shared_root(request.sweep_dir, remote) is not None and bool(plan.cells))
+                             precomputes(plan, request.sweep_dir, remote))
     except (ValueError, OSError) as exc:  # an input every trial would fail on (an unreadable mesh)
         kill_running_children(sweep_run)
         sweep_run.end("FAILED")

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from cdm.config import Config
     from cdm.data.views import ObjectDataset
 
-__all__ = ["Precomputed", "check_space", "precompute", "shared_bytes", "shared_root"]
+__all__ = ["Precomputed", "check_space", "precompute", "precomputes", "shared_bytes", "shared_root"]
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,12 @@ def shared_root(sweep_dir: str, remote: bool) -> str | None:
     if remote or "://" in sweep_dir:
         return None
     return str(Path(sweep_dir) / "shared")
+
+
+def precomputes(plan: SweepPlan, sweep_dir: str, remote: bool) -> bool:
+    """Whether the driver renders ``plan``'s shared work before the trials (:func:`precompute`): a grid's
+    cells, in a store the trials share."""
+    return shared_root(sweep_dir, remote) is not None and bool(plan.cells)
 
 
 @dataclass(frozen=True)
@@ -122,9 +128,9 @@ def check_space(plan: SweepPlan, sweep_dir: str, remote: bool) -> None:
     Raises:
         StoreError: one line with both sizes and the way out.
     """
-    root = shared_root(sweep_dir, remote)
-    if root is None or not plan.cells:
+    if not precomputes(plan, sweep_dir, remote):
         return
+    root = shared_root(sweep_dir, remote)
     try:  # renders one sample per distinct data set: an unreadable input is found here, before Ray
         need = shared_bytes(plan) - _bytes_under(Path(root))
     except ValueError as exc:

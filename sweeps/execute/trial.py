@@ -11,9 +11,6 @@ Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pat
 
 Local mode only accepts ``ray.tune.report``/``ray.tune.get_checkpoint`` and real workers only
 ``ray.train.report``/``ray.train.get_checkpoint``; :class:`_RayReporter` picks the pair once.
-A trial's config was built once by the plan (:func:`sweeps.plan.trials.expand`) and reaches it in
-:class:`TrialSetup`: the trial looks its own up and never asks the plan again (docs/ARCHITECTURE.md,
-"The walk of one hyperparameter"). The Tuner that starts the trials is :mod:`sweeps.execute.tuner`.
 """
 
 from __future__ import annotations
@@ -59,8 +56,7 @@ class TrialSetup:
 
     plan: SweepPlan
     cells: Mapping[str, Cell]
-    """The grid's trials by label, each with the config the plan built: a trial looks its own up, it never
-    asks the plan again (docs/ARCHITECTURE.md, "The walk of one hyperparameter")."""
+    """The grid's trials by label, each with the config :func:`sweeps.plan.trials.expand` built once."""
     sweep_dir: str
     tracking_uri: str
     experiment_id: str
@@ -124,8 +120,7 @@ class TrialJob:
     """One trial's input to :func:`train_loop`, built once by :func:`trial_job` from its cell."""
 
     config: Config
-    """The trial's validated config (a grid cell's built by :func:`sweeps.plan.trials.expand`, a sampled one's by
-    :meth:`sweeps.plan.trials.SweepPlan.sampled_cell`), writing into the trial's folder."""
+    """The trial's validated config (its cell's, :func:`trial_job`), writing into the trial's folder."""
     local: bool
     """Train's local mode: the loop runs in the trial's own actor (``resources.workers_per_trial == 0``)."""
     label: str
@@ -135,7 +130,6 @@ class TrialJob:
     prior_dir: str
     """Where ``prior_checkpoint: auto`` caches category priors (:func:`_prior_dir`)."""
     setup: TrialSetup
-    """The sweep's side: MLflow parent run, shared store, core leases (in ``<sweep_dir>/cores``)."""
 
 
 def train_loop(job: TrialJob) -> None:

@@ -1,9 +1,7 @@
 """The sweep's trials on Tune: the Tuner (new, or restored by ``--resume``), its search and scheduler, one line
 and one MLflow verdict per trial as it ends, and one outcome per trial for the results table.
 
-Each trial is :func:`sweeps.execute.trial.run_trial`. Concurrency comes from the cluster's resources
-(:func:`sweeps.plan.resources.plan_concurrency`, sized once by the runner), so trials never wait on each
-other for CPUs.
+Each trial is :func:`sweeps.execute.trial.run_trial`.
 """
 
 from __future__ import annotations
@@ -22,7 +20,7 @@ from cdm.io.files import read_text
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import lease_cores
-from sweeps.execute.precompute import precompute, shared_root
+from sweeps.execute.precompute import precompute, precomputes, shared_root
 from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.resume_retries import refusing, retry_errored
 from sweeps.execute.tracking import SweepRun
@@ -213,14 +211,11 @@ def run_sweep(
 ) -> list[TrialOutcome]:
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
-    ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
-    (``s3://…``, ``file://…``). Resume re-runs unfinished trials, each from its last checkpoint, and
-    errored ones until each was retried ``failure.max_retries`` times on resume
-    (:mod:`sweeps.execute.resume_retries`). ``conc``: how trials fit the cluster
-    (:func:`sweeps.plan.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
-    joined by address and may autoscale. ``callbacks`` (e.g. the
-    progress line, :class:`sweeps.execute.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
-    started with. ``budget``: a sequential sweep's ``--budget`` (a resumed one keeps its searcher's).
+    ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI (``s3://…``). Resume
+    re-runs unfinished trials from their last checkpoints, and errored ones as
+    :mod:`sweeps.execute.resume_retries` decides. ``conc``: how trials fit the cluster, sized once by the
+    caller; ``remote``: the cluster was joined by address. ``callbacks`` join Tune's (a resumed sweep keeps
+    those it started with); ``budget``: a sequential sweep's ``--budget`` (a resumed one keeps its searcher's).
     """
     # Snapshot the experiment state every second (and sync it to storage as often, below), so a
     # killed driver resumes trials from their checkpoints instead of from step 0 (with
@@ -228,7 +223,7 @@ def run_sweep(
     os.environ["TUNE_GLOBAL_CHECKPOINT_S"] = "1"
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
     root = shared_root(sweep_dir, remote)
-    if root is not None and plan.cells:
+    if precomputes(plan, sweep_dir, remote):
         done = precompute(plan, root, int(conc.cpus))
         print(f"shared by every cell: {done.rounds} view rounds of {done.view_sets} training set(s), "
               f"{done.eval_sets} evaluation set(s) with baselines, in {done.seconds:.1f} s", flush=True)

@@ -204,16 +204,17 @@ def _figures() -> dict:
     return figures
 
 
-def _trial_gpus(paper: SweepPlan) -> float:
-    r = paper.profile.resources
-    return max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0)
-
-
-def _per_trial(paper: SweepPlan, cfg: Config, train_step: float, sample_step: float) -> float:
-    """``steps × train_step + evaluations × ⌈objects ÷ batch⌉ × sampling steps × sample_step`` (any unit)."""
-    evals = math.ceil(paper.profile.steps / paper.profile.eval_every)
+def _trial_gpu_hours(paper: SweepPlan, batch: int, train_step: float, sample_step: float, rate: float = 1.0) -> float:
+    """GPU-hours of one paper-profile trial whose training step costs ``train_step`` and sampling step
+    ``sample_step`` at ``batch`` objects (scaled linearly to the profile's batch), each divided by ``rate``:
+    ``steps × train_step + evaluations × ⌈objects ÷ batch⌉ × sampling steps × sample_step``, on every GPU
+    the trial holds."""
+    cfg, prof, r = paper.configs[0], paper.profile, paper.profile.resources
+    scale = cfg.train.batch_size / batch / rate
+    evals = math.ceil(prof.steps / prof.eval_every)
     batches = math.ceil(_eval_objects(cfg) / cfg.train.batch_size)
-    return paper.profile.steps * train_step + evals * batches * _sample_steps(cfg) * sample_step
+    seconds = prof.steps * train_step * scale + evals * batches * _sample_steps(cfg) * sample_step * scale
+    return seconds * max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0) / 3600.0
 
 
 def peak_flops(device_name: str, precision: str) -> float | None:
@@ -251,9 +252,8 @@ def paper_trial_gpu_hours(paper: SweepPlan, figures: dict | None = None) -> tupl
     if isinstance(measured, str):
         return None, measured
     entry, step = measured
-    scale = cfg.train.batch_size / entry.get("batch_size", cfg.train.batch_size)
-    per_trial = _per_trial(paper, cfg, step["train_step_s"] * scale, step["sample_step_s"] * scale)
-    return per_trial * _trial_gpus(paper) / 3600.0, figures["device"]
+    batch = entry.get("batch_size", cfg.train.batch_size)
+    return _trial_gpu_hours(paper, batch, step["train_step_s"], step["sample_step_s"]), figures["device"]
 
 
 def _measured_details(figures: dict, cfg: Config) -> str:
@@ -284,12 +284,9 @@ def paper_trial_gpu_hours_bound(paper: SweepPlan, figures: dict | None = None) -
     counted = figures.get("flops", {}).get("by_points", {}).get(str(cfg.data.num_points))
     if counted is None or cfg.model.denoiser != "pvcnn2":
         return None, f"no counted FLOPs for model.denoiser={cfg.model.denoiser} at {cfg.data.num_points} points"
-    scale = cfg.train.batch_size / counted["batch_size"]
-    flops = _per_trial(paper, cfg, counted["train_step"] * scale, counted["sample_step"] * scale)
     peak = PEAK_FLOPS[BOUND_GPU][cfg.train.precision]
-    return flops / peak * _trial_gpus(
-        paper
-    ) / 3600.0, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
+    hours = _trial_gpu_hours(paper, counted["batch_size"], counted["train_step"], counted["sample_step"], peak)
+    return hours, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
 
 
 def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
