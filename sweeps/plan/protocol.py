@@ -7,11 +7,8 @@ its source) and adds what the config cannot say about the data on disk (a stand-
 split file). Any field that differs from a stated value is a deviation; fields no source fixes are not,
 though the card names the free choices that shape a result. Fields a spec sweeps (its grid, cells or
 search space) are the table's own axes and are not compared. "Paper protocol, no deviations" only when
-nothing differs.
-
-:func:`sweep_card` merges the cards of a sweep's cells and :func:`plan_card` builds it for a
-:class:`sweeps.plan.trials.SweepPlan`. The card is printed by ``--dry-run``, shown in the results table, tagged on
-the parent MLflow run (:data:`CARD_TAG`) and in the report.
+nothing differs. The card is printed by ``--dry-run``, shown in the results table, tagged on the parent MLflow
+run (:data:`CARD_TAG`) and in the report.
 """
 
 from __future__ import annotations

@@ -9,18 +9,9 @@ reference code fixed. This module is that record, field by field, each value wit
 - BDM (mlpc-ucsd/BDM), the reference on ShapeNet (Tables 1–2): its ShapeNet data set, scripts and
   blending loop, with the PC² model it trains.
 
-Every field of :func:`cdm.config.config_field_paths` has one :data:`Entry` in each record:
-
-- :class:`Stated`: a value a source fixes (or a property of the value, ``accepts``); a config that
-  differs deviates. ``when`` limits it to configs where the field is read (the 3D prior's fields only
-  with the 3D prior on, Co3D's loader options only on Co3D, …).
-- :class:`NotStated`: no source fixes it — a free choice of ours; ``noted`` ones are named on the card.
-- :class:`NoEffect`: where or how a run goes, not what it computes (paths, threads, logging, drawings,
-  which random draw).
-
-A record may name fields the config does not have (yet): the card lists a stated one as a deviation
-(this code cannot be set to the reference) and skips entries conditioned on one
-(:func:`sweeps.plan.protocol.protocol_card`).
+Every field of :func:`cdm.config.config_field_paths` has one :data:`Entry` in each record: :class:`Stated`,
+:class:`NotStated` or :class:`NoEffect`. A record may name fields the config does not have (yet): the card
+lists a stated one as a deviation (this code cannot be set to the reference).
 """
 
 from __future__ import annotations

@@ -9,11 +9,8 @@ One trial's config is resolved in this order, later wins::
 
 ``train.threads`` is the profile's CPUs per worker unless a level above sets it (then that value stays).
 
-:func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
-the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
-searcher may start has its label and config before Ray starts), validates a sampled search's space at
-its bounds, and checks the metric against :func:`cdm.metric_names.metric_names`, so a typo fails with one
-:class:`sweeps.plan.schema_base.SpecError` naming the field.
+A sequential spec's cells are built up to its ``max`` seeds, so every trial its searcher may start has its
+label and config before Ray starts.
 """
 
 from __future__ import annotations
