@@ -32,7 +32,7 @@ import tempfile
 from pathlib import Path
 
 from cdm.io.json import parse_json
-from sweeps.storage import StoreError, private_folder
+from sweeps.storage import StoreError, is_uri, private_folder
 
 __all__ = ["ClaimError", "SweepClaim", "claim", "claims_folder"]
 
@@ -48,7 +48,7 @@ def claims_folder() -> Path:
 
 
 def _lock_path(sweep_dir: str) -> Path:
-    if "://" in sweep_dir:
+    if is_uri(sweep_dir):
         key = hashlib.sha256(sweep_dir.encode()).hexdigest()[:16]
         try:
             return private_folder(claims_folder()) / f"{key}.lock"

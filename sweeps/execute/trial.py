@@ -42,7 +42,7 @@ from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_logger
 from sweeps.execute.pruning import KEEP
 from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.trials import Cell, SweepPlan
-from sweeps.storage import private_folder, storage_location
+from sweeps.storage import is_uri, private_folder, storage_location
 
 __all__ = [
     "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "train_loop", "trial_dir_name", "trial_job",
@@ -280,7 +280,7 @@ def _prior_dir(sweep_dir: str, scratch: Path) -> str:
     Its lock needs a file system, so with an object-store ``sweep_dir`` (``s3://…``) each node keeps
     its own cache beside the sweep's trial scratch folders (:func:`trial_scratch`).
     """
-    if "://" in sweep_dir:
+    if is_uri(sweep_dir):
         return str(scratch.parent / "priors")
     return str(Path(sweep_dir) / "priors")
 

@@ -29,7 +29,7 @@ from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import storage_location
+from sweeps.storage import is_uri, storage_location
 
 __all__ = ["checkpoint_location", "error_summary", "run_sweep"]
 
@@ -228,7 +228,7 @@ def run_sweep(
         print(f"shared by every cell: {done.rounds} view rounds of {done.view_sets} training set(s), "
               f"{done.eval_sets} evaluation set(s) with baselines, in {done.seconds:.1f} s", flush=True)
     r = plan.profile.resources
-    cores = 0 if "://" in sweep_dir else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
+    cores = 0 if is_uri(sweep_dir) else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
     setup = TrialSetup(plan, {c.label: c for c in plan.cells}, sweep_dir, sweep_run.uri, sweep_run.experiment_id,
                        sweep_run.run_id, code_version(), root, cores)
     resume_errored, given_up = (retry_errored(sweep_dir, plan.spec.failure.max_retries, plan.label)
