@@ -44,7 +44,7 @@ from sweeps.execute.tracking import (
 )
 from sweeps.execute.tuner import run_sweep
 from sweeps.plan.address import AddressError
-from sweeps.plan.preflight import estimate_line
+from sweeps.plan.preflight import UnreadableInput, estimate_line
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.request import STATE_FILE, SweepRequest
 from sweeps.plan.resources import Concurrency, plan_concurrency
@@ -204,11 +204,11 @@ def _estimate(request: SweepRequest, conc: Concurrency, sweep_run: SweepRun):
     try:
         return estimate_line(plan, cluster.get("CPU", 1.0), now.max_concurrent,
                              precomputes(plan, request.sweep_dir, remote))
-    except (ValueError, OSError) as exc:  # an input every trial would fail on (an unreadable mesh)
+    except UnreadableInput as exc:
         kill_running_children(sweep_run)
         sweep_run.end("FAILED")
         discard_start(request.sweep_dir)
-        raise DriverError(f"the cost estimate could not read an input: {one_line(exc)}") from None
+        raise DriverError(str(exc)) from None
 
 
 def _trials(request: SweepRequest, args: argparse.Namespace, conc: Concurrency, sweep_run: SweepRun,

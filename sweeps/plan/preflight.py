@@ -18,7 +18,12 @@ from sweeps.plan.resources import plan_concurrency
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.trials import SweepPlan
 
-__all__ = ["check_inputs", "dry_run", "estimate_line"]
+__all__ = ["UnreadableInput", "check_inputs", "dry_run", "estimate_line"]
+
+
+class UnreadableInput(ValueError):
+    """An input the calibration reads is present but refused (a checkpoint that is no PC² file, NaN weights, an
+    unreadable mesh): every trial would fail on it."""
 
 
 def check_inputs(plan: SweepPlan, remote: bool) -> None:
@@ -48,12 +53,18 @@ def check_inputs(plan: SweepPlan, remote: bool) -> None:
 
 
 def estimate_line(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
-    """Print the cost estimate (:mod:`sweeps.plan.estimate`) and return it; None when calibration diverged."""
+    """Print the cost estimate (:mod:`sweeps.plan.estimate`) and return it; None when calibration diverged.
+
+    Raises:
+        UnreadableInput: an input the calibration reads is refused.
+    """
     from cdm.train import TrainingDiverged
     from sweeps.plan.estimate import estimate
 
     try:
         predicted = estimate(plan, cpus, concurrent, shared)
+    except (ValueError, OSError) as exc:
+        raise UnreadableInput(f"the cost estimate could not read an input: {' '.join(str(exc).split())}") from None
     except TrainingDiverged as exc:
         print(
             f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way",
@@ -102,7 +113,7 @@ def dry_run(plan: SweepPlan, remote: bool, rule: list[str], calibrate: bool, sha
     print("calibrating (a few training steps and one evaluation) ...", flush=True)
     try:
         estimate_line(plan, cpus, concurrent, shared)
-    except (ValueError, OSError) as exc:  # an input present but unreadable (model.init_from): every trial fails on it
-        print(f"error: the cost estimate could not read an input: {' '.join(str(exc).split())}", file=sys.stderr)
+    except UnreadableInput as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0
