@@ -74,6 +74,11 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _pids() -> list[int]:
+    """Every process id now (``/proc``)."""
+    return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()]
+
+
 def _cmdline(pid: int) -> str | None:
     """``pid``'s command line, arguments joined by spaces; None when it is gone."""
     try:
@@ -87,13 +92,11 @@ def session_pids(session_dir: str) -> set[int]:
     session writes its logs there; agents' command lines are renamed, their open logs are not)."""
     found = set()
     prefix = session_dir.rstrip("/") + "/"
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
+    for pid in _pids():
         try:
-            for fd in (entry / "fd").iterdir():
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
                 if os.readlink(fd).startswith(prefix):
-                    found.add(int(entry.name))
+                    found.add(pid)
                     break
         except OSError:  # gone meanwhile, or another user's
             continue
@@ -198,14 +201,12 @@ def _exit_interrupted() -> None:
 def descendants(pid: int) -> set[int]:
     """Every process below ``pid`` now (``/proc/<pid>/stat``'s parent field)."""
     children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
+    for child in _pids():
         try:
-            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            parent = int(Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[1])
         except OSError:  # gone meanwhile
             continue
-        children.setdefault(parent, []).append(int(entry.name))
+        children.setdefault(parent, []).append(child)
     found, stack = set(), [pid]
     while stack:
         for child in children.get(stack.pop(), []):
