@@ -98,12 +98,11 @@ def _tracking_uri(args: argparse.Namespace) -> str:
     return uri
 
 
-def _destinations(args: argparse.Namespace, request: SweepRequest) -> list[str]:
-    """Where a run of this request would keep its files and log its runs (the dry run's lines); a resumed
-    sweep's MLflow store is the one it started with, as the run's own (``claim_sweep``)."""
+def _destinations(request: SweepRequest) -> list[str]:
+    """Where a run of this request would keep its files and log its runs (the dry run's lines)."""
     from sweeps.execute.tracking import artifact_location, resolve_tracking_uri
 
-    uri = resolve_tracking_uri(args.tracking_uri or (request.state or {}).get("tracking_uri"))
+    uri = resolve_tracking_uri(request.tracking_uri)
     name = request.plan.spec.name
     artifacts = artifact_location(uri, name)
     return [
@@ -181,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         return _rerun(args, uri)
     if args.dry_run:
         return dry_run(plan, request.remote, describe_rule(plan, request.budget), not args.no_estimate,
-                       precomputes(plan, request.sweep_dir, request.remote), missing, _destinations(args, request))
+                       precomputes(plan, request.sweep_dir, request.remote), missing, _destinations(request))
     return _sweep(args, request)
 
 

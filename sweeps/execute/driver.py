@@ -104,15 +104,12 @@ def _write_new(path: Path, text: str) -> None:
 
 
 def claim_sweep(request: SweepRequest, args: argparse.Namespace) -> tuple[str, SweepClaim]:
-    """(MLflow tracking URI, the claim on the sweep folder), the store and folder checked first.
-
-    A resumed sweep keeps logging into the store it started with, wherever it is resumed from.
-    """
+    """(MLflow tracking URI, the claim on the sweep folder), the store and folder checked first."""
     sweep_dir, state = request.sweep_dir, request.state
     try:
         check_no_links(sweep_dir)
         check_storage(sweep_dir)
-        uri = resolve_tracking_uri(args.tracking_uri or (state or {}).get("tracking_uri"))
+        uri = resolve_tracking_uri(request.tracking_uri)
         check_tracking_uri(uri)
         if state is not None:
             check_parent_run(uri, state["parent_run_id"])

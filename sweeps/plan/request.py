@@ -52,6 +52,9 @@ class SweepRequest:
     """Trials run on a cluster joined by address (``--address`` or ``RAY_ADDRESS``)."""
     state: dict[str, Any] | None = None
     """A resumed sweep's ``sweep.json``, read and checked once; None for a new sweep."""
+    tracking_uri: str | None = None
+    """The MLflow store asked for: ``--tracking-uri``, else a resumed sweep's own (it keeps logging where it
+    started, wherever it is resumed from); None: the default one."""
 
     @property
     def state_file(self) -> str:
@@ -94,7 +97,8 @@ def plan_request(args: argparse.Namespace) -> SweepRequest:
             check_memory(plan.configs, _local_concurrency(plan))
     except (SpecError, ConfigError, LimitError, StoreError) as exc:
         raise RequestError(str(exc)) from None
-    return SweepRequest(plan, sweep_dir, sets, budget, remote, state)
+    uri = args.tracking_uri or (state or {}).get("tracking_uri")
+    return SweepRequest(plan, sweep_dir, sets, budget, remote, state, uri)
 
 
 def _remote(args: argparse.Namespace) -> bool:
