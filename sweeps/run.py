@@ -16,7 +16,7 @@ if __package__ in (None, ""):  # `python sweeps/run.py` puts sweeps/ first on sy
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from cdm.cli import add_out, add_set, command_parser
-from sweeps.execute.precompute import shared_root
+from sweeps.execute.precompute import precomputes
 from sweeps.execute.settle import UntilSettled
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import MAX_TRIALS
@@ -83,12 +83,11 @@ def _fail(message: str) -> int:
 # only on the path that runs them, so --help, a dry run and a refused spec answer at once.
 
 
-def _destinations(args: argparse.Namespace, request: SweepRequest) -> list[str]:
-    """Where a run of this request would keep its files and log its runs (the dry run's lines); a resumed
-    sweep's MLflow store is the one it started with, as the run's own (``claim_sweep``)."""
+def _destinations(request: SweepRequest) -> list[str]:
+    """Where a run of this request would keep its files and log its runs (the dry run's lines)."""
     from sweeps.execute.tracking import artifact_location, resolve_tracking_uri
 
-    uri = resolve_tracking_uri(args.tracking_uri or (request.state or {}).get("tracking_uri"))
+    uri = resolve_tracking_uri(request.tracking_uri)
     name = request.plan.spec.name
     artifacts = artifact_location(uri, name)
     return [
@@ -138,9 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     except (RequestError, StoreError) as exc:
         return _fail(str(exc))
     if args.dry_run:
-        shared = shared_root(request.sweep_dir, request.remote) is not None and bool(plan.cells)
-        return dry_run(plan, request.remote, UntilSettled(plan, request.budget).lines(), not args.no_estimate, shared,
-                       missing, _destinations(args, request))
+        return dry_run(plan, request.remote, UntilSettled(plan, request.budget).lines(), not args.no_estimate,
+                       precomputes(plan, request.sweep_dir, request.remote), missing, _destinations(request))
     return _sweep(args, request)
 
 

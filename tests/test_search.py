@@ -13,7 +13,6 @@ from ray.tune.search.optuna import OptunaSearch
 
 from sweeps import run
 from sweeps.execute import tuner
-from sweeps.execute.trial import sampled_cell
 from sweeps.plan.describe import describe
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.search import SEARCHES, SearchKind, SearchSettings, optuna_distributions, search_kind
@@ -81,7 +80,7 @@ def test_a_registered_kind_is_planned_described_and_handed_to_tune(monkeypatch):
     assert (searcher.metric, searcher.mode) == ("eval/f1", "max")
     proposed = searcher.suggest("t1")
     assert proposed == {"priors.lambda_3d": 1e-3}
-    assert sampled_cell(plan, proposed).config.priors.lambda_3d == 1e-3
+    assert plan.sampled_cell(proposed).config.priors.lambda_3d == 1e-3
 
 
 def test_the_optuna_kind_samples_the_typed_space():

@@ -9,7 +9,6 @@ import pytest
 from cdm.config import Config, ConfigError
 from sweeps import run
 from sweeps.compare.rules import lambda_source
-from sweeps.execute.trial import sampled_cell
 from sweeps.plan.budget import SeedBudget, parse_budget
 from sweeps.plan.estimate import Estimate
 from sweeps.plan.profiles import Resources, load_profiles
@@ -223,14 +222,14 @@ def test_optuna_trial_from_sampled_values():
                          "space": {"priors.lambda_3d": {"type": "log_float", "low": 1e-3, "high": 10}}})
     plan = expand(spec, "smoke", shared=SHARED)
     assert plan.cells == () and plan.num_trials == 3
-    cell = sampled_cell(plan, {"priors.lambda_3d": 0.0123456})
+    cell = plan.sampled_cell({"priors.lambda_3d": 0.0123456})
     assert cell.label == "λ=0.01235 · seed 0"
     assert cell.config.priors.lambda_3d == 0.0123456 and cell.config.train.steps == 20
     assert plan.names({"priors.lambda_3d": 0.0123456}) == (cell.name, cell.label)
     # Naming a trial (the driver's callbacks) resolves no config: a value the config rejects still has a name.
     assert plan.names({"priors.lambda_3d": -1.0}) == ("λ=-1", "λ=-1 · seed 0")
     with pytest.raises(ConfigError, match="priors.lambda_3d"):
-        sampled_cell(plan, {"priors.lambda_3d": -1.0})
+        plan.sampled_cell({"priors.lambda_3d": -1.0})
 
 
 @pytest.mark.parametrize(
@@ -656,8 +655,8 @@ def test_asha_stops_where_rays_rungs_meet_an_evaluation(steps, eval_every, grace
     from sweeps.plan.spec import Scheduler
 
     sch = Scheduler(kind="asha", grace_evals=grace, reduction_factor=rf)
-    assert sch.stop_steps(steps, eval_every) == stops
-    assert Scheduler().stop_steps(steps, eval_every) == []
+    assert sch.stops(steps, eval_every) == stops
+    assert Scheduler().stops(steps, eval_every) == []
     if grace * eval_every <= steps:  # Ray's own rungs (it refuses a grace period past max_t), each judged at the
         rungs = [m for m, _ in _Bracket(grace * eval_every, steps, rf, 0)._rungs]  # next evaluation
         judged = {min(steps, -(-int(-(-m // 1)) // eval_every) * eval_every) for m in rungs}

@@ -32,7 +32,7 @@ import tempfile
 from pathlib import Path
 
 from cdm.io.json import parse_json
-from sweeps.storage import StoreError, private_folder
+from sweeps.storage import StoreError, is_uri, private_folder
 
 __all__ = ["ClaimError", "SweepClaim", "claim", "claims_folder"]
 
@@ -48,7 +48,7 @@ def claims_folder() -> Path:
 
 
 def _lock_path(sweep_dir: str) -> Path:
-    if "://" in sweep_dir:
+    if is_uri(sweep_dir):
         key = hashlib.sha256(sweep_dir.encode()).hexdigest()[:16]
         try:
             return private_folder(claims_folder()) / f"{key}.lock"
@@ -82,14 +82,13 @@ class SweepClaim:
     def __init__(self, sweep_dir: str, fd: int, path: Path, created: list[Path]):
         self.sweep_dir, self._fd, self._path, self._created = sweep_dir, fd, path, created
 
-    def record(self, tracking_uri: str, parent_run_id: str) -> None:
-        self._write({"pid": os.getpid(), "host": socket.gethostname(), "sweep_dir": self.sweep_dir,
-                     "tracking_uri": tracking_uri, "parent_run_id": parent_run_id})
-
-    def _write(self, holder: dict[str, object]) -> None:
-        data = json.dumps(holder).encode()
+    def record(self, tracking_uri: str | None = None, parent_run_id: str | None = None) -> None:
+        """Write who holds the claim into the lock file, with the MLflow parent run once there is one."""
+        holder = {"pid": os.getpid(), "host": socket.gethostname(), "sweep_dir": self.sweep_dir}
+        if parent_run_id is not None:
+            holder |= {"tracking_uri": tracking_uri, "parent_run_id": parent_run_id}
         os.ftruncate(self._fd, 0)
-        os.pwrite(self._fd, data, 0)
+        os.pwrite(self._fd, json.dumps(holder).encode(), 0)
 
     def release(self) -> None:
         """Remove the lock file and the folders :func:`claim` created that stayed empty; drop the lock."""
@@ -143,7 +142,7 @@ def claim(sweep_dir: str) -> SweepClaim:
             break
         os.close(fd)  # locked a file its holder removed on release: lock the one at the path now
     held = SweepClaim(sweep_dir, fd, path, created)
-    held._write({"pid": os.getpid(), "host": socket.gethostname(), "sweep_dir": sweep_dir})
+    held.record()
     return held
 
 

@@ -29,7 +29,7 @@ from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
 from sweeps.execute.logged_runs import trial_runs
-from sweeps.execute.precompute import check_space, shared_root
+from sweeps.execute.precompute import check_space, precomputes, shared_root
 from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
 from sweeps.execute.settle import UntilSettled
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
@@ -43,7 +43,7 @@ from sweeps.execute.tracking import (
 )
 from sweeps.execute.tuner import run_sweep
 from sweeps.plan.address import AddressError
-from sweeps.plan.preflight import estimate_line
+from sweeps.plan.preflight import UnreadableInput, estimate_line
 from sweeps.plan.protocol import CARD_TAG, plan_card
 from sweeps.plan.request import STATE_FILE, SweepRequest
 from sweeps.plan.resources import Concurrency, plan_concurrency
@@ -103,15 +103,12 @@ def _write_new(path: Path, text: str) -> None:
 
 
 def claim_sweep(request: SweepRequest, args: argparse.Namespace) -> tuple[str, SweepClaim]:
-    """(MLflow tracking URI, the claim on the sweep folder), the store and folder checked first.
-
-    A resumed sweep keeps logging into the store it started with, wherever it is resumed from.
-    """
+    """(MLflow tracking URI, the claim on the sweep folder), the store and folder checked first."""
     sweep_dir, state = request.sweep_dir, request.state
     try:
         check_no_links(sweep_dir)
         check_storage(sweep_dir)
-        uri = resolve_tracking_uri(args.tracking_uri or (state or {}).get("tracking_uri"))
+        uri = resolve_tracking_uri(request.tracking_uri)
         check_tracking_uri(uri)
         if state is not None:
             check_parent_run(uri, state["parent_run_id"])
@@ -202,12 +199,12 @@ def _estimate(request: SweepRequest, conc: Concurrency, sweep_run: SweepRun):
             return None
     try:
         return estimate_line(plan, cluster.get("CPU", 1.0), now.max_concurrent,
-                             shared_root(request.sweep_dir, remote) is not None and bool(plan.cells))
-    except (ValueError, OSError) as exc:  # an input every trial would fail on (an unreadable mesh)
+                             precomputes(plan, request.sweep_dir, remote))
+    except UnreadableInput as exc:
         kill_running_children(sweep_run)
         sweep_run.end("FAILED")
         discard_start(request.sweep_dir)
-        raise DriverError(f"the cost estimate could not read an input: {one_line(exc)}") from None
+        raise DriverError(str(exc)) from None
 
 
 def _trials(request: SweepRequest, args: argparse.Namespace, conc: Concurrency, sweep_run: SweepRun,
@@ -215,7 +212,7 @@ def _trials(request: SweepRequest, args: argparse.Namespace, conc: Concurrency, 
     """The trials on Tune, with the sweep's progress line (a resumed sweep keeps the callbacks it started with)."""
     plan = request.plan
     progress = None if args.resume else SweepProgress(
-        sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.names(t.config)[1],
+        sweep_run.run_id, plan.num_trials, plan.profile.steps, lambda t: plan.label(t.config),
         predicted.wall_s if predicted else None, tty, rounds=plan.rounds,
         round_of=(lambda t: plan.round_of(plan.grid_cell(t.config["cell"]))) if plan.sequential else None)
     try:

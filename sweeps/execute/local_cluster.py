@@ -69,9 +69,22 @@ def _alive(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
-        return True
+    except PermissionError:  # another user's process
+        pass
     return True
+
+
+def _pids() -> list[int]:
+    """Every process id now (``/proc``)."""
+    return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()]
+
+
+def _cmdline(pid: int) -> str | None:
+    """``pid``'s command line, arguments joined by spaces; None when it is gone."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return None
 
 
 def session_pids(session_dir: str) -> set[int]:
@@ -79,13 +92,11 @@ def session_pids(session_dir: str) -> set[int]:
     session writes its logs there; agents' command lines are renamed, their open logs are not)."""
     found = set()
     prefix = session_dir.rstrip("/") + "/"
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
+    for pid in _pids():
         try:
-            for fd in (entry / "fd").iterdir():
+            for fd in Path(f"/proc/{pid}/fd").iterdir():
                 if os.readlink(fd).startswith(prefix):
-                    found.add(int(entry.name))
+                    found.add(pid)
                     break
         except OSError:  # gone meanwhile, or another user's
             continue
@@ -95,13 +106,12 @@ def session_pids(session_dir: str) -> set[int]:
 def is_session_process(pid: int, session_dir: str) -> bool:
     """``pid`` is this user's and its command line is one of Ray's for the session in ``session_dir``
     (a renamed worker or agent, or one whose arguments name the session)."""
-    proc = Path("/proc") / str(pid)
     try:
-        if proc.stat().st_uid != os.getuid():
+        if Path(f"/proc/{pid}").stat().st_uid != os.getuid():
             return False
-        cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:  # gone meanwhile
         return False
+    cmdline = _cmdline(pid) or ""
     return cmdline.startswith(RAY_TITLES) or Path(session_dir).name in cmdline
 
 
@@ -191,14 +201,12 @@ def _exit_interrupted() -> None:
 def descendants(pid: int) -> set[int]:
     """Every process below ``pid`` now (``/proc/<pid>/stat``'s parent field)."""
     children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
+    for child in _pids():
         try:
-            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            parent = int(Path(f"/proc/{child}/stat").read_text().rsplit(")", 1)[1].split()[1])
         except OSError:  # gone meanwhile
             continue
-        children.setdefault(parent, []).append(int(entry.name))
+        children.setdefault(parent, []).append(child)
     found, stack = set(), [pid]
     while stack:
         for child in children.get(stack.pop(), []):
@@ -209,15 +217,8 @@ def descendants(pid: int) -> set[int]:
 
 def _ray_children() -> list[int]:
     """The processes below this one that run Ray's programs (GCS, raylet, reaper, monitors, workers)."""
-    return sorted(pid for pid in descendants(os.getpid()) if _runs_ray(pid))
-
-
-def _runs_ray(pid: int) -> bool:
-    try:
-        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
-    except OSError:
-        return False
-    return "/ray/" in cmdline or cmdline.startswith(RAY_TITLES)
+    lines = {pid: _cmdline(pid) or "" for pid in descendants(os.getpid())}
+    return sorted(pid for pid, line in lines.items() if "/ray/" in line or line.startswith(RAY_TITLES))
 
 
 def start(**init_kwargs) -> None:

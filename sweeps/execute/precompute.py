@@ -17,13 +17,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import StoreError
+from sweeps.storage import StoreError, is_uri
 
 if TYPE_CHECKING:
     from cdm.config import Config
     from cdm.data.views import ObjectDataset
 
-__all__ = ["Precomputed", "check_space", "precompute", "shared_bytes", "shared_root"]
+__all__ = ["Precomputed", "check_space", "precompute", "precomputes", "shared_bytes", "shared_root"]
 
 
 @dataclass(frozen=True)
@@ -38,9 +38,15 @@ class Precomputed:
 
 def shared_root(sweep_dir: str, remote: bool) -> str | None:
     """The store of a sweep in ``sweep_dir``, or None where trials cannot share the driver's files."""
-    if remote or "://" in sweep_dir:
+    if remote or is_uri(sweep_dir):
         return None
     return str(Path(sweep_dir) / "shared")
+
+
+def precomputes(plan: SweepPlan, sweep_dir: str, remote: bool) -> bool:
+    """Whether the driver renders ``plan``'s shared work before the trials (:func:`precompute`): a grid's
+    cells, in a store the trials share."""
+    return shared_root(sweep_dir, remote) is not None and bool(plan.cells)
 
 
 @dataclass(frozen=True)
@@ -122,9 +128,9 @@ def check_space(plan: SweepPlan, sweep_dir: str, remote: bool) -> None:
     Raises:
         StoreError: one line with both sizes and the way out.
     """
-    root = shared_root(sweep_dir, remote)
-    if root is None or not plan.cells:
+    if not precomputes(plan, sweep_dir, remote):
         return
+    root = shared_root(sweep_dir, remote)
     try:  # renders one sample per distinct data set: an unreadable input is found here, before Ray
         need = shared_bytes(plan) - _bytes_under(Path(root))
     except ValueError as exc:
@@ -146,27 +152,19 @@ def _size(n: float) -> str:
     return f"{n / 2**30:.2f} GiB" if n >= 2**30 else f"{n / 2**20:.1f} MiB"
 
 
-def _write_rounds(cfg: Config, root: str, rounds: list[int]) -> None:
+def _render(cfg: Config, root: str, rounds: list[int] | None) -> None:
+    """One task's share, on one thread: the training-view ``rounds`` of ``cfg``'s data, or (None) its evaluation set."""
     import torch
 
     from cdm.data import build_dataset
     from cdm.shared import SharedStore
 
     torch.set_num_threads(1)
-    train = build_dataset(cfg, "train")
-    store = SharedStore(root)
-    for r in rounds:
+    store, train = SharedStore(root), build_dataset(cfg, "train")
+    if rounds is None:
+        store.eval_set(cfg, build_dataset(cfg, "val"), train)
+    for r in rounds or []:
         store.write_round(cfg, train, r)
-
-
-def _write_eval(cfg: Config, root: str) -> None:
-    import torch
-
-    from cdm.data import build_dataset
-    from cdm.shared import SharedStore
-
-    torch.set_num_threads(1)
-    SharedStore(root).eval_set(cfg, build_dataset(cfg, "val"), build_dataset(cfg, "train"))
 
 
 def precompute(plan: SweepPlan, root: str, lanes: int) -> Precomputed:
@@ -174,7 +172,7 @@ def precompute(plan: SweepPlan, root: str, lanes: int) -> Precomputed:
     on ``lanes`` parallel tasks (files already there are kept: a resumed sweep pays nothing)."""
     import ray  # deferred, as torch and cdm: the CLI checks its input before importing them
 
-    rounds_task, eval_task = (ray.remote(num_cpus=1)(f) for f in (_write_rounds, _write_eval))
+    task = ray.remote(num_cpus=1)(_render)
     start = time.perf_counter()
     work = _shared_work(plan)
     jobs = [(views.config, r) for views in work.views.values() for r in range(views.rounds)]
@@ -183,7 +181,7 @@ def precompute(plan: SweepPlan, root: str, lanes: int) -> Precomputed:
     for lane in range(lanes):
         mine = jobs[lane::lanes]
         for config in {id(c): c for c, _ in mine}.values():
-            tasks.append(rounds_task.remote(config, root, [r for c, r in mine if c is config]))
-    tasks += [eval_task.remote(evals.config, root) for evals in work.evals.values()]
+            tasks.append(task.remote(config, root, [r for c, r in mine if c is config]))
+    tasks += [task.remote(evals.config, root, None) for evals in work.evals.values()]
     ray.get(tasks)
     return Precomputed(len(work.views), len(jobs), len(work.evals), time.perf_counter() - start)

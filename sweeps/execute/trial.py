@@ -11,9 +11,6 @@ Each Tune trial builds and fits a Ray Train ``TorchTrainer`` (Ray Train V2's pat
 
 Local mode only accepts ``ray.tune.report``/``ray.tune.get_checkpoint`` and real workers only
 ``ray.train.report``/``ray.train.get_checkpoint``; :class:`_RayReporter` picks the pair once.
-A trial's config was built once by the plan (:func:`sweeps.plan.trials.expand`) and reaches it in
-:class:`TrialSetup`: the trial looks its own up and never asks the plan again (docs/ARCHITECTURE.md,
-"The walk of one hyperparameter"). The Tuner that starts the trials is :mod:`sweeps.execute.tuner`.
 """
 
 from __future__ import annotations
@@ -34,7 +31,7 @@ import ray.train
 import ray.tune
 from ray.train.torch import TorchTrainer
 
-from cdm.config import Config, load_config
+from cdm.config import Config
 from cdm.metric_names import METRICS
 from cdm.prior_model import ensure_priors
 from cdm.shared import SharedStore
@@ -44,12 +41,12 @@ from sweeps.execute.logged_runs import finished_trial_metrics
 from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_loggers
 from sweeps.execute.pruning import KEEP
 from sweeps.execute.trial_tracking import TrialRun
-from sweeps.plan.trials import Cell, SweepPlan, cell_name, trial_label
-from sweeps.storage import private_folder, storage_location
+from sweeps.plan.trials import Cell, SweepPlan
+from sweeps.storage import is_uri, private_folder, storage_location
 
 __all__ = [
-    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "sampled_cell", "train_loop", "trial_dir_name",
-    "trial_job", "trial_scratch",
+    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "train_loop", "trial_dir_name", "trial_job",
+    "trial_scratch",
 ]
 
 
@@ -59,8 +56,7 @@ class TrialSetup:
 
     plan: SweepPlan
     cells: Mapping[str, Cell]
-    """The grid's trials by label, each with the config the plan built: a trial looks its own up, it never
-    asks the plan again (docs/ARCHITECTURE.md, "The walk of one hyperparameter")."""
+    """The grid's trials by label, each with the config :func:`sweeps.plan.trials.expand` built once."""
     sweep_dir: str
     tracking_uri: str
     experiment_id: str
@@ -124,8 +120,7 @@ class TrialJob:
     """One trial's input to :func:`train_loop`, built once by :func:`trial_job` from its cell."""
 
     config: Config
-    """The trial's validated config (a grid cell's built by :func:`sweeps.plan.trials.expand`, a sampled one's by
-    :func:`sampled_cell`), writing into the trial's folder."""
+    """The trial's validated config (its cell's, :func:`trial_job`), writing into the trial's folder."""
     local: bool
     """Train's local mode: the loop runs in the trial's own actor (``resources.workers_per_trial == 0``)."""
     label: str
@@ -135,7 +130,6 @@ class TrialJob:
     prior_dir: str
     """Where ``prior_checkpoint: auto`` caches category priors (:func:`_prior_dir`)."""
     setup: TrialSetup
-    """The sweep's side: MLflow parent run, shared store, core leases (in ``<sweep_dir>/cores``)."""
 
 
 def train_loop(job: TrialJob) -> None:
@@ -185,16 +179,6 @@ def fit_trial(job: TrialJob, rank: int, trackers: Callable[[Config], list[Callba
             lease.release()
 
 
-def sampled_cell(plan: SweepPlan, tune_config: dict[str, Any]) -> Cell:
-    """The trial of a sampled search's values (``{"priors.lambda_3d": 0.012}``), its config built here, once,
-    in the trial that runs it (the values come from the searcher, not the plan)."""
-    values = {k: tune_config[k] for k in plan.spec.search.space}
-    seed = plan.spec.seed_values[0]
-    name = cell_name(values)
-    config = load_config(None, {**plan.fixed, **values, "train.seed": seed, **plan.sets})
-    return Cell(name, trial_label(name, seed), values, seed, config)
-
-
 def trial_dir_name(trial_id: str) -> str:
     """The trial's folder in the sweep's storage (Tune's ``trial_dirname_creator``): its checkpoints and results."""
     return f"trial_{trial_id}"
@@ -216,9 +200,9 @@ def trial_scratch(sweep_dir: str, trial_id: str) -> Path:
 
 def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, node_id: str, scratch: Path) -> TrialJob:
     """The trial a Tune config stands for (``{"cell": label}``: a grid cell as the plan built it; sampled
-    values: :func:`sampled_cell`), training in ``scratch`` (:func:`trial_scratch`)."""
+    values: :meth:`~sweeps.plan.trials.SweepPlan.sampled_cell`), training in ``scratch`` (:func:`trial_scratch`)."""
     plan = setup.plan
-    cell = sampled_cell(plan, tune_config) if plan.spec.search.sampled else setup.cells[tune_config["cell"]]
+    cell = plan.sampled_cell(tune_config) if plan.spec.search.sampled else setup.cells[tune_config["cell"]]
     categories = ",".join(cell.config.data.categories) or "all"
     tags = {
         "cell": cell.name,
@@ -296,7 +280,7 @@ def _prior_dir(sweep_dir: str, scratch: Path) -> str:
     Its lock needs a file system, so with an object-store ``sweep_dir`` (``s3://…``) each node keeps
     its own cache beside the sweep's trial scratch folders (:func:`trial_scratch`).
     """
-    if "://" in sweep_dir:
+    if is_uri(sweep_dir):
         return str(scratch.parent / "priors")
     return str(Path(sweep_dir) / "priors")
 

@@ -1,9 +1,7 @@
 """The sweep's trials on Tune: the Tuner (new, or restored by ``--resume``), its search and scheduler, one line
 and one MLflow verdict per trial as it ends, and one outcome per trial for the results table.
 
-Each trial is :func:`sweeps.execute.trial.run_trial`. Concurrency comes from the cluster's resources
-(:func:`sweeps.plan.resources.plan_concurrency`, sized once by the runner), so trials never wait on each
-other for CPUs.
+Each trial is :func:`sweeps.execute.trial.run_trial`.
 """
 
 from __future__ import annotations
@@ -22,7 +20,7 @@ from cdm.io.files import read_text
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import lease_cores
-from sweeps.execute.precompute import precompute, shared_root
+from sweeps.execute.precompute import precompute, precomputes, shared_root
 from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.resume_retries import refusing, retry_errored
 from sweeps.execute.settle import UntilSettled
@@ -32,7 +30,7 @@ from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import storage_location
+from sweeps.storage import is_uri, storage_location
 
 __all__ = ["checkpoint_location", "error_summary", "run_sweep"]
 
@@ -60,9 +58,6 @@ class _TrialCloser(ray.tune.Callback):
     def __init__(self, plan: SweepPlan, sweep_run: SweepRun, sweep_dir: str):
         self.plan, self.sweep_run, self.sweep_dir = plan, sweep_run, sweep_dir
 
-    def _label(self, trial) -> str:
-        return self.plan.names(trial.config)[1]
-
     def _count(self, trials, ending=None) -> str:
         # Counted from Tune's trial list, so trials finished before a resume count too.
         done = {t.trial_id for t in trials if t.status in ("TERMINATED", "ERROR")} | (
@@ -72,10 +67,10 @@ class _TrialCloser(ray.tune.Callback):
         return f"{len(done)}/{at_most}{self.plan.num_trials} trials done"
 
     def on_trial_start(self, iteration, trials, trial, **info) -> None:
-        print(f"▶ started [{self._label(trial)}] ({self._count(trials)})", flush=True)
+        print(f"▶ started [{self.plan.label(trial.config)}] ({self._count(trials)})", flush=True)
 
     def on_trial_complete(self, iteration, trials, trial, **info) -> None:
-        label = self._label(trial)
+        label = self.plan.label(trial.config)
         step = trial.last_result.get("step", 0)
         early = not self.plan.completed(label, step, trial.last_result)
         self.sweep_run.close_trial(trial.trial_id, label, "FINISHED", stopped_early=early, last=trial.last_result,
@@ -86,7 +81,7 @@ class _TrialCloser(ray.tune.Callback):
               f"({self._count(trials, trial)})", flush=True)
 
     def on_trial_error(self, iteration, trials, trial, **info) -> None:
-        label = self._label(trial)
+        label = self.plan.label(trial.config)
         # Tune has just written the traceback to the trial's local error file (before syncing it).
         reason = error_summary(read_text(Path(trial.error_file), "error file")) if trial.error_file else "unknown error"
         self.sweep_run.close_trial(trial.trial_id, label, "FAILED", error=reason,
@@ -165,7 +160,7 @@ def _tuner(plan: SweepPlan, trainable, conc: Concurrency, sweep_dir: str, sweep_
             num_samples=num_samples,
             max_concurrent_trials=conc.max_concurrent,
             reuse_actors=True,
-            trial_name_creator=lambda t: plan.names(t.config)[1],
+            trial_name_creator=lambda t: plan.label(t.config),
             trial_dirname_creator=lambda t: trial_dir_name(t.trial_id),
         ),
         run_config=ray.tune.RunConfig(
@@ -213,14 +208,11 @@ def run_sweep(
 ) -> list[TrialOutcome]:
     """Run (or, with ``resume``, continue) the sweep on the connected Ray cluster; one outcome per trial.
 
-    ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI
-    (``s3://…``, ``file://…``). Resume re-runs unfinished trials, each from its last checkpoint, and
-    errored ones until each was retried ``failure.max_retries`` times on resume
-    (:mod:`sweeps.execute.resume_retries`). ``conc``: how trials fit the cluster
-    (:func:`sweeps.plan.resources.plan_concurrency`), sized once by the caller. ``remote``: the cluster was
-    joined by address and may autoscale. ``callbacks`` (e.g. the
-    progress line, :class:`sweeps.execute.progress.SweepProgress`) join Tune's; a resumed sweep keeps those it
-    started with. ``budget``: a sequential sweep's ``--budget`` (a resumed one keeps its searcher's).
+    ``sweep_dir`` is Tune's experiment folder: an absolute path or an object-store URI (``s3://…``). Resume
+    re-runs unfinished trials from their last checkpoints, and errored ones as
+    :mod:`sweeps.execute.resume_retries` decides. ``conc``: how trials fit the cluster, sized once by the
+    caller; ``remote``: the cluster was joined by address. ``callbacks`` join Tune's (a resumed sweep keeps
+    those it started with); ``budget``: a sequential sweep's ``--budget`` (a resumed one keeps its searcher's).
     """
     # Snapshot the experiment state every second (and sync it to storage as often, below), so a
     # killed driver resumes trials from their checkpoints instead of from step 0 (with
@@ -228,15 +220,15 @@ def run_sweep(
     os.environ["TUNE_GLOBAL_CHECKPOINT_S"] = "1"
     os.environ.setdefault("TUNE_WARN_EXCESSIVE_EXPERIMENT_CHECKPOINT_SYNC_THRESHOLD_S", "0")  # that is deliberate
     root = shared_root(sweep_dir, remote)
-    if root is not None and plan.cells:
+    if precomputes(plan, sweep_dir, remote):
         done = precompute(plan, root, int(conc.cpus))
         print(f"shared by every cell: {done.rounds} view rounds of {done.view_sets} training set(s), "
               f"{done.eval_sets} evaluation set(s) with baselines, in {done.seconds:.1f} s", flush=True)
     r = plan.profile.resources
-    cores = 0 if "://" in sweep_dir else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
+    cores = 0 if is_uri(sweep_dir) else lease_cores(conc.cpus, r.cpus_per_worker, r.workers_per_trial, remote)
     setup = TrialSetup(plan, {c.label: c for c in plan.cells}, sweep_dir, sweep_run.uri, sweep_run.experiment_id,
                        sweep_run.run_id, code_version(), root, cores)
-    resume_errored, given_up = (retry_errored(sweep_dir, plan.spec.failure.max_retries, lambda c: plan.names(c)[1])
+    resume_errored, given_up = (retry_errored(sweep_dir, plan.spec.failure.max_retries, plan.label)
                                 if resume else (False, {}))
     trainable = ray.tune.with_resources(ray.tune.with_parameters(refusing(run_trial, given_up), setup=setup),
                                         conc.trial_resources)

@@ -14,7 +14,7 @@ from sweeps.plan.limits import LimitError
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.trials import SweepPlan
 
-__all__ = ["MAX_BUDGET_SECONDS", "MAX_BUDGET_TRIALS", "SeedBudget", "budget_option", "check_budget", "parse_budget"]
+__all__ = ["MAX_BUDGET_SECONDS", "MAX_BUDGET_TRIALS", "SeedBudget", "check_budget", "parse_budget"]
 
 
 @dataclass(frozen=True)
@@ -61,11 +61,6 @@ def parse_budget(text: str) -> SeedBudget:
         f"--budget {shown}: give a wall time (2h, 45m, 30s; at most {MAX_BUDGET_SECONDS // 86_400} days) or a "
         f"number of trials (1 to {MAX_BUDGET_TRIALS})"
     )
-
-
-def budget_option(text: str | None) -> SeedBudget | None:
-    """``--budget`` as given (None: not given; an empty ``--budget=`` is refused, not taken as none)."""
-    return None if text is None else parse_budget(text)
 
 
 def check_budget(plan: SweepPlan, budget: SeedBudget | None) -> None:

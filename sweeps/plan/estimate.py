@@ -32,7 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from cdm.config import Config, load_config
+from cdm.config import Config
 from cdm.data import build_dataset, list_categories
 from cdm.evaluate import build_eval_set
 from cdm.io.json import read_json
@@ -171,7 +171,7 @@ def _eval_signature(cfg: Config) -> str:
 
 def _calibration_configs(plan: SweepPlan) -> list[Config]:
     if not plan.cells:  # Optuna: the spec's fixed settings stand for every sampled trial
-        return [load_config(None, {**plan.fixed, **plan.sets, "train.seed": plan.spec.seed_values[0]})]
+        return [plan.shared_config(**{"train.seed": plan.spec.seed_values[0]})]
     distinct = list({c.name: c.config for c in plan.cells}.values())
     picks = sorted({round(i * (len(distinct) - 1) / max(1, CALIBRATED_CELLS - 1)) for i in range(CALIBRATED_CELLS)})
     return [distinct[i] for i in picks]
@@ -204,20 +204,17 @@ def _figures() -> dict:
     return figures
 
 
-def _paper_config(paper: SweepPlan) -> Config:
-    return paper.cells[0].config if paper.cells else load_config(None, {**paper.fixed, **paper.sets})
-
-
-def _trial_gpus(paper: SweepPlan) -> float:
-    r = paper.profile.resources
-    return max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0)
-
-
-def _per_trial(paper: SweepPlan, cfg: Config, train_step: float, sample_step: float) -> float:
-    """``steps × train_step + evaluations × ⌈objects ÷ batch⌉ × sampling steps × sample_step`` (any unit)."""
-    evals = math.ceil(paper.profile.steps / paper.profile.eval_every)
+def _trial_gpu_hours(paper: SweepPlan, batch: int, train_step: float, sample_step: float, rate: float = 1.0) -> float:
+    """GPU-hours of one paper-profile trial whose training step costs ``train_step`` and sampling step
+    ``sample_step`` at ``batch`` objects (scaled linearly to the profile's batch), each divided by ``rate``:
+    ``steps × train_step + evaluations × ⌈objects ÷ batch⌉ × sampling steps × sample_step``, on every GPU
+    the trial holds."""
+    cfg, prof, r = paper.configs[0], paper.profile, paper.profile.resources
+    scale = cfg.train.batch_size / batch / rate
+    evals = math.ceil(prof.steps / prof.eval_every)
     batches = math.ceil(_eval_objects(cfg) / cfg.train.batch_size)
-    return paper.profile.steps * train_step + evals * batches * _sample_steps(cfg) * sample_step
+    seconds = prof.steps * train_step * scale + evals * batches * _sample_steps(cfg) * sample_step * scale
+    return seconds * max(1, r.workers_per_trial) * max(r.gpus_per_worker, 1.0) / 3600.0
 
 
 def peak_flops(device_name: str, precision: str) -> float | None:
@@ -250,14 +247,13 @@ def paper_trial_gpu_hours(paper: SweepPlan, figures: dict | None = None) -> tupl
     ``train.precision`` taken) at ``batch_size`` objects, scaled linearly to the profile's batch.
     """
     figures = _figures() if figures is None else figures
-    cfg = _paper_config(paper)
+    cfg = paper.configs[0]
     measured = _measured(figures, cfg)
     if isinstance(measured, str):
         return None, measured
     entry, step = measured
-    scale = cfg.train.batch_size / entry.get("batch_size", cfg.train.batch_size)
-    per_trial = _per_trial(paper, cfg, step["train_step_s"] * scale, step["sample_step_s"] * scale)
-    return per_trial * _trial_gpus(paper) / 3600.0, figures["device"]
+    batch = entry.get("batch_size", cfg.train.batch_size)
+    return _trial_gpu_hours(paper, batch, step["train_step_s"], step["sample_step_s"]), figures["device"]
 
 
 def _measured_details(figures: dict, cfg: Config) -> str:
@@ -284,16 +280,13 @@ def paper_trial_gpu_hours_bound(paper: SweepPlan, figures: dict | None = None) -
     sampling steps (``figures["flops"]``, at the counted batch, scaled linearly to the profile's) at
     :data:`BOUND_GPU`'s dense peak in the profile's precision; None and why where nothing is counted."""
     figures = _figures() if figures is None else figures
-    cfg = _paper_config(paper)
+    cfg = paper.configs[0]
     counted = figures.get("flops", {}).get("by_points", {}).get(str(cfg.data.num_points))
     if counted is None or cfg.model.denoiser != "pvcnn2":
         return None, f"no counted FLOPs for model.denoiser={cfg.model.denoiser} at {cfg.data.num_points} points"
-    scale = cfg.train.batch_size / counted["batch_size"]
-    flops = _per_trial(paper, cfg, counted["train_step"] * scale, counted["sample_step"] * scale)
     peak = PEAK_FLOPS[BOUND_GPU][cfg.train.precision]
-    return flops / peak * _trial_gpus(
-        paper
-    ) / 3600.0, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
+    hours = _trial_gpu_hours(paper, counted["batch_size"], counted["train_step"], counted["sample_step"], peak)
+    return hours, f"{BOUND_GPU} SXM dense {cfg.train.precision} peak, {peak / 1e12:g} TFLOP/s"
 
 
 def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
@@ -304,7 +297,7 @@ def paper_gpu_line(paper: SweepPlan, figures: dict | None = None) -> str:
     hours, gpu = paper_trial_gpu_hours(paper, figures)
     if hours is not None:
         return (f"{hours * paper.num_trials:.1f} GPU-hours with the paper profile ({hours:.2f} per trial × "
-                f"{paper.num_trials} trials, measured on {gpu}: {_measured_details(figures, _paper_config(paper))})")
+                f"{paper.num_trials} trials, measured on {gpu}: {_measured_details(figures, paper.configs[0])})")
     line = f"paper-profile GPU-hours: {gpu} (on a GPU: python benchmarks/gpu_check.py)"
     bound, basis = paper_trial_gpu_hours_bound(paper, figures)
     if bound is None:

@@ -1,16 +1,8 @@
-"""Caps on what one sweep may ask of the machine, checked before anything is allocated or started.
-
-- :func:`check_trials`: at most ``--max-cells`` trials (default :data:`MAX_TRIALS`), counted from
-  the spec's grid, cells and seeds before a single config is built (:func:`count_trials`).
-- a ``--dry-run`` of more than :data:`LISTED_TRIALS` grid trials checks them one at a time, holding
-  and listing only the first, with a :func:`check_progress` line every :data:`PROGRESS_EVERY` (10⁶
-  cells held 2.9 GB and printed nothing for 120 s).
-- :func:`check_set_text`: a ``--set key=value`` is at most :data:`MAX_SET_CHARS` characters and
-  :data:`MAX_SET_DEPTH` brackets deep, checked before YAML parses it (50,000 nested brackets took
-  YAML 93 s to end in a ``RecursionError``).
-- the memory of the trials that run at once is checked by :func:`cdm.memory.check_memory`.
-
-Every refusal is a :class:`LimitError` naming the field or file and how to raise the cap.
+"""Caps on what one sweep may ask of the machine, checked before anything is allocated or started: the trial
+count, a long dry run's progress (10⁶ cells held 2.9 GB and printed nothing for 120 s) and a ``--set``'s size
+(50,000 nested brackets took YAML 93 s to end in a ``RecursionError``). The memory of the trials that run at
+once is :func:`cdm.memory.check_memory`'s. Every refusal is a :class:`LimitError` naming the field or file and
+how to raise the cap.
 """
 
 from __future__ import annotations

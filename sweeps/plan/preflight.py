@@ -12,14 +12,18 @@ import os
 import sys
 from collections.abc import Sequence
 
-from cdm.config import load_config
 from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import LISTED_TRIALS
 from sweeps.plan.resources import plan_concurrency
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.trials import SweepPlan
 
-__all__ = ["check_inputs", "dry_run", "estimate_line"]
+__all__ = ["UnreadableInput", "check_inputs", "dry_run", "estimate_line"]
+
+
+class UnreadableInput(ValueError):
+    """An input the calibration reads is present but refused (a checkpoint that is no PC² file, NaN weights, an
+    unreadable mesh): every trial would fail on it."""
 
 
 def check_inputs(plan: SweepPlan, remote: bool) -> None:
@@ -31,7 +35,7 @@ def check_inputs(plan: SweepPlan, remote: bool) -> None:
     from cdm.external_inputs import check_coverage, describe_inputs, required_inputs
     from cdm.external_inputs import check_inputs as check_present
 
-    configs = [cell.config for cell in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
+    configs = plan.configs
     names = [c.label for c in plan.cells] or ["every trial"]
     if not any(required_inputs(cfg) for cfg in configs):
         print("external inputs: none (everything is generated or in data.root)", flush=True)
@@ -49,12 +53,18 @@ def check_inputs(plan: SweepPlan, remote: bool) -> None:
 
 
 def estimate_line(plan: SweepPlan, cpus: float, concurrent: int, shared: bool):
-    """Print the cost estimate (:mod:`sweeps.plan.estimate`) and return it; None when calibration diverged."""
+    """Print the cost estimate (:mod:`sweeps.plan.estimate`) and return it; None when calibration diverged.
+
+    Raises:
+        UnreadableInput: an input the calibration reads is refused.
+    """
     from cdm.train import TrainingDiverged
     from sweeps.plan.estimate import estimate
 
     try:
         predicted = estimate(plan, cpus, concurrent, shared)
+    except (ValueError, OSError) as exc:
+        raise UnreadableInput(f"the cost estimate could not read an input: {' '.join(str(exc).split())}") from None
     except TrainingDiverged as exc:
         print(
             f"estimate: none — the calibration steps diverged ({exc}); the trials will likely fail the same way",
@@ -103,7 +113,7 @@ def dry_run(plan: SweepPlan, remote: bool, rule: list[str], calibrate: bool, sha
     print("calibrating (a few training steps and one evaluation) ...", flush=True)
     try:
         estimate_line(plan, cpus, concurrent, shared)
-    except (ValueError, OSError) as exc:  # an input present but unreadable (model.init_from): every trial fails on it
-        print(f"error: the cost estimate could not read an input: {' '.join(str(exc).split())}", file=sys.stderr)
+    except UnreadableInput as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0

@@ -7,11 +7,8 @@ its source) and adds what the config cannot say about the data on disk (a stand-
 split file). Any field that differs from a stated value is a deviation; fields no source fixes are not,
 though the card names the free choices that shape a result. Fields a spec sweeps (its grid, cells or
 search space) are the table's own axes and are not compared. "Paper protocol, no deviations" only when
-nothing differs.
-
-:func:`sweep_card` merges the cards of a sweep's cells and :func:`plan_card` builds it for a
-:class:`sweeps.plan.trials.SweepPlan`. The card is printed by ``--dry-run``, shown in the results table, tagged on
-the parent MLflow run (:data:`CARD_TAG`) and in the report.
+nothing differs. The card is printed by ``--dry-run``, shown in the results table, tagged on the parent MLflow
+run (:data:`CARD_TAG`) and in the report.
 """
 
 from __future__ import annotations
@@ -21,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
-from cdm.config import Config, config_field_paths, load_config
+from cdm.config import Config, config_field_paths
 from cdm.registry import DATA_SETS as DATA_SETS_BY_KIND
 from sweeps.plan.references import DATA_SETS, TABLES, Entry, Kind, NotStated, Stated, record, show
 
@@ -174,10 +171,8 @@ def plan_card(plan: SweepPlan) -> ProtocolCard:
     A table without a record is compared with the paper's CDM and the card says so.
     """
     spec = plan.spec
-    configs = [c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})]
-    swept = {*spec.grid, *spec.search.space, *(key for cell in spec.cells for key in cell.set)}
     table = spec.paper.table if spec.paper else None
-    card = sweep_card(configs, spec.datasets, spec.stand_in, table if table in TABLES else None, swept)
+    card = sweep_card(plan.configs, spec.datasets, spec.stand_in, table if table in TABLES else None, plan.swept)
     if table is None or table in TABLES:
         return card
     return ProtocolCard(card.deviations, (*card.notes, f"{table}: no reference record; compared with the paper's CDM"))

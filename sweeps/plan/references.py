@@ -9,18 +9,9 @@ reference code fixed. This module is that record, field by field, each value wit
 - BDM (mlpc-ucsd/BDM), the reference on ShapeNet (Tables 1–2): its ShapeNet data set, scripts and
   blending loop, with the PC² model it trains.
 
-Every field of :func:`cdm.config.config_field_paths` has one :data:`Entry` in each record:
-
-- :class:`Stated`: a value a source fixes (or a property of the value, ``accepts``); a config that
-  differs deviates. ``when`` limits it to configs where the field is read (the 3D prior's fields only
-  with the 3D prior on, Co3D's loader options only on Co3D, …).
-- :class:`NotStated`: no source fixes it — a free choice of ours; ``noted`` ones are named on the card.
-- :class:`NoEffect`: where or how a run goes, not what it computes (paths, threads, logging, drawings,
-  which random draw).
-
-A record may name fields the config does not have (yet): the card lists a stated one as a deviation
-(this code cannot be set to the reference) and skips entries conditioned on one
-(:func:`sweeps.plan.protocol.protocol_card`).
+Every field of :func:`cdm.config.config_field_paths` has one :data:`Entry` in each record: :class:`Stated`,
+:class:`NotStated` or :class:`NoEffect`. A record may name fields the config does not have (yet): the card
+lists a stated one as a deviation (this code cannot be set to the reference).
 """
 
 from __future__ import annotations
@@ -61,8 +52,17 @@ def show(value: Any) -> str:
     return str(value)
 
 
+class _Conditional:
+    """An entry read only where the config's other fields hold one of the values its ``when`` allows."""
+
+    when: Mapping[str, tuple[Any, ...]]
+
+    def applies(self, flat: Mapping[str, Any]) -> bool:
+        return all(k in flat and flat[k] in allowed for k, allowed in self.when.items())
+
+
 @dataclass(frozen=True)
-class Stated:
+class Stated(_Conditional):
     """A value the paper or a reference code fixes, in this config's terms (as :meth:`Config.flat` gives it)."""
 
     value: Any
@@ -74,9 +74,6 @@ class Stated:
     accepts: Callable[[Any], bool] | None = None
     """For a source that fixes a property rather than one value (``value`` then describes it)."""
 
-    def applies(self, flat: Mapping[str, Any]) -> bool:
-        return all(k in flat and flat[k] in allowed for k, allowed in self.when.items())
-
     def holds(self, value: Any) -> bool:
         return self.accepts(value) if self.accepts is not None else value == self.value
 
@@ -86,7 +83,7 @@ class Stated:
 
 
 @dataclass(frozen=True)
-class NotStated:
+class NotStated(_Conditional):
     """No source fixes this field: a free choice of ours."""
 
     why: str
@@ -94,9 +91,6 @@ class NotStated:
     """Name the choice on the card (those that shape a result and a reader could not guess)."""
     when: Mapping[str, tuple[Any, ...]] = field(default_factory=dict)
     """As :attr:`Stated.when`: where the field is read, so where the note applies."""
-
-    def applies(self, flat: Mapping[str, Any]) -> bool:
-        return all(k in flat and flat[k] in allowed for k, allowed in self.when.items())
 
 
 @dataclass(frozen=True)

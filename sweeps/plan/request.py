@@ -16,10 +16,10 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from cdm.config import ConfigError, load_config, parse_override
+from cdm.config import ConfigError, parse_override
 from cdm.memory import check_memory
 from sweeps.plan.address import AddressError, check_form, given_address
-from sweeps.plan.budget import SeedBudget, budget_option, check_budget
+from sweeps.plan.budget import SeedBudget, check_budget, parse_budget
 from sweeps.plan.limits import LISTED_TRIALS, LimitError, check_progress, check_set_text, check_trials, count_trials
 from sweeps.plan.preflight import check_inputs
 from sweeps.plan.resources import plan_concurrency
@@ -52,6 +52,9 @@ class SweepRequest:
     """Trials run on a cluster joined by address (``--address`` or ``RAY_ADDRESS``)."""
     state: dict[str, Any] | None = None
     """A resumed sweep's ``sweep.json``, read and checked once; None for a new sweep."""
+    tracking_uri: str | None = None
+    """The MLflow store asked for: ``--tracking-uri``, else a resumed sweep's own (it keeps logging where it
+    started, wherever it is resumed from); None: the default one."""
 
     @property
     def state_file(self) -> str:
@@ -63,18 +66,7 @@ def plan_request(args: argparse.Namespace) -> SweepRequest:
     if args.smoke and args.profile not in (None, "smoke"):
         raise RequestError(f"--smoke means --profile smoke; got --profile {args.profile} too")
     profile = "smoke" if args.smoke else (args.profile or "local")
-    given = given_address(args.address)
-    remote = given is not None
-    if remote:
-        try:
-            check_form(*given)  # whether a cluster answers there is asked right before Ray joins it (cluster.py)
-        except AddressError as exc:
-            raise RequestError(str(exc)) from None
-    if remote and not args.dry_run and not is_uri(args.storage) and not Path(args.storage).is_absolute():
-        # Under `ray job submit` the driver's working directory is the job's temporary copy of the
-        # repository: checkpoints there vanish with the job and other nodes never see them.
-        raise RequestError(f"--out {args.storage}: on a cluster give an absolute path that every node shares "
-                           "(e.g. /mnt/shared/results) or an object-store URI (s3://bucket/results)")
+    remote = _remote(args)
     try:
         spec = load_spec(args.spec)
         sweep_dir = sweep_location(args.storage, spec.name, profile)
@@ -87,25 +79,47 @@ def plan_request(args: argparse.Namespace) -> SweepRequest:
             sets = state["sets"]
         if args.until_settled:
             spec = spec.until_settled()
-        budget = budget_option(state.get("budget") if state is not None else args.budget)
+        given = state.get("budget") if state is not None else args.budget
+        budget = None if given is None else parse_budget(given)  # an empty --budget= is refused, not taken as none
         check_trials(spec, args.max_cells)
-        # The spec goes straight to expand: no helper here receives it (docs/ARCHITECTURE.md, "The walk").
-        if args.dry_run and (count := count_trials(spec)[0]) > LISTED_TRIALS and not spec.search.sampled:
-            print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
-            plan = expand(spec, profile, sets, keep=LISTED_TRIALS, each=check_progress(count))
-        else:
-            plan = expand(spec, profile, sets)
+        plan = _expand(spec, profile, sets, args.dry_run)
         check_budget(plan, budget)
         if not remote:  # a cluster's nodes have their own memory; this machine's says nothing of them
-            check_memory([c.config for c in plan.cells] or [load_config(None, {**plan.fixed, **plan.sets})],
-                         _local_concurrency(plan))
+            check_memory(plan.configs, _local_concurrency(plan))
     except (SpecError, ConfigError, LimitError, StoreError) as exc:
         raise RequestError(str(exc)) from None
-    return SweepRequest(plan, sweep_dir, sets, budget, remote, state)
+    uri = args.tracking_uri or (state or {}).get("tracking_uri")
+    return SweepRequest(plan, sweep_dir, sets, budget, remote, state, uri)
+
+
+def _remote(args: argparse.Namespace) -> bool:
+    """Whether the trials run on a cluster joined by address; its form, and ``--out`` on it, checked."""
+    given = given_address(args.address)
+    if given is None:
+        return False
+    try:
+        check_form(*given)  # whether a cluster answers there is asked right before Ray joins it (cluster.py)
+    except AddressError as exc:
+        raise RequestError(str(exc)) from None
+    if not args.dry_run and not is_uri(args.storage) and not Path(args.storage).is_absolute():
+        # Under `ray job submit` the driver's working directory is the job's temporary copy of the
+        # repository: checkpoints there vanish with the job and other nodes never see them.
+        raise RequestError(f"--out {args.storage}: on a cluster give an absolute path that every node shares "
+                           "(e.g. /mnt/shared/results) or an object-store URI (s3://bucket/results)")
+    return True
+
+
+def _expand(spec: Spec, profile: str, sets: dict[str, Any], dry_run: bool) -> SweepPlan:
+    """:func:`expand`; a dry run of more grid trials than it lists checks them one at a time, saying so."""
+    count = count_trials(spec)[0]
+    if not dry_run or count <= LISTED_TRIALS or spec.search.sampled:
+        return expand(spec, profile, sets)
+    print(f"checking up to {count} trials one at a time (listing the first {LISTED_TRIALS}) …", flush=True)
+    return expand(spec, profile, sets, keep=LISTED_TRIALS, each=check_progress(count))
 
 
 def _resumed(args: argparse.Namespace, sweep_dir: str, sets: dict[str, Any]) -> tuple[dict[str, Any], Spec]:
-    """The ``sweep.json`` of the sweep ``--resume`` continues: its spec as it started (even if the file was
+    """The ``sweep.json`` of the sweep ``--resume`` continues and its spec as it started (even if the file was
     edited since: trials must stay the same), checked to validate."""
     state_file = f"{sweep_dir}/{STATE_FILE}"
     if not exists(state_file):

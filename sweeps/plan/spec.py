@@ -156,10 +156,6 @@ class Scheduler(Strict):
         judged = sorted({min(total, math.ceil(r / every - 1e-9) * every) for r in rungs})
         return [s for s in judged if s < total]
 
-    def stop_steps(self, steps: int, eval_every: int) -> list[int]:
-        """:meth:`stops` for a budget in steps."""
-        return [int(s) for s in self.stops(steps, eval_every)]
-
 
 class Failure(Strict):
     max_retries: int = Field(0, ge=0)

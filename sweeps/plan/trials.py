@@ -9,11 +9,8 @@ One trial's config is resolved in this order, later wins::
 
 ``train.threads`` is the profile's CPUs per worker unless a level above sets it (then that value stays).
 
-:func:`expand` builds the :class:`cdm.config.Config` of every grid cell (explicit cells crossed with
-the grid, minus ``exclude``, at every seed; a sequential spec's up to ``max``, so every trial its
-searcher may start has its label and config before Ray starts), validates a sampled search's space at
-its bounds, and checks the metric against :func:`cdm.metric_names.metric_names`, so a typo fails with one
-:class:`sweeps.plan.schema_base.SpecError` naming the field.
+A sequential spec's cells are built up to its ``max`` seeds, so every trial its searcher may start has its
+label and config before Ray starts.
 """
 
 from __future__ import annotations
@@ -164,22 +161,43 @@ class SweepPlan:
         """The grid cell of this trial label (its config built by :func:`expand`); None in an Optuna sweep."""
         return next((c for c in self.cells if c.label == label), None)
 
+    def shared_config(self, **more: Any) -> Config:
+        """The config of the settings every trial shares (``fixed``, then ``more``, then ``--set``): what stands
+        for an Optuna plan's trials before any is sampled."""
+        return load_config(None, {**self.fixed, **more, **self.sets})
+
+    @property
+    def configs(self) -> list[Config]:
+        """Every grid trial's config, or for an Optuna plan the one of :meth:`shared_config`."""
+        return [c.config for c in self.cells] or [self.shared_config()]
+
     def f1_threshold(self, label: str, drawn: Mapping[str, Any]) -> float:
         """The trial ``label``'s ``eval.f1_threshold``, worked out here alone: what the trial drew or logged
         (``drawn``: a sampled trial's Tune config, or a run's params), else its grid cell's config, else
-        the plan's fixed and set values (what :func:`expand` resolves)."""
+        the plan's shared config."""
         if "eval.f1_threshold" in drawn:
             return float(drawn["eval.f1_threshold"])
         cell = self.grid_cell(label)
-        return (cell.config if cell else load_config(None, {**self.fixed, **self.sets})).eval.f1_threshold
+        return (cell.config if cell else self.shared_config()).eval.f1_threshold
 
-    def names(self, tune_config: dict[str, Any]) -> tuple[str, str]:
+    def names(self, tune_config: Mapping[str, Any]) -> tuple[str, str]:
         """(cell name, trial label) of a Tune config, without resolving its config: for the driver's callbacks."""
         if not self.spec.search.sampled:
             cell = self.grid_cell(tune_config["cell"])
             return cell.name, cell.label
         name = cell_name({k: tune_config[k] for k in self.spec.search.space})
         return name, trial_label(name, self.spec.seed_values[0])
+
+    def sampled_cell(self, tune_config: Mapping[str, Any]) -> Cell:
+        """The trial of a sampled search's values (``{"priors.lambda_3d": 0.012}``), its config built here, once,
+        in the trial that runs it (the values come from the searcher, not the plan)."""
+        name, label = self.names(tune_config)
+        values, seed = {k: tune_config[k] for k in self.spec.search.space}, self.spec.seed_values[0]
+        return Cell(name, label, values, seed, self.shared_config(**values, **{"train.seed": seed}))
+
+    def label(self, tune_config: Mapping[str, Any]) -> str:
+        """The trial label of a Tune config (:meth:`names`)."""
+        return self.names(tune_config)[1]
 
 
 def _patch(model: BaseModel, patch: BaseModel) -> dict[str, Any]:
