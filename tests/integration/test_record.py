@@ -165,7 +165,7 @@ def test_safetensors_alone_loads_the_childs_weights(swept, tmp_path, monkeypatch
 def _scores_as_logged(uri: str, checkpoint: str, child, cwd: Path) -> None:
     """``cdm-lab evaluate --checkpoint checkpoint`` (a new process) scores what ``child`` logged."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "MLFLOW_TRACKING_URI": uri}
-    out = subprocess.run([sys.executable, "-m", "sweeps.cdm_lab", "evaluate", "--checkpoint", checkpoint],
+    out = subprocess.run([sys.executable, "-m", "cdm.lab", "evaluate", "--checkpoint", checkpoint],
                          cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     scores = dict(re.findall(r"^(eval/(?:f1|cd)) +([\d.]+)$", out.stdout, re.M))
