@@ -239,9 +239,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="one of the commands below")
+def _add_training(sub) -> None:
+    """The subcommands that train: ``train`` and ``train-prior``, in ``sub`` (``add_subparsers``' result)."""
     p = add_command(sub, "train", "train a model from a config file", "--config configs/quick.yaml --out runs/quick")
     p.add_argument("--config", metavar="FILE",
                    help="YAML config (groups data/model/diffusion/priors/train/eval); defaults if omitted")
@@ -261,6 +260,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_set(p, "train.steps=2000")
     add_out(p, "the prior's checkpoint folder (default: <train.out_dir>/prior_<category>)")
     p.set_defaults(func=cmd_train_prior)
+
+
+def _add_checkpoint_users(sub) -> None:
+    """The subcommands that read a checkpoint: ``evaluate`` and ``reconstruct``."""
     p = add_command(sub, "evaluate", "score a checkpoint on the held-out split",
                     "--checkpoint runs/cdm/checkpoints/step_0001500 --out eval/")
     p.add_argument("--checkpoint", required=True, metavar="PATH",
@@ -283,6 +286,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(f"--{name}", type=float, default=default, help=f"{what} (default {default:g})")
     p.add_argument("--seed", type=int, default=0, help="seed of the sampler's noise, an integer (default 0)")
     p.set_defaults(func=cmd_reconstruct)
+
+
+def _add_data_and_config(sub) -> None:
+    """The subcommands of data, config and old checkpoints: ``prepare``, ``check-data``, ``fields``, ``convert``."""
     p = add_command(sub, "prepare", "convert a data set once into per-object shards that load fast "
                     "(as Ray tasks over a cluster: cdm-lab inputs prepare)",
                     "--set data.kind=co3d --root RAW --out prepared/ --set data.categories=[teddybear]")
@@ -304,8 +311,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("old", metavar="OLD", help="a 0.1.0 checkpoint folder or its checkpoint.pt")
     p.add_argument("new", metavar="NEW", help="the folder to write: checkpoint.json, model.safetensors, …")
     p.set_defaults(func=cmd_convert)
-    return parser
 
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="one of the commands below")
+    for add in (_add_training, _add_checkpoint_users, _add_data_and_config):
+        add(sub)
+    return parser
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)

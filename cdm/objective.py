@@ -96,6 +96,21 @@ def cdm_loss(
     return LossTerms(loss_diff + priors.lambda_3d * loss_prior, loss_diff, loss_prior)
 
 
+def _validate_prior_inputs(pred_points: Tensor, gt_points: Tensor, view_cameras: Cameras) -> None:
+    """:func:`prior_3d_loss`' clouds ``(B, N, 3)`` and ``(B, M, 3)`` and cameras ``(B, H)`` checked, each error
+    naming the argument and the shape allowed."""
+    if pred_points.ndim != 3 or gt_points.ndim != 3 or pred_points.shape[0] != gt_points.shape[0]:
+        raise ValueError(
+            f"pred_points and gt_points must be (B, N, 3) with the same B, got {tuple(pred_points.shape)} "
+            f"and {tuple(gt_points.shape)}"
+        )
+    b = pred_points.shape[0]
+    if len(view_cameras.batch_shape) != 2 or view_cameras.batch_shape[0] != b:
+        raise ValueError(
+            f"view_cameras must have batch shape (B, H) with B = {b}, got {tuple(view_cameras.batch_shape)}"
+        )
+
+
 def prior_3d_loss(
     pred_points: Tensor,
     gt_points: Tensor,
@@ -130,17 +145,8 @@ def prior_3d_loss(
     Returns:
         :class:`Prior3DLoss`.
     """
-    if pred_points.ndim != 3 or gt_points.ndim != 3 or pred_points.shape[0] != gt_points.shape[0]:
-        raise ValueError(
-            f"pred_points and gt_points must be (B, N, 3) with the same B, got {tuple(pred_points.shape)} "
-            f"and {tuple(gt_points.shape)}"
-        )
-    b = pred_points.shape[0]
-    if len(view_cameras.batch_shape) != 2 or view_cameras.batch_shape[0] != b:
-        raise ValueError(
-            f"view_cameras must have batch shape (B, H) with B = {b}, got {tuple(view_cameras.batch_shape)}"
-        )
-    h = view_cameras.batch_shape[1]
+    _validate_prior_inputs(pred_points, gt_points, view_cameras)
+    b, h = view_cameras.batch_shape
     s = render_size
     cameras = view_cameras.flatten()
 

@@ -185,32 +185,13 @@ def _checked_values(tree: Mapping, label: str) -> dict[str, object]:
     return value
 
 
-def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File:
-    """The config fields that rebuild ``path``'s network and PC²'s sampler (:class:`PC2File`).
-
-    Raises:
-        ValueError: the file could run code while loading, holds no PC² model, its ``model`` is no state dict
-            of finite tensors (:func:`cdm.model.state_dicts.checked_state_dict`), or its ``cfg`` holds a
-            value that is no finite number where one belongs, or asks for a network this one cannot be
-            (another image model, global features, colour, a scale factor) or a value the config refuses;
-            the message starts with ``flag`` (the option that named the file) and the path.
-    """
-    file = input_path(path)
-    label = f"{flag}: {file}"
-    raw = load_inert(file, label, "PC² checkpoint")
-    if not isinstance(raw, Mapping) or not isinstance(raw.get("model", raw), Mapping):
-        raise ValueError(f"{label} holds no model state dict")
-    checked_state_dict(raw.get("model", raw), label)  # refused here in the option's name, not in the network's
-    tree = config_data(raw.get("cfg")) or {}
-    if not isinstance(tree, Mapping):
-        raise ValueError(
-            f"{label}: its cfg is a {type(tree).__name__}, not a config of groups (run, dataset, model, …)"
-        )
-    value = _checked_values(tree, label)
+def _network_fields(value: dict, path: str | Path) -> dict:
+    """The config fields (dotted path → value) of the network and sampler that PC²'s checked cfg ``value``
+    (:func:`_checked_values`) describes, for the checkpoint at ``path``."""
     ddim = value["run.diffusion_scheduler"] == "ddim"
     steps = min(int(value["run.num_inference_steps"]), 1000)
     points = int(value["dataset.max_points"])
-    overrides = {
+    return {
         "model.denoiser": "pvcnn2",
         "model.encoder": "vit_s16",
         "model.encoder_weights": None,
@@ -235,6 +216,31 @@ def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File
         "data.num_points": points,
         "eval.num_points": points,
     }
+
+
+def read_pc2_checkpoint(path: str | Path, flag: str = "--checkpoint") -> PC2File:
+    """The config fields that rebuild ``path``'s network and PC²'s sampler (:class:`PC2File`).
+
+    Raises:
+        ValueError: the file could run code while loading, holds no PC² model, its ``model`` is no state dict
+            of finite tensors (:func:`cdm.model.state_dicts.checked_state_dict`), or its ``cfg`` holds a
+            value that is no finite number where one belongs, or asks for a network this one cannot be
+            (another image model, global features, colour, a scale factor) or a value the config refuses;
+            the message starts with ``flag`` (the option that named the file) and the path.
+    """
+    file = input_path(path)
+    label = f"{flag}: {file}"
+    raw = load_inert(file, label, "PC² checkpoint")
+    if not isinstance(raw, Mapping) or not isinstance(raw.get("model", raw), Mapping):
+        raise ValueError(f"{label} holds no model state dict")
+    checked_state_dict(raw.get("model", raw), label)  # refused here in the option's name, not in the network's
+    tree = config_data(raw.get("cfg")) or {}
+    if not isinstance(tree, Mapping):
+        raise ValueError(
+            f"{label}: its cfg is a {type(tree).__name__}, not a config of groups (run, dataset, model, …)"
+        )
+    value = _checked_values(tree, label)
+    overrides = _network_fields(value, path)
     dataset = tree.get("dataset") if isinstance(tree.get("dataset"), Mapping) else {}
     trained_on = (
         " ".join(str(dataset[k]) for k in ("type", "category") if k in dataset) or "a data set its file does not name"

@@ -20,7 +20,6 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.morphology import erosion
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
@@ -86,6 +85,24 @@ def _containing_pixel(col: Tensor, row: Tensor, image_size: int, margin: int) ->
     return torch.floor(col + 0.5).clamp(lo, hi).long(), torch.floor(row + 0.5).clamp(lo, hi).long()
 
 
+def _nearest_per_pixel(flat: Tensor, cand_z: Tensor, ni: Tensor, n: int, b: int, s: int) -> tuple[Tensor, Tensor]:
+    """The z-buffer of :func:`rasterize_points`' candidates: ``(B, S, S)`` index of the nearest candidate's point
+    at each pixel (-1 where none; depth ties go to the smaller index) and ``(B, S, S)`` its depth (0.0 where none).
+
+    ``flat``: each candidate's flat pixel ``b·S² + row·S + col``, ``B·S²`` for one off the image; ``cand_z`` its
+    view depth (world units); ``ni`` its point's index in ``[0, N)``.
+    """
+    dump = b * s * s  # the extra slot that collects candidates off the image
+    zbuf = torch.full((dump + 1,), math.inf, dtype=cand_z.dtype, device=cand_z.device)
+    zbuf.scatter_reduce_(0, flat, cand_z, reduce="amin")
+    winner = cand_z == zbuf[flat]
+    idx = torch.full((dump + 1,), n, dtype=torch.long, device=cand_z.device)
+    idx.scatter_reduce_(0, flat, torch.where(winner, ni, n), reduce="amin")
+    idx, zbuf = idx[:dump], zbuf[:dump]
+    empty = idx == n
+    return idx.masked_fill(empty, -1).view(b, s, s), zbuf.masked_fill(empty, 0.0).view(b, s, s)
+
+
 @torch.no_grad()
 def rasterize_points(points: Tensor, cameras: Cameras, image_size: int, radius: float) -> Fragments:
     """Hard z-buffer rasterization of points as discs of radius ``radius`` (one point per pixel).
@@ -135,18 +152,7 @@ def rasterize_points(points: Tensor, cameras: Cameras, image_size: int, radius: 
     on_image = (rows >= 0) & (rows < s) & (cols >= 0) & (cols < s)
     dump = b * s * s  # one extra slot collects candidates off the image
     flat = torch.where(on_image, bi * (s * s) + rows * s + cols, dump)
-    cand_z = z.reshape(-1).index_select(0, pi)
-
-    zbuf = torch.full((dump + 1,), math.inf, dtype=z.dtype, device=device)
-    zbuf.scatter_reduce_(0, flat, cand_z, reduce="amin")
-    winner = cand_z == zbuf[flat]
-    idx = torch.full((dump + 1,), n, dtype=torch.long, device=device)
-    idx.scatter_reduce_(0, flat, torch.where(winner, ni, n), reduce="amin")
-    idx, zbuf = idx[:dump], zbuf[:dump]
-
-    empty = idx == n
-    idx = idx.masked_fill(empty, -1).view(b, s, s)
-    zbuf = zbuf.masked_fill(empty, 0.0).view(b, s, s)
+    idx, zbuf = _nearest_per_pixel(flat, z.reshape(-1).index_select(0, pi), ni, n, b, s)
     seen = idx.view(b, -1).gather(1, pixel.clamp(min=0))
     visible = inside & (seen == torch.arange(n, device=device))
     return Fragments(idx=idx, zbuf=zbuf, pixel=pixel, visible=visible)
@@ -270,6 +276,8 @@ def _window_min(images: Tensor, half: int) -> Tensor:
     width = 2 * half + 1
     if images.device.type != "cpu":
         return -F.max_pool2d(-images, width, stride=1, padding=half)
+    from kornia.morphology import erosion  # here, not at the top: importing kornia costs ~0.2 s
+
     window = torch.ones(width, width)
     return erosion(images, window, border_type="constant", border_value=math.inf, engine="shift")
 
@@ -332,6 +340,21 @@ def _bilinear_deposit(col: Tensor, row: Tensor, front: Tensor, side: int) -> tup
     return values.view(b, 4 * n), indices.view(b, 4 * n)
 
 
+def _filtered_deposits(
+    z: Tensor, col: Tensor, row: Tensor, front: Tensor, side: int, footprint: _Footprint, depth: bool
+) -> Tensor:
+    """The accumulators of :func:`splat_points`, ``(B, C, S, S)``: each point's weight ``front`` (and, for
+    ``depth``, weight × view depth ``z``) deposited bilinearly around its canvas pixel ``(col, row)`` of the
+    ``side × side`` canvas, then filtered by ``footprint`` and cropped. ``C`` is 2 (``Σwz``, ``Σw``) for depth,
+    1 (``Σw``) for planar, which needs no ``Σwz``. Inputs are ``(B, N)``."""
+    b, n = z.shape
+    w, flat = _bilinear_deposit(col, row, front, side)
+    deposits = torch.stack([w * z.repeat(1, 4), w], dim=1) if depth else w[:, None]
+    c = deposits.shape[1]
+    canvas = w.new_zeros(b, c, side * side).scatter_add(2, flat[:, None, :].expand(b, c, 4 * n), deposits)
+    return _filter_and_crop(canvas.view(b, c, side, side), footprint)
+
+
 def splat_points(
     points: Tensor,
     cameras: Cameras,
@@ -373,7 +396,6 @@ def splat_points(
         ``(B, S, S)`` image, differentiable w.r.t. ``points``. Points behind the camera add nothing.
     """
     _validate_splat(points, cameras, image_size, point_size, kind, depth_layer)
-    b, n, _ = points.shape
     s = image_size
     # split/unbind, not indexing: their backward is one cat, where each index's backward zero-fills a copy
     xy, z = project_points(points, cameras, eps=Z_NEAR).split([2, 1], dim=-1)
@@ -384,16 +406,11 @@ def splat_points(
     footprint = _footprint(point_size * s / 2.0)
     half = (footprint.table.shape[0] - 1) // 2
     side = s + 2 * half  # canvas with a footprint-wide margin
-
     col, row = pix_col + half, pix_row + half
     if depth_layer is not None:
         front = front * _front_layer(z.detach(), col.detach(), row.detach(), front, side, half, depth_layer)
-    w, flat = _bilinear_deposit(col, row, front, side)
     depth = RENDER_KINDS[kind].depth
-    deposits = torch.stack([w * z.repeat(1, 4), w], dim=1) if depth else w[:, None]  # planar needs no Σwz
-    c = deposits.shape[1]
-    canvas = points.new_zeros(b, c, side * side).scatter_add(2, flat[:, None, :].expand(b, c, 4 * n), deposits)
-    acc = _filter_and_crop(canvas.view(b, c, side, side), footprint)
+    acc = _filtered_deposits(z, col, row, front, side, footprint, depth)
     if depth:
         return acc[:, 0] / (acc[:, 1] + SPLAT_DEPTH_EPS)
     return 1.0 - torch.exp(-acc[:, 0])

@@ -1,6 +1,6 @@
 """Write docs/cli.md from the parsers of every cdm-lab command: usage, flags, example.
 
-``python docs/cli.py`` rewrites the page; ``tests/test_cdm_lab.py`` fails while the page differs from what
+``python docs/cli.py`` rewrites the page; ``tests/test_lab.py`` fails while the page differs from what
 this prints, so a flag added to a parser without rerunning this is caught.
 """
 
@@ -14,7 +14,7 @@ if __package__ in (None, ""):  # `python docs/cli.py` puts docs/ first on sys.pa
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from cdm.cli import PROG
-from sweeps.cdm_lab import COMMANDS, parsers
+from cdm.lab import commands, parsers
 
 PAGE = Path(__file__).resolve().parent / "cli.md"
 WIDTH = 100
@@ -68,9 +68,9 @@ def _section(name: str, parser: argparse.ArgumentParser) -> str:
 
 def render() -> str:
     """The page: the grammar, a table of contents, then each command (and each ``inputs`` step)."""
-    found = list(parsers())
+    found, listed = list(parsers()), commands()
     contents = [f"- [`{PROG} {name}`](#{PROG}-{name.replace(' ', '-')}): "
-                f"{COMMANDS[name][1].summary if name in COMMANDS else parser.description}" for name, parser in found]
+                f"{listed[name][1].summary if name in listed else parser.description}" for name, parser in found]
     return "\n".join([HEAD, "## Commands", "", *contents, "", *(_section(n, p) for n, p in found)]).rstrip() + "\n"
 
 

@@ -23,10 +23,10 @@ MAX_LINE = 200  # characters of one printed line (issue 36)
 PURPOSE = {
     "sweeps/run.py": "Run a sweep: train every trial of a spec on Ray",
     "sweeps/inputs.py": "Make a data set's inputs for the paper profile on Ray",
-    "sweeps/cdm_lab.py": "One command line for CDM Lab",
     "sweeps/rerun.py": "Re-run one finished trial of a sweep from its MLflow record",
     "sweeps/report.py": "Rebuild a finished sweep's comparison straight from MLflow",
     "sweeps/register.py": "Register a finished sweep's best cell's model in MLflow's model registry",
+    "cdm/lab.py": "One command line for CDM Lab",
     "cdm/__main__.py": "Train, evaluate and use a CDM model without a sweep",
     "cdm/tools/export_views.py": "Write the images a config's data set shows the model",
     "cdm/tools/estimate_depth.py": "Estimate the paper's 2D depth prior on exported views",

@@ -1,4 +1,7 @@
-"""``cdm-lab evaluate/reconstruct --checkpoint URI``: MLflow fetches the files, the command reads a local copy."""
+"""``cdm-lab evaluate/reconstruct --checkpoint URI``: MLflow fetches the files, the command reads a local copy.
+
+:func:`cdm.lab.fetched_checkpoint` finds the fetcher (:func:`sweeps.lab.fetch`) through the installed entry point
+``cdm_lab.checkpoint_fetchers`` (``pip install -e .`` records it)."""
 
 from __future__ import annotations
 
@@ -10,9 +13,8 @@ from mlflow import MlflowClient
 
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from cdm.config import load_config
+from cdm.lab import fetched_checkpoint, main
 from cdm.paths import names_a_uri
-from sweeps.cdm_lab import main
-from sweeps.fetch_checkpoint import FetchError, fetched_checkpoint
 
 
 def test_uris_are_told_from_paths():
@@ -49,5 +51,5 @@ def test_a_uri_mlflow_cannot_resolve_is_one_line_and_exit_2(tmp_path, monkeypatc
     assert err.startswith("error: --checkpoint: MLflow could not fetch runs:/0123456789abcdef/model (")
     assert err.count("\n") == 1 and "runs:/<run id>/model" in err
     missing = ["--checkpoint", "runs:/0123456789abcdef/model"]
-    with pytest.raises(FetchError, match="0123456789abcdef"), fetched_checkpoint(missing):
+    with pytest.raises(ValueError, match="0123456789abcdef"), fetched_checkpoint(missing):
         pass

@@ -15,9 +15,10 @@ from pathlib import Path
 import pytest
 import ray
 
+from cdm import lab
 from cdm.config import Config, ConfigError, config_field_paths, load_config
 from cdm.memory import check_memory, estimate_train_bytes
-from sweeps import cdm_lab, run
+from sweeps import run
 from sweeps.execute.claim import ClaimError, claim
 from sweeps.plan.limits import LimitError, check_trials
 from sweeps.plan.schema_base import SpecError
@@ -267,7 +268,7 @@ def test_a_claimed_folder_is_refused_naming_the_running_parent_run(tmp_path, cap
 @pytest.mark.parametrize("command", ["report", "rerun"])
 def test_report_and_rerun_refuse_a_bad_tracking_uri(tmp_path, capsys, monkeypatch, command):
     monkeypatch.chdir(tmp_path)
-    assert cdm_lab.main([command, "abc", "--tracking-uri", "ftp://nope"]) == 2
+    assert lab.main([command, "abc", "--tracking-uri", "ftp://nope"]) == 2
     err = capsys.readouterr().err
     assert "unsupported scheme 'ftp'" in err and len(err.strip().splitlines()) == 1, err
     assert not list(tmp_path.iterdir())

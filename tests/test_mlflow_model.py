@@ -22,8 +22,8 @@ from mlflow import MlflowClient
 from mlflow.exceptions import MlflowException
 
 from cdm.checkpoint import load_checkpoint
+from cdm.lab import main
 from cdm.train import fit
-from sweeps.cdm_lab import main
 from sweeps.execute.tracking import SweepRun
 from sweeps.execute.trial_tracking import TrialRun
 from sweeps.mlflow_model import model_checkpoint

@@ -27,9 +27,9 @@ ALLOWED = {Path("cdm/provenance.py"): {".read_text": "/proc/cpuinfo: the kernel'
                                                                     "process (its size reads 0), written by no one",
                                                        ".read_text": "/proc/<pid>/stat: the kernel's process table, "
                                                                      "written by no one"},
-           Path("sweeps/cdm_lab.py"): {".read_text": "--version: pip's own install record of this package "
-                                                     "(importlib.metadata's direct_url.json)",
-                                       "json.loads": "--version: the commit in pip's own install record"}}
+           Path("cdm/lab.py"): {".read_text": "--version: pip's own install record of this package "
+                                              "(importlib.metadata's direct_url.json)",
+                                "json.loads": "--version: the commit in pip's own install record"}}
 """Reads outside ``cdm/io/`` kept on purpose, each with its reason."""
 
 PICKLE_READERS = {"torch.load", "torch.jit.load", "pickle.load", "pickle.loads", "_pickle.load", "_pickle.loads",

@@ -246,6 +246,60 @@ def _scaled(width: int, multiplier: float, field: str) -> int:
     return out
 
 
+def _resolution(r: int, vm: float) -> int:
+    """Voxel grid side ``r`` scaled by ``model.voxel_resolution_multiplier`` ``vm``; an empty grid is refused."""
+    out = int(vm * r)
+    if out < 1:
+        raise ValueError(f"model.voxel_resolution_multiplier={vm} makes a resolution-{r} grid empty")
+    return out
+
+
+def _sa_layers(
+    in_channels: int, wm: float, vm: float, dropout: float, embed_dim: int
+) -> tuple[nn.ModuleList, int, list[int]]:
+    """PC²'s set-abstraction levels (:data:`SA_BLOCKS`) with widths × ``wm`` and grids × ``vm``: the layers, the
+    bottleneck's channels and each level's input channels (the skips the propagation levels take)."""
+    sa_layers, skip_channels = [], []
+    channels = 3 + in_channels
+    for level, (conv, (centers, radius, neighbors, widths)) in enumerate(SA_BLOCKS):
+        skip_channels.append(channels)
+        blocks: list[nn.Module] = []
+        extra = 0 if level == 0 else embed_dim  # the time embedding joins the level's first layer
+        if conv is not None:
+            width, configured, resolution = conv
+            width = _scaled(width, wm, "width_multiplier")
+            # PC² builds all of SA1's PVConvs but only the first of any later level's; the voxel
+            # attention sits in the odd levels (SA2).
+            for p in range(configured if level == 0 else 1):
+                blocks.append(
+                    PVConv(channels + extra, width, _resolution(resolution, vm), level % 2 == 1 and p == 0, dropout)
+                )
+                channels, extra = width, 0
+        scaled = tuple(_scaled(w, wm, "width_multiplier") for w in widths)
+        blocks.append(SetAbstraction(channels + extra, scaled, centers, radius, neighbors))
+        channels = scaled[-1]
+        sa_layers.append(blocks[0] if len(blocks) == 1 else nn.Sequential(*blocks))
+    return nn.ModuleList(sa_layers), channels, skip_channels
+
+
+def _fp_layers(
+    channels: int, skip_channels: list[int], wm: float, vm: float, dropout: float, embed_dim: int
+) -> tuple[nn.ModuleList, int]:
+    """PC²'s feature-propagation levels (:data:`FP_BLOCKS`) from a ``channels``-wide bottleneck, the skips taken
+    deepest first: the layers and their output channels."""
+    fp_layers = []
+    for level, (widths, (width, count, resolution)) in enumerate(FP_BLOCKS):
+        scaled = tuple(_scaled(w, wm, "width_multiplier") for w in widths)
+        blocks = [FeaturePropagation(channels + skip_channels[-1 - level] + embed_dim, scaled)]
+        channels = scaled[-1]
+        width = _scaled(width, wm, "width_multiplier")
+        for _ in range(count):
+            blocks.append(PVConv(channels, width, _resolution(resolution, vm), False, dropout))
+            channels = width
+        fp_layers.append(nn.Sequential(*blocks))
+    return nn.ModuleList(fp_layers), channels
+
+
 class PVCNN2Denoiser(nn.Module):
     """PC²'s PVCNN2 as a CDM denoiser: ``(x_t, per-point conditioning, t) → (B, N, 3)``.
 
@@ -274,32 +328,7 @@ class PVCNN2Denoiser(nn.Module):
         super().__init__()
         self.in_channels, self.embed_dim = in_channels, embed_dim
         wm, vm = width_multiplier, voxel_resolution_multiplier
-
-        def res(r: int) -> int:
-            out = int(vm * r)
-            if out < 1:
-                raise ValueError(f"model.voxel_resolution_multiplier={vm} makes a resolution-{r} grid empty")
-            return out
-
-        sa_layers, skip_channels = [], []
-        channels = 3 + in_channels
-        for level, (conv, (centers, radius, neighbors, widths)) in enumerate(SA_BLOCKS):
-            skip_channels.append(channels)
-            blocks: list[nn.Module] = []
-            extra = 0 if level == 0 else embed_dim  # the time embedding joins the level's first layer
-            if conv is not None:
-                width, configured, resolution = conv
-                width = _scaled(width, wm, "width_multiplier")
-                # PC² builds all of SA1's PVConvs but only the first of any later level's; the voxel
-                # attention sits in the odd levels (SA2).
-                for p in range(configured if level == 0 else 1):
-                    blocks.append(PVConv(channels + extra, width, res(resolution), level % 2 == 1 and p == 0, dropout))
-                    channels, extra = width, 0
-            scaled = tuple(_scaled(w, wm, "width_multiplier") for w in widths)
-            blocks.append(SetAbstraction(channels + extra, scaled, centers, radius, neighbors))
-            channels = scaled[-1]
-            sa_layers.append(blocks[0] if len(blocks) == 1 else nn.Sequential(*blocks))
-        self.sa_layers = nn.ModuleList(sa_layers)
+        self.sa_layers, channels, skip_channels = _sa_layers(in_channels, wm, vm, dropout, embed_dim)
         self.global_att = SelfAttention(channels, 1)
         # Supplementary Table 7's ⊗ rows: PC²'s network has no cross-attention and the paper does not say
         # where it adds one; ours lets the bottleneck centres attend to the tokens, after the global
@@ -307,19 +336,8 @@ class PVCNN2Denoiser(nn.Module):
         self.cross_att = (
             PointCrossAttention(channels, token_channels, num_tokens) if token_channels is not None else None
         )
-
         skip_channels[0] = in_channels  # FP4 takes the inputs without xyz
-        fp_layers = []
-        for level, (widths, (width, count, resolution)) in enumerate(FP_BLOCKS):
-            scaled = tuple(_scaled(w, wm, "width_multiplier") for w in widths)
-            blocks = [FeaturePropagation(channels + skip_channels[-1 - level] + embed_dim, scaled)]
-            channels = scaled[-1]
-            width = _scaled(width, wm, "width_multiplier")
-            for _ in range(count):
-                blocks.append(PVConv(channels, width, res(resolution), False, dropout))
-                channels = width
-            fp_layers.append(nn.Sequential(*blocks))
-        self.fp_layers = nn.ModuleList(fp_layers)
+        self.fp_layers, channels = _fp_layers(channels, skip_channels, wm, vm, dropout, embed_dim)
 
         head = _scaled(HEAD_WIDTH, wm, "width_multiplier")
         self.classifier = nn.Sequential(SharedMLP(channels, (head,)), nn.Dropout(dropout), nn.Conv1d(head, 3, 1))

@@ -21,7 +21,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable, Mapping
-from contextlib import nullcontext
+from contextlib import nullcontext, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -45,8 +45,8 @@ from sweeps.plan.trials import Cell, SweepPlan
 from sweeps.storage import is_uri, private_folder, storage_location
 
 __all__ = [
-    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "run_trial", "train_loop", "trial_dir_name", "trial_job",
-    "trial_scratch",
+    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "remove_sweep_scratch", "run_trial", "sweep_scratch",
+    "train_loop", "trial_dir_name", "trial_job", "trial_scratch",
 ]
 
 
@@ -189,13 +189,32 @@ def trial_scratch(sweep_dir: str, trial_id: str) -> Path:
 
     Only files on their way live there: a checkpoint until Ray has copied it into the sweep's storage
     (:class:`_RayReporter` then deletes it), evaluation files for the child run to log; the folder goes when
-    the trial ends (:func:`run_trial`; a Train worker's stays on its node, never recorded). Not Tune's
+    the trial ends (:func:`run_trial`; a Train worker's stays on its node, never recorded), the sweep's when the
+    sweep ends (:func:`remove_sweep_scratch`). Not Tune's
     trial folder (``get_trial_dir()``): that lies in Ray's temporary session folder, gone after ``ray stop``,
     and on the head node Tune's syncer copies it whole into the sweep folder, which then held every
     checkpoint twice.
     """
+    return sweep_scratch(sweep_dir) / trial_dir_name(trial_id)
+
+
+def sweep_scratch(sweep_dir: str) -> Path:
+    """This node's folder of the sweep's trial scratch folders (:func:`trial_scratch`), in this user's private
+    temporary folder: one per sweep folder, which one driver at a time runs (:mod:`sweeps.execute.claim`)."""
     sweep = hashlib.sha256(sweep_dir.encode()).hexdigest()[:16]
-    return private_folder(Path(tempfile.gettempdir()) / f"cdm-trials-{os.getuid()}") / sweep / trial_dir_name(trial_id)
+    return private_folder(Path(tempfile.gettempdir()) / f"cdm-trials-{os.getuid()}") / sweep
+
+
+def remove_sweep_scratch(sweep_dir: str, whole: bool) -> None:
+    """At the sweep's end (its trials are over), this node's :func:`sweep_scratch`: with what it holds when
+    ``whole`` (trials in Train's local mode, each folder its own trial's: a killed trial's files and an object-store
+    sweep's prior cache go too), else only if empty (a Train worker's folder stays on its node). A link there is
+    removed, never followed: ``shutil.rmtree`` refuses one at the top and unlinks those below."""
+    folder = sweep_scratch(sweep_dir)
+    if whole:  # a file that cannot be removed stays rather than failing a finished sweep
+        shutil.rmtree(folder, ignore_errors=True)
+    with suppress(OSError):  # absent, or not empty
+        folder.rmdir()
 
 
 def trial_job(setup: TrialSetup, tune_config: dict[str, Any], trial_id: str, node_id: str, scratch: Path) -> TrialJob:
@@ -272,6 +291,8 @@ def run_trial(tune_config: dict[str, Any], setup: TrialSetup) -> None:
     finally:  # its checkpoints are in storage, its evaluation files in MLflow: nothing left to keep
         if job.local and scratch.exists():  # (a Train worker's folder is on its own node; absent: failed early)
             shutil.rmtree(scratch)
+        with suppress(OSError):  # the sweep's folder on this node, once its last trial here is gone
+            scratch.parent.rmdir()
 
 
 def _prior_dir(sweep_dir: str, scratch: Path) -> str:

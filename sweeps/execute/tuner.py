@@ -25,7 +25,7 @@ from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.resume_retries import refusing, retry_errored
 from sweeps.execute.settle import UntilSettled
 from sweeps.execute.tracking import SweepRun
-from sweeps.execute.trial import TrialSetup, run_trial, trial_dir_name
+from sweeps.execute.trial import TrialSetup, remove_sweep_scratch, run_trial, trial_dir_name
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
@@ -240,6 +240,7 @@ def run_sweep(
     )
     grid = _tuner(plan, trainable, conc, sweep_dir, sweep_run, resume, callbacks, budget, resume_errored).fit()
     prune_finished(grid)  # fit() has uploaded Tune's final state: no trial's older checkpoints are needed
+    remove_sweep_scratch(sweep_dir, whole=r.workers_per_trial == 0)
     if root is not None:
         # A cache, gigabytes at the local profile: kept only while trials may still read it (a killed
         # driver leaves it for --resume; a resumed sweep that finds it gone renders it again).

@@ -30,7 +30,7 @@ from mlflow import MlflowClient
 
 from cdm.checkpoint import CHECKPOINT_FILE
 from sweeps import report, rerun, run
-from sweeps.execute.trial import trial_scratch
+from sweeps.execute.trial import sweep_scratch, trial_scratch
 from sweeps.mlflow_model import model_checkpoint
 from sweeps.results.finished import open_sweep, results_table, trial_records
 
@@ -100,6 +100,7 @@ def test_every_recorded_path_exists_after_rays_temporary_folder_is_gone(swept):
         assert tags["model"] == f"runs:/{child.info.run_id}/model"
         # The scratch folder the trial trained in is gone: its checkpoints are in storage, its files in MLflow.
         assert not trial_scratch(str(swept.folder), tags["trial_id"]).exists()
+    assert not sweep_scratch(str(swept.folder)).exists()  # and the sweep's own, once the sweep ended
     for name in ("results.md", "results.csv"):
         text = (swept.folder / name).read_text()
         recorded |= {f"{name}: {p}": p for p in PATH.findall(text)}
@@ -163,11 +164,15 @@ def test_safetensors_alone_loads_the_childs_weights(swept, tmp_path, monkeypatch
 
 
 def _scores_as_logged(uri: str, checkpoint: str, child, cwd: Path) -> None:
-    """``cdm-lab evaluate --checkpoint checkpoint`` (a new process) scores what ``child`` logged."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "MLFLOW_TRACKING_URI": uri}
-    out = subprocess.run([sys.executable, "-m", "sweeps.cdm_lab", "evaluate", "--checkpoint", checkpoint],
+    """``cdm-lab evaluate --checkpoint checkpoint`` (a new process) scores what ``child`` logged, leaving no
+    temporary folder behind (its private TMPDIR holds no ``tmp*`` or ``cdm-checkpoint-*`` after it)."""
+    private = cwd / "tmpdir"
+    private.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MLFLOW_TRACKING_URI": uri, "TMPDIR": str(private)}
+    out = subprocess.run([sys.executable, "-m", "cdm.lab", "evaluate", "--checkpoint", checkpoint],
                          cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
+    assert _left_in(private) == []
     scores = dict(re.findall(r"^(eval/(?:f1|cd)) +([\d.]+)$", out.stdout, re.M))
     logged = child.data.metrics  # the trial's last evaluation, at the results table's precision
     assert abs(float(scores["eval/f1"]) - logged["eval/f1"]) <= 1e-3, (scores, logged)
@@ -204,9 +209,18 @@ def test_the_best_cells_model_is_registered_and_loads_as_an_mlflow_model(swept, 
     _scores_as_logged(swept.uri, f"models:/{REGISTERED}/1", registered, tmp_path)
 
 
+def _left_in(folder: Path) -> list[str]:
+    """The temporary folders a command left in ``folder`` (its TMPDIR): Python's ``tmp*`` and ours."""
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith(("tmp", "cdm-checkpoint-")))
+
+
 def test_report_and_rerun_work_from_the_record_alone(swept, tmp_path, monkeypatch, capsys):
     _, _, children = _runs(swept.uri)
     monkeypatch.chdir(tmp_path)
+    private = tmp_path / "tmpdir"  # the commands' temporary folder: what they leave there is counted below
+    private.mkdir()
+    monkeypatch.setenv("TMPDIR", str(private))
+    monkeypatch.setattr(tempfile, "tempdir", None)  # read TMPDIR again
     assert report.main(["record", "--tracking-uri", swept.uri]) == 0
     rebuilt = tmp_path / "results" / "record" / "report" / "results.md"
     assert rebuilt.read_text() == (swept.folder / "results.md").read_text()
@@ -214,3 +228,4 @@ def test_report_and_rerun_work_from_the_record_alone(swept, tmp_path, monkeypatc
     child = min(children, key=lambda r: r.info.run_name)
     assert rerun.main([child.info.run_id, "--tracking-uri", swept.uri]) == 0
     assert "reproduced exactly" in capsys.readouterr().out
+    assert _left_in(private) == []

@@ -1,25 +1,37 @@
 """One command line for CDM Lab: cdm-lab COMMAND [ARGUMENTS], each command one the project already has.
 
 Each command hands its arguments, unchanged, to the ``main(argv)`` of the module it names: its help, its
-messages and its exit codes are that command's own (``cdm-lab run SPEC`` is ``python sweeps/run.py SPEC``,
-``cdm-lab train …`` is ``python -m cdm train …``), its parser made by :mod:`cdm.cli`, so that both forms say
-``cdm-lab COMMAND``. A module is imported only when its command runs, so ``cdm-lab`` and ``cdm-lab --help``
-answer without importing torch, Ray or MLflow.
+messages and its exit codes are that command's own (``cdm-lab train …`` is ``python -m cdm train …``), its
+parser made by :mod:`cdm.cli`, so that both forms say ``cdm-lab COMMAND``. A module is imported only when its
+command runs, so ``cdm-lab`` and ``cdm-lab --help`` answer without importing torch, Ray or MLflow.
+
+The model's commands are listed here. Other packages add theirs through Python entry points, read with
+:mod:`importlib.metadata`, so that this library needs none of them to train, evaluate or reconstruct:
+
+- ``cdm_lab.commands``: a dict ``name → (heading, Command)``, listed before the model's own;
+- ``cdm_lab.checkpoint_fetchers``: ``fetch(uri, folder) -> path``, which downloads a model command's
+  ``--checkpoint URI`` (``runs:/…``) into ``folder`` and returns the checkpoint's local path, raising
+  ``ValueError`` with one line naming ``--checkpoint`` when it cannot. Without one, a URI is refused by the
+  command itself.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import json
 import sys
+import tempfile
 from collections.abc import Iterator
-from contextlib import ExitStack
-from importlib.metadata import PackageNotFoundError, distribution
+from contextlib import ExitStack, contextmanager
+from importlib.metadata import PackageNotFoundError, distribution, entry_points
 from pathlib import Path
 from typing import NamedTuple
 
-__all__ = ["COMMANDS", "Command", "main", "parsers", "version"]
+from cdm.paths import names_a_uri
+
+__all__ = ["COMMANDS", "Command", "commands", "main", "parsers", "version"]
 
 
 class Command(NamedTuple):
@@ -28,13 +40,16 @@ class Command(NamedTuple):
     module: str
     summary: str
     subcommand: str | None = None
-    """The subcommand of ``python -m cdm`` it is, put before the user's arguments; None for a module's own main."""
+    """The subcommand of ``python -m <package>`` it is, put before the user's arguments; None for a module's
+    own main."""
+    as_file: bool = False
+    """Its old form runs the module's file (``python sweeps/run.py``) rather than ``python -m module``."""
 
     def old_form(self) -> str:
         """How a user typed this command before ``cdm-lab``: still works, and still what its help shows."""
         if self.subcommand is not None:
             return f"python -m {self.module.removesuffix('.__main__')} {self.subcommand}"
-        if self.module.startswith("sweeps."):
+        if self.as_file:
             return f"python {self.module.replace('.', '/')}.py"
         return f"python -m {self.module}"
 
@@ -47,34 +62,40 @@ class Command(NamedTuple):
 
 
 CHECKOUT = Path(__file__).resolve().parent.parent
-"""The folder above sweeps/: a git checkout when the project runs from one (``--version`` reads its commit)."""
+"""The folder above cdm/: a git checkout when the project runs from one (``--version`` reads its commit)."""
 
-_SWEEPS = "sweeps: Ray, Optuna and MLflow around the model"
+COMMANDS_GROUP = "cdm_lab.commands"
+FETCHERS_GROUP = "cdm_lab.checkpoint_fetchers"
+
 _MODEL = "one model, without a sweep"
 _TOOLS = "external inputs, written once"
+_MAIN = "cdm.__main__"
 COMMANDS: dict[str, tuple[str, Command]] = {
-    "run": (_SWEEPS, Command("sweeps.run", "run a sweep spec: its trials on Ray, tracked in MLflow, a results table")),
-    "report": (_SWEEPS, Command("sweeps.report", "rebuild a finished sweep's table, plots and panels from MLflow")),
-    "register": (_SWEEPS, Command("sweeps.register", "register a finished sweep's best cell's model in MLflow")),
-    "rerun": (_SWEEPS, Command("sweeps.rerun", "re-run one finished trial from its MLflow record, checked first")),
-    "inputs": (_SWEEPS, Command("sweeps.inputs", "a data set's inputs for the paper profile, made as Ray tasks")),
-    "train": (_MODEL, Command("cdm.__main__", "train a model from a config file", "train")),
-    "train-prior": (_MODEL, Command("cdm.__main__", "train a category prior for BDM blending", "train-prior")),
-    "evaluate": (_MODEL, Command("cdm.__main__", "score a checkpoint on the held-out split", "evaluate")),
-    "reconstruct": (_MODEL, Command("cdm.__main__", "reconstruct a point cloud from one image", "reconstruct")),
-    "prepare": (_MODEL, Command("cdm.__main__", "convert a data set once into shards that load fast", "prepare")),
-    "check-data": (_MODEL, Command("cdm.__main__", "check that ground-truth clouds project into their masks",
-                                   "check-data")),
-    "fields": (_MODEL, Command("cdm.__main__", "list every config field with its default", "fields")),
-    "convert": (_MODEL, Command("cdm.__main__", "rewrite a cdm 0.1.0 checkpoint.pt as a safetensors checkpoint",
-                                "convert")),
+    "train": (_MODEL, Command(_MAIN, "train a model from a config file", "train")),
+    "train-prior": (_MODEL, Command(_MAIN, "train a category prior for BDM blending", "train-prior")),
+    "evaluate": (_MODEL, Command(_MAIN, "score a checkpoint on the held-out split", "evaluate")),
+    "reconstruct": (_MODEL, Command(_MAIN, "reconstruct a point cloud from one image", "reconstruct")),
+    "prepare": (_MODEL, Command(_MAIN, "convert a data set once into shards that load fast", "prepare")),
+    "check-data": (_MODEL, Command(_MAIN, "check that ground-truth clouds project into their masks", "check-data")),
+    "fields": (_MODEL, Command(_MAIN, "list every config field with its default", "fields")),
+    "convert": (_MODEL, Command(_MAIN, "rewrite a cdm 0.1.0 checkpoint.pt as a safetensors checkpoint", "convert")),
     "export-views": (_TOOLS, Command("cdm.tools.export_views", "write the images a config's data set shows the model")),
     "estimate-depth": (_TOOLS, Command("cdm.tools.estimate_depth",
                                        "write depth maps with DINOv2's DPT head or Depth Anything")),
     "openclip-embeddings": (_TOOLS, Command("cdm.tools.openclip_embeddings",
                                             "write Table 7's per-object OpenCLIP embeddings")),
 }
-"""Every command, under the heading ``cdm-lab --help`` lists it beneath, in the order listed."""
+"""The model library's own commands, under the heading ``cdm-lab --help`` lists each beneath, in the order listed."""
+
+
+@functools.cache
+def commands() -> dict[str, tuple[str, Command]]:
+    """Every command: those the installed ``cdm_lab.commands`` entry points add (in their names' order), then
+    :data:`COMMANDS`, which keep their meaning whatever a plug-in names."""
+    added: dict[str, tuple[str, Command]] = {}
+    for point in sorted(entry_points(group=COMMANDS_GROUP), key=lambda p: p.name):
+        added.update(point.load())
+    return {**{k: v for k, v in added.items() if k not in COMMANDS}, **COMMANDS}
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -85,7 +106,7 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
 
 def parsers() -> Iterator[tuple[str, argparse.ArgumentParser]]:
     """Every command's parser under its name (``inputs``' steps too, as ``inputs prepare``), in listing order."""
-    for name, (_, command) in COMMANDS.items():
+    for name, (_, command) in commands().items():
         parser = command.parser()
         yield name, parser
         for step, sub in _subparsers(parser).items():
@@ -112,9 +133,10 @@ def version(root: Path = CHECKOUT) -> str:
 
 def _listing() -> str:
     """The commands by heading, each with its line and the command it is."""
-    width = max(map(len, COMMANDS))
+    listed = commands()
+    width = max(map(len, listed))
     lines, heading = [], None
-    for name, (group, command) in COMMANDS.items():
+    for name, (group, command) in listed.items():
         if group != heading:
             lines += ["", f"{group}:"] if heading else [f"{group}:"]
             heading = group
@@ -131,8 +153,41 @@ def _parser() -> argparse.ArgumentParser:
         "docs/cli.md lists them all.",
     )
     parser.add_argument("--version", action="store_true", help="print the version and the git commit, and exit")
-    parser.add_argument("command", choices=COMMANDS, metavar="COMMAND", help="one of the commands below")
+    parser.add_argument("command", choices=commands(), metavar="COMMAND", help="one of the commands below")
     return parser
+
+
+_CHECKPOINT = "--checkpoint"
+
+
+def _checkpoint_value(argv: list[str]) -> tuple[int, str] | None:
+    """(index in ``argv``, value) of ``--checkpoint VALUE`` or ``--checkpoint=VALUE``; None when absent."""
+    for i, arg in enumerate(argv):
+        if arg == _CHECKPOINT and i + 1 < len(argv):
+            return i + 1, argv[i + 1]
+        if arg.startswith(_CHECKPOINT + "="):
+            return i, arg.removeprefix(_CHECKPOINT + "=")
+    return None
+
+
+@contextmanager
+def fetched_checkpoint(argv: list[str]) -> Iterator[list[str]]:
+    """``argv`` with a ``--checkpoint`` URI replaced by the local copy a ``cdm_lab.checkpoint_fetchers`` entry
+    point made of it, in a temporary folder removed when the context ends; ``argv`` itself when it names a local
+    checkpoint or no fetcher is installed (the command then refuses the URI in its own words).
+
+    Raises:
+        ValueError: the fetcher could not resolve or download the URI (one line, naming ``--checkpoint``).
+    """
+    found = _checkpoint_value(argv)
+    fetchers = sorted(entry_points(group=FETCHERS_GROUP), key=lambda p: p.name) if found else []
+    if found is None or not names_a_uri(found[1]) or not fetchers:
+        yield argv
+        return
+    i, uri = found
+    with tempfile.TemporaryDirectory(prefix="cdm-checkpoint-") as tmp:
+        local = str(fetchers[0].load()(uri, Path(tmp)))
+        yield [*argv[:i], local if argv[i] == uri else f"{_CHECKPOINT}={local}", *argv[i + 1:]]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -144,19 +199,16 @@ def main(argv: list[str] | None = None) -> int:
     if argv == ["--version"]:
         print(version())
         return 0
-    if argv[0] not in COMMANDS:
+    if argv[0] not in commands():
         _parser().parse_args(argv[:1])  # --help exits 0; an unknown command exits 2, naming the choices
-    _, command = COMMANDS[argv[0]]
+    _, command = commands()[argv[0]]
     prefix = [command.subcommand] if command.subcommand is not None else []
-    if command.module != "cdm.__main__":
+    if command.module != _MAIN:
         return importlib.import_module(command.module).main(prefix + argv[1:])
-    # The model commands read local files; a --checkpoint URI (runs:/<run id>/model) is fetched by MLflow first.
-    from sweeps.fetch_checkpoint import FetchError, fetched_checkpoint
-
-    with ExitStack() as stack:
+    with ExitStack() as stack:  # the model commands read local files: a --checkpoint URI is fetched first
         try:
             args = stack.enter_context(fetched_checkpoint(argv[1:]))
-        except FetchError as exc:
+        except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         return importlib.import_module(command.module).main(prefix + args)

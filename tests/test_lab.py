@@ -1,7 +1,8 @@
 """``cdm-lab``: one command line whose commands are the project's commands, each the same command, one grammar.
 
 The commands run as a user types them: the ``cdm-lab`` script that ``pip install -e .`` puts beside this
-interpreter, or, where this checkout is not installed, ``python -m sweeps.cdm_lab`` (what the script runs).
+interpreter, or, where this checkout is not installed, ``python -m cdm.lab`` (what the script runs). The sweep
+commands come from the entry points ``pip install -e .`` records, as an installed ``cdm-lab`` finds them.
 Each command's help is compared with its old form's in this process (its file run as ``__main__`` by ``runpy``,
 as tests/test_commands.py does). Every command's parser is walked for the grammar of :mod:`cdm.cli`, and
 docs/cli.md is held to what ``python docs/cli.py`` writes from those parsers.
@@ -23,12 +24,13 @@ import pytest
 
 from cdm.__main__ import build_parser
 from cdm.config import config_field_paths
-from sweeps.cdm_lab import COMMANDS, main, parsers, version
+from cdm.lab import COMMANDS, commands, main, parsers, version
+from sweeps.lab import COMMANDS as SWEEP_COMMANDS
 from tests.test_commands import _commands
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = Path(sys.executable).parent / "cdm-lab"
-CDM_LAB = [str(SCRIPT)] if SCRIPT.is_file() else [sys.executable, "-m", "sweeps.cdm_lab"]
+CDM_LAB = [str(SCRIPT)] if SCRIPT.is_file() else [sys.executable, "-m", "cdm.lab"]
 
 
 def _run(command: list[str], *args: str) -> subprocess.CompletedProcess:
@@ -36,25 +38,41 @@ def _run(command: list[str], *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([*command, *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
 
 
-def test_the_project_installs_cdm_lab_as_its_one_script():
-    scripts = (ROOT / "pyproject.toml").read_text().split("[project.scripts]\n", 1)[1].split("\n[", 1)[0]
-    assert re.findall(r"^([\w-]+) = \"(.+)\"$", scripts, re.M) == [("cdm-lab", "sweeps.cdm_lab:main")]
+def _table(name: str) -> list[tuple[str, str]]:
+    """The ``key = "value"`` lines of pyproject.toml's table ``name``."""
+    text = (ROOT / "pyproject.toml").read_text().split(f"[{name}]\n", 1)[1].split("\n[", 1)[0]
+    return re.findall(r"^([\w-]+) = \"(.+)\"$", text, re.M)
+
+
+def test_the_project_installs_cdm_lab_as_its_one_script_and_the_sweeps_as_its_plug_in():
+    assert _table("project.scripts") == [("cdm-lab", "cdm.lab:main")]
+    assert _table('project.entry-points."cdm_lab.commands"') == [("sweeps", "sweeps.lab:COMMANDS")]
+    assert _table('project.entry-points."cdm_lab.checkpoint_fetchers"') == [("mlflow", "sweeps.lab:fetch")]
+
+
+def test_the_sweep_commands_are_listed_first_and_the_model_keeps_its_own():
+    """Found through the installed entry points (``pip install -e .`` after a change to them), cdm importing
+    nothing of sweeps/; a plug-in naming a model command would not change it."""
+    assert list(commands()) == [*SWEEP_COMMANDS, *COMMANDS]
+    assert commands()["run"] == SWEEP_COMMANDS["run"] and commands()["train"] == COMMANDS["train"]
+    assert [c.old_form() for _, c in SWEEP_COMMANDS.values()][:2] == ["python sweeps/run.py", "python sweeps/report.py"]
 
 
 def test_help_lists_every_command_and_imports_no_heavy_library():
     out = _run(CDM_LAB, "--help")
     assert out.returncode == 0, out.stderr
     listed = re.findall(r"^  ([a-z-]+) +(.+) \((python [^)]+)\)$", out.stdout, re.M)
-    assert [(n, s, c) for n, s, c in listed] == [(n, c.summary, c.old_form()) for n, (_, c) in COMMANDS.items()]
-    probe = "import sys; from sweeps.cdm_lab import main\ntry: main(['--help'])\nexcept SystemExit: pass\n" \
-            "print(sorted(m for m in ('torch', 'ray', 'mlflow', 'optuna') if m in sys.modules), file=sys.stderr)"
+    assert [(n, s, c) for n, s, c in listed] == [(n, c.summary, c.old_form()) for n, (_, c) in commands().items()]
+    probe = "import sys; from cdm.lab import main\ntry: main(['--help'])\nexcept SystemExit: pass\n" \
+            "print(sorted(m for m in ('torch', 'ray', 'mlflow', 'optuna', 'kornia') if m in sys.modules), " \
+            "file=sys.stderr)"
     assert _run([sys.executable, "-c", probe]).stderr.strip() == "[]"
 
 
 def test_bare_cdm_lab_lists_the_commands_and_an_unknown_one_exits_2_naming_the_choices():
     bare = _run(CDM_LAB)
     assert bare.returncode == 0 and bare.stderr == "" and bare.stdout == _run(CDM_LAB, "--help").stdout
-    assert bare.stdout.startswith("usage: cdm-lab ") and all(f"\n  {name} " in bare.stdout for name in COMMANDS)
+    assert bare.stdout.startswith("usage: cdm-lab ") and all(f"\n  {name} " in bare.stdout for name in commands())
     out = _run(CDM_LAB, "tran")
     assert out.returncode == 2 and out.stdout == ""
     assert out.stderr.splitlines()[-1].startswith("cdm-lab: error: ")
@@ -78,21 +96,21 @@ def test_version_outside_a_checkout_reads_the_installed_metadata(tmp_path):
 
 def test_every_command_of_the_project_is_a_cdm_lab_command():
     """A new subcommand of ``python -m cdm`` or a new command file of cdm/ or sweeps/ needs its cdm-lab command."""
-    sub = {c.subcommand for _, c in COMMANDS.values() if c.subcommand is not None}
+    sub = {c.subcommand for _, c in commands().values() if c.subcommand is not None}
     (choices,) = [a.choices for a in build_parser()._actions if a.dest == "command"]
     assert sub == set(choices)
-    files = {p for p in _commands() if p.startswith(("cdm/", "sweeps/"))} - {"sweeps/cdm_lab.py"}
-    assert {c.module.replace(".", "/") + ".py" for _, c in COMMANDS.values()} == files
+    files = {p for p in _commands() if p.startswith(("cdm/", "sweeps/"))} - {"cdm/lab.py"}
+    assert {c.module.replace(".", "/") + ".py" for _, c in commands().values()} == files
 
 
-@pytest.mark.parametrize("name", sorted(COMMANDS))
+@pytest.mark.parametrize("name", sorted(commands()))
 def test_each_commands_help_is_its_old_forms_help(name, capsys, script_help):
     with pytest.raises(SystemExit) as exit_:
         main([name, "--help"])
     assert exit_.value.code == 0
     ours = capsys.readouterr().out
     assert ours.startswith("usage: ") and len(ours.splitlines()) > 3
-    command = COMMANDS[name][1]
+    command = commands()[name][1]
     old = script_help(ROOT / (command.module.replace(".", "/") + ".py"), *filter(None, [command.subcommand]))
     assert ours == old  # the old form: the file or module run as __main__
 
@@ -142,7 +160,7 @@ def grammar_faults(name: str, parser: argparse.ArgumentParser) -> list[str]:
 
 def test_every_command_keeps_the_grammar():
     walked = dict(parsers())
-    assert set(COMMANDS) | {"inputs prepare", "inputs depth", "inputs all"} == set(walked)
+    assert set(commands()) | {"inputs prepare", "inputs depth", "inputs all"} == set(walked)
     faults = [f"cdm-lab {name}: {fault}" for name, parser in walked.items() for fault in grammar_faults(name, parser)]
     assert not faults, "\n".join(faults)
     takes = {}  # a flag is a switch everywhere or takes a value everywhere: one name, one meaning
@@ -230,5 +248,5 @@ def test_docs_cli_md_is_what_the_parsers_write():
     spec.loader.exec_module(page)
     written = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
     assert written == page.render(), "docs/cli.md is stale: run python docs/cli.py"
-    assert all(f"\n## cdm-lab {name}\n" in written for name in COMMANDS)
+    assert all(f"\n## cdm-lab {name}\n" in written for name in commands())
     assert "](docs/cli.md)" in (ROOT / "README.md").read_text(encoding="utf-8")
