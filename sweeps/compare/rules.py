@@ -1,6 +1,7 @@
 """The rules a results table reads numbers by (each metric's partner, direction and precision are in its
-record, :mod:`cdm.metric_names`): how verdicts on two metrics combine into one, and the notes that say what
-produced the numbers. Plain functions of names, numbers and the spec."""
+record, :mod:`cdm.metric_names`): which metrics a reader shows, how baselines are named, how verdicts on two
+metrics combine into one, and the notes that say what produced the numbers. Plain functions of names, numbers
+and the spec."""
 
 from __future__ import annotations
 
@@ -12,19 +13,27 @@ from dataclasses import dataclass
 from typing import Any
 
 from cdm.config import load_config
-from cdm.metric_names import number_text
+from cdm.metric_names import number_text, partner
 from sweeps.plan.spec import Spec
 
-__all__ = [
-    "PROTOCOL_NOTE",
-    "TOO_FEW",
-    "Stat",
-    "lambda_source",
-    "machine_note",
-    "settings_note",
-    "settings_notes",
-    "weighed",
-]
+__all__ = ["PROTOCOL_NOTE", "TOO_FEW", "Stat", "baseline_key", "baseline_name", "headline", "lambda_source",
+           "machine_note", "settings_note", "settings_notes", "weighed"]
+
+
+def headline(metric: str) -> list[str]:
+    """What every reader shows of a sweep: ``metric`` and its partner (:func:`cdm.metric_names.partner`), if any."""
+    return [m for m in (metric, partner(metric)) if m is not None]
+
+
+def baseline_key(baseline: str, metric: str) -> str:
+    """Where baseline ``baseline``'s score on ``metric`` (``eval/f1/chair`` or ``f1``) is logged and kept in
+    ``objects.csv``: ``baseline/<baseline>/f1/chair``."""
+    return f"baseline/{baseline}/{metric.removeprefix('eval/')}"
+
+
+def baseline_name(baseline: str) -> str:
+    """A baseline as a sentence or a plot names it: ``Gaussian``, ``category mean``."""
+    return {"gaussian": "Gaussian"}.get(baseline, baseline.replace("_", " "))
 
 
 @dataclass(frozen=True)
