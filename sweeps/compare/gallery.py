@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from cdm.metric_names import f1_at
+from sweeps.compare.plots import FONT, _pyplot, _save
 from sweeps.storage import write_file
 
 __all__ = [
@@ -114,8 +115,6 @@ def grid_figure(gallery: Gallery, columns: Sequence[str], title: str, scores: Sc
                 inputs: Mapping[str, np.ndarray] | None = None, *, f1_thresholds: float | Sequence[float]):
     """The matplotlib figure of :func:`grid_png`, laid out (constrained layout: the title above the
     column titles, the row labels inside the figure; no two texts overlap)."""
-    from sweeps.compare.plots import FONT, _pyplot
-
     plt = _pyplot()
     rows = list(gallery)
     names, note = _row_names(rows)
@@ -148,8 +147,6 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, s
     cloud titled with its ``scores`` (CD ×1000, F1 at the trials' ``f1_thresholds``); with ``inputs``
     (object id → its input image), the image the model saw first. Rows are labelled by what tells their
     objects apart (:func:`_row_names`), the full ids under the grid."""
-    from sweeps.compare.plots import _save
-
     return _save(grid_figure(gallery, columns, title, scores, inputs, f1_thresholds=f1_thresholds), path)
 
 

@@ -103,16 +103,11 @@ def headline_name(record: SweepRecord, table: ResultsTable) -> str:
 
 
 def share_view(record: SweepRecord, table: ResultsTable | None = None) -> str:
-    """Save the runs view of this sweep and return its path on the UI server (``#/experiments/…``).
-
-    The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
-    reads) lists the sweep's child runs (each tagged ``sweep`` here) and its baseline rows
-    (:func:`baseline_rows`, with ``table``),
-    sorted by the metric, with ``final/<metric>``, its partner, ``vs reference`` (:func:`row_tags`),
-    ``vs baselines``, the swept values and the seed as columns in that order. A swept field whose
-    values are all numbers is shown as the metric ``swept/<field>`` (:func:`sort_key`, logged here on
-    each child). Cells with several seeds are grouped by the tag ``group`` (their swept values): the
-    group row averages the seeds."""
+    """Save the runs view of this sweep (the module says what it shows) and return its path on the UI server
+    (``#/experiments/…``): MLflow's own "shared view", an experiment tag ``mlflow.sharedViewState.<key>`` the UI
+    reads. Its columns after the scores and ``vs reference``/``vs baselines`` (:func:`row_tags`): the swept values
+    (a field whose values are all numbers as the metric ``swept/<field>``, :func:`sort_key`, logged here on each
+    child) and the seed; a cell's seeds grouped by the tag ``group`` (their swept values), the row their average."""
     metric, mode = record.spec.metric.name, record.spec.metric.mode
     trials, parent = record.children, record.parent.info.run_id
     swept = list(
