@@ -1,10 +1,13 @@
 """A model command's ``--checkpoint`` given as an MLflow artifact URI, fetched by MLflow before the command reads it.
 
-``cdm-lab evaluate --checkpoint runs:/<run id>/model`` (and ``reconstruct``): MLflow resolves the URI (``runs:/``,
-``models:/<name>/<version>``, the artifact store's ``s3://…``, ``mlflow-artifacts:/…``) against
-``MLFLOW_TRACKING_URI`` into a temporary folder, and the command reads the checkpoint inside the trial's MLflow
-model (:mod:`sweeps.mlflow_model`) as any local one, as safetensors and JSON. ``python -m cdm``, which knows
-nothing of MLflow, refuses a URI in one line that names this command.
+``cdm-lab evaluate --checkpoint runs:/<run id>/model`` (and ``reconstruct``) scores a sweep trial's weights where
+MLflow keeps them: MLflow resolves the URI (``runs:/``, ``models:/<name>/<version>`` of the registry, or the
+artifact store's own ``s3://…``, ``mlflow-artifacts:/…``) against ``MLFLOW_TRACKING_URI`` and downloads the files
+into a temporary folder. A trial's MLflow model (:mod:`sweeps.mlflow_model`) holds its checkpoint as an artifact,
+which the command reads, as any local checkpoint, as safetensors and JSON
+(:func:`cdm.checkpoint.load_checkpoint`); a URI naming a checkpoint folder itself is read as it is. The model
+library itself knows nothing of MLflow (docs/ARCHITECTURE.md): ``python -m cdm`` refuses a URI in one line that
+names this command.
 """
 
 from __future__ import annotations

@@ -80,16 +80,11 @@ def settings_note(
     ``--set``, ``the spec``, ``the config default``): the paper gives no value, so the paper's column
     was not measured with it. ``compute_s``: a budget in seconds of compute, said with its unit before the steps.
     """
-    targets = sorted(set(targets))
-    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
-    values = sorted(set(lambdas))
-    lam = (
-        f"{values[0]:g}"
-        if len(values) == 1
-        else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")"
-        if values
-        else "searched"
-    )
+    def per_cell(values: list[str]) -> str:
+        return values[0] if len(values) == 1 else "per cell (" + ", ".join(values) + ")"
+
+    shown, values = per_cell(sorted(set(targets))), sorted(set(lambdas))
+    lam = per_cell([f"{v:g}" for v in values]) if values else "searched"
     budget = f"{steps} steps" if compute_s is None else f"{float(compute_s):g} s of compute (at most {steps} steps)"
     return (f"profile {profile}: {budget} per trial; prediction target {shown}; "
             f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")

@@ -28,6 +28,7 @@ from sweeps.compare.pairing import Lead, Pairing, lead_difference, paired_record
 from sweeps.compare.rules import TOO_FEW, Stat, baseline_key, baseline_name, headline
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
+from sweeps.plan.describe import wrapped
 from sweeps.storage import write_file
 
 __all__ = ["COST_COLUMN", "NO_RESULT", "ResultsTable", "build_table", "display_width"]
@@ -52,15 +53,6 @@ _WHOLE = "[95% CI]"
 
 def _bytes(line: str) -> int:
     return len(line.encode())
-
-
-def _fill(text: str, width: int, indent: str = "") -> str:
-    """``text`` wrapped so that every line is at most ``width`` UTF-8 bytes (λ, ±, ★ are two or three)."""
-    for room in range(width, width // 2, -1):
-        filled = textwrap.fill(text, room, subsequent_indent=indent)
-        if max(map(_bytes, filled.splitlines())) <= width:
-            return filled
-    return filled
 
 
 @dataclass(frozen=True)
@@ -113,7 +105,8 @@ class ResultsTable:
         any terminal, one where ★, Δ and λ take two columns (East Asian "ambiguous" width) included. The wide
         columns stay in ``results.md`` and empty ones are left out; then, until it fits, headers wider than their
         column's values wrap over several lines (long cell names make the Δ header long; its ``[95% CI]`` stays
-        whole) before each ``narrowing`` column is dropped in turn; notes are wrapped."""
+        whole) before each ``narrowing`` column is dropped in turn; summary and notes are wrapped as a plan's
+        description is (:func:`sweeps.plan.describe.wrapped`: a word longer than ``width`` stays whole)."""
         keep = [i for i in self._filled() if self.header[i] not in self.wide_only]
         for name in (*self.narrowing, None):
             out = self._lines(keep, wrap=False)
@@ -127,11 +120,9 @@ class ResultsTable:
         if categories:  # eval/f1/chair, eval/f1/lamp, … → eval/f1/<category>
             dropped[dropped.index(categories[0])] = categories[0].rsplit("/", 1)[0] + "/<category>"
             dropped = [h for h in dropped if h not in categories]
-        notes = self.notes + (
-            ["not shown here, in results.md and results.csv: " + ", ".join(dropped)] if dropped else []
-        )
-        out += [""] + [_fill(s, width) for s in self.summary] if self.summary else []
-        out += [""] + [_fill(n, width, "  ") for n in notes] if notes else []
+        notes = self.notes + ["not shown here, in results.md and results.csv: " + ", ".join(dropped)] * bool(dropped)
+        for block in (self.summary, notes):
+            out += [""] + [wrapped(line, width) for line in block] if block else []
         return "\n".join(out)
 
     def _lines(self, keep: list[int], wrap: bool) -> list[str]:
@@ -289,12 +280,10 @@ def build_table(
     """Aggregate trials per cell (in first-seen order) and star the best cell by ``metric``/``mode``
     when it is apart from the next at the printed precision (else the leaders are marked tied).
 
-    With per-object rows on the trials, every cell and baseline is paired with ``compare_to``
-    (default: the first cell): mean difference and 95% bootstrap interval for each shown metric, a
-    verdict weighing ``metric`` and its partner, and the baselines the cell beats. ``settled`` (cell →
-    where its run until settled stopped, from the sequential runner) adds a ``seeds`` column and puts
-    that record's interval over seeds and objects, and its verdict, in the cell's row. ``settings``
-    lines (what produced the numbers, e.g. the prediction target) head the notes.
+    With per-object rows on the trials, every row is paired with ``compare_to`` (default: the first cell).
+    ``settled`` (cell → where its run until settled stopped) adds a ``seeds`` column and puts that record's
+    interval over seeds and objects, and its verdict, in the cell's row. ``settings`` lines (what produced the
+    numbers) head the notes.
     """
     cells: dict[str, list[TrialOutcome]] = {}
     for o in outcomes:
@@ -304,7 +293,9 @@ def build_table(
     made = [_cell_row(columns, name, group, ranking) for name, group in cells.items()]
     if metric.startswith("eval/"):
         made += [_baseline_row(columns, b, finished(outcomes)) for b in columns.baselines]
-    lead = _lead(columns, cells, ranking, settled)
+    looks = max((r.looks for r in settled.values()), default=1) if settled else None
+    lead = (lead_difference(cells, ranking.best, ranking.order[1], metric, mode, looks)
+            if columns.pairing and ranking.best and len(ranking.order) > 1 else None)
     return ResultsTable(
         title, columns.header(), [row for row, _ in made], [record for _, record in made],
         list(settings) + _notes(columns, outcomes, cells, paper_note, ranking), ranking.best,
@@ -312,15 +303,6 @@ def build_table(
         columns.narrowing(), columns.answer(), tuple(sorted({o.f1_threshold for o in outcomes})),
         columns.pairing.reference if columns.pairing else None,
     )
-
-
-def _lead(columns: _Columns, cells: dict[str, list[TrialOutcome]], ranking: _Ranking,
-          settled: Mapping[str, SettleRecord] | None) -> Lead | None:
-    """The starred cell against the next (:func:`sweeps.compare.pairing.lead_difference`), where paired."""
-    if not (columns.pairing and ranking.best and len(ranking.order) > 1):
-        return None
-    looks = max((r.looks for r in settled.values()), default=1) if settled else None
-    return lead_difference(cells, ranking.best, ranking.order[1], columns.metric, columns.mode, looks)
 
 
 def _cell_row(

@@ -63,9 +63,8 @@ def write_plots(
     spec, folder = record.spec, Path(folder)
     metric = spec.metric.name
     done = [t for t in trials if t.outcome.finished]
-    points = [
-        PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done
-    ]
+    points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label)
+              for t in done]
     diffs = {t.outcome.cell: table.difference(t.outcome.cell, metric) for t in done} if table else {}
     intervals = {cell: (d.low, d.high) for cell, d in diffs.items() if d is not None}
     paths = []
@@ -73,11 +72,8 @@ def write_plots(
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
                                      spec.paper.table if spec.paper else "paper", intervals,
                                      f1_thresholds=[t.outcome.f1_threshold for t in done]))
-    curves = {
-        label: history
-        for label, history in _histories(record, trials, ("train/loss", "train/loss_diffusion", metric)).items()
-        if has_curve(history, metric)
-    }
+    histories = _histories(record, trials, ("train/loss", "train/loss_diffusion", metric))
+    curves = {label: history for label, history in histories.items() if has_curve(history, metric)}
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
         thresholds = [t.outcome.f1_threshold for t in trials if t.outcome.label in curves]
@@ -147,14 +143,8 @@ def describe_sweep(
     out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
     # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists
     # them whole.
-    out += (
-        [
-            "**Protocol card** (sources in `results.md`):\n"
-            + "\n".join(_prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)
-        ]
-        if card
-        else []
-    )
+    out += ["**Protocol card** (sources in `results.md`):\n" + "\n".join(
+        _prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)] if card else []
     out += [_prose(f"**{spec.name}**: {spec.description}".rstrip(": ")),
             _prose(f"Profile **{profile}**: {profile_description}".rstrip(": "))]
     return "\n\n".join(part for part in out if part)

@@ -19,6 +19,7 @@ from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 
 from cdm.cli import command_parser
 from cdm.io.json import parse_json
+from sweeps.compare.outcomes import sweep_order
 from sweeps.mlflow_model import logged_model
 from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, results_table, trial_records
 from sweeps.results.publish import open_given, sweep_arguments
@@ -54,8 +55,8 @@ def best_trial(record: SweepRecord) -> TrialRecord:
         raise RegisterError(f"sweep {record.parent.info.run_id} has no best cell by {metric} ({mode}): none finished, "
                             "or the leaders tie at the printed precision (the results table marks them tied)")
     seeds = [t for t in trials if t.outcome.cell == best and t.outcome.finished and metric in t.outcome.metrics]
-    sign = 1.0 if mode == "min" else -1.0
-    return min(seeds, key=lambda t: sign * t.outcome.metrics[metric])
+    best_first = sweep_order(None, metric, mode)
+    return min(seeds, key=lambda t: best_first(t.outcome))
 
 
 def register_run(client, run_id: str, name: str, description: str = ""):
