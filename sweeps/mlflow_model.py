@@ -37,7 +37,8 @@ from cdm.evaluate import reconstruct
 from cdm.io.yaml import read_mapping
 from cdm.single_image import DEFAULT_VIEW, LookAt, image_batch, image_tensors
 
-__all__ = ["CHECKPOINT_ARTIFACT", "MODEL_NAME", "PointCloudModel", "log_model", "model_checkpoint", "signature"]
+__all__ = ["CHECKPOINT_ARTIFACT", "MODEL_NAME", "PointCloudModel", "log_model", "logged_model", "model_checkpoint",
+           "signature"]
 
 MODEL_NAME = "model"
 """The model's name in its run: ``runs:/<run id>/model`` resolves to it."""
@@ -90,15 +91,16 @@ class PointCloudModel(PythonModel):
         return reconstruct(network, diffusion, batch, cfg, generator)[0].float().cpu().numpy()
 
 
-def _logged_model(client, run_id: str):
-    """The run's logged model :data:`MODEL_NAME`, created (and linked to the run as its output) if new."""
+def logged_model(client, run_id: str, create: bool = False):
+    """The run's logged model :data:`MODEL_NAME` (None: it logged none); with ``create``, made (and linked to the
+    run as its output) if new."""
     from mlflow.entities import LoggedModelOutput
 
     experiment_id = client.get_run(run_id).info.experiment_id
     found = client.search_logged_models([experiment_id], max_results=1, filter_string=(
         f"name = '{MODEL_NAME}' AND source_run_id = '{run_id}'"))
-    if found:
-        return found[0]
+    if found or not create:
+        return found[0] if found else None
     model = client.create_logged_model(experiment_id, name=MODEL_NAME, source_run_id=run_id)
     client.log_outputs(run_id, [LoggedModelOutput(model.model_id, step=0)])
     return model
@@ -123,7 +125,7 @@ def log_model(client, run_id: str, checkpoint: Path, metadata: dict[str, Any]) -
     # save_model copies the artifact folder through MLflow's downloader, whose progress bar would reach the
     # sweep's terminal from every trial at every checkpoint.
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    model = _logged_model(client, run_id)
+    model = logged_model(client, run_id, create=True)
     with tempfile.TemporaryDirectory(prefix="cdm-mlflow-model-") as tmp:
         local = Path(tmp) / MODEL_NAME
         described = Model(artifact_path=model.artifact_location, model_uuid=model.model_id, run_id=run_id,

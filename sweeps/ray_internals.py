@@ -11,18 +11,8 @@ sweep, ``ray.get_runtime_context()`` names the session folder (``get_temp_dir()/
 
 from __future__ import annotations
 
-__all__ = [
-    "PRIVATE_NAMES",
-    "TESTED_RAY",
-    "TOKEN_NOTE_LOGGER",
-    "autoscaler_node_groups",
-    "autoscaler_max_resources",
-    "canonical_address",
-    "gcs_channel",
-    "loopback_flag",
-    "set_log_dedup",
-    "set_loopback_flag",
-]
+__all__ = ["PRIVATE_NAMES", "TESTED_RAY", "TOKEN_NOTE_LOGGER", "autoscaler_max_resources", "autoscaler_node_groups",
+           "canonical_address", "gcs_channel", "loopback_flag", "set_log_dedup", "set_loopback_flag"]
 
 TESTED_RAY = "2.60"
 """The Ray minor version these calls were read against (``pyproject.toml`` bounds ray below the next one)."""

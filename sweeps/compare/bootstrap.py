@@ -1,14 +1,10 @@
 """Paired comparison of sweep cells scored on the same objects: mean difference, bootstrap interval, verdict.
 
-Every cell of a sweep is evaluated on the same held-out objects with the same sampling seed
-(``cdm.evaluate.EvalSet.fingerprint`` records that), so a cell's per-object scores can be paired with
-another cell's. The difference of two cells on one object cancels how hard that object is, which is
-most of the spread between objects; the mean of these differences and a 95% percentile bootstrap over
-objects say whether an ablation's effect is larger than its noise. Several seeds of one cell are
-averaged per object first, so seeds add precision rather than pairs.
-
-Knows nothing of Ray or MLflow: the runner hands in per-object rows (``objects.csv`` of a trial's last
-evaluation: ``object_id``, ``cd``, ``f1``, ``baseline/<name>/<metric>``).
+Every cell is evaluated on the same held-out objects with the same sampling seed (``cdm.evaluate.EvalSet``'s
+fingerprint records that), so the difference of two cells on one object cancels how hard that object is, most of
+the spread between objects; a 95% percentile bootstrap over objects says whether an effect is larger than its
+noise. Seeds of one cell are averaged per object first: they add precision, not pairs. Plain rows
+(``objects.csv`` of a trial's last evaluation), no Ray, no MLflow.
 """
 
 from __future__ import annotations

@@ -11,13 +11,16 @@ from __future__ import annotations
 import html
 import json
 import math
+import re
 import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
+from cdm.io.files import read_text
 from cdm.metric_names import f1_at
+from sweeps.compare.plots import FONT, _pyplot, _save
 from sweeps.storage import write_file
 
 __all__ = [
@@ -114,8 +117,6 @@ def grid_figure(gallery: Gallery, columns: Sequence[str], title: str, scores: Sc
                 inputs: Mapping[str, np.ndarray] | None = None, *, f1_thresholds: float | Sequence[float]):
     """The matplotlib figure of :func:`grid_png`, laid out (constrained layout: the title above the
     column titles, the row labels inside the figure; no two texts overlap)."""
-    from sweeps.compare.plots import FONT, _pyplot
-
     plt = _pyplot()
     rows = list(gallery)
     names, note = _row_names(rows)
@@ -148,90 +149,11 @@ def grid_png(gallery: Gallery, columns: Sequence[str], title: str, path: Path, s
     cloud titled with its ``scores`` (CD ×1000, F1 at the trials' ``f1_thresholds``); with ``inputs``
     (object id → its input image), the image the model saw first. Rows are labelled by what tells their
     objects apart (:func:`_row_names`), the full ids under the grid."""
-    from sweeps.compare.plots import _save
-
     return _save(grid_figure(gallery, columns, title, scores, inputs, f1_thresholds=f1_thresholds), path)
 
 
-_PAGE = """<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8"><title>{title}</title>
-<style>
-body {{ font: 13px sans-serif; margin: 12px; background: #fafafa; color: #222; }}
-#views {{ display: flex; flex-wrap: wrap; gap: 8px; }}
-figure {{ margin: 0; text-align: center; }}
-figcaption {{ font-weight: bold; }}
-figcaption span {{ display: block; font-weight: normal; color: #555; }}
-canvas {{ background: #fff; border: 1px solid #ccc; cursor: grab; }}
-</style></head><body>
-<h3>{title}</h3>
-<p>Drag a view to turn every cloud together; the clouds turn on their own until you do.
-Nearer points are larger and darker. Object: <select id="object"></select></p>
-<div id="views"></div>
-<script id="clouds" type="application/json">{data}</script>
-<script>
-"use strict";
-const data = JSON.parse(document.getElementById("clouds").textContent);
-const select = document.getElementById("object"), views = document.getElementById("views");
-let yaw = 0.5, pitch = 0.35, spinning = true, drag = null, canvases = [];
-data.objects.forEach((o, i) => select.add(new Option(o.id, i)));
-function colour(label) {{
-  return label === "ground truth" ? [44, 160, 44] : label.startsWith("baseline") ? [110, 110, 110] : [31, 119, 180];
-}}
-function side(count) {{
-  // Every canvas of one object in one row, as large as the window allows (room for the captions).
-  const across = Math.floor((window.innerWidth - 24 - 10 * count) / count);
-  return Math.max(160, Math.min(across, window.innerHeight - 150));
-}}
-function build() {{
-  views.innerHTML = ""; canvases = [];
-  const object = data.objects[select.value];
-  const shown = data.columns.filter(label => object.clouds[label]);
-  shown.forEach(label => {{
-    const points = object.clouds[label], score = object.scores[label];
-    const figure = document.createElement("figure"), canvas = document.createElement("canvas");
-    canvas.width = canvas.height = side(shown.length);
-    figure.appendChild(canvas);
-    const caption = Object.assign(document.createElement("figcaption"), {{ textContent: label }});
-    if (score) caption.appendChild(Object.assign(document.createElement("span"),
-      {{ textContent: `CD ${{score[0].toFixed(2)}} · F1 ${{score[1].toFixed(3)}}` }}));
-    figure.appendChild(caption);
-    views.appendChild(figure);
-    canvas.addEventListener("pointerdown", e => {{ spinning = false; drag = [e.clientX, e.clientY]; }});
-    canvases.push({{ canvas, points, rgb: colour(label) }});
-  }});
-}}
-function draw() {{
-  const cy = Math.cos(yaw), sy = Math.sin(yaw), cp = Math.cos(pitch), sp = Math.sin(pitch);
-  canvases.forEach(({{ canvas, points, rgb }}) => {{
-    const g = canvas.getContext("2d"), half = canvas.width / 2;
-    g.clearRect(0, 0, canvas.width, canvas.height);
-    const screen = points.map(([x, y, z]) => {{
-      const x1 = cy * x + sy * z, z1 = -sy * x + cy * z;
-      return [x1, cp * y - sp * z1, sp * y + cp * z1];
-    }}).sort((a, b) => a[2] - b[2]);
-    const dot = canvas.width / 130;
-    screen.forEach(([x, y, depth]) => {{
-      // Depth cue: near points (depth → 1) drawn darker and larger than far ones.
-      const near = Math.max(0, Math.min(1, (depth + 1) / 2)), shade = 0.45 + 0.55 * near, r = dot * (0.6 + 0.9 * near);
-      g.fillStyle = `rgb(${{rgb.map(v => Math.round(255 - (255 - v) * shade)).join(",")}})`;
-      g.fillRect(half + x * half * 0.9 - r / 2, half - y * half * 0.9 - r / 2, r, r);
-    }});
-  }});
-}}
-window.addEventListener("pointermove", e => {{
-  if (!drag) return;
-  yaw += (e.clientX - drag[0]) * 0.01;
-  pitch = Math.max(-1.5, Math.min(1.5, pitch + (e.clientY - drag[1]) * 0.01));
-  drag = [e.clientX, e.clientY];
-  draw();
-}});
-window.addEventListener("pointerup", () => {{ drag = null; }});
-select.addEventListener("change", () => {{ build(); draw(); }});
-window.addEventListener("resize", () => {{ build(); draw(); }});
-function tick() {{ if (spinning) {{ yaw += 0.01; draw(); }} requestAnimationFrame(tick); }}
-build(); draw(); requestAnimationFrame(tick);
-</script></body></html>
-"""
+_PAGE = Path(__file__).with_name("viewer.html")
+"""The viewer's page, its ``__TITLE__`` and ``__DATA__`` (the clouds, JSON) filled in by :func:`viewer_html`."""
 
 
 def viewer_html(gallery: Gallery, columns: Sequence[str], title: str, path: Path, max_points: int = 2048,
@@ -254,6 +176,8 @@ def viewer_html(gallery: Gallery, columns: Sequence[str], title: str, path: Path
         objects.append({"id": oid, "clouds": shown, "scores": {k: list(v) for k, v in found.items() if k in shown}})
     # "</" cannot end the inline script early: JSON allows the escaped form.
     data = json.dumps({"columns": list(columns), "objects": objects}, separators=(",", ":")).replace("</", "<\\/")
+    fill = {"__TITLE__": html.escape(title), "__DATA__": data}
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_file(path, _PAGE.format(title=html.escape(title), data=data))
+    # One pass: an object id or title spelling a marker is not filled in again.
+    write_file(path, re.sub("__TITLE__|__DATA__", lambda m: fill[m[0]], read_text(_PAGE, "the viewer's page")))
     return path

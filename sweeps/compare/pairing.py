@@ -1,11 +1,7 @@
-"""Every cell and baseline of a results table paired with the reference cell on the same objects.
-
-For each shown metric (the table's metric and its partner), a cell's per-object scores, seeds averaged
-per object, are compared with the reference cell's and with each trivial baseline's on that cell's own
-objects (:mod:`sweeps.compare.bootstrap`: mean difference, 95% bootstrap interval, verdict); a verdict
-weighs the metric and its partner (:func:`sweeps.compare.rules.weighed`). A cell that ran until its
-comparison settled (:mod:`sweeps.compare.sequential`) keeps its interval over seeds and objects and its
-verdict. :mod:`sweeps.compare.table` lays the results out as columns.
+"""Every cell and baseline of a results table paired with the reference cell on the same objects, per shown
+metric (:mod:`sweeps.compare.bootstrap`; seeds averaged per object): Δ, a verdict weighing the metric and its
+partner (:func:`sweeps.compare.rules.weighed`), the baselines each cell beats on its own objects. A cell that ran
+until its comparison settled (:mod:`sweeps.compare.sequential`) keeps its interval over seeds and objects.
 """
 
 from __future__ import annotations
@@ -18,7 +14,7 @@ from cdm.metric_names import delta_range, object_column
 from cdm.metric_names import mode as metric_mode
 from sweeps.compare.bootstrap import PairedDifference, UnpairedError, compare, per_object_means
 from sweeps.compare.outcomes import TrialOutcome, finished
-from sweeps.compare.rules import TOO_FEW, weighed
+from sweeps.compare.rules import TOO_FEW, baseline_key, weighed
 from sweeps.compare.sequential import Decision, SettleRecord, decide
 from sweeps.plan.trials import split_label
 
@@ -113,7 +109,7 @@ class Pairing:
             for name, group in cells.items():
                 for b in baselines:
                     # The baselines scored on this cell's own objects, whichever objects those are.
-                    ours, theirs = scores[name], _object_scores(group, f"baseline/{b}/{column}", category)
+                    ours, theirs = scores[name], _object_scores(group, baseline_key(b, column), category)
                     if ours and set(ours) == set(theirs):
                         to_baseline[(name, b, m)] = compare(ours, theirs, (name, b)).verdict(modes[m])
         for (name, b, m), verdict in to_baseline.items():
@@ -158,11 +154,15 @@ class Pairing:
     def beats(self, name: str) -> list[str]:
         return [b for b, v in self.against.get(name, {}).items() if v == "better"]
 
+    def decision(self, name: str) -> Decision | None:
+        """Row ``name``'s decision over seeds and objects on the metric: a settled cell's, else its own where seeds
+        vary in a sweep of fixed seeds."""
+        return self.settled[name].decision if name in self.settled else self.seeded.get(name)
+
     def delta(self, name: str, m: str, metric: str) -> PairedDifference | str | None:
-        """Row ``name``'s Δ on ``m``: on the metric, a settled cell's interval over seeds and objects (or, where
-        seeds vary in a sweep of fixed seeds, its own), else the paired one; cut to the values the Δ can take
-        (:func:`cdm.metric_names.delta_range`)."""
-        decision = self.settled[name].decision if name in self.settled else self.seeded.get(name)
+        """Row ``name``'s Δ on ``m``: on the metric, over seeds and objects where it has a :meth:`decision`, else
+        the paired one; cut to the values the Δ can take (:func:`cdm.metric_names.delta_range`)."""
+        decision = self.decision(name)
         if decision is not None and m == metric:
             return _as_difference(decision, m)
         d = self.diffs.get((name, m))
@@ -216,7 +216,7 @@ def paired_record(pairing: Pairing, name: str, shown: list[str], metric: str) ->
         ok = isinstance(d, PairedDifference)
         record.update({f"{m} delta": d.mean if ok else None, f"{m} delta low": d.low if ok else None,
                        f"{m} delta high": d.high if ok else None})
-    decision = pairing.settled[name].decision if name in pairing.settled else pairing.seeded.get(name)
+    decision = pairing.decision(name)
     paired = isinstance(pairing.diffs.get((name, metric)), PairedDifference)
     record[f"{metric} delta covers"] = decision.interval.covers if decision else "objects" if paired else ""
     record["verdict"] = pairing.verdicts.get(name, "")

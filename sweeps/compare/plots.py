@@ -18,23 +18,15 @@ from typing import Any, Literal
 import numpy as np
 
 from cdm.io.files import read_text
-from cdm.metric_names import COMPUTE_METRIC, METRICS, object_column, partner
+from cdm.metric_names import COMPUTE_METRIC, METRICS, object_column
 from cdm.metric_names import label as metric_label
 from cdm.metric_names import mode as metric_mode
+from sweeps.compare.rules import baseline_key, baseline_name, headline
 from sweeps.compare.table import COST_COLUMN
 from sweeps.storage import write_file
 
-__all__ = [
-    "DPI",
-    "PlotPoint",
-    "log_spaced",
-    "metric_vs_value",
-    "optuna_plots",
-    "read_ply",
-    "save_figure",
-    "training_curves",
-    "view_cloud",
-]
+__all__ = ["DPI", "PlotPoint", "has_curve", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "save_figure",
+           "training_curves", "view_cloud"]
 
 DPI = 150
 """Resolution of every saved figure."""
@@ -94,10 +86,6 @@ def log_spaced(values: Sequence[float]) -> bool:
     return unevenness(np.diff(np.log(xs))) < unevenness(np.diff(xs))
 
 
-def _baseline_label(name: str) -> str:
-    return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
-
-
 def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: Path, paper_table: str = "paper",
                     intervals: Mapping[str, tuple[float, float]] | None = None, *,
                     f1_thresholds: float | Sequence[float]) -> Path:
@@ -109,7 +97,7 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
     ``paper_table`` row. Legends sit below the axes, outside the data; a log axis says so. F1's axis names the
     trials' ``f1_thresholds`` (their ``eval.f1_threshold``)."""
     plt = _pyplot()
-    shown = [m for m in (metric, partner(metric)) if m is not None]
+    shown = headline(metric)
     cells, x, xlabel = _axis(points)
     categories = sorted({k.rsplit("/", 1)[1] for p in points for k in p.metrics if k.startswith(metric + "/")})
     baselines = sorted({k.split("/")[1] for p in points for k in p.metrics if k.startswith("baseline/")})
@@ -123,18 +111,10 @@ def metric_vs_value(points: Sequence[PlotPoint], metric: str, title: str, path: 
                 label = f"ours: {'all objects' if series == 'all' else series}"
                 if series == "all" and m == metric and intervals:
                     label += " (bars: 95% paired interval vs the reference cell)"
-                ax.errorbar(
-                    xs,
-                    means,
-                    yerr=np.array(bars).T,
-                    fmt="o-",
-                    color=colour,
-                    capsize=4,
-                    lw=2 if series == "all" else 1,
-                    label=label,
-                )
+                ax.errorbar(xs, means, yerr=np.array(bars).T, fmt="o-", color=colour, capsize=4,
+                            lw=2 if series == "all" else 1, label=label)
             _paper_stars(ax, points, x, key, colour, paper_table)
-        _baseline_lines(ax, points, baselines, m.removeprefix("eval/"))
+        _baseline_lines(ax, points, baselines, m)
         _value_axes(ax, m, cells, x, xlabel, f1_thresholds)
     fig.suptitle(title, fontsize=FONT + 2)
     fig.tight_layout()
@@ -175,24 +155,15 @@ def _paper_stars(ax, points: Sequence[PlotPoint], x: Mapping[str, float], key: s
         ax.annotate(row or c, (x[c], value), textcoords="offset points", xytext=(6, 4), fontsize=FONT, color=colour)
 
 
-def _baseline_lines(ax, points: Sequence[PlotPoint], baselines: list[str], short: str) -> None:
-    """Each baseline's mean on ``short`` (``cd``, ``f1``) as a dashed horizontal line, labelled."""
+def _baseline_lines(ax, points: Sequence[PlotPoint], baselines: list[str], metric: str) -> None:
+    """Each baseline's mean on ``metric`` as a dashed horizontal line, labelled."""
     for i, b in enumerate(baselines):
-        values = [p.metrics[f"baseline/{b}/{short}"] for p in points if f"baseline/{b}/{short}" in p.metrics]
-        if values:
+        if values := [p.metrics[baseline_key(b, metric)] for p in points if baseline_key(b, metric) in p.metrics]:
             ax.axhline(statistics.fmean(values), color="0.45", lw=1, ls=(0, (4, 2 + 2 * i)), zorder=1)
             # Labels staggered along the line: baselines often score alike (category mean, retrieval).
-            ax.annotate(
-                f"baseline: {_baseline_label(b)}",
-                (1.0 - 0.3 * i, statistics.fmean(values)),
-                xycoords=("axes fraction", "data"),
-                xytext=(-2, 2),
-                textcoords="offset points",
-                ha="right",
-                va="bottom",
-                fontsize=FONT,
-                color="0.35",
-            )
+            ax.annotate(f"baseline: {baseline_name(b)}", (1.0 - 0.3 * i, statistics.fmean(values)),
+                        xycoords=("axes fraction", "data"), xytext=(-2, 2), textcoords="offset points", ha="right",
+                        va="bottom", fontsize=FONT, color="0.35")
 
 
 def _value_axes(ax, m: str, cells: list[str], x: Mapping[str, float], xlabel: str | None,
@@ -221,6 +192,19 @@ def has_curve(history: Mapping[str, Sequence[tuple[int, float]]], metric: str) -
     return bool(history.get("train/loss")) or len(history.get(metric, ())) >= 2
 
 
+_TERMS = ("diffusion term", "λ × 3D prior term", "total (Eq. 6)")
+"""The panels of the loss in :func:`training_curves`, in order."""
+
+
+def _loss_terms(history: Mapping[str, Sequence[tuple[int, float]]], metric: str) -> dict[str, list[tuple[int, float]]]:
+    """A trial's loss as its :data:`_TERMS` (the prior term is ``train/loss − train/loss_diffusion``, Eq. 6) and
+    its ``metric`` evaluations, each as ``(step, value)`` pairs in step order."""
+    total, diffusion = sorted(history.get("train/loss", ())), dict(history.get("train/loss_diffusion", ()))
+    out = {_TERMS[0]: [(s, diffusion[s]) for s, _ in total if s in diffusion],
+           _TERMS[1]: [(s, v - diffusion[s]) for s, v in total if s in diffusion], _TERMS[2]: total}
+    return out | ({metric: sorted(history[metric])} if history.get(metric) else {})
+
+
 def training_curves(
     curves: Mapping[str, Mapping[str, Sequence[tuple[int, float]]]],
     cells: Mapping[str, str],
@@ -230,9 +214,8 @@ def training_curves(
     *,
     f1_thresholds: float | Sequence[float],
 ) -> Path:
-    """The loss against the training step, its terms apart: the diffusion term, the λ × 3D-prior term
-    (``train/loss − train/loss_diffusion``, Eq. 6) and their sum, one line per trial, one colour per cell
-    (its seeds share it). The prior term grows with λ and the point size, so only the diffusion term
+    """The loss against the training step, its terms apart (:func:`_loss_terms`), one line per trial, one colour
+    per cell (its seeds share it). The prior term grows with λ and the point size, so only the diffusion term
     compares learning across such cells. ``metric`` gets a panel of its evaluations (markers, joined when
     a trial evaluated more than once).
 
@@ -243,20 +226,8 @@ def training_curves(
         f1_thresholds: the trials' ``eval.f1_threshold``, which F1's axis names.
     """
     plt = _pyplot()
-
-    def series(history: Mapping[str, Sequence[tuple[int, float]]]) -> dict[str, list[tuple[int, float]]]:
-        total, diffusion = sorted(history.get("train/loss", ())), dict(history.get("train/loss_diffusion", ()))
-        out = {"diffusion term": [(s, diffusion[s]) for s, _ in total if s in diffusion],
-               "λ × 3D prior term": [(s, v - diffusion[s]) for s, v in total if s in diffusion],
-               "total (Eq. 6)": total}
-        return out | ({metric: sorted(history[metric])} if history.get(metric) else {})
-
-    panels = {label: series(history) for label, history in curves.items()}
-    keys = [
-        k
-        for k in ("diffusion term", "λ × 3D prior term", "total (Eq. 6)", metric)
-        if any(p.get(k) for p in panels.values())
-    ]
+    panels = {label: _loss_terms(history, metric) for label, history in curves.items()}
+    keys = [k for k in (*_TERMS, metric) if any(p.get(k) for p in panels.values())]
     fig, axes = plt.subplots(1, len(keys), figsize=(3.8 * len(keys), 3.6), squeeze=False)
     colours = {c: f"C{i % 10}" for i, c in enumerate(dict.fromkeys(cells[label] for label in curves))}
     labelled: set[str] = set()
@@ -269,20 +240,14 @@ def training_curves(
         labelled.add(cell)
     for ax, key in zip(axes[0], keys):
         ax.set_xlabel("training step", fontsize=FONT)
-        shown = metric_label(key, f1_thresholds) + " at evaluations" if key == metric else "loss (Eq. 6)"
-        ax.set_ylabel(shown, fontsize=FONT)
+        ax.set_ylabel(metric_label(key, f1_thresholds) + " at evaluations" if key == metric else "loss (Eq. 6)",
+                      fontsize=FONT)
         ax.set_title(key, fontsize=FONT + 1)
         ax.tick_params(labelsize=FONT)
         ax.grid(alpha=0.3)
     if 1 < len(colours) <= 12:  # one cell needs no legend; beyond 12 a legend hides the curves
-        fig.legend(
-            *axes[0][0].get_legend_handles_labels(),
-            fontsize=FONT,
-            loc="upper center",
-            ncol=min(len(colours), 6),
-            bbox_to_anchor=(0.5, 0.0),
-            frameon=False,
-        )
+        fig.legend(*axes[0][0].get_legend_handles_labels(), fontsize=FONT, loc="upper center",
+                   ncol=min(len(colours), 6), bbox_to_anchor=(0.5, 0.0), frameon=False)
     fig.suptitle(title, fontsize=FONT + 2)
     fig.tight_layout()
     return _save(fig, path)
@@ -310,7 +275,7 @@ def optuna_plots(
 
     plt = _pyplot()
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    objectives = [metric, *filter(None, [partner(metric)]), COMPUTE_METRIC]
+    objectives = [*headline(metric), COMPUTE_METRIC]
     directions = {m: "minimize" if (mode if m == metric else _mode(m)) == "min" else "maximize" for m in objectives}
     single = _study(optuna, [directions[metric]], [(v, [m[metric]] if m and metric in m else None) for v, m in trials],
                     distributions)

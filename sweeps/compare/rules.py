@@ -1,6 +1,7 @@
 """The rules a results table reads numbers by (each metric's partner, direction and precision are in its
-record, :mod:`cdm.metric_names`): how verdicts on two metrics combine into one, and the notes that say what
-produced the numbers. Plain functions of names, numbers and the spec."""
+record, :mod:`cdm.metric_names`): which metrics a reader shows, how baselines are named, how verdicts on two
+metrics combine into one, and the notes that say what produced the numbers. Plain functions of names, numbers
+and the spec."""
 
 from __future__ import annotations
 
@@ -12,19 +13,27 @@ from dataclasses import dataclass
 from typing import Any
 
 from cdm.config import load_config
-from cdm.metric_names import number_text
+from cdm.metric_names import number_text, partner
 from sweeps.plan.spec import Spec
 
-__all__ = [
-    "PROTOCOL_NOTE",
-    "TOO_FEW",
-    "Stat",
-    "lambda_source",
-    "machine_note",
-    "settings_note",
-    "settings_notes",
-    "weighed",
-]
+__all__ = ["PROTOCOL_NOTE", "TOO_FEW", "Stat", "baseline_key", "baseline_name", "headline", "lambda_source",
+           "machine_note", "settings_note", "settings_notes", "weighed"]
+
+
+def headline(metric: str) -> list[str]:
+    """What every reader shows of a sweep: ``metric`` and its partner (:func:`cdm.metric_names.partner`), if any."""
+    return [m for m in (metric, partner(metric)) if m is not None]
+
+
+def baseline_key(baseline: str, metric: str) -> str:
+    """Where baseline ``baseline``'s score on ``metric`` (``eval/f1/chair`` or ``f1``) is logged and kept in
+    ``objects.csv``: ``baseline/<baseline>/f1/chair``."""
+    return f"baseline/{baseline}/{metric.removeprefix('eval/')}"
+
+
+def baseline_name(baseline: str) -> str:
+    """A baseline as a sentence or a plot names it: ``Gaussian``, ``category mean``."""
+    return {"gaussian": "Gaussian"}.get(baseline, baseline.replace("_", " "))
 
 
 @dataclass(frozen=True)
@@ -71,16 +80,11 @@ def settings_note(
     ``--set``, ``the spec``, ``the config default``): the paper gives no value, so the paper's column
     was not measured with it. ``compute_s``: a budget in seconds of compute, said with its unit before the steps.
     """
-    targets = sorted(set(targets))
-    shown = targets[0] if len(targets) == 1 else "per cell (" + ", ".join(targets) + ")"
-    values = sorted(set(lambdas))
-    lam = (
-        f"{values[0]:g}"
-        if len(values) == 1
-        else "per cell (" + ", ".join(f"{v:g}" for v in values) + ")"
-        if values
-        else "searched"
-    )
+    def per_cell(values: list[str]) -> str:
+        return values[0] if len(values) == 1 else "per cell (" + ", ".join(values) + ")"
+
+    shown, values = per_cell(sorted(set(targets))), sorted(set(lambdas))
+    lam = per_cell([f"{v:g}" for v in values]) if values else "searched"
     budget = f"{steps} steps" if compute_s is None else f"{float(compute_s):g} s of compute (at most {steps} steps)"
     return (f"profile {profile}: {budget} per trial; prediction target {shown}; "
             f"λ (priors.lambda_3d, Eq. 6) {lam}, from {lambda_from}, not from the paper")

@@ -4,14 +4,8 @@ Knows nothing of Ray or MLflow: the runner turns finished trials into
 :class:`sweeps.compare.outcomes.TrialOutcome` s and this module aggregates and formats them — plain text
 for the terminal, Markdown and CSV for the sweep folder. Trivial baselines the trainer reports
 (``baseline/<name>/<metric>``: sphere, Gaussian, category mean, retrieval) get their own rows, so a local
-result is never read without them (the local recipes land near them: benchmarks/RESULTS.md, "Which
-recipe learns").
-
-When trials carry their per-object scores, every cell (and every baseline) is also compared pairwise
-with a reference cell (:mod:`sweeps.compare.pairing`): the Δ columns, a verdict weighing the metric and
-its partner (``better on f1, worse on cd``), the baselines the cell beats; cells that ran until their
-comparison settled (:mod:`sweeps.compare.sequential`) show their seeds, why they stopped, and an
-interval over seeds and objects.
+result is never read without them (benchmarks/RESULTS.md, "Which recipe learns"). Where trials carry their
+per-object scores, the Δ columns pair every row with a reference cell (:mod:`sweeps.compare.pairing`).
 """
 
 from __future__ import annotations
@@ -20,22 +14,24 @@ import csv
 import io
 import textwrap
 import unicodedata
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from cdm.baseline_names import BASELINES
-from cdm.metric_names import COMPUTE_METRIC, COMPUTE_UNIT, F1, delta_range, f1_unit, number_text, object_column, partner
+from cdm.metric_names import COMPUTE_METRIC, COMPUTE_UNIT, F1, delta_range, f1_unit, number_text, object_column
 from cdm.metric_names import mode as metric_mode
+from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.outcomes import TrialOutcome, finished
 from sweeps.compare.pairing import Lead, Pairing, lead_difference, paired_record, seeds_vary
-from sweeps.compare.rules import TOO_FEW, Stat
+from sweeps.compare.rules import TOO_FEW, Stat, baseline_key, baseline_name, headline
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
+from sweeps.plan.describe import wrapped
 from sweeps.storage import write_file
 
-__all__ = ["COST_COLUMN", "ResultsTable", "build_table", "display_width"]
+__all__ = ["COST_COLUMN", "NO_RESULT", "ResultsTable", "build_table", "display_width"]
 
 
 def display_width(text: str) -> int:
@@ -48,21 +44,15 @@ COST_COLUMN = "compute s"
 """The results table's cost column: a cell's seconds of compute, the mean over its finished trials of what each
 reported (:data:`cdm.metric_names.COMPUTE_METRIC`)."""
 
+NO_RESULT = "no cell finished a trial"
+"""The table's headline when no cell has a result."""
+
 _WHOLE = "[95% CI]"
 """A header's words a wrap keeps on one line."""
 
 
 def _bytes(line: str) -> int:
     return len(line.encode())
-
-
-def _fill(text: str, width: int, indent: str = "") -> str:
-    """``text`` wrapped so that every line is at most ``width`` UTF-8 bytes (λ, ±, ★ are two or three)."""
-    for room in range(width, width // 2, -1):
-        filled = textwrap.fill(text, room, subsequent_indent=indent)
-        if max(map(_bytes, filled.splitlines())) <= width:
-            return filled
-    return filled
 
 
 @dataclass(frozen=True)
@@ -86,6 +76,24 @@ class ResultsTable:
     """The narrow table's columns (cell, metric, partner, Δ metric, verdict): the run page's first table."""
     f1_thresholds: tuple[float, ...] = ()
     """The trials' ``eval.f1_threshold`` values (distinct, sorted): what every F1 label of the sweep names."""
+    reference: str | None = None
+    """The cell every row is paired with; None when the table pairs none."""
+
+    @property
+    def headline(self) -> str:
+        """The table's answer in a sentence: its first summary line."""
+        return self.summary[0] if self.summary else NO_RESULT
+
+    def record(self, cell: str) -> dict[str, object]:
+        """The CSV record of row ``cell`` (``{}`` when there is none)."""
+        return next((r for r in self.records if r["cell"] == cell), {})
+
+    def difference(self, cell: str, metric: str) -> PairedDifference | None:
+        """Row ``cell``'s Δ on ``metric`` against :attr:`reference`, as its record holds it (``n`` not kept: 0)."""
+        found = self.record(cell)
+        if found.get(f"{metric} delta") is None:
+            return None
+        return PairedDifference(*(float(found[f"{metric} delta{end}"]) for end in ("", " low", " high")), 0)  # type: ignore[arg-type]
 
     def _filled(self, names: Sequence[str] | None = None) -> list[int]:
         """Indices of the columns named (default: all) that some row fills; the first column always."""
@@ -97,7 +105,8 @@ class ResultsTable:
         any terminal, one where ★, Δ and λ take two columns (East Asian "ambiguous" width) included. The wide
         columns stay in ``results.md`` and empty ones are left out; then, until it fits, headers wider than their
         column's values wrap over several lines (long cell names make the Δ header long; its ``[95% CI]`` stays
-        whole) before each ``narrowing`` column is dropped in turn; notes are wrapped."""
+        whole) before each ``narrowing`` column is dropped in turn; summary and notes are wrapped as a plan's
+        description is (:func:`sweeps.plan.describe.wrapped`: a word longer than ``width`` stays whole)."""
         keep = [i for i in self._filled() if self.header[i] not in self.wide_only]
         for name in (*self.narrowing, None):
             out = self._lines(keep, wrap=False)
@@ -111,11 +120,9 @@ class ResultsTable:
         if categories:  # eval/f1/chair, eval/f1/lamp, … → eval/f1/<category>
             dropped[dropped.index(categories[0])] = categories[0].rsplit("/", 1)[0] + "/<category>"
             dropped = [h for h in dropped if h not in categories]
-        notes = self.notes + (
-            ["not shown here, in results.md and results.csv: " + ", ".join(dropped)] if dropped else []
-        )
-        out += [""] + [_fill(s, width) for s in self.summary] if self.summary else []
-        out += [""] + [_fill(n, width, "  ") for n in notes] if notes else []
+        notes = self.notes + ["not shown here, in results.md and results.csv: " + ", ".join(dropped)] * bool(dropped)
+        for block in (self.summary, notes):
+            out += [""] + [wrapped(line, width) for line in block] if block else []
         return "\n".join(out)
 
     def _lines(self, keep: list[int], wrap: bool) -> list[str]:
@@ -160,18 +167,16 @@ class ResultsTable:
         return md, table
 
 
-def _categories(outcomes: Sequence[TrialOutcome], metric: str) -> list[str]:
-    prefix = metric + "/"
-    return sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
-
-
 @dataclass(frozen=True)
 class _Columns:
     """What a table shows, shared by its header, its rows and its notes."""
 
     metric: str
+    mode: Literal["min", "max"]
     shown: list[str]
-    """The metric and its partner (:func:`cdm.metric_names.partner`), each with the paper's beside."""
+    """The metric and its partner (:func:`sweeps.compare.rules.headline`), each with the paper's beside."""
+    baselines: list[str]
+    """Baselines some trial scored, in cdm.evaluate's order, weakest first (sphere … retrieval); any other after."""
     categories: list[str]
     """Categories with a ``<metric>/<category>`` column, in the wide table only."""
     paper_label: bool
@@ -179,6 +184,26 @@ class _Columns:
     pairing: Pairing | None
     cost: bool = False
     """A ``compute s`` column: some trial reported its seconds of compute (:data:`cdm.metric_names.COMPUTE_METRIC`)."""
+
+    @classmethod
+    def of(cls, outcomes: Sequence[TrialOutcome], cells: dict[str, list[TrialOutcome]], metric: str,
+           mode: Literal["min", "max"], compare_to: str | None, settled: Mapping[str, SettleRecord]) -> _Columns:
+        """The columns of ``outcomes``, paired with ``compare_to`` (default: the first cell) where it has objects."""
+        shown = headline(metric)
+        found = {k.split("/")[1] for o in outcomes for k in o.metrics if k.startswith("baseline/")}
+        baselines = [b for b in BASELINES if b in found] + sorted(found - set(BASELINES))
+        reference = compare_to or next(iter(cells), None)
+        pairing = None
+        if object_column(metric) and reference in cells and any(o.objects for o in finished(cells[reference])):
+            pairing = Pairing.build(cells, reference, shown, mode, baselines, settled)
+        prefix = metric + "/"
+        categories = sorted({k[len(prefix):] for o in outcomes for k in o.metrics if k.startswith(prefix)})
+        return cls(metric, mode, shown, baselines, categories, any(o.paper_label for o in outcomes), pairing,
+                   any(COMPUTE_METRIC in o.metrics for o in outcomes))
+
+    @property
+    def partner(self) -> str | None:
+        return self.shown[1] if len(self.shown) > 1 else None
 
     @property
     def seeds(self) -> bool:
@@ -189,19 +214,56 @@ class _Columns:
     def per_category(self) -> list[str]:
         return [f"{self.metric}/{c}" for c in self.categories]
 
+    def delta(self, m: str) -> str:
+        """The header of the Δ column of ``m``."""
+        return f"Δ{m.removeprefix('eval/')} vs {self.pairing.reference} [95% CI]"  # type: ignore[union-attr]
+
     def header(self) -> list[str]:
         out = ["cell"] + (["paper setting"] if self.paper_label else []) + ["trials"] + ["seeds"] * self.seeds
         out += [COST_COLUMN] * self.cost
         for m in self.shown:
             out += [m, f"paper {m}"]
         out += self.per_category
-        if self.pairing:
-            reference = self.pairing.reference
-            out += [f"Δ{m.removeprefix('eval/')} vs {reference} [95% CI]" for m in self.shown] + [
-                "verdict",
-                "beats baselines",
-            ]
-        return out
+        return out + ([*map(self.delta, self.shown), "verdict", "beats baselines"] if self.pairing else [])
+
+    def narrowing(self) -> tuple[str, ...]:
+        """:attr:`ResultsTable.narrowing`; last, the trial counts: a long verdict (a sequential cell's, with its
+        partner aside) still fits."""
+        second = self.partner
+        return (*([self.delta(second)] if self.pairing and second else []), "paper setting",
+                *([f"paper {second}", second] if second else []), COST_COLUMN, "trials")
+
+    def answer(self) -> tuple[str, ...]:
+        """:attr:`ResultsTable.answer`."""
+        return ("cell", *["seeds"] * self.seeds, *self.shown,
+                *([self.delta(self.metric), "verdict"] if self.pairing else []))
+
+
+@dataclass(frozen=True)
+class _Ranking:
+    """The cells by their mean metric: each cell's :class:`Stat` and the leaders, the cells that print the best
+    mean (a star between them would rest on digits nobody sees)."""
+
+    stats: dict[str, Stat | None]
+    order: list[str]
+    """The cells with a result, best first."""
+    leaders: list[str]
+
+    @classmethod
+    def of(cls, cells: dict[str, list[TrialOutcome]], metric: str, mode: Literal["min", "max"]) -> _Ranking:
+        stats = {name: Stat.of([o.metrics[metric] for o in finished(group) if metric in o.metrics])
+                 for name, group in cells.items()}
+        order = [n for _, n in sorted((s.mean if mode == "min" else -s.mean, n) for n, s in stats.items() if s)]
+        top = number_text(stats[order[0]].mean) if order else None  # type: ignore[union-attr]
+        return cls(stats, order, [n for n in order if number_text(stats[n].mean) == top])  # type: ignore[union-attr]
+
+    @property
+    def best(self) -> str | None:
+        """The starred cell: the leader, where it leads alone."""
+        return self.leaders[0] if len(self.leaders) == 1 else None
+
+    def mark(self, name: str) -> str:
+        return " ★" if name == self.best else " (tied)" if self.best is None and name in self.leaders else ""
 
 
 def build_table(
@@ -218,78 +280,42 @@ def build_table(
     """Aggregate trials per cell (in first-seen order) and star the best cell by ``metric``/``mode``
     when it is apart from the next at the printed precision (else the leaders are marked tied).
 
-    With per-object rows on the trials, every cell and baseline is paired with ``compare_to``
-    (default: the first cell): mean difference and 95% bootstrap interval for each shown metric, a
-    verdict weighing ``metric`` and its partner, and the baselines the cell beats. ``settled`` (cell →
-    where its run until settled stopped, from the sequential runner) adds a ``seeds`` column and puts
-    that record's interval over seeds and objects, and its verdict, in the cell's row. ``settings``
-    lines (what produced the numbers, e.g. the prediction target) head the notes.
+    With per-object rows on the trials, every row is paired with ``compare_to`` (default: the first cell).
+    ``settled`` (cell → where its run until settled stopped) adds a ``seeds`` column and puts that record's
+    interval over seeds and objects, and its verdict, in the cell's row. ``settings`` lines (what produced the
+    numbers) head the notes.
     """
     cells: dict[str, list[TrialOutcome]] = {}
     for o in outcomes:
         cells.setdefault(o.cell, []).append(o)
-    second = partner(metric)
-    shown = [m for m in (metric, second) if m is not None]
-    # In cdm.evaluate's order, weakest first (sphere … retrieval); any other after them.
-    found = {k.split("/")[1] for o in outcomes for k in o.metrics if k.startswith("baseline/")}
-    baselines = [b for b in BASELINES if b in found] + sorted(found - set(BASELINES))
-    reference = compare_to or next(iter(cells), None)
-    pairing = None
-    if object_column(metric) is not None and reference in cells and any(o.objects for o in finished(cells[reference])):
-        pairing = Pairing.build(cells, reference, shown, mode, baselines, settled or {})
-    columns = _Columns(metric, shown, _categories(outcomes, metric), any(o.paper_label for o in outcomes), pairing,
-                       any(COMPUTE_METRIC in o.metrics for o in outcomes))
-
-    stats = {name: Stat.of([o.metrics[metric] for o in group if o.finished and metric in o.metrics])
-             for name, group in cells.items()}
-    ranked = sorted((s.mean if mode == "min" else -s.mean, name) for name, s in stats.items() if s is not None)
-    # Cells that print the leader's mean: a star between them would rest on digits nobody sees.
-    leaders = [name for _, name in ranked if number_text(stats[name].mean) == number_text(stats[ranked[0][1]].mean)]  # type: ignore[union-attr]
-    best = leaders[0] if len(leaders) == 1 else None
-    mark = {best: " ★"} if best else {name: " (tied)" for name in leaders}
-    looks = max((r.looks for r in settled.values()), default=1) if settled else None
-    lead = (lead_difference(cells, best, ranked[1][1], metric, mode, looks)
-            if pairing and best and len(ranked) > 1 else None)
-
-    made = [_cell_row(columns, name, group, mark.get(name, ""), best) for name, group in cells.items()]
+    columns = _Columns.of(outcomes, cells, metric, mode, compare_to, settled or {})
+    ranking = _Ranking.of(cells, metric, mode)
+    made = [_cell_row(columns, name, group, ranking) for name, group in cells.items()]
     if metric.startswith("eval/"):
-        made += [_baseline_row(columns, b, finished(outcomes)) for b in baselines]
-    notes = list(settings) + _notes(columns, outcomes, cells, paper_note, mode, leaders, best, bool(ranked))
-    narrowing = [f"Δ{second.removeprefix('eval/')} vs {reference} [95% CI]"] if pairing and second else []
-    # Last, the trial counts: a long verdict (a sequential cell's, with its partner aside) still fits.
-    narrowing += ["paper setting"] + ([f"paper {second}", second] if second else []) + [COST_COLUMN, "trials"]
-    answer = ("cell", *["seeds"] * columns.seeds, *shown,
-              *([f"Δ{metric.removeprefix('eval/')} vs {reference} [95% CI]", "verdict"] if pairing else []))
+        made += [_baseline_row(columns, b, finished(outcomes)) for b in columns.baselines]
+    looks = max((r.looks for r in settled.values()), default=1) if settled else None
+    lead = (lead_difference(cells, ranking.best, ranking.order[1], metric, mode, looks)
+            if columns.pairing and ranking.best and len(ranking.order) > 1 else None)
     return ResultsTable(
-        title,
-        columns.header(),
-        [row for row, _ in made],
-        [record for _, record in made],
-        notes,
-        best,
-        _summary(cells, stats, leaders, metric, pairing, lead),
-        frozenset(columns.per_category + ["beats baselines"]),
-        tuple(narrowing),
-        answer,
-        tuple(sorted({o.f1_threshold for o in outcomes})),
+        title, columns.header(), [row for row, _ in made], [record for _, record in made],
+        list(settings) + _notes(columns, outcomes, cells, paper_note, ranking), ranking.best,
+        _summary(columns, cells, ranking, lead), frozenset(columns.per_category + ["beats baselines"]),
+        columns.narrowing(), columns.answer(), tuple(sorted({o.f1_threshold for o in outcomes})),
+        columns.pairing.reference if columns.pairing else None,
     )
 
 
 def _cell_row(
-    columns: _Columns, name: str, group: list[TrialOutcome], mark: str, best: str | None
+    columns: _Columns, name: str, group: list[TrialOutcome], ranking: _Ranking
 ) -> tuple[list[str], dict[str, object]]:
     """A cell's row (its trials aggregated over seeds) and its CSV record."""
     first = group[0]
     counts = {s: sum(o.status == s for o in group) for s in ("ok", "stopped", "failed", "pending")}
     trials = f"{counts['ok'] + counts['stopped']}/{len(group)}" + "".join(
         f" ({counts[s]} {s})" for s in ("stopped", "failed", "pending") if counts[s])
-    row = [name + mark] + ([first.paper_label or ""] if columns.paper_label else []) + [trials]
-    record: dict[str, object] = {
-        "cell": name,
-        "paper_setting": first.paper_label or "",
-        "best": name == best,
-        **counts,
-    }
+    row = [name + ranking.mark(name)] + ([first.paper_label or ""] if columns.paper_label else []) + [trials]
+    record: dict[str, object] = {"cell": name, "paper_setting": first.paper_label or "", "best": name == ranking.best,
+                                 **counts}
     if columns.seeds:
         settle = columns.pairing.settled.get(name)  # type: ignore[union-attr]
         row.append(f"{settle.seeds} ({settle.reason})" if settle else "")
@@ -321,8 +347,7 @@ def _baseline_row(columns: _Columns, b: str, done: list[TrialOutcome]) -> tuple[
     row = [f"baseline: {b}"] + ([""] if columns.paper_label else []) + [""] + [""] * (columns.seeds + columns.cost)
     record: dict[str, object] = {"cell": f"baseline: {b}"}
     for m in columns.shown + columns.per_category:
-        key = "baseline/" + b + "/" + m.removeprefix("eval/")
-        stat = Stat.of([o.metrics[key] for o in done if key in o.metrics])
+        stat = Stat.of([o.metrics[baseline_key(b, m)] for o in done if baseline_key(b, m) in o.metrics])
         row += [number_text(stat.mean) if stat else "–"] + ([""] if m in columns.shown else [])
         record.update({f"{m} mean": stat.mean if stat else None})
     if columns.pairing:  # a reference row: no difference to the reference cell, no verdict
@@ -330,20 +355,11 @@ def _baseline_row(columns: _Columns, b: str, done: list[TrialOutcome]) -> tuple[
     return row, record
 
 
-def _notes(
-    columns: _Columns,
-    outcomes: Sequence[TrialOutcome],
-    cells: dict[str, list[TrialOutcome]],
-    paper_note: str,
-    mode: Literal["min", "max"],
-    leaders: list[str],
-    best: str | None,
-    ranked: bool,
-) -> list[str]:
+def _notes(columns: _Columns, outcomes: Sequence[TrialOutcome], cells: dict[str, list[TrialOutcome]],
+           paper_note: str, ranking: _Ranking) -> list[str]:
     """The notes under the table: units, the paper's source, what the star and the Δ columns mean, failures."""
-    metric, shown, pairing = columns.metric, columns.shown, columns.pairing
-    second = shown[1] if len(shown) > 1 else None
-    has_f1 = outcomes and any(m.split("/")[1:2] == [F1.name] for m in shown)
+    metric, mode, pairing, second = columns.metric, columns.mode, columns.pairing, columns.partner
+    has_f1 = outcomes and any(m.split("/")[1:2] == [F1.name] for m in columns.shown)
     notes = [f1_unit(o.f1_threshold for o in outcomes)] if has_f1 else []
     if paper_note:
         notes.append(f"paper: {paper_note}")
@@ -353,12 +369,11 @@ def _notes(
     if any(c in o.paper for o in outcomes for c in columns.per_category):
         notes.append(f"{metric}/<category> columns: ours (paper) where the paper reports that category")
     seeds = max((len(finished(group)) for group in cells.values()), default=0)
-    varies = seeds_vary(cells)
-    if ranked:
-        interval = "interval over seeds and objects (as the verdicts')" if varies else "paired interval"
+    if ranking.order:
+        interval = "interval over seeds and objects (as the verdicts')" if seeds_vary(cells) else "paired interval"
         star = (f"★ highest mean {metric} ({mode}), apart from the next at the printed precision; \"best\" only where "
-                f"its {interval} against the next cell excludes 0" if best else
-                f"no ★: {', '.join(leaders)} tied for best by {metric} ({mode}) at the printed precision")
+                f"its {interval} against the next cell excludes 0" if ranking.best else
+                f"no ★: {', '.join(ranking.leaders)} tied for best by {metric} ({mode}) at the printed precision")
         notes.append(star + ("; ± is the standard deviation over seeds" if seeds > 1 else ""))
     if pairing:
         weighed = f"{metric} ({mode})" + (f" and {second} ({metric_mode(second)})" if second else "")
@@ -373,7 +388,7 @@ def _notes(
                          f"{pairing.reference} share two seeds or more) are over training seeds and held-out objects "
                          "instead, Banerjee's two-way t-interval at 95% (sweeps/compare/sequential.py)")
         notes += [SETTLED_FOOTNOTE] if columns.seeds else []
-        for m in pairing.clipped(shown, metric):
+        for m in pairing.clipped(columns.shown, metric):
             low, high = delta_range(m)  # type: ignore[misc]
             notes.append(f"Δ{m.removeprefix('eval/')} intervals reaching past [{low:+g}, {high:+g}] (F1 lies in "
                          f"[0, 1]) are cut to it; where one still holds 0 the verdict says \"{TOO_FEW}\"")
@@ -381,67 +396,53 @@ def _notes(
     return notes + [f"failed: {o.label} — {o.error or 'no reason recorded'}" for o in outcomes if o.status == "failed"]
 
 
-def _baseline_name(name: str) -> str:
-    return {"gaussian": "Gaussian"}.get(name, name.replace("_", " "))
+def _grouped(pairs: Iterable[tuple[str, str]]) -> dict[str, list[str]]:
+    """``(name, value)`` pairs as value → the names with it, in first-seen order."""
+    out: dict[str, list[str]] = {}
+    for name, value in pairs:
+        out.setdefault(value, []).append(name)
+    return out
 
 
-def _summary(
-    cells: dict[str, list[TrialOutcome]],
-    stats: dict[str, Stat | None],
-    leaders: list[str],
-    metric: str,
-    pairing: Pairing | None,
-    lead: Lead | None = None,
-) -> list[str]:
+def _standing(columns: _Columns, ranking: _Ranking, name: str, plural: bool) -> str:
+    """How cell ``name`` stands against the baselines (its weighed verdicts), else its mean."""
+    against = (columns.pairing.against if columns.pairing else {}).get(name)
+    if not against:
+        stat = ranking.stats[name]
+        return f"{columns.metric} {stat.text()}" if stat else "no result"
+    words = {"better": "beat" if plural else "beats", "no clear difference": "level with", "worse": "below"}
+    by_verdict = _grouped((baseline_name(b), v) for b, v in against.items())
+    ordered = [v for v in words if v in by_verdict] + [v for v in by_verdict if v not in words]
+    return "; ".join(f"{words[v]} {', '.join(by_verdict[v])}" if v in words else f"{v} than {', '.join(by_verdict[v])}"
+                     for v in ordered)
+
+
+def _summary(columns: _Columns, cells: dict[str, list[TrialOutcome]], ranking: _Ranking,
+             lead: Lead | None) -> list[str]:
     """One sentence per class of cells — the best cell (only when ``lead``, its paired Δ to the next, excludes 0;
     else the leader, said not resolvable), then cells that stand the same against the baselines (weighed
     verdicts), then every cell's verdict against the reference cell — and one for those with no result."""
-    if not leaders:
-        return ["no cell finished a trial"] if cells else []
-
-    def standing(name: str, plural: bool) -> str:
-        against = (pairing.against if pairing else {}).get(name)
-        if not against:
-            return f"{metric} {stats[name].text()}" if stats[name] else "no result"  # type: ignore[union-attr]
-        words = {"better": "beat" if plural else "beats", "no clear difference": "level with", "worse": "below"}
-        by_verdict: dict[str, list[str]] = {}
-        for b, v in against.items():
-            by_verdict.setdefault(v, []).append(_baseline_name(b))
-        ordered = [v for v in words if v in by_verdict] + [v for v in by_verdict if v not in words]
-        return "; ".join(
-            f"{words[v]} {', '.join(by_verdict[v])}" if v in words else f"{v} than {', '.join(by_verdict[v])}"
-            for v in ordered
-        )
-
-    best = leaders[0] if len(leaders) == 1 else None
+    if not ranking.leaders:
+        return [NO_RESULT] if cells else []
+    metric, pairing, best = columns.metric, columns.pairing, ranking.best
     over = ", over seeds and objects" if lead and lead.covers == "seeds and objects" else ""
-    lead_text = (
-        f"Δ{metric.removeprefix('eval/')} {lead.diff.text()} against the next cell{over}"
-        + (f", {TOO_FEW}" if lead.diff.clipped else "")
-        if lead
-        else "unpaired with the next cell"
-    )
+    lead_text = (f"Δ{metric.removeprefix('eval/')} {lead.diff.text()} against the next cell{over}"
+                 + (f", {TOO_FEW}" if lead.diff.clipped else "") if lead else "unpaired with the next cell")
     if best and lead is not None and lead.verdict == "better":
-        out = [f"best cell {best} ({lead_text}): {standing(best, False)}"]
+        out = [f"best cell {best} ({lead_text}): {_standing(columns, ranking, best, False)}"]
     elif best:
-        out = [f"no cell is resolvably best by {metric}: the leader {best} ({lead_text}): {standing(best, False)}"]
+        out = [f"no cell is resolvably best by {metric}: the leader {best} ({lead_text}): "
+               f"{_standing(columns, ranking, best, False)}"]
     else:
-        out = [f"no best cell: {', '.join(leaders)} tie at {metric} {number_text(stats[leaders[0]].mean)}"]  # type: ignore[union-attr]
+        top = number_text(ranking.stats[ranking.leaders[0]].mean)  # type: ignore[union-attr]
+        out = [f"no best cell: {', '.join(ranking.leaders)} tie at {metric} {top}"]
     if pairing:
-        classes: dict[str, list[str]] = {}
-        for name in cells:
-            if name != best and stats[name] is not None:
-                classes.setdefault(standing(name, True), []).append(name)
+        classes = _grouped((name, _standing(columns, ranking, name, True)) for name in cells
+                           if name != best and ranking.stats[name] is not None)
         out += [f"{'cell' if len(names) == 1 else 'cells'} {', '.join(names)}: "
-                f"{standing(names[0], len(names) > 1)}" for names in classes.values()]
-        by_verdict: dict[str, list[str]] = {}
-        for name, verdict in pairing.verdicts.items():
-            by_verdict.setdefault(verdict, []).append(name)
-        if by_verdict:
-            out.append(
-                f"against {pairing.reference}: " + "; ".join(f"{', '.join(n)} {v}" for v, n in by_verdict.items())
-            )
-    failed = [name for name in cells if stats[name] is None]
-    if failed:
-        out.append(f"no result (failed or not run): {', '.join(failed)}")
-    return out
+                f"{_standing(columns, ranking, names[0], len(names) > 1)}" for names in classes.values()]
+        by_verdict = _grouped(pairing.verdicts.items())
+        out += [f"against {pairing.reference}: " + "; ".join(f"{', '.join(n)} {v}" for v, n in by_verdict.items())
+                ] if by_verdict else []
+    failed = [name for name in cells if ranking.stats[name] is None]
+    return out + ([f"no result (failed or not run): {', '.join(failed)}"] if failed else [])

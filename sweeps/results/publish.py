@@ -1,14 +1,9 @@
 """Rebuild a finished sweep's comparison straight from MLflow: results table, the paper's layout, plots, panels.
 
-``python sweeps/report.py EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]``
-(also ``cdm-lab report EXPERIMENT``) reads the sweep's parent run (its spec file and
-``plan.json``) and its child runs, and writes ``results.{md,csv}`` and the plots into ``--out``
-(default ``results/<experiment>/report``); ``--log`` also logs the plots onto the parent run.
-A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 listing the known ones.
-
-The runner calls :func:`publish` at the end of every sweep: the plots and reconstructions onto the
-parent run, a description on each run, and the runs view (:func:`share_view`). The sweep is read back
-by :mod:`sweeps.results.finished`; ``notebooks/compare.ipynb`` is built on both modules.
+``cdm-lab report EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]`` writes ``results.{md,csv}``
+and the plots into ``--out`` (default ``results/<experiment>/report``); ``--log`` also logs the plots onto the
+parent run. A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 listing the known ones.
+The runner calls :func:`publish` at the end of every sweep. The sweep is read back by :mod:`sweeps.results.finished`.
 """
 
 from __future__ import annotations
@@ -28,12 +23,11 @@ import numpy as np
 from cdm.baseline_names import BASELINES
 from cdm.cli import add_out, command_parser
 from cdm.interrupt import interruptible
-from cdm.metric_names import CD, F1, METRICS, partner, rounded
+from cdm.metric_names import CD, F1, METRICS, rounded
 from cdm.metric_names import label as metric_label
-from sweeps.compare.bootstrap import PairedDifference
 from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
-from sweeps.compare.rules import PROTOCOL_NOTE
+from sweeps.compare.rules import PROTOCOL_NOTE, baseline_key, headline
 from sweeps.compare.table import ResultsTable
 from sweeps.execute.logged_runs import last_eval_files, last_objects, metric_histories
 from sweeps.execute.tracking import resolve_tracking_uri, ui_link
@@ -44,17 +38,8 @@ from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_
 from sweeps.results.view import headline_name, row_tags, share_view
 from sweeps.storage import StoreError, check_tracking_uri
 
-__all__ = [
-    "DESCRIPTION_WIDTH",
-    "build_parser",
-    "describe_sweep",
-    "describe_trial",
-    "main",
-    "panels",
-    "publish",
-    "reconstructions",
-    "write_plots",
-]
+__all__ = ["DESCRIPTION_WIDTH", "build_parser", "describe_sweep", "describe_trial", "main", "open_given", "panels",
+           "publish", "reconstructions", "sweep_arguments", "write_plots"]
 
 
 def _histories(
@@ -78,21 +63,17 @@ def write_plots(
     spec, folder = record.spec, Path(folder)
     metric = spec.metric.name
     done = [t for t in trials if t.outcome.finished]
-    points = [
-        PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label) for t in done
-    ]
-    intervals = {str(r["cell"]): (float(r[f"{metric} delta low"]), float(r[f"{metric} delta high"]))  # type: ignore[arg-type]
-                 for r in (table.records if table else []) if r.get(f"{metric} delta") is not None}
+    points = [PlotPoint(t.outcome.cell, t.values, t.outcome.metrics, t.outcome.paper, t.outcome.paper_label)
+              for t in done]
+    diffs = {t.outcome.cell: table.difference(t.outcome.cell, metric) for t in done} if table else {}
+    intervals = {cell: (d.low, d.high) for cell, d in diffs.items() if d is not None}
     paths = []
     if points:
         paths.append(metric_vs_value(points, metric, record.title, folder / "metric_vs_value.png",
                                      spec.paper.table if spec.paper else "paper", intervals,
                                      f1_thresholds=[t.outcome.f1_threshold for t in done]))
-    curves = {
-        label: history
-        for label, history in _histories(record, trials, ("train/loss", "train/loss_diffusion", metric)).items()
-        if has_curve(history, metric)
-    }
+    histories = _histories(record, trials, ("train/loss", "train/loss_diffusion", metric))
+    curves = {label: history for label, history in histories.items() if has_curve(history, metric)}
     if curves:
         cells = {t.outcome.label: t.outcome.cell for t in trials}
         thresholds = [t.outcome.f1_threshold for t in trials if t.outcome.label in curves]
@@ -152,7 +133,7 @@ def describe_sweep(
     swept with which profile. The wide table (paper's column, per category, baselines beaten) is the
     run's ``results.md``."""
     better = "lower" if spec.metric.mode == "min" else "higher"
-    head, *rest = table.summary or ["no cell finished a trial"]
+    head, *rest = table.summary or [table.headline]
     out = [_prose(f"**{spec.name}**, profile **{profile}**, by {spec.metric.name} ({better} is better): {head}."),
            table.grid(table.answer or None),
            "\n".join(_prose(line, bullet=True) for line in rest),
@@ -162,14 +143,8 @@ def describe_sweep(
     out += ["\n".join(_prose(n, bullet=True) for n in notes)] if notes else []
     # The card's changes without their sources (each line "deviation: <change> (<source>)"): results.md lists
     # them whole.
-    out += (
-        [
-            "**Protocol card** (sources in `results.md`):\n"
-            + "\n".join(_prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)
-        ]
-        if card
-        else []
-    )
+    out += ["**Protocol card** (sources in `results.md`):\n" + "\n".join(
+        _prose(line.removeprefix("deviation: ").split(" (", 1)[0], bullet=True) for line in card)] if card else []
     out += [_prose(f"**{spec.name}**: {spec.description}".rstrip(": ")),
             _prose(f"Profile **{profile}**: {profile_description}".rstrip(": "))]
     return "\n\n".join(part for part in out if part)
@@ -182,10 +157,8 @@ def _best_baseline(record: SweepRecord, trials: list[TrialRecord]) -> str | None
     mode = mode if short == metric.removeprefix("eval/") else "max"
     means = {}
     for b in BASELINES:
-        values = [
-            t.outcome.metrics[f"baseline/{b}/{short}"] for t in trials if f"baseline/{b}/{short}" in t.outcome.metrics
-        ]
-        if values:
+        key = baseline_key(b, short)
+        if values := [t.outcome.metrics[key] for t in trials if key in t.outcome.metrics]:
             means[b] = statistics.fmean(values)
     return (min if mode == "min" else max)(means, key=means.__getitem__) if means else None
 
@@ -194,49 +167,37 @@ def reconstructions(record: SweepRecord, trials: list[TrialRecord], folder: Path
     """``reconstructions.png`` (a grid) and ``reconstructions.html`` (a 3D viewer) of the drawn objects:
     rows the objects every cell drew at its last evaluation, columns each cell (its first finished
     seed), the ground truth and the best baseline. Empty when no finished trial drew an object."""
-    folder = Path(folder)
     firsts: dict[str, TrialRecord] = {}
     for t in trials:
         if t.run_id is not None and t.outcome.finished:
             firsts.setdefault(t.outcome.cell, t)
-    files = {cell: last_eval_files(record.client, t.run_id) for cell, t in firsts.items()}
-    stems = [f.removesuffix(".gt.ply") for f in next(iter(files.values()), []) if f.endswith(".gt.ply")]
-    # The same objects in every column; evaluation folders differ by step, so match on the file name.
-    names = [
-        Path(s).name
-        for s in stems
-        if all(any(Path(f).name == Path(s).name + ".ply" for f in fs) for fs in files.values())
-    ]
+    # Evaluation folders differ by step: each cell's files by name, the same objects in every column.
+    files = {cell: {Path(f).name: f for f in last_eval_files(record.client, t.run_id)} for cell, t in firsts.items()}
+    first = next(iter(firsts), "")
+    names = [n.removesuffix(".gt.ply") for n in files.get(first, {}) if n.endswith(".gt.ply")
+             and all(n.removesuffix(".gt.ply") + ".ply" in found for found in files.values())]
     if not names:
         return []
     best = _best_baseline(record, trials)
     baseline = f"baseline: {best}" if best else None
+    # The first column's object also gives the ground truth's and the best baseline's clouds.
+    extra = {"ground truth": ".gt.ply"} | ({baseline: f".{best}.ply"} if baseline else {})
     gallery: dict[str, dict[str, np.ndarray]] = {}
+    inputs = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for cell, t in firsts.items():
-            folder_of = {Path(f).name: f for f in files[cell]}
+        def fetch(cell: str, name: str) -> Path:
+            t = firsts[cell]
+            return Path(record.client.download_artifacts(t.run_id, files[cell][name], str(Path(tmp) / t.run_id)))
+
+        for cell in firsts:
             for name in names:
-                wanted = {cell: f"{name}.ply"}
-                if cell == next(iter(firsts)):
-                    wanted |= {"ground truth": f"{name}.gt.ply"} | (
-                        {baseline: f"{name}.{best}.ply"} if baseline else {}
-                    )
+                wanted = {cell: f"{name}.ply"} | ({k: name + end for k, end in extra.items()} if cell == first else {})
                 for label, file in wanted.items():
-                    if file in folder_of:
-                        local = record.client.download_artifacts(t.run_id, folder_of[file], str(Path(tmp) / t.run_id))
-                        gallery.setdefault(name, {})[label] = read_ply(Path(local))
-        inputs = {}
-        first = next(iter(firsts.values()))
-        panels_of = {Path(f).name: f for f in files[first.outcome.cell] if f.endswith(".png")}
+                    if file in files[cell]:
+                        gallery.setdefault(name, {})[label] = read_ply(fetch(cell, file))
         for name in names:  # the input image, from the first cell's panel of that object
-            if f"{name}.png" in panels_of:
-                found = panel_input(
-                    Path(
-                        record.client.download_artifacts(first.run_id, panels_of[f"{name}.png"], str(Path(tmp) / "in"))
-                    )
-                )
-                if found is not None:
-                    inputs[name] = found
+            if f"{name}.png" in files[first] and (found := panel_input(fetch(first, f"{name}.png"))) is not None:
+                inputs[name] = found
     columns = [*firsts, "ground truth", *([baseline] if baseline else [])]
     title = f"{record.title}: reconstructions at the last evaluation"
     scores = _object_scores(record, firsts, best)
@@ -255,9 +216,9 @@ def _object_scores(
             stem = str(row["object_id"]).replace("/", "_")  # the clouds' file names (cdm/evaluate.py)
             scores = out.setdefault(stem, {})
             scores[cell] = (float(row[CD.name]), float(row[F1.name]))
-            if i == 0 and best is not None and f"baseline/{best}/{CD.name}" in row:
-                scores[f"baseline: {best}"] = (float(row[f"baseline/{best}/{CD.name}"]),
-                                               float(row[f"baseline/{best}/{F1.name}"]))
+            if i == 0 and best is not None and baseline_key(best, CD.name) in row:
+                scores[f"baseline: {best}"] = (float(row[baseline_key(best, CD.name)]),
+                                               float(row[baseline_key(best, F1.name)]))
     return out
 
 
@@ -274,23 +235,15 @@ def describe_trial(record: SweepRecord, trial: TrialRecord, table: ResultsTable)
     elif not o.finished:
         out.append("It did not finish.")
     else:
-        shown = [m for m in (spec.metric.name, partner(spec.metric.name)) if m and m in o.metrics]
-        out.append(
-            "At its last evaluation "
-            + ", ".join(f"{metric_label(m, o.f1_threshold)} {rounded(o.metrics[m])}" for m in shown) + "."
-        )
-        cell = next((r for r in table.records if r["cell"] == o.cell), {})
-        delta = cell.get(f"{spec.metric.name} delta")
-        if delta is None and f"{spec.metric.name} delta" in cell and not cell.get("verdict"):
+        shown = [m for m in headline(spec.metric.name) if m in o.metrics]
+        out.append("At its last evaluation "
+                   + ", ".join(f"{metric_label(m, o.f1_threshold)} {rounded(o.metrics[m])}" for m in shown) + ".")
+        cell, diff = table.record(o.cell), table.difference(o.cell, spec.metric.name)
+        if o.cell == table.reference:
             out.append("Its cell is the reference cell the others are paired with.")
-        elif delta is not None:
-            short = spec.metric.name.removeprefix("eval/")
-            diff = PairedDifference(
-                delta, cell[f"{spec.metric.name} delta low"], cell[f"{spec.metric.name} delta high"], 0
-            )
-            out.append(
-                f"Its cell against the reference cell: Δ{short} {diff.text()} (95% paired interval), {cell['verdict']}."
-            )
+        elif diff is not None:
+            out.append(f"Its cell against the reference cell: Δ{spec.metric.name.removeprefix('eval/')} {diff.text()} "
+                       f"(95% paired interval), {cell['verdict']}.")
         if "beats baselines" in cell:
             beaten = str(cell["beats baselines"]).replace(";", ", ")
             out.append(f"Baselines it beats on {spec.metric.name}: {beaten or 'none'}.")
@@ -322,14 +275,33 @@ def publish(uri: str, parent_run_id: str, folder: Path) -> str:
     return share_view(record, table)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = command_parser("report", "Rebuild a finished sweep's comparison straight from MLflow: results table, "
-                       "the paper's layout, plots, panels", "point_size --out reports/point_size")
+def sweep_arguments(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """``p`` with the arguments that name a finished sweep (``EXPERIMENT``, ``--tracking-uri``, ``--run-id``), as
+    :func:`open_given` reads them."""
     p.add_argument("experiment", metavar="EXPERIMENT", help="MLflow experiment name (= the spec's name)")
     p.add_argument("--tracking-uri", default=None, metavar="URI",
                    help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
     p.add_argument("--run-id", default=None, metavar="RUN_ID",
                    help="parent run of the sweep (default: the experiment's latest sweep)")
+    return p
+
+
+def open_given(args: argparse.Namespace) -> SweepRecord:
+    """The sweep :func:`sweep_arguments` named, its store checked first (a URI MLflow cannot open is one line, not
+    its traceback).
+
+    Raises:
+        ReportError, StoreError: no such store or sweep; the message says which.
+    """
+    # A few small downloads (the spec, plan.json, a file per trial): no progress bar for each.
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    uri = resolve_tracking_uri(args.tracking_uri)
+    check_tracking_uri(uri)
+    return open_sweep(uri, args.experiment, args.run_id)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = sweep_arguments(command_parser("report", __doc__.split("\n\n")[0], "point_size --out reports/point_size"))
     add_out(p, "results.{md,csv} and plots (default: results/<experiment>/report)", type=Path, default=None)
     p.add_argument("--log", action="store_true", help="also log the plots onto the parent run and save the UI view")
     return p
@@ -338,12 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
 @interruptible("cdm-lab report")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    # One small download per trial: no progress bar for each.
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
-    uri = resolve_tracking_uri(args.tracking_uri)
     try:
-        check_tracking_uri(uri)  # a URI MLflow cannot open is one line, not its traceback
-        record = open_sweep(uri, args.experiment, args.run_id)
+        record = open_given(args)
     except (ReportError, StoreError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

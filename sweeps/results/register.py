@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import sys
 from pathlib import Path
@@ -20,8 +19,10 @@ from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 
 from cdm.cli import command_parser
 from cdm.io.json import parse_json
-from sweeps.mlflow_model import MODEL_NAME
-from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
+from sweeps.compare.outcomes import sweep_order
+from sweeps.mlflow_model import logged_model
+from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, results_table, trial_records
+from sweeps.results.publish import open_given, sweep_arguments
 
 __all__ = ["RegisterError", "best_trial", "build_parser", "check_name", "main", "register_best", "register_run"]
 
@@ -54,8 +55,8 @@ def best_trial(record: SweepRecord) -> TrialRecord:
         raise RegisterError(f"sweep {record.parent.info.run_id} has no best cell by {metric} ({mode}): none finished, "
                             "or the leaders tie at the printed precision (the results table marks them tied)")
     seeds = [t for t in trials if t.outcome.cell == best and t.outcome.finished and metric in t.outcome.metrics]
-    sign = 1.0 if mode == "min" else -1.0
-    return min(seeds, key=lambda t: sign * t.outcome.metrics[metric])
+    best_first = sweep_order(None, metric, mode)
+    return min(seeds, key=lambda t: best_first(t.outcome))
 
 
 def register_run(client, run_id: str, name: str, description: str = ""):
@@ -65,17 +66,14 @@ def register_run(client, run_id: str, name: str, description: str = ""):
     Raises:
         RegisterError: the run logged no MLflow model (a run of cdm-lab 0.1.0 kept a plain folder).
     """
-    experiment_id = client.get_run(run_id).info.experiment_id
-    models = client.search_logged_models([experiment_id], max_results=1, filter_string=(
-        f"name = '{MODEL_NAME}' AND source_run_id = '{run_id}'"))
-    if not models:
+    model = logged_model(client, run_id)
+    if model is None:
         raise RegisterError(f"run {run_id} logged no MLflow model (runs of cdm-lab 0.1.0 kept a plain model/ folder: "
                             f"score it with cdm-lab evaluate --checkpoint runs:/{run_id}/model)")
     if not client.search_registered_models(filter_string=f"name = '{check_name(name)}'"):
         client.create_registered_model(name)
     # The model's own artifact location, not models:/<id>: a SQLite registry would resolve that against
     # MLflow's process-wide tracking URI, not this client's store.
-    model = models[0]
     version = client.create_model_version(name, model.artifact_location, run_id=run_id, model_id=model.model_id,
                                           description=description)
     # How MLflow links a logged model to its versions (mlflow.register_model does the same): the Models tab
@@ -99,31 +97,22 @@ def register_best(record: SweepRecord, name: str):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = command_parser("register", "Register a finished sweep's best cell's model in MLflow's model registry",
-                       "point_size --name cdm-point-size")
-    p.add_argument("experiment", metavar="EXPERIMENT", help="MLflow experiment name (= the spec's name)")
+    p = sweep_arguments(command_parser("register", "Register a finished sweep's best cell's model in MLflow's model "
+                                       "registry", "point_size --name cdm-point-size"))
     p.add_argument("--name", required=True, metavar="NAME",
                    help="registered model name: letters, digits, '.', '_', '-' (a new version when it exists)")
-    p.add_argument("--tracking-uri", default=None, metavar="URI",
-                   help="MLflow URI (default: MLFLOW_TRACKING_URI, else sqlite:///<cwd>/mlflow.db)")
-    p.add_argument("--run-id", default=None, metavar="RUN_ID",
-                   help="parent run of the sweep (default: the experiment's latest sweep)")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     from mlflow.exceptions import MlflowException
 
-    from sweeps.execute.tracking import resolve_tracking_uri
-    from sweeps.storage import StoreError, check_tracking_uri
+    from sweeps.storage import StoreError
 
     args = build_parser().parse_args(argv)
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # the spec and plan.json: two small files
-    uri = resolve_tracking_uri(args.tracking_uri)
     try:
         check_name(args.name)
-        check_tracking_uri(uri)
-        version, said = register_best(open_sweep(uri, args.experiment, args.run_id), args.name)
+        version, said = register_best(open_given(args), args.name)
     except (RegisterError, ReportError, StoreError, MlflowException) as exc:
         print(f"error: {' '.join(str(exc).split())[:300]}", file=sys.stderr)
         return 2

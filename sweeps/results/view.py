@@ -20,8 +20,7 @@ from collections import Counter
 
 from mlflow.entities import Metric
 
-from cdm.metric_names import partner
-from sweeps.compare.bootstrap import interval_text
+from sweeps.compare.rules import headline
 from sweeps.compare.table import ResultsTable
 from sweeps.results.finished import SweepRecord
 
@@ -52,20 +51,18 @@ def sort_key(text: str) -> float | None:
 def row_tags(table: ResultsTable, cell: str, metric: str) -> dict[str, str]:
     """The tags a cell's runs show as the view's columns: ``vs reference`` (verdict, interval of Δ, Δ)
     and ``vs baselines`` (the baselines it beats); empty for a cell the table did not pair."""
-    record = next((r for r in table.records if r["cell"] == cell), None)
-    if record is None or f"{metric} delta" not in record:
+    record, diff = table.record(cell), table.difference(cell, metric)
+    if table.reference is None or not record:
         return {}
-    short = metric.removeprefix("eval/")
-    delta, low, high = (record.get(f"{metric} delta{end}") for end in ("", " low", " high"))
     verdict = str(record.get("verdict") or "")
-    column = next(i for i, h in enumerate(table.header) if h.startswith(f"Δ{short} vs "))
-    if table.rows[table.records.index(record)][column] == "reference":
+    verdict = VERDICT_WORDS.get(verdict, verdict)
+    if cell == table.reference:
         versus = "reference"
-    elif delta is None:
-        versus = VERDICT_WORDS.get(verdict, verdict) or "no result"
+    elif diff is None:
+        versus = verdict or "no result"
     else:
-        mean, interval = interval_text(float(delta), float(low), float(high)).split(" ", 1)
-        versus = f"{VERDICT_WORDS.get(verdict, verdict)} {interval} Δ{short} {mean}"
+        mean, interval = diff.text().split(" ", 1)
+        versus = f"{verdict} {interval} Δ{metric.removeprefix('eval/')} {mean}"
     beaten = str(record.get("beats baselines") or "").replace(";", ", ")
     return {"vs reference": versus, "vs baselines": f"beats {beaten or 'none'}"}
 
@@ -77,56 +74,40 @@ def baseline_rows(record: SweepRecord, table: ResultsTable) -> list[str]:
     client, parent = record.client, record.parent.info.run_id
     found = {r.info.run_name: r.info.run_id for r in client.search_runs(
         [record.experiment_id], f"tags.sweep = '{parent}' and tags.kind = '{BASELINE_KIND}'")}
-    shown = [m for m in (record.spec.metric.name, partner(record.spec.metric.name)) if m and m.startswith("eval/")]
     out = []
     for row in (r for r in table.records if str(r["cell"]).startswith("baseline: ")):
         name = str(row["cell"])
         if name not in found:
-            run_id = client.create_run(
-                record.experiment_id,
-                run_name=name,
-                tags={
-                    "sweep": parent,
-                    "kind": BASELINE_KIND,
-                    "vs reference": BASELINE_KIND,
-                    "mlflow.note.content": f"The trivial baseline {name.removeprefix('baseline: ')}, "
-                    "scored on the sweep's "
-                    "held-out objects (`cdm/evaluate.py`): what a cell's number is worth.",
-                },
-            ).info.run_id
-            now = int(time.time() * 1000)
-            client.log_batch(
-                run_id,
-                metrics=[
-                    Metric("final/" + m.removeprefix("eval/"), float(row[f"{m} mean"]), now, 0)
-                    for m in shown
-                    if row.get(f"{m} mean") is not None
-                ],
-            )
+            note = (f"The trivial baseline {name.removeprefix('baseline: ')}, scored on the sweep's held-out objects "
+                    "(`cdm/evaluate.py`): what a cell's number is worth.")
+            run_id = client.create_run(record.experiment_id, run_name=name, tags={
+                "sweep": parent, "kind": BASELINE_KIND, "vs reference": BASELINE_KIND, "mlflow.note.content": note,
+            }).info.run_id
+            now, means = int(time.time() * 1000), {final: row.get(f"{m} mean") for m, final in _finals(record).items()}
+            client.log_batch(run_id, metrics=[Metric(k, float(v), now, 0) for k, v in means.items() if v is not None])
             client.set_terminated(run_id)
             found[name] = run_id
         out.append(found[name])
     return out
 
 
+def _finals(record: SweepRecord) -> dict[str, str]:
+    """The sweep's metric and its partner (where an evaluation's) → the key the view shows it by: ``final/f1``."""
+    return {m: "final/" + m.removeprefix("eval/") for m in headline(record.spec.metric.name) if m.startswith("eval/")}
+
+
 def headline_name(record: SweepRecord, table: ResultsTable) -> str:
     """The parent run's name once the sweep has its answer: spec, profile and the table's headline
     (MLflow puts a run's name on top of its page, above everything else)."""
-    head = table.summary[0] if table.summary else "no cell finished a trial"
-    return f"{record.spec.name} · {record.profile}: {head}"[:250]
+    return f"{record.spec.name} · {record.profile}: {table.headline}"[:250]
 
 
 def share_view(record: SweepRecord, table: ResultsTable | None = None) -> str:
-    """Save the runs view of this sweep and return its path on the UI server (``#/experiments/…``).
-
-    The view (MLflow's own "shared view": an experiment tag ``mlflow.sharedViewState.<key>`` the UI
-    reads) lists the sweep's child runs (each tagged ``sweep`` here) and its baseline rows
-    (:func:`baseline_rows`, with ``table``),
-    sorted by the metric, with ``final/<metric>``, its partner, ``vs reference`` (:func:`row_tags`),
-    ``vs baselines``, the swept values and the seed as columns in that order. A swept field whose
-    values are all numbers is shown as the metric ``swept/<field>`` (:func:`sort_key`, logged here on
-    each child). Cells with several seeds are grouped by the tag ``group`` (their swept values): the
-    group row averages the seeds."""
+    """Save the runs view of this sweep (the module says what it shows) and return its path on the UI server
+    (``#/experiments/…``): MLflow's own "shared view", an experiment tag ``mlflow.sharedViewState.<key>`` the UI
+    reads. Its columns after the scores and ``vs reference``/``vs baselines`` (:func:`row_tags`): the swept values
+    (a field whose values are all numbers as the metric ``swept/<field>``, :func:`sort_key`, logged here on each
+    child) and the seed; a cell's seeds grouped by the tag ``group`` (their swept values), the row their average."""
     metric, mode = record.spec.metric.name, record.spec.metric.mode
     trials, parent = record.children, record.parent.info.run_id
     swept = list(
@@ -144,7 +125,7 @@ def share_view(record: SweepRecord, table: ResultsTable | None = None) -> str:
             )
     if table is not None:
         baseline_rows(record, table)
-    finals = ["final/" + m.removeprefix("eval/") for m in (metric, partner(metric)) if m and m.startswith("eval/")]
+    finals = list(_finals(record).values())
     columns = (
         [f"metrics.`{m}`" for m in finals or [metric]]
         + ["tags.`vs reference`", "tags.`vs baselines`"]
