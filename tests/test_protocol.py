@@ -266,7 +266,7 @@ def test_swept_fields_are_the_tables_axes_and_free_choices_are_noted(shapenet):
     prediction = _card("prediction")
     assert "diffusion.prediction" not in _fields(prediction)  # x0 and v are the ablation, not a deviation
     local = _card("point_size", "local")
-    assert "note: free choices (no source states them): diffusion.timestep_spacing = trailing" in local.lines()
+    assert "note: free choices (no source states them): diffusion.timestep_spacing = linspace" in local.lines()
     assert local.lines()[0].startswith("deviation: data set: the procedural data set stands in for Co3D v2")
     fields = _fields(local)
     present = [f for f in fields if f in config_field_paths()]
