@@ -15,7 +15,8 @@ if __package__ in (None, ""):  # `python sweeps/rerun.py` puts sweeps/ first on 
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from cdm.cli import add_out, command_parser
-from sweeps.storage import StoreError, check_tracking_uri, is_uri
+from sweeps.store.files import StoreError, is_uri
+from sweeps.store.tracking import check_tracking_uri
 
 __all__ = ["build_parser", "main"]
 
@@ -34,8 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     # MLflow and torch take seconds to import: only once the arguments are read.
-    from sweeps.execute.tracking import resolve_tracking_uri
     from sweeps.results.rerun import RerunError, rerun
+    from sweeps.store.tracking import resolve_tracking_uri
 
     try:
         uri = resolve_tracking_uri(args.tracking_uri)

@@ -25,7 +25,8 @@ from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import MAX_TRIALS
 from sweeps.plan.preflight import dry_run
 from sweeps.plan.request import RequestError, SweepRequest, check_mode, missing_inputs, plan_request
-from sweeps.storage import TRUST_FLAG, StoreError, check_tracking_uri, exists, is_uri, record_digest
+from sweeps.store.files import TRUST_FLAG, StoreError, exists, is_uri, record_digest
+from sweeps.store.tracking import check_tracking_uri
 
 __all__ = ["build_parser", "main"]
 
@@ -91,7 +92,7 @@ def _fail(message: str) -> int:
 
 
 def _tracking_uri(args: argparse.Namespace) -> str:
-    from sweeps.execute.tracking import resolve_tracking_uri
+    from sweeps.store.tracking import resolve_tracking_uri
 
     uri = resolve_tracking_uri(args.tracking_uri)
     check_tracking_uri(uri)
@@ -101,7 +102,7 @@ def _tracking_uri(args: argparse.Namespace) -> str:
 def _destinations(args: argparse.Namespace, request: SweepRequest) -> list[str]:
     """Where a run of this request would keep its files and log its runs (the dry run's lines); a resumed
     sweep's MLflow store is the one it started with, as the run's own (``claim_sweep``)."""
-    from sweeps.execute.tracking import artifact_location, resolve_tracking_uri
+    from sweeps.store.tracking import artifact_location, resolve_tracking_uri
 
     uri = resolve_tracking_uri(args.tracking_uri or (request.state or {}).get("tracking_uri"))
     name = request.plan.spec.name

@@ -23,7 +23,8 @@ from sweeps.plan.limits import LimitError, check_trials
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import expand
-from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
+from sweeps.store.files import StoreError, check_storage, parse_state
+from sweeps.store.tracking import check_tracking_uri
 from tests.hostile_files import YAML_BOMB
 
 ROOT = Path(__file__).resolve().parents[1]

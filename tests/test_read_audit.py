@@ -17,7 +17,7 @@ SCANNED = ("cdm", "sweeps", "benchmarks", "tests")
 AUDITED = ("cdm", "sweeps")
 EXEMPT = {Path("tests/test_hostile_torch.py"): ["torch.jit.load", "torch.load"],
           Path("tests/test_io_torch_legacy.py"): ["torch.load"],
-          Path("tests/test_tracking.py"): ["pickle.loads"]}
+          Path("tests/test_store_runs.py"): ["pickle.loads"]}
 """Tests that call a reader on purpose: positive controls (a hostile file shown live, torch's own reader
 shown unpoisoned after a refusal, torch's reading of the test's own legacy files as the reference) and a
 round trip of the test's own object (Tune pickles its callbacks)."""

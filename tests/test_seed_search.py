@@ -13,11 +13,11 @@ from ray.tune.search import Searcher
 
 from sweeps.compare.settle import BUDGET_TAG
 from sweeps.execute.seed_search import SeedSearcher, check_searcher_state
-from sweeps.execute.tracking import SweepRun
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import expand
-from sweeps.storage import StoreError
+from sweeps.store.files import StoreError
+from sweeps.store.sweep_run import SweepRun
 
 CELLS = [{"label": "ref"}, {"label": "null", "set": {"eval.save_clouds": 1}}]
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from cdm.metric_names import f1_at
-from sweeps.storage import write_file
+from sweeps.store.files import write_file
 
 __all__ = [
     "MIN_PANELS_ACROSS", "PANEL_IN", "Gallery", "Scores", "grid_figure", "grid_png", "panel_input", "viewer_html",

@@ -32,7 +32,7 @@ from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.sequential import FOOTNOTE, SettleRecord, decide
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import Cell, SweepPlan
-from sweeps.storage import write_file
+from sweeps.store.files import write_file
 
 __all__ = [
     "BUDGET_TAG",

@@ -33,7 +33,7 @@ from sweeps.compare.pairing import Lead, Pairing, lead_difference, paired_record
 from sweeps.compare.rules import TOO_FEW, Stat
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
-from sweeps.storage import write_file
+from sweeps.store.files import write_file
 
 __all__ = ["COST_COLUMN", "ResultsTable", "build_table", "display_width"]
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import StoreError
+from sweeps.store.files import StoreError
 
 if TYPE_CHECKING:
     from cdm.config import Config

@@ -25,13 +25,13 @@ from sweeps.execute.cores import lease_cores
 from sweeps.execute.precompute import precompute, shared_root
 from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.resume_retries import refusing, retry_errored
-from sweeps.execute.tracking import SweepRun
 from sweeps.execute.trial import TrialSetup, run_trial, trial_dir_name
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import storage_location
+from sweeps.store.files import storage_location
+from sweeps.store.sweep_run import SweepRun
 
 __all__ = ["checkpoint_location", "error_summary", "run_sweep"]
 

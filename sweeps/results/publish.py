@@ -8,13 +8,12 @@ A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 lis
 
 The runner calls :func:`publish` at the end of every sweep: the plots and reconstructions onto the
 parent run, a description on each run, and the runs view (:func:`share_view`). The sweep is read back
-by :mod:`sweeps.results.finished`; ``notebooks/compare.ipynb`` is built on both modules.
+by :mod:`sweeps.results.sweep`; ``notebooks/compare.ipynb`` is built on both modules.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import statistics
 import sys
@@ -35,14 +34,14 @@ from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.compare.rules import PROTOCOL_NOTE
 from sweeps.compare.table import ResultsTable
-from sweeps.execute.logged_runs import last_eval_files, last_objects, metric_histories
-from sweeps.execute.tracking import resolve_tracking_uri, ui_link
 from sweeps.plan.search import optuna_distributions
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import split_label
-from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
+from sweeps.results.sweep import SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 from sweeps.results.view import headline_name, row_tags, share_view
-from sweeps.storage import StoreError, check_tracking_uri
+from sweeps.store.files import StoreError
+from sweeps.store.read import ReportError, last_eval_files, last_objects, metric_histories
+from sweeps.store.tracking import check_tracking_uri, resolve_tracking_uri, ui_link
 
 __all__ = [
     "DESCRIPTION_WIDTH",
@@ -338,8 +337,6 @@ def build_parser() -> argparse.ArgumentParser:
 @interruptible("cdm-lab report")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    # One small download per trial: no progress bar for each.
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     uri = resolve_tracking_uri(args.tracking_uri)
     try:
         check_tracking_uri(uri)  # a URI MLflow cannot open is one line, not its traceback

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import sys
 from pathlib import Path
@@ -21,7 +20,8 @@ from mlflow.utils.mlflow_tags import MLFLOW_MODEL_VERSIONS
 from cdm.cli import command_parser
 from cdm.io.json import parse_json
 from sweeps.mlflow_model import MODEL_NAME
-from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
+from sweeps.results.sweep import SweepRecord, TrialRecord, open_sweep, results_table, trial_records
+from sweeps.store.read import ReportError
 
 __all__ = ["RegisterError", "best_trial", "build_parser", "check_name", "main", "register_best", "register_run"]
 
@@ -114,11 +114,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from mlflow.exceptions import MlflowException
 
-    from sweeps.execute.tracking import resolve_tracking_uri
-    from sweeps.storage import StoreError, check_tracking_uri
+    from sweeps.store.files import StoreError
+    from sweeps.store.tracking import check_tracking_uri, resolve_tracking_uri
 
     args = build_parser().parse_args(argv)
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # the spec and plan.json: two small files
     uri = resolve_tracking_uri(args.tracking_uri)
     try:
         check_name(args.name)

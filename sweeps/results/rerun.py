@@ -75,7 +75,7 @@ MAX_PACKAGES_FILE = 1 << 20
 
 def _recorded_packages(client: MlflowClient, run_id: str) -> dict[str, str] | None:
     """The run's recorded package list as {name: version}; None when it holds none (or not a readable one)."""
-    from sweeps.execute.trial_tracking import PACKAGES_FILE
+    from sweeps.store.trial_run import PACKAGES_FILE
 
     with tempfile.TemporaryDirectory() as tmp:
         try:
@@ -138,8 +138,8 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     Raises:
         RerunError: unknown run, no record, other code or config (without ``force``).
     """
-    from sweeps.execute.trial import TrialProgress
-    from sweeps.execute.trial_tracking import TrialRun
+    from sweeps.execute.trial import TrialProgress, learning_curve
+    from sweeps.store.trial_run import TrialRun
 
     client = MlflowClient(uri)
     try:
@@ -186,6 +186,7 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
         name,
         {"rerun_of": run_id},
         config,
+        curve=learning_curve,
     )
     seen = _Record()
     try:

@@ -23,7 +23,7 @@ from mlflow.entities import Metric
 from cdm.metric_names import partner
 from sweeps.compare.bootstrap import interval_text
 from sweeps.compare.table import ResultsTable
-from sweeps.results.finished import SweepRecord
+from sweeps.results.sweep import SweepRecord
 
 __all__ = ["BASELINE_KIND", "VERDICT_WORDS", "baseline_rows", "headline_name", "row_tags", "share_view", "sort_key"]
 
