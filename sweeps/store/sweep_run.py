@@ -19,7 +19,7 @@ from mlflow.entities import Metric
 from cdm.metric_names import CD, object_column
 from cdm.provenance import code_version
 from sweeps.store.read import find_trial_run, is_per_category, last_objects
-from sweeps.store.tracking import EXPERIMENT_KIND, as_params, client, experiment, source_tags
+from sweeps.store.tracking import EXPERIMENT_KIND, client, experiment, log_params, source_tags
 
 __all__ = ["SweepRun", "baselines_by_eval_set", "with_logged_baselines"]
 
@@ -70,7 +70,7 @@ class SweepRun:
         experiment_id = experiment(store, name, uri)
         source = source_tags(code_version()["git_commit"])
         run = store.create_run(experiment_id, run_name=run_name, tags={"kind": "sweep", **source, **tags})
-        store.log_batch(run.info.run_id, params=as_params(params))
+        log_params(store, run.info.run_id, params)
         return cls(uri, experiment_id, run.info.run_id)
 
     @classmethod

@@ -37,7 +37,7 @@ from sweeps.store.files import StoreError, one_line, writable_folder
 
 __all__ = [
     "BUSY_TIMEOUT_S", "EXPERIMENT_KIND", "RETRIED", "SOURCE_NAME", "TRACKING_SCHEMES", "WORKFLOW", "PatientClient",
-    "StoreBusy", "artifact_location", "as_params", "check_not_locked", "check_parent_run", "check_tracking_uri",
+    "artifact_location", "check_not_locked", "check_parent_run", "check_tracking_uri",
     "client", "experiment", "log_params", "resolve_tracking_uri", "retry_when_busy", "source_tags", "ui_command",
     "ui_link", "wait_when_busy",
 ]
@@ -55,10 +55,6 @@ RETRIED = ("database is locked", "UNIQUE constraint failed: datasets.")
 """The MLflow errors another writer causes and a retry clears (the module's docstring says why)."""
 
 _BATCH = 100  # MLflow's limit of params per log_batch call
-
-
-class StoreBusy(RuntimeError):
-    """The SQLite store stayed locked by another writer for the whole wait."""
 
 
 def resolve_tracking_uri(cli: str | None, cwd: Path | None = None) -> str:
@@ -84,10 +80,7 @@ def check_tracking_uri(uri: str) -> None:
                          + ", ".join(f"{s}://" for s in TRACKING_SCHEMES))
     if scheme == "sqlite":
         writable_folder(Path(uri.removeprefix("sqlite:///")).parent, "--tracking-uri")
-        try:
-            check_not_locked(Path(uri.removeprefix("sqlite:///")))
-        except StoreBusy as exc:
-            raise StoreError(f"--tracking-uri {uri}: {exc}") from None
+        check_not_locked(Path(uri.removeprefix("sqlite:///")))
     elif scheme == "file":
         writable_folder(Path(urllib.parse.urlsplit(uri).path), "--tracking-uri")
     elif scheme in ("http", "https"):
@@ -164,7 +157,7 @@ def check_not_locked(path: Path) -> None:
     ``path``; a missing file passes (MLflow creates it).
 
     Raises:
-        StoreBusy: another process held the write lock throughout.
+        StoreError: another process held the write lock throughout.
     """
     if not path.is_file():
         return
@@ -174,8 +167,8 @@ def check_not_locked(path: Path) -> None:
         connection.execute("BEGIN IMMEDIATE")
         connection.execute("ROLLBACK")
     except sqlite3.OperationalError as exc:
-        raise StoreBusy(f"MLflow store {path}: {exc} by another writer for {wait_s:g} s; stop it (another sweep, "
-                        "a script) or wait, then start again") from None
+        raise StoreError(f"--tracking-uri sqlite:///{path}: {exc} by another writer for {wait_s:g} s; stop it "
+                         "(another sweep, a script) or wait, then start again") from None
     finally:
         connection.close()
 
@@ -280,14 +273,10 @@ def source_tags(git_commit: str) -> dict[str, str]:
     return tags | ({"mlflow.source.git.commit": git_commit} if git_commit != "unknown" else {})
 
 
-def as_params(values: dict[str, Any]) -> list:
-    """``values`` as MLflow params (MLflow keeps a param as text)."""
+def log_params(store: PatientClient, run_id: str, values: dict[str, Any]) -> None:
+    """``values`` as params of the run (MLflow keeps a param as text), in batches of MLflow's limit."""
     from mlflow.entities import Param
 
-    return [Param(k, str(v)) for k, v in values.items()]
-
-
-def log_params(store: PatientClient, run_id: str, params: list) -> None:
-    """``params`` in batches of MLflow's limit."""
+    params = [Param(k, str(v)) for k, v in values.items()]
     for i in range(0, len(params), _BATCH):
         store.log_batch(run_id, params=params[i:i + _BATCH])

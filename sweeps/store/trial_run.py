@@ -26,18 +26,12 @@ from cdm.provenance import code_version, installed_packages
 from cdm.train import Callback
 from sweeps.mlflow_model import MODEL_NAME, log_model
 from sweeps.store.read import find_trial_run, is_per_category, metric_histories
-from sweeps.store.tracking import as_params, client, log_params, source_tags
+from sweeps.store.tracking import client, log_params, source_tags
 
 __all__ = [
-    "CURVE_KEYS", "EVAL_FOLDERS", "F1_TAG", "MODEL_ARTIFACTS", "MODEL_TAG", "PACKAGES_FILE", "PER_TRIAL_PARAMS",
+    "CURVE_KEYS", "EVAL_FOLDERS", "F1_TAG", "MODEL_TAG", "PACKAGES_FILE", "PER_TRIAL_PARAMS",
     "SYSTEM_METRICS_INTERVAL_S", "Curve", "TrialRun", "eval_dataset", "system_metrics_monitor",
 ]
-
-MODEL_ARTIFACTS = MODEL_NAME
-"""The name of the child run's MLflow model (:mod:`sweeps.mlflow_model`): its weights for inference (model and
-EMA weights, no optimiser; :meth:`cdm.checkpoint.Checkpoint.for_inference`) as the artifact ``checkpoint``, the step
-and the reproducibility record in its ``MLmodel`` metadata. ``mlflow.pyfunc.load_model("runs:/<run id>/model")``
-samples clouds with it; ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` scores it."""
 
 MODEL_TAG = "model"
 """The tag holding the run's ``runs:/<run id>/model`` URI, to paste into ``cdm-lab evaluate --checkpoint``."""
@@ -160,7 +154,7 @@ class TrialRun(Callback):
                       **source_tags(commit), **tags})
             self.run_id = run.info.run_id
             kept = {k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}
-            log_params(self.client, self.run_id, as_params(kept))
+            log_params(self.client, self.run_id, kept)
             self.client.log_text(self.run_id, self.config_yaml, "config.yaml")
         else:
             self.run_id = found
@@ -228,4 +222,4 @@ class TrialRun(Callback):
             folder = Path(tmp) / "checkpoint"
             save_checkpoint(load_checkpoint(path).for_inference(), folder)
             log_model(self.client, self.run_id, folder, {"step": step, **self.record})
-        self.client.set_tag(self.run_id, MODEL_TAG, f"runs:/{self.run_id}/{MODEL_ARTIFACTS}")
+        self.client.set_tag(self.run_id, MODEL_TAG, f"runs:/{self.run_id}/{MODEL_NAME}")
