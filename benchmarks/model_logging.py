@@ -73,7 +73,7 @@ def model_logging(quick: bool, out_dir: str) -> list[dict]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # as in a sweep (sweeps/execute/driver.py)
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # as in a sweep (sweeps/store/tracking.py)
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--repeats", type=int, default=10, help="timed rounds of each (default 10)")
     cost = logging_cost(p.parse_args(argv).repeats)

@@ -252,7 +252,7 @@ def first_screen(chromium: str, url: str, texts: list[str], screenshot: Path, pr
 def pages(server: str, experiment_id: str, parent_run_id: str, child_run_ids: list[str]) -> dict[str, str]:
     """Screenshot name → URL on ``server``, each opening MLflow's model-training workflow (the runner's
     links do): the sweep's view, its children compared, the parent run, the first child run."""
-    from sweeps.execute.tracking import ui_link
+    from sweeps.store.tracking import ui_link
 
     ids = json.dumps(child_run_ids, separators=(",", ":"))
     return {

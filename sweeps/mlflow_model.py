@@ -18,7 +18,6 @@ The model samples as ``cdm-lab reconstruct`` does, from the same preparation (:m
 
 from __future__ import annotations
 
-import os
 import tempfile
 import warnings
 from importlib.metadata import version
@@ -115,16 +114,13 @@ def log_model(client, run_id: str, checkpoint: Path, metadata: dict[str, Any]) -
     tracking URI, and make a new model at each call.
 
     Args:
-        client: an ``MlflowClient`` (or :class:`sweeps.store_retry.PatientClient`) of the run's store.
+        client: an ``MlflowClient`` (or :class:`sweeps.store.tracking.PatientClient`) of the run's store.
         checkpoint: a folder :func:`cdm.checkpoint.save_checkpoint` wrote, copied as the artifact ``checkpoint``.
         metadata: plain values the model's ``MLmodel`` file keeps (the step, the reproducibility record).
     """
     from mlflow.entities import LoggedModelStatus
     from mlflow.models import Model
 
-    # save_model copies the artifact folder through MLflow's downloader, whose progress bar would reach the
-    # sweep's terminal from every trial at every checkpoint.
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     model = logged_model(client, run_id, create=True)
     with tempfile.TemporaryDirectory(prefix="cdm-mlflow-model-") as tmp:
         local = Path(tmp) / MODEL_NAME

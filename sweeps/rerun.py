@@ -30,13 +30,14 @@ from mlflow.exceptions import MlflowException
 
 from cdm.cli import add_out, command_parser
 from cdm.config import Config, load_config
-from cdm.io.files import read_text
+from cdm.io.files import is_uri, read_text
 from cdm.metric_names import CD, METRICS
 from cdm.provenance import MACHINE_KEYS, code_version, config_hash, installed_packages, machine_record
 from cdm.train import Callback, fit
-from sweeps.execute.tracking import resolve_tracking_uri
-from sweeps.execute.trial_tracking import PACKAGES_FILE, TrialRun
-from sweeps.storage import StoreError, check_tracking_uri, is_uri
+from sweeps.store.files import StoreError
+from sweeps.store.tracking import check_tracking_uri, resolve_tracking_uri
+from sweeps.store.tracking import client as store_client
+from sweeps.store.trial_run import PACKAGES_FILE, TrialRun
 
 __all__ = ["RerunError", "build_parser", "machine_differences", "main", "rerun"]
 
@@ -179,11 +180,12 @@ def _config_warnings(config: Config, recorded: str, force: bool) -> list[str]:
 def _train_again(client: MlflowClient, uri: str, run: Run, config: Config) -> tuple[Run, dict[str, str]]:
     """Train ``config`` in this process as a new child run of ``run``'s parent; that run and what training
     recorded at its start (:class:`cdm.train.Callback`'s ``on_start`` record)."""
-    from sweeps.execute.trial import TrialProgress  # imports Ray (seconds): only once a re-run trains
+    from sweeps.execute.trial import TrialProgress, learning_curve  # imports Ray (seconds): only once a re-run trains
 
     name = f"rerun of {run.info.run_name}"
     tracked = TrialRun(uri, run.info.experiment_id, run.data.tags.get("mlflow.parentRunId", ""),
-                       f"rerun:{run.info.run_id}:{time.time_ns()}", name, {"rerun_of": run.info.run_id}, config)
+                       f"rerun:{run.info.run_id}:{time.time_ns()}", name, {"rerun_of": run.info.run_id}, config,
+                       curve=learning_curve)
     seen = _Record()
     try:
         fit(config, [TrialProgress(name, config.train.steps, CD.key), tracked, seen])
@@ -215,7 +217,7 @@ def rerun(run_id: str, uri: str, out_root: Path, force: bool = False) -> int:
     Raises:
         RerunError: unknown run, no record, other code or config (without ``force``).
     """
-    client = MlflowClient(uri)
+    client = store_client(uri)
     run = _recorded_run(client, run_id, uri)
     tags = run.data.tags
     warnings = _code_warnings(tags, force)

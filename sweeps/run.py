@@ -22,7 +22,7 @@ from sweeps.plan.describe import describe, wrapped
 from sweeps.plan.limits import MAX_TRIALS
 from sweeps.plan.preflight import dry_run
 from sweeps.plan.request import RequestError, SweepRequest, missing_inputs, plan_request
-from sweeps.storage import TRUST_FLAG, StoreError, exists, is_uri, record_digest
+from sweeps.store.files import TRUST_FLAG, StoreError, exists, is_uri, record_digest
 
 __all__ = ["build_parser", "main"]
 
@@ -85,7 +85,7 @@ def _fail(message: str) -> int:
 
 def _destinations(request: SweepRequest) -> list[str]:
     """Where a run of this request would keep its files and log its runs (the dry run's lines)."""
-    from sweeps.execute.tracking import artifact_location, resolve_tracking_uri
+    from sweeps.store.tracking import artifact_location, resolve_tracking_uri
 
     uri = resolve_tracking_uri(request.tracking_uri)
     name = request.plan.spec.name

@@ -7,7 +7,16 @@ import resource
 
 import pytest
 
-from cdm.io.files import annotation_cap, file_sha256, open_regular, read_bounded, read_gzip, read_text
+from cdm.io.files import (
+    annotation_cap,
+    file_sha256,
+    open_regular,
+    read_bounded,
+    read_from,
+    read_gzip,
+    read_text,
+    sha256_from,
+)
 from tests.hostile_files import gzip_bomb
 
 
@@ -82,3 +91,21 @@ def test_file_sha256_is_hashlibs_of_the_bytes_and_refuses_a_fifo(tmp_path):
     os.mkfifo(tmp_path / "fifo")
     with pytest.raises(ValueError, match="is a FIFO"):
         file_sha256(tmp_path / "fifo", "model.encoder_weights")
+
+
+def test_a_file_in_a_pyarrow_file_system_is_read_within_the_same_caps(tmp_path):
+    # A sweep folder in an object store is read through pyarrow; file:// stands in for s3:// here.
+    from pyarrow import fs
+
+    path = tmp_path / "sweep.json"
+    path.write_text('{"profile": "smoke"}')
+    assert read_text(path.as_uri(), "--resume") == '{"profile": "smoke"}'
+    with pytest.raises(ValueError, match=r"--resume: .*sweep.json is 20 bytes; at most 8 are read"):
+        read_bounded(path.as_uri(), "--resume", cap=8)
+    local = fs.LocalFileSystem()
+    assert sha256_from(local, str(path), "--resume") == file_sha256(path, "--resume")
+    with pytest.raises(ValueError, match="missing.json does not exist"):
+        read_from(local, str(tmp_path / "missing.json"), "--resume")
+    os.mkfifo(tmp_path / "fifo")  # no writer: opening it as a stream would block
+    with pytest.raises(ValueError, match="fifo is not a regular file"):
+        read_from(local, str(tmp_path / "fifo"), "--resume")

@@ -1,4 +1,4 @@
-"""Caps and boundary checks of a sweep (sweeps/plan/limits.py, storage.py, claim.py), each bad input tried
+"""Caps and boundary checks of a sweep (sweeps/plan/limits.py, sweeps/store/, claim.py), each bad input tried
 through ``sweeps/run.py`` too: exit 2, one ``error:`` line naming the field or file, nothing written,
 Ray never started."""
 
@@ -24,7 +24,8 @@ from sweeps.plan.limits import LimitError, check_trials
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import expand
-from sweeps.storage import StoreError, check_storage, check_tracking_uri, parse_state
+from sweeps.store.files import StoreError, check_storage, parse_state
+from sweeps.store.tracking import check_tracking_uri
 from tests.hostile_files import YAML_BOMB
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,7 +142,7 @@ def test_state_file_tracking_uri_and_storage_checks(tmp_path):
         ('{"spec": {}, "sets": {}, "profile": "smoke", "tracking_uri": "sqlite:///x"}', "parent_run_id"),
     ]:
         with pytest.raises(StoreError, match=needle):
-            parse_state(text, "sweep.json")
+            parse_state(text.encode(), "sweep.json")
     with pytest.raises(StoreError, match="unsupported scheme 'ftp'"):
         check_tracking_uri("ftp://nope")
     with pytest.raises(StoreError, match="no MLflow server answers"):

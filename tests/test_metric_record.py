@@ -14,7 +14,8 @@ from mlflow import MlflowClient
 
 from cdm.metric_names import METRICS, Metric, declare
 from cdm.metrics import scores
-from sweeps.results import finished, publish
+from sweeps.results import publish
+from sweeps.results.sweep import open_sweep, results_table, trial_records
 from tests.test_publish import _start, _trial
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -81,8 +82,8 @@ def test_a_metric_declared_in_the_record_reaches_mlflow_the_table_the_verdicts_a
     assert runs["point_size=0.04 · seed 0"]["final/spread"] == pytest.approx(1.0)
     assert runs["point_size=0.02 · seed 0"]["eval/spread"] == pytest.approx(0.75)
 
-    record = finished.open_sweep(uri, "spread")
-    table = finished.results_table(record, finished.trial_records(record))
+    record = open_sweep(uri, "spread")
+    table = results_table(record, trial_records(record))
     rows = {r["cell"]: r for r in table.records}
     assert rows["point_size=0.02"]["eval/spread mean"] == pytest.approx(0.75)
     # Paired on objects.csv's spread column: each object 0.25 wider, worse where lower is better.
@@ -93,5 +94,5 @@ def test_a_metric_declared_in_the_record_reaches_mlflow_the_table_the_verdicts_a
     assert publish.main(["spread", "--tracking-uri", uri, "--out", str(out)]) == 0
     report = list(csv.DictReader((out / "results.csv").open()))
     assert [float(r["eval/spread mean"]) for r in report] == pytest.approx([0.75, 1.0])
-    described = publish.describe_trial(record, finished.trial_records(record)[0], table)
+    described = publish.describe_trial(record, trial_records(record)[0], table)
     assert "eval/spread (mean radius, world units) 0.75" in described

@@ -24,11 +24,11 @@ from mlflow.exceptions import MlflowException
 from cdm.checkpoint import load_checkpoint
 from cdm.lab import main
 from cdm.train import fit
-from sweeps.execute.tracking import SweepRun
-from sweeps.execute.trial_tracking import TrialRun
 from sweeps.mlflow_model import model_checkpoint
-from sweeps.results.finished import open_sweep
 from sweeps.results.register import RegisterError, best_trial, register_run
+from sweeps.results.sweep import open_sweep
+from sweeps.store.sweep_run import SweepRun
+from sweeps.store.trial_run import TrialRun
 from tests.conftest import tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]

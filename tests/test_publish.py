@@ -27,11 +27,12 @@ from cdm.evaluate import save_panel
 from cdm.metric_names import COMPUTE_METRIC, rounded
 from sweeps.compare.outcomes import TrialOutcome
 from sweeps.compare.table import build_table
-from sweeps.execute.tracking import SweepRun, baselines_by_eval_set, with_logged_baselines
-from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
-from sweeps.results import finished, publish
+from sweeps.results import publish
+from sweeps.results.sweep import open_sweep, paper_layout, protocol_card_lines, results_table, trial_records
+from sweeps.store.sweep_run import SweepRun, baselines_by_eval_set, with_logged_baselines
+from sweeps.store.trial_run import TrialRun
 from tests.conftest import tiny_config
 
 GRID = """name: synth
@@ -236,8 +237,8 @@ def test_report_writes_the_runners_results_csv_byte_for_byte(tmp_path):
 
 def test_paper_layout_puts_ours_beside_the_paper_per_cell(grid_store):
     uri, _ = grid_store
-    record = finished.open_sweep(uri, "synth")
-    table = finished.paper_layout(finished.trial_records(record, objects=False))
+    record = open_sweep(uri, "synth")
+    table = paper_layout(trial_records(record, objects=False))
     assert list(table.index) == ["point_size=0.02", "point_size=0.04", "point_size=0.08"]
     assert (
         table.loc["point_size=0.02", ("all", "F1 ours")] == 0.42
@@ -261,9 +262,9 @@ def test_unknown_experiment_exits_2_listing_the_known_ones(grid_store, capsys):
 
 def test_child_description_says_cell_result_verdict_and_links_the_parent(grid_store):
     uri, sweep = grid_store
-    record = finished.open_sweep(uri, "synth")
-    trials = finished.trial_records(record)
-    table = finished.results_table(record, trials)
+    record = open_sweep(uri, "synth")
+    trials = trial_records(record)
+    table = results_table(record, trials)
     raw = {t.outcome.cell: publish.describe_trial(record, t, table) for t in trials}
     assert max(len(line) for d in raw.values() for line in d.splitlines()) <= publish.DESCRIPTION_WIDTH
     text = {cell: " ".join(d.split()) for cell, d in raw.items()}  # Markdown joins the wrapped lines
@@ -310,9 +311,9 @@ def test_baselines_once_on_the_parent_and_no_per_trial_paths_in_params(grid_stor
 
 def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_store):
     uri, _ = grid_store
-    record = finished.open_sweep(uri, "synth")
-    table = finished.results_table(record, finished.trial_records(record))
-    card = finished.protocol_card_lines(record)
+    record = open_sweep(uri, "synth")
+    table = results_table(record, trial_records(record))
+    card = protocol_card_lines(record)
     text = publish.describe_sweep(record.spec, "smoke", "tiny", table, card)
     blocks = text.split("\n\n")
     assert blocks[0] == ("**synth**, profile **smoke**, by eval/f1 (higher is better): best cell point_size=0.04 "
@@ -327,8 +328,8 @@ def test_parent_description_puts_the_verdicts_and_a_narrow_table_first(grid_stor
 
 def test_description_lines_are_short_and_every_number_rounded(grid_store):
     uri, _ = grid_store
-    record = finished.open_sweep(uri, "synth")
-    table = finished.results_table(record, finished.trial_records(record))
+    record = open_sweep(uri, "synth")
+    table = results_table(record, trial_records(record))
     long_card = ["deviation: train.steps: 20, not 100000 (" + "a source " * 40 + ")"]
     text = publish.describe_sweep(record.spec, "smoke", "a profile " * 40, table, long_card)
     assert max(len(line) for line in text.splitlines()) <= 200
@@ -348,8 +349,8 @@ def test_optuna_sweep_gets_history_and_importance_plots(tmp_path):
         sweep.close_trial(f"t{i}", label, "FINISHED")
     _trial(tmp_path, sweep, "t3", "λ=5 · seed 0", {"priors.lambda_3d": 5.0}, {})
     sweep.close_trial("t3", "λ=5 · seed 0", "FAILED", error="boom")
-    record = finished.open_sweep(uri, "synth_opt")
-    trials = finished.trial_records(record, objects=False)
+    record = open_sweep(uri, "synth_opt")
+    trials = trial_records(record, objects=False)
     assert [t.outcome.label for t in trials] == ["λ=0.1 · seed 0", "λ=0.01 · seed 0", "λ=1 · seed 0", "λ=5 · seed 0"]
     assert [t.values["priors.lambda_3d"] for t in trials] == [0.1, 0.01, 1.0, 5.0]
     paths = publish.write_plots(record, trials, tmp_path / "plots")
@@ -503,8 +504,8 @@ def test_reconstructions_grid_and_viewer_compare_cells_on_the_same_objects(tmp_p
         sweep.close_trial(f"t{i}", label, "FINISHED")
     sweep.log_results({"e1": base}, "grid")
     sweep.end()
-    record = finished.open_sweep(uri, "synth")
-    png, page = publish.reconstructions(record, finished.trial_records(record, objects=False), tmp_path / "out")
+    record = open_sweep(uri, "synth")
+    png, page = publish.reconstructions(record, trial_records(record, objects=False), tmp_path / "out")
     width, height = Image.open(png).size
     assert width > 1.3 * height  # 4 columns (2 cells, GT, best baseline) × 2 rows, under a two-line heading
     text = page.read_text()

@@ -17,7 +17,7 @@ SCANNED = ("cdm", "sweeps", "benchmarks", "tests")
 AUDITED = ("cdm", "sweeps")
 EXEMPT = {Path("tests/test_hostile_torch.py"): ["torch.jit.load", "torch.load"],
           Path("tests/test_io_torch_legacy.py"): ["torch.load"],
-          Path("tests/test_tracking.py"): ["pickle.loads"]}
+          Path("tests/test_store_runs.py"): ["pickle.loads"]}
 """Tests that call a reader on purpose: positive controls (a hostile file shown live, torch's own reader
 shown unpoisoned after a refusal, torch's reading of the test's own legacy files as the reference) and a
 round trip of the test's own object (Tune pickles its callbacks)."""
@@ -38,10 +38,14 @@ FILE_READERS = PICKLE_READERS | {
     "open", "io.open", "gzip.open", "gzip.GzipFile", "zipfile.ZipFile", "tarfile.open", "numpy.load",
     "json.load", "json.loads", "yaml.load", "yaml.safe_load", "yaml.full_load", "yaml.unsafe_load", "yaml.load_all",
     "yaml.safe_load_all", "yaml.parse", "yaml.compose", "cv2.imread", "PIL.Image.open", "trimesh.load",
-    "trimesh.load_mesh"}
+    "trimesh.load_mesh", "numpy.loadtxt", "numpy.genfromtxt", "numpy.fromfile", "pyarrow.parquet.read_table",
+    "pyarrow.parquet.ParquetFile", "pyarrow.parquet.ParquetDataset", "pyarrow.parquet.read_pandas",
+    "pyarrow.csv.read_csv", "pyarrow.csv.open_csv", "pyarrow.json.read_json", "pyarrow.feather.read_table",
+    "pyarrow.feather.read_feather"}
 """Calls that read or parse a file's bytes, by the name they resolve to (``open`` only in a read mode)."""
-READ_METHODS = ("read_text", "read_bytes")
-"""Methods of ``pathlib.Path`` that read a whole file; ``x.open()`` counts too, in a read mode."""
+READ_METHODS = ("read_text", "read_bytes", "open_input_stream", "open_input_file")
+"""Methods that read a file: ``pathlib.Path``'s that read it whole, and a pyarrow file system's input streams
+(a sweep folder in an object store: :func:`cdm.io.files.read_from`); ``x.open()`` counts too, in a read mode."""
 
 
 def _dotted(node: ast.AST) -> str:
@@ -175,6 +179,14 @@ def test_every_allowed_read_is_still_there_and_has_its_reason():
     ("import zipfile\nzipfile.ZipFile('x')\n", [], ["2: zipfile.ZipFile"]),
     ("import trimesh\ntrimesh.load_mesh('x')\n", [], ["2: trimesh.load_mesh"]),
     ("import json\njson.dumps(x)\n", [], []),
+    ("from pyarrow import fs\nf, p = fs.FileSystem.from_uri(u)\nf.open_input_stream(p)\n", [],
+     ["3: .open_input_stream"]),
+    ("with filesystem.open_input_file(p) as s:\n    pass\n", [], ["1: .open_input_file"]),
+    ("filesystem.open_output_stream(p)\n", [], []),
+    ("import pyarrow.parquet as pq\npq.read_table('x')\n", [], ["2: pyarrow.parquet.read_table"]),
+    ("from pyarrow import csv\ncsv.read_csv('x')\n", [], ["2: pyarrow.csv.read_csv"]),
+    ("import numpy as np\nnp.loadtxt(lines)\n", [], ["2: numpy.loadtxt"]),
+    ("from numpy import genfromtxt\ngenfromtxt('x')\n", [], ["2: numpy.genfromtxt"]),
 ])
 def test_the_audits_find_a_planted_call(snippet, pickles, reads):
     assert (readers(snippet), file_reads(snippet)) == (pickles, reads)

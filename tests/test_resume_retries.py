@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from sweeps.execute.resume_retries import RECORD, plan_retries, read_spent
-from sweeps.storage import StoreError
+from sweeps.store.files import StoreError
 
 
 def test_each_errored_trial_is_retried_until_it_has_spent_max_retries():

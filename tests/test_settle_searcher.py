@@ -13,11 +13,11 @@ from ray.tune.search import Searcher
 
 from sweeps.execute.settle import BUDGET_TAG, UntilSettled
 from sweeps.execute.settle.searcher import SeedSearcher
-from sweeps.execute.tracking import SweepRun
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import expand
-from sweeps.storage import StoreError
+from sweeps.store.files import StoreError
+from sweeps.store.sweep_run import SweepRun
 
 CELLS = [{"label": "ref"}, {"label": "null", "set": {"eval.save_clouds": 1}}]
 

@@ -31,14 +31,15 @@ from mlflow import MlflowClient
 
 from cdm.config import load_config
 from cdm.io.images import read_image
-from sweeps import run, store_retry
+from sweeps import run
 from sweeps.execute import driver, local_cluster, stopping
 from sweeps.execute.claim import ClaimError, claim, claims_folder
-from sweeps.execute.tracking import SweepRun
-from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
-from sweeps.storage import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
+from sweeps.store import tracking as store_retry
+from sweeps.store.files import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
+from sweeps.store.sweep_run import SweepRun
+from sweeps.store.trial_run import TrialRun
 
 SPEC = "name: s\ngrid: {priors.point_size: [0.04]}\n"
 OTHER_UID = 4242

@@ -7,7 +7,8 @@ import json
 
 from mlflow import MlflowClient
 
-from sweeps.results import finished, view
+from sweeps.results import view
+from sweeps.results.sweep import open_sweep, results_table, trial_records
 from tests import test_publish
 
 grid_store = test_publish.grid_store  # three cells (0.02, 0.04, 0.08 failed), one seed each, the sphere baseline
@@ -15,8 +16,8 @@ grid_store = test_publish.grid_store  # three cells (0.02, 0.04, 0.08 failed), o
 
 def test_shared_view_lands_on_scores_verdicts_and_baselines(grid_store):
     uri, sweep = grid_store
-    record = finished.open_sweep(uri, "synth")
-    table = finished.results_table(record, finished.trial_records(record))
+    record = open_sweep(uri, "synth")
+    table = results_table(record, trial_records(record))
     path = view.share_view(record, table)
     assert path == f"#/experiments/{sweep.experiment_id}/runs?viewStateShareKey=sweep-{sweep.run_id}"
     client = MlflowClient(uri)
@@ -50,7 +51,7 @@ def test_shared_view_lands_on_scores_verdicts_and_baselines(grid_store):
     )  # failed: not the reference
     view.share_view(record, table)  # published again (report --log): the baseline rows are not doubled
     assert len(client.search_runs([sweep.experiment_id], "tags.kind = 'baseline'")) == 1
-    assert [t.outcome.label for t in finished.trial_records(finished.open_sweep(uri, "synth"), objects=False)] == [
+    assert [t.outcome.label for t in trial_records(open_sweep(uri, "synth"), objects=False)] == [
         "point_size=0.02 · seed 0", "point_size=0.04 · seed 0", "point_size=0.08 · seed 0"]  # baselines are no trials
 
 

@@ -9,6 +9,10 @@ that names the file and the cap. The caps (also in docs/security.md):
 - :data:`MAX_TEXT_BYTES`: a JSON or text file read whole (set lists, split files, metadata, manifests);
 - :func:`annotation_cap`: a decompressed annotation file (``CDM_MAX_ANNOTATION_MIB``, default 256 MiB:
   ~320,000 Co3D frame entries of ~830 bytes).
+
+A file in a pyarrow file system (an object store's ``s3://``, ``gs://``, ``file://`` URI: a sweep's folder) is
+read through :func:`read_from` and :func:`sha256_from`, within the same caps: :func:`read_bounded` and
+:func:`read_text` take such a URI in place of a path.
 """
 
 from __future__ import annotations
@@ -21,8 +25,8 @@ import zlib
 from pathlib import Path
 from typing import IO
 
-__all__ = ["ANNOTATION_ENV", "MAX_TEXT_BYTES", "annotation_cap", "file_sha256", "open_regular", "read_bounded",
-           "read_gzip", "read_text"]
+__all__ = ["ANNOTATION_ENV", "MAX_TEXT_BYTES", "annotation_cap", "file_sha256", "is_uri", "open_regular",
+           "read_bounded", "read_from", "read_gzip", "read_text", "sha256_from"]
 
 MAX_TEXT_BYTES = 64 * 2**20
 """Most bytes of a JSON or text file read whole (Co3D's largest set list is a few MB)."""
@@ -58,19 +62,66 @@ def open_regular(path: Path, label: str, show_path: bool = True) -> IO[bytes]:
     return os.fdopen(fd, "rb")
 
 
-def read_bounded(path: Path, label: str, cap: int = MAX_TEXT_BYTES, show_path: bool = True) -> bytes:
-    """The bytes of the regular file ``path``, refused past ``cap`` bytes before reading them (messages
-    as :func:`open_regular`'s)."""
-    with open_regular(path, label, show_path) as f:
+def is_uri(location: str | Path) -> bool:
+    """``s3://…``, ``gs://…``, ``file://…``: a file read through pyarrow's file systems; else a local path."""
+    return isinstance(location, str) and "://" in location
+
+
+def _too_big(label: str, path: object, size: int, cap: int, show_path: bool = True) -> ValueError:
+    return ValueError(f"{label}: {path} is {size} bytes; at most {cap} are read" if show_path
+                      else f"{label} is {size} bytes; at most {cap} are read")
+
+
+def _input_stream(filesystem, path: str, label: str):
+    """``path`` of the pyarrow ``filesystem`` opened for reading, and its size; ValueError unless a file."""
+    from pyarrow import fs
+
+    info = filesystem.get_file_info(path)
+    if info.type != fs.FileType.File:
+        raise ValueError(f"{label}: {path} does not exist" if info.type == fs.FileType.NotFound
+                         else f"{label}: {path} is not a regular file")
+    return filesystem.open_input_stream(path), info.size
+
+
+def read_from(filesystem, path: str, label: str, cap: int = MAX_TEXT_BYTES) -> bytes:
+    """The bytes of the file ``path`` of the pyarrow ``filesystem`` (an object store's, or the local one),
+    refused past ``cap`` bytes before reading them, or once more arrive than the listing said."""
+    stream, size = _input_stream(filesystem, path, label)
+    with stream:
+        if size > cap:
+            raise _too_big(label, path, size, cap)
+        raw = stream.read(size + 1)
+    if len(raw) > cap:
+        raise _too_big(label, path, len(raw), cap)
+    return raw
+
+
+def sha256_from(filesystem, path: str, label: str) -> str:
+    """Hex SHA-256 of the file ``path`` of the pyarrow ``filesystem``, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    stream, _ = _input_stream(filesystem, path, label)
+    with stream:
+        while chunk := stream.read(2**20):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def read_bounded(path: Path | str, label: str, cap: int = MAX_TEXT_BYTES, show_path: bool = True) -> bytes:
+    """The bytes of the regular file ``path`` (or the URI :func:`is_uri`, through :func:`read_from`), refused
+    past ``cap`` bytes before reading them (messages as :func:`open_regular`'s)."""
+    if is_uri(path):
+        from pyarrow import fs
+
+        return read_from(*fs.FileSystem.from_uri(path), label, cap)
+    with open_regular(Path(path), label, show_path) as f:
         size = os.fstat(f.fileno()).st_size
         if size > cap:
-            raise ValueError(f"{label}: {path} is {size} bytes; at most {cap} are read" if show_path
-                             else f"{label} is {size} bytes; at most {cap} are read")
+            raise _too_big(label, path, size, cap, show_path)
         return f.read(size + 1)[:cap]  # not read(cap): a reader allocates the size it is asked for
 
 
-def read_text(path: Path, label: str, cap: int = MAX_TEXT_BYTES) -> str:
-    """The UTF-8 text of the regular file ``path``, within ``cap`` bytes (:func:`read_bounded`); ValueError
+def read_text(path: Path | str, label: str, cap: int = MAX_TEXT_BYTES) -> str:
+    """The UTF-8 text of the regular file or URI ``path``, within ``cap`` bytes (:func:`read_bounded`); ValueError
     naming ``label`` and the file for one that is not UTF-8."""
     raw = read_bounded(path, label, cap)
     try:

@@ -21,7 +21,7 @@ import numpy as np
 from cdm.io.files import read_text
 from cdm.metric_names import f1_at
 from sweeps.compare.plots import FONT, _pyplot, _save
-from sweeps.storage import write_file
+from sweeps.store.files import write_file
 
 __all__ = [
     "MIN_PANELS_ACROSS", "PANEL_IN", "Gallery", "Scores", "grid_figure", "grid_png", "panel_input", "viewer_html",

@@ -17,13 +17,13 @@ from typing import Any, Literal
 
 import numpy as np
 
-from cdm.io.files import read_text
+from cdm.io.meshes import read_vertices
 from cdm.metric_names import COMPUTE_METRIC, METRICS, object_column
 from cdm.metric_names import label as metric_label
 from cdm.metric_names import mode as metric_mode
 from sweeps.compare.rules import baseline_key, baseline_name, headline
 from sweeps.compare.table import COST_COLUMN
-from sweeps.storage import write_file
+from sweeps.store.files import write_file
 
 __all__ = ["DPI", "PlotPoint", "has_curve", "log_spaced", "metric_vs_value", "optuna_plots", "read_ply", "save_figure",
            "training_curves", "view_cloud"]
@@ -320,9 +320,7 @@ def _short(metric: str) -> str:
 
 def read_ply(path: Path) -> np.ndarray:
     """The ``(N, 3)`` points of an ASCII PLY as written by :func:`cdm.evaluate.write_ply`."""
-    lines = read_text(Path(path), "reconstruction").splitlines()
-    start = lines.index("end_header") + 1
-    return np.loadtxt(lines[start:], dtype=np.float32, ndmin=2)[:, :3]
+    return read_vertices(Path(path), "reconstruction").astype(np.float32)
 
 
 def view_cloud(points: np.ndarray, elevation: float = 20.0, azimuth: float = 30.0, title: str = ""):
@@ -354,7 +352,8 @@ def _save(fig, path: Path) -> Path:
 
 
 def save_figure(fig, path: Path) -> None:
-    """``fig`` as a PNG at ``path``, never written through a link planted there (:func:`sweeps.storage.write_file`)."""
+    """``fig`` as a PNG at ``path``, never written through a link planted there
+    (:func:`sweeps.store.files.write_file`)."""
     image = io.BytesIO()
     fig.savefig(image, format="png", dpi=DPI, bbox_inches="tight")
     write_file(path, image.getvalue())

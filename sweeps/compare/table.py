@@ -29,7 +29,7 @@ from sweeps.compare.rules import TOO_FEW, Stat, baseline_key, baseline_name, hea
 from sweeps.compare.sequential import FOOTNOTE as SETTLED_FOOTNOTE
 from sweeps.compare.sequential import SettleRecord
 from sweeps.plan.describe import wrapped
-from sweeps.storage import write_file
+from sweeps.store.files import write_file
 
 __all__ = ["COST_COLUMN", "NO_RESULT", "ResultsTable", "build_table", "display_width"]
 

@@ -16,7 +16,7 @@ the copy that is refused can say where the running sweep logs.
 Nothing here follows a link it did not make: the lock file is opened with ``O_NOFOLLOW`` and must be a
 plain file of this user with one name (a link or a hard link planted there would have the claim
 truncate its target), and the temporary folder of object-store claims is this user's, mode 0700
-(:func:`sweeps.storage.private_folder`). Either is refused with :class:`ClaimError` naming the path.
+(:func:`sweeps.store.files.private_folder`). Either is refused with :class:`ClaimError` naming the path.
 """
 
 from __future__ import annotations
@@ -31,8 +31,9 @@ import stat
 import tempfile
 from pathlib import Path
 
+from cdm.io.files import is_uri
 from cdm.io.json import parse_json
-from sweeps.storage import StoreError, is_uri, private_folder
+from sweeps.store.files import StoreError, private_folder
 
 __all__ = ["ClaimError", "SweepClaim", "claim", "claims_folder"]
 

@@ -28,19 +28,10 @@ from sweeps.compare.rules import PROTOCOL_NOTE, settings_notes
 from sweeps.compare.table import ResultsTable, build_table
 from sweeps.execute.claim import ClaimError, SweepClaim, claim
 from sweeps.execute.cluster import cluster_capacity, cluster_machines, connect
-from sweeps.execute.logged_runs import trial_runs
 from sweeps.execute.precompute import check_space, precomputes, shared_root
 from sweeps.execute.progress import SweepProgress, is_tty, plain_log_handlers, quiet_environment, quiet_loggers
 from sweeps.execute.settle import UntilSettled
 from sweeps.execute.stopping import discard_start, kill_running_children, no_space_left, one_line, resume_command
-from sweeps.execute.tracking import (
-    SweepRun,
-    baselines_by_eval_set,
-    resolve_tracking_uri,
-    ui_command,
-    ui_link,
-    with_logged_baselines,
-)
 from sweeps.execute.tuner import run_sweep
 from sweeps.plan.address import AddressError
 from sweeps.plan.preflight import UnreadableInput, estimate_line
@@ -50,17 +41,18 @@ from sweeps.plan.resources import Concurrency, plan_concurrency
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import (
+from sweeps.store.files import (
     StoreError,
     check_no_links,
-    check_parent_run,
     check_resume_trust,
     check_storage,
-    check_tracking_uri,
     exists,
     is_uri,
     publish_files,
 )
+from sweeps.store.read import trial_runs
+from sweeps.store.sweep_run import SweepRun, baselines_by_eval_set, with_logged_baselines
+from sweeps.store.tracking import check_parent_run, check_tracking_uri, resolve_tracking_uri, ui_command, ui_link
 
 __all__ = ["DriverError", "Publisher", "claim_sweep", "run_claimed", "table_settings"]
 
@@ -262,8 +254,6 @@ class _Finished:
 def run_claimed(request: SweepRequest, args: argparse.Namespace, uri: str, held: SweepClaim,
                 publisher: Publisher) -> int:
     """Run the claimed sweep on Ray and print its table; the exit code (1: no trial finished)."""
-    # The results table downloads each trial's per-object scores: no progress bar per small file.
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     tty = is_tty(sys.stdout)
     quiet_environment(tty)
     # The sweep folder's own files are written locally, then copied: in place for a path; for a URI

@@ -16,7 +16,7 @@ session folder under ``<tmp>/cdm-ray-sessions-<uid>/<pid>.json``; the next start
 the processes still holding files in the session folder of a driver that is gone.
 
 Ending a process is trusted only as far as the record is: records are read only from this user's
-own folder of mode 0700 (:func:`sweeps.storage.private_folder`; anyone may write the shared
+own folder of mode 0700 (:func:`sweeps.store.files.private_folder`; anyone may write the shared
 temporary folder, and a planted record would name someone else's folder), and a process is ended
 only if it is this user's, holds a file in the recorded session folder, and its command line is a
 Ray process's of that session (:func:`is_session_process`).
@@ -38,7 +38,7 @@ from pathlib import Path
 from cdm.interrupt import INTERRUPTED
 from cdm.io.json import read_json
 from sweeps.ray_internals import TOKEN_NOTE_LOGGER, loopback_flag, set_loopback_flag
-from sweeps.storage import StoreError, private_folder, write_private
+from sweeps.store.files import StoreError, private_folder, write_private
 
 __all__ = [
     "LOOPBACK_ENV",

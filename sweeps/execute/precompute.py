@@ -16,8 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from cdm.io.files import is_uri
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import StoreError, is_uri
+from sweeps.store.files import StoreError
 
 if TYPE_CHECKING:
     from cdm.config import Config

@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 import ray.tune
 
 from cdm.io.json import parse_json
-from sweeps.storage import StoreError, exists, is_uri, read_text, write_file
+from sweeps.store.files import StoreError, exists, read_record, write_record
 
 __all__ = ["RECORD", "Retries", "RetriesSpent", "plan_retries", "refusing", "retry_errored"]
 
@@ -64,7 +64,7 @@ def read_spent(sweep_dir: str) -> dict[str, int]:
     location = _record(sweep_dir)
     if not exists(location):
         return {}
-    data = parse_json(read_text(location).encode(), "resume retries", Path(RECORD))
+    data = parse_json(read_record(location), "resume retries", Path(RECORD))
     if not isinstance(data, dict) or not all(isinstance(v, int) and v >= 0 for v in data.values()):
         raise StoreError(f"--resume: {location} is not a count of retries per trial (JSON object of trial id → "
                          "integer ≥ 0); remove it to count from 0")
@@ -72,15 +72,7 @@ def read_spent(sweep_dir: str) -> dict[str, int]:
 
 
 def _write_spent(sweep_dir: str, spent: dict[str, int]) -> None:
-    text = json.dumps(spent, indent=1, sort_keys=True) + "\n"
-    if not is_uri(sweep_dir):
-        write_file(Path(_record(sweep_dir)), text)
-        return
-    from pyarrow import fs
-
-    filesystem, path = fs.FileSystem.from_uri(_record(sweep_dir))
-    with filesystem.open_output_stream(path) as stream:
-        stream.write(text.encode())
+    write_record(_record(sweep_dir), json.dumps(spent, indent=1, sort_keys=True) + "\n")
 
 
 def _errored(sweep_dir: str) -> dict[str, dict[str, Any]]:

@@ -8,7 +8,7 @@ import shlex
 import shutil
 from pathlib import Path
 
-from sweeps.storage import is_uri
+from sweeps.store.files import is_uri
 
 __all__ = ["discard_start", "kill_running_children", "no_space_left", "one_line", "resume_command"]
 
@@ -43,7 +43,7 @@ def resume_command(spec: Path, profile: str, storage: str) -> str:
     return shlex.join(["python", "sweeps/run.py", str(spec), "--profile", profile, "--out", storage, "--resume"])
 
 def kill_running_children(sweep_run) -> int:
-    """Close as KILLED the child runs of ``sweep_run`` (a :class:`sweeps.execute.tracking.SweepRun`) still RUNNING
+    """Close as KILLED the child runs of ``sweep_run`` (a :class:`sweeps.store.sweep_run.SweepRun`) still RUNNING
     once Tune has stopped (interrupted trials); ``--resume`` reopens each. Returns how many."""
     running = sweep_run.client.search_runs(
         [sweep_run.experiment_id], max_results=10_000,

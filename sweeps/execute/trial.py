@@ -20,7 +20,7 @@ import hashlib
 import os
 import shutil
 import tempfile
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import nullcontext, suppress
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,21 +32,22 @@ import ray.tune
 from ray.train.torch import TorchTrainer
 
 from cdm.config import Config
+from cdm.io.files import is_uri
 from cdm.metric_names import METRICS
 from cdm.prior_model import ensure_priors
 from cdm.shared import SharedStore
 from cdm.train import Callback, fit
 from sweeps.execute.cores import CoreLease
-from sweeps.execute.logged_runs import finished_trial_metrics
 from sweeps.execute.progress import StepReporter, quiet_actor_exit, quiet_loggers
 from sweeps.execute.pruning import KEEP
-from sweeps.execute.trial_tracking import TrialRun
 from sweeps.plan.trials import Cell, SweepPlan
-from sweeps.storage import is_uri, private_folder, storage_location
+from sweeps.store.files import private_folder, storage_location
+from sweeps.store.read import finished_trial_metrics
+from sweeps.store.trial_run import TrialRun
 
 __all__ = [
-    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "remove_sweep_scratch", "run_trial", "sweep_scratch",
-    "train_loop", "trial_dir_name", "trial_job", "trial_scratch",
+    "TrialJob", "TrialProgress", "TrialSetup", "fit_trial", "learning_curve", "remove_sweep_scratch", "run_trial",
+    "sweep_scratch", "train_loop", "trial_dir_name", "trial_job", "trial_scratch",
 ]
 
 
@@ -149,8 +150,22 @@ def _trackers(job: TrialJob, config: Config) -> list[Callback]:
     return [
         StepReporter(setup.parent_run_id, job.label),
         TrialRun(setup.tracking_uri, setup.experiment_id, setup.parent_run_id, job.trial_id, job.label, job.tags,
-                 config, job.metric),
+                 config, job.metric, learning_curve),
     ]
+
+
+def learning_curve(history: Mapping[str, Sequence[tuple[int, float]]], folder: Path, metric: str, title: str,
+                   f1_threshold: float) -> Path | None:
+    """One trial's training curves (:func:`sweeps.compare.plots.training_curves`: the loss terms apart, ``metric``
+    once the run holds two evaluations) as ``folder/learning_curve.png``, titled ``title``, F1 labelled at the
+    run's ``f1_threshold``; None while ``history`` (series of :data:`sweeps.store.trial_run.CURVE_KEYS` and
+    ``metric``) holds no curve (no loss logged, fewer than two evaluations)."""
+    from sweeps.compare.plots import has_curve, training_curves
+
+    if not has_curve(history, metric):
+        return None
+    return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png",
+                           f1_thresholds=f1_threshold)
 
 
 def fit_trial(job: TrialJob, rank: int, trackers: Callable[[Config], list[Callback]],

@@ -16,7 +16,7 @@ from typing import Any
 import ray
 import ray.tune
 
-from cdm.io.files import read_text
+from cdm.io.files import is_uri, read_text
 from cdm.provenance import code_version
 from sweeps.compare.outcomes import TrialOutcome, sweep_order, unstarted
 from sweeps.execute.cores import lease_cores
@@ -24,13 +24,13 @@ from sweeps.execute.precompute import precompute, precomputes, shared_root
 from sweeps.execute.pruning import CheckpointPruner, prune_finished
 from sweeps.execute.resume_retries import refusing, retry_errored
 from sweeps.execute.settle import UntilSettled
-from sweeps.execute.tracking import SweepRun
 from sweeps.execute.trial import TrialSetup, remove_sweep_scratch, run_trial, trial_dir_name
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.resources import Concurrency
 from sweeps.plan.search import search_kind
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import is_uri, storage_location
+from sweeps.store.files import storage_location
+from sweeps.store.sweep_run import SweepRun
 
 __all__ = ["checkpoint_location", "error_summary", "run_sweep"]
 

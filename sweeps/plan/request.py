@@ -26,7 +26,7 @@ from sweeps.plan.resources import plan_concurrency
 from sweeps.plan.schema_base import SpecError
 from sweeps.plan.spec import Spec, load_spec
 from sweeps.plan.trials import SweepPlan, expand
-from sweeps.storage import StoreError, exists, is_uri, parse_state, read_text, sweep_location
+from sweeps.store.files import StoreError, exists, is_uri, read_state, sweep_location
 
 __all__ = ["STATE_FILE", "RequestError", "SweepRequest", "missing_inputs", "plan_request"]
 
@@ -130,7 +130,7 @@ def _resumed(args: argparse.Namespace, sweep_dir: str, sets: dict[str, Any]) -> 
         raise RequestError(
             "--resume continues a sweep with the seeds and budget it started with; drop --until-settled and --budget"
         )
-    state = parse_state(read_text(state_file), state_file)
+    state = read_state(state_file)
     try:
         return state, Spec.model_validate(state["spec"])
     except ValidationError as exc:

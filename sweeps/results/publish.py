@@ -3,13 +3,12 @@
 ``cdm-lab report EXPERIMENT [--tracking-uri URI] [--run-id PARENT] [--out DIR] [--log]`` writes ``results.{md,csv}``
 and the plots into ``--out`` (default ``results/<experiment>/report``); ``--log`` also logs the plots onto the
 parent run. A failed trial is a "failed" row, not a crash; an unknown experiment exits 2 listing the known ones.
-The runner calls :func:`publish` at the end of every sweep. The sweep is read back by :mod:`sweeps.results.finished`.
+The runner calls :func:`publish` at the end of every sweep. The sweep is read back by :mod:`sweeps.results.sweep`.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import statistics
 import sys
@@ -29,14 +28,14 @@ from sweeps.compare.gallery import grid_png, panel_input, viewer_html
 from sweeps.compare.plots import PlotPoint, has_curve, metric_vs_value, optuna_plots, read_ply, training_curves
 from sweeps.compare.rules import PROTOCOL_NOTE, baseline_key, headline
 from sweeps.compare.table import ResultsTable
-from sweeps.execute.logged_runs import last_eval_files, last_objects, metric_histories
-from sweeps.execute.tracking import resolve_tracking_uri, ui_link
 from sweeps.plan.search import optuna_distributions
 from sweeps.plan.spec import Spec
 from sweeps.plan.trials import split_label
-from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, open_sweep, results_table, trial_records
+from sweeps.results.sweep import SweepRecord, TrialRecord, open_sweep, results_table, trial_records
 from sweeps.results.view import headline_name, row_tags, share_view
-from sweeps.storage import StoreError, check_tracking_uri
+from sweeps.store.files import StoreError
+from sweeps.store.read import ReportError, last_eval_files, last_objects, metric_histories
+from sweeps.store.tracking import check_tracking_uri, resolve_tracking_uri, ui_link
 
 __all__ = ["DESCRIPTION_WIDTH", "build_parser", "describe_sweep", "describe_trial", "main", "open_given", "panels",
            "publish", "reconstructions", "sweep_arguments", "write_plots"]
@@ -293,8 +292,6 @@ def open_given(args: argparse.Namespace) -> SweepRecord:
     Raises:
         ReportError, StoreError: no such store or sweep; the message says which.
     """
-    # A few small downloads (the spec, plan.json, a file per trial): no progress bar for each.
-    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
     uri = resolve_tracking_uri(args.tracking_uri)
     check_tracking_uri(uri)
     return open_sweep(uri, args.experiment, args.run_id)

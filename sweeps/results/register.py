@@ -21,8 +21,9 @@ from cdm.cli import command_parser
 from cdm.io.json import parse_json
 from sweeps.compare.outcomes import sweep_order
 from sweeps.mlflow_model import logged_model
-from sweeps.results.finished import ReportError, SweepRecord, TrialRecord, results_table, trial_records
 from sweeps.results.publish import open_given, sweep_arguments
+from sweeps.results.sweep import SweepRecord, TrialRecord, results_table, trial_records
+from sweeps.store.read import ReportError
 
 __all__ = ["RegisterError", "best_trial", "build_parser", "check_name", "main", "register_best", "register_run"]
 
@@ -107,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from mlflow.exceptions import MlflowException
 
-    from sweeps.storage import StoreError
+    from sweeps.store.files import StoreError
 
     args = build_parser().parse_args(argv)
     try:

@@ -22,7 +22,7 @@ from mlflow.entities import Metric
 
 from sweeps.compare.rules import headline
 from sweeps.compare.table import ResultsTable
-from sweeps.results.finished import SweepRecord
+from sweeps.results.sweep import SweepRecord
 
 __all__ = ["BASELINE_KIND", "VERDICT_WORDS", "baseline_rows", "headline_name", "row_tags", "share_view", "sort_key"]
 

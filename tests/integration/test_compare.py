@@ -26,8 +26,8 @@ from nbclient import NotebookClient
 
 from docs import screenshots
 from sweeps import run
-from sweeps.execute.logged_runs import last_eval_files, last_objects
 from sweeps.results import publish
+from sweeps.store.read import last_eval_files, last_objects
 from tests.integration.local_ray import local_ray
 from tests.test_publish import _overlap, panel_views
 

@@ -17,11 +17,11 @@ from cdm.config import load_config
 from cdm.data import build_dataset
 from cdm.metric_names import COMPUTE_METRIC
 from sweeps import run
-from sweeps.execute.logged_runs import last_objects
 from sweeps.execute.tuner import _scheduler
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
 from sweeps.results import publish
+from sweeps.store.read import last_objects
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 

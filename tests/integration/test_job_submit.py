@@ -214,7 +214,7 @@ def test_head_binds_loopback_and_requires_the_token(ray_head, mlflow_server):
 def test_submitted_smoke_sweep_logs_parent_and_children_to_the_server(ray_head, mlflow_server, mlflow_store, tmp_path):
     from mlflow import MlflowClient
 
-    from sweeps.execute.logged_runs import last_eval_files
+    from sweeps.store.read import last_eval_files
 
     storage = tmp_path / "results"
     sub_id = f"cdm-smoke-{secrets.token_hex(4)}"

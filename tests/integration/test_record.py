@@ -32,7 +32,7 @@ from cdm.checkpoint import CHECKPOINT_FILE
 from sweeps import report, rerun, run
 from sweeps.execute.trial import sweep_scratch, trial_scratch
 from sweeps.mlflow_model import model_checkpoint
-from sweeps.results.finished import open_sweep, results_table, trial_records
+from sweeps.results.sweep import open_sweep, results_table, trial_records
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 

@@ -23,8 +23,8 @@ from mlflow import MlflowClient
 from cdm.io.write import TEMP_NAME
 from cdm.provenance import MACHINE_KEYS, machine_record
 from sweeps import rerun, run
-from sweeps.execute.logged_runs import last_eval_files
-from sweeps.execute.trial_tracking import PACKAGES_FILE
+from sweeps.store.read import last_eval_files
+from sweeps.store.trial_run import PACKAGES_FILE
 
 pytestmark = [pytest.mark.ray, pytest.mark.slow]
 
@@ -265,7 +265,7 @@ def test_a_crash_after_the_parent_run_exists_marks_it_failed(cluster, tmp_path, 
 def test_a_sweep_at_another_f1_threshold_labels_f1_so_in_its_table_store_and_report(cluster, tmp_path):
     """``--set eval.f1_threshold=0.02``: the printed table, results.md, each child's tag, param and description,
     the parent's description and the report's table say F1@0.02; F1@0.01 appears nowhere; the keys stay eval/f1."""
-    from sweeps.results.finished import open_sweep, results_table, trial_records
+    from sweeps.results.sweep import open_sweep, results_table, trial_records
 
     argv, uri = _sweep(tmp_path, "name: tau\ngrid: {priors.point_size: [0.02]}\n", "--set", "eval.f1_threshold=0.02")
     printed = io.StringIO()

@@ -27,11 +27,11 @@ from sweeps.compare.sequential import FOOTNOTE, SettleRecord
 from sweeps.execute.settle.rule import BUDGET_TAG, Round, by_cell, next_round, outcome_results
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import write_file
+from sweeps.store.files import write_file
 
 if TYPE_CHECKING:
     from sweeps.execute.settle.searcher import SeedSearcher
-    from sweeps.execute.tracking import SweepRun
+    from sweeps.store.sweep_run import SweepRun
 
 __all__ = ["BUDGET_TAG", "Round", "UntilSettled"]
 

@@ -1,9 +1,10 @@
 """Seeds until settled on Ray Tune's machinery: a ``Searcher`` proposing ``{"cell": <trial label>}``, the grid's
 own Tune config, so each seed is built, named and tracked as a grid trial (one MLflow child run per seed).
 
-It keeps no results of its own: per-object scores are read from each finished trial's MLflow run, after
-``--resume`` too, so a restored searcher needs from Tune's snapshot only what it had proposed and the time
-spent (JSON, no pickle): no seed runs twice, none is lost. Concurrency is Tune's ``ConcurrencyLimiter``.
+It keeps no results of its own: per-object scores are read from each finished trial's MLflow run
+(:meth:`sweeps.store.sweep_run.SweepRun.trial_objects`), after ``--resume`` too, so a restored searcher needs
+from Tune's snapshot only what it had proposed and the time spent (JSON, no pickle): no seed runs twice, none is
+lost. Concurrency is Tune's ``ConcurrencyLimiter``.
 """
 
 from __future__ import annotations
@@ -17,15 +18,15 @@ from typing import Any
 
 from ray.tune.search import Searcher
 
-from cdm.io.files import read_bounded
+from cdm.io.files import read_bounded, read_from
 from cdm.io.json import parse_json
 from cdm.io.write import write_atomic
-from sweeps.execute.logged_runs import last_objects
 from sweeps.execute.settle.rule import BUDGET_TAG, Round, next_round, object_scores
-from sweeps.execute.tracking import SweepRun
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import SweepPlan
-from sweeps.storage import StoreError
+from sweeps.store.files import StoreError
+from sweeps.store.read import last_objects
+from sweeps.store.sweep_run import SweepRun
 
 __all__ = ["MAX_STATE_BYTES", "SeedSearcher", "check_searcher_state"]
 
@@ -86,8 +87,7 @@ def check_searcher_state(sweep_dir: str, plan: SweepPlan) -> None:
             f"--resume: {where} is {info.size} bytes; a seed searcher's state is at most {MAX_STATE_BYTES} "
             f"(damaged or planted); {_FRESH_START}"
         )
-    with filesystem.open_input_stream(where) as stream:
-        parse_searcher_state(stream.read(info.size + 1)[:MAX_STATE_BYTES + 1], where, plan)
+    parse_searcher_state(read_from(filesystem, where, "--resume", MAX_STATE_BYTES), where, plan)
 
 
 class SeedSearcher(Searcher):

@@ -1,9 +1,9 @@
-"""MLflow tracking of one trial: its child run under the sweep's parent run, written from exactly one place.
+"""A trial's record: its child run under the sweep's parent run, written from exactly one place.
 
 The trial's rank-0 training process feeds it as a :class:`cdm.train.Callback`, because SQLite locks under
 many writers. A child is found again by its ``trial_id`` tag, so a resumed trial continues its own run and
 skips steps it had already logged: no duplicates. The driver closes it with Tune's verdict
-(:meth:`sweeps.execute.tracking.SweepRun.close_trial`).
+(:meth:`sweeps.store.sweep_run.SweepRun.close_trial`).
 """
 
 from __future__ import annotations
@@ -12,33 +12,26 @@ import importlib.util
 import json
 import tempfile
 import time
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import yaml
-from mlflow import MlflowClient
 from mlflow.entities import Dataset, DatasetInput, InputTag, Metric, RunTag
 
 from cdm.checkpoint import load_checkpoint, save_checkpoint
-from cdm.config import F1_THRESHOLD, Config
+from cdm.config import Config
 from cdm.io.csv import read_csv
 from cdm.metric_names import CD, COMPUTE_METRIC, F1, f1_at
 from cdm.provenance import code_version, installed_packages
 from cdm.train import Callback
-from sweeps.execute.logged_runs import find_trial_run, is_per_category, metric_histories
-from sweeps.execute.tracking import as_params, log_params, source_tags
 from sweeps.mlflow_model import MODEL_NAME, log_model
-from sweeps.store_retry import PatientClient
+from sweeps.store.read import find_trial_run, is_per_category, metric_histories
+from sweeps.store.tracking import client, log_params, source_tags
 
 __all__ = [
-    "EVAL_FOLDERS", "F1_TAG", "MODEL_ARTIFACTS", "MODEL_TAG", "PACKAGES_FILE", "PER_TRIAL_PARAMS",
-    "SYSTEM_METRICS_INTERVAL_S", "TrialRun", "eval_dataset", "learning_curve_png", "system_metrics_monitor",
+    "CURVE_KEYS", "EVAL_FOLDERS", "F1_TAG", "MODEL_TAG", "PACKAGES_FILE", "PER_TRIAL_PARAMS",
+    "SYSTEM_METRICS_INTERVAL_S", "Curve", "TrialRun", "eval_dataset", "system_metrics_monitor",
 ]
-
-MODEL_ARTIFACTS = MODEL_NAME
-"""The name of the child run's MLflow model (:mod:`sweeps.mlflow_model`): its weights for inference (model and
-EMA weights, no optimiser; :meth:`cdm.checkpoint.Checkpoint.for_inference`) as the artifact ``checkpoint``, the step
-and the reproducibility record in its ``MLmodel`` metadata. ``mlflow.pyfunc.load_model("runs:/<run id>/model")``
-samples clouds with it; ``cdm-lab evaluate --checkpoint runs:/<run id>/model`` scores it."""
 
 MODEL_TAG = "model"
 """The tag holding the run's ``runs:/<run id>/model`` URI, to paste into ``cdm-lab evaluate --checkpoint``."""
@@ -107,29 +100,18 @@ EVAL_FOLDERS = {".png": "panels", ".ply": "clouds"}
 panels apart from the dozens of clouds."""
 
 
-def learning_curve_png(
-    client: MlflowClient, run_id: str, folder: Path, metric: str = CD.key, title: str = "",
-    f1_threshold: float = F1_THRESHOLD,
-) -> Path | None:
-    """The run's training curves (:func:`sweeps.compare.plots.training_curves` for this one trial: the loss terms
-    apart, ``metric`` once the run holds two evaluations) from its MLflow history, titled ``title``, F1
-    labelled at the run's ``f1_threshold`` (``eval.f1_threshold``); None while the run holds no curve (no
-    loss logged, fewer than two evaluations).
+CURVE_KEYS = ("train/loss", "train/loss_diffusion")
+"""The training series a trial's learning curve draws, besides its sweep's metric."""
 
-    Reading the history (not in-memory lists) keeps the curve whole across a resumed trial.
-    """
-    from sweeps.compare.plots import has_curve, training_curves
-
-    keys = ("train/loss", "train/loss_diffusion", metric)
-    history = metric_histories(client, run_id, keys)
-    if not has_curve(history, metric):
-        return None
-    return training_curves({title: history}, {title: title}, metric, title, folder / "learning_curve.png",
-                           f1_thresholds=f1_threshold)
+Curve = Callable[[Mapping[str, Sequence[tuple[int, float]]], Path, str, str, float], "Path | None"]
+"""Draws a trial's learning curve: ``(history, folder, metric, title, f1_threshold)`` → the PNG written in
+``folder``, or None while ``history`` (metric → ``(step, value)`` series of :data:`CURVE_KEYS` and ``metric``)
+holds no curve; :func:`sweeps.execute.trial.learning_curve`."""
 
 
 class TrialRun(Callback):
-    """The child run of one trial, fed by :func:`cdm.train.fit`'s callbacks (rank 0 only).
+    """The child run of one trial, fed by :func:`cdm.train.fit`'s callbacks (rank 0 only); ``curve`` draws its
+    learning curve at the last evaluation.
 
     Opens the run on construction — or reopens the trial's earlier run after a resume, logging only
     steps past what that run already holds.
@@ -145,9 +127,10 @@ class TrialRun(Callback):
         tags: dict[str, str],
         config: Config,
         metric: str = CD.key,
+        curve: Curve | None = None,
     ):
-        self.client = PatientClient(uri)
-        self.run_name, self.metric = run_name, metric
+        self.client = client(uri)
+        self.run_name, self.metric, self.curve = run_name, metric, curve
         self.last_step = 0 if config.eval.only else config.train.steps
         self.budget_s = config.train.compute_budget_s
         self.f1_threshold = config.eval.f1_threshold
@@ -171,7 +154,7 @@ class TrialRun(Callback):
                       **source_tags(commit), **tags})
             self.run_id = run.info.run_id
             kept = {k: v for k, v in config.flat().items() if k not in PER_TRIAL_PARAMS}
-            log_params(self.client, self.run_id, as_params(kept))
+            log_params(self.client, self.run_id, kept)
             self.client.log_text(self.run_id, self.config_yaml, "config.yaml")
         else:
             self.run_id = found
@@ -208,9 +191,10 @@ class TrialRun(Callback):
         # The curve at the last evaluation only: MLflow charts the metrics live, and drawing it took ~0.7 s
         # per evaluation (benchmarks/RESULTS.md).
         last = step >= self.last_step or (self.budget_s is not None and metrics[COMPUTE_METRIC] >= self.budget_s)
-        if files and last:
-            curve = learning_curve_png(self.client, self.run_id, files[0].parent, self.metric, self.run_name,
-                                       self.f1_threshold)
+        if files and last and self.curve is not None:
+            # Read from the run's history (not in-memory lists): the curve stays whole across a resumed trial.
+            history = metric_histories(self.client, self.run_id, (*CURVE_KEYS, self.metric))
+            curve = self.curve(history, files[0].parent, self.metric, self.run_name, self.f1_threshold)
             if curve is not None:
                 self.client.log_artifact(self.run_id, str(curve), "curves")
         if last and self.monitor is not None:  # the last evaluation: the samples so far logged
@@ -238,4 +222,4 @@ class TrialRun(Callback):
             folder = Path(tmp) / "checkpoint"
             save_checkpoint(load_checkpoint(path).for_inference(), folder)
             log_model(self.client, self.run_id, folder, {"step": step, **self.record})
-        self.client.set_tag(self.run_id, MODEL_TAG, f"runs:/{self.run_id}/{MODEL_ARTIFACTS}")
+        self.client.set_tag(self.run_id, MODEL_TAG, f"runs:/{self.run_id}/{MODEL_NAME}")

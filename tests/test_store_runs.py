@@ -1,4 +1,4 @@
-"""MLflow adapter on a real SQLite store: absolute URIs, one child per trial, resume without duplicates."""
+"""The store's record on a real SQLite MLflow store: absolute URIs, one child per trial, resume without duplicates."""
 
 from __future__ import annotations
 
@@ -13,12 +13,21 @@ from mlflow import MlflowClient
 from mlflow.models import Model
 
 from cdm.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from cdm.config import load_config
+from cdm.config import F1_THRESHOLD, load_config
+from cdm.metric_names import CD
 from cdm.provenance import code_version, installed_packages, machine_record
-from sweeps.execute.logged_runs import find_trial_run, last_eval_files
-from sweeps.execute.tracking import SweepRun, resolve_tracking_uri, ui_command, ui_link
-from sweeps.execute.trial_tracking import PACKAGES_FILE, TrialRun, learning_curve_png, system_metrics_monitor
+from sweeps.execute.trial import learning_curve
 from sweeps.mlflow_model import model_checkpoint
+from sweeps.store.read import find_trial_run, finished_trial_metrics, last_eval_files, metric_histories
+from sweeps.store.sweep_run import SweepRun
+from sweeps.store.tracking import resolve_tracking_uri, ui_command, ui_link
+from sweeps.store.trial_run import CURVE_KEYS, PACKAGES_FILE, TrialRun, system_metrics_monitor
+
+
+def _curve(client, run_id: str, folder: Path) -> Path | None:
+    """The learning curve a trial draws at its last evaluation, from its run's history."""
+    history = metric_histories(client, run_id, (*CURVE_KEYS, CD.key))
+    return learning_curve(history, folder, CD.key, "", F1_THRESHOLD)
 
 
 def test_tracking_uri_is_absolute_and_overridable(tmp_path, monkeypatch):
@@ -39,14 +48,16 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={"profile": "smoke"}, params={"trials": 2})
     assert pickle.loads(pickle.dumps(sweep)).run_id == sweep.run_id  # Tune pickles it with its callbacks
     cfg = load_config(None, {"priors.point_size": 0.02, "train.steps": 10})  # evaluated at step 10: the last
-    first = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg)
+    first = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg,
+                     curve=learning_curve)
     panel = tmp_path / "obj.png"
     panel.write_bytes(b"\x89PNG")
     for step in (5, 10):
         first.on_step(step, {"train/loss": 1.0 / step})
     first.on_eval(10, {"eval/cd": 50.0, "eval/f1": 0.3}, [panel])
 
-    again = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg)
+    again = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "point_size=0.02 · seed 0", {"seed": "0"}, cfg,
+                     curve=learning_curve)
     assert again.run_id == first.run_id and again.logged_until == {"train": 10, "eval": 10}
     for step in (5, 10, 15):  # a resumed fit repeats the steps after its last checkpoint
         again.on_step(step, {"train/loss": 2.0 / step})
@@ -65,7 +76,7 @@ def test_child_runs_resume_without_duplicates_and_close_with_a_verdict(tmp_path)
     assert {a.path for a in client.list_artifacts(first.run_id)} == {"config.yaml", "eval", "curves"}
     assert last_eval_files(client, first.run_id) == ["eval/step_0000010/panels/obj.png"]  # panels apart from clouds
 
-    curve = learning_curve_png(client, first.run_id, tmp_path)
+    curve = _curve(client, first.run_id, tmp_path)
     assert curve.read_bytes()[:4] == b"\x89PNG" and curve.stat().st_size > 2000
 
     sweep.close_trial("t0", "point_size=0.02 · seed 0", "FAILED", error="TrainingDiverged: loss became nan",
@@ -140,7 +151,7 @@ def test_every_metric_is_logged_at_full_precision_and_per_category_scores_are_me
         "eval/step_0000010/clouds/o1.ply",
         "eval/step_0000010/objects.csv",
     ]
-    curve = learning_curve_png(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
+    curve = _curve(client, trial.run_id, tmp_path)  # one evaluation: the loss terms only
     assert curve.stat().st_size > 2000
 
 
@@ -222,3 +233,28 @@ def test_a_child_run_is_tagged_with_its_machine_and_holds_its_package_list(tmp_p
     assert {k: tags[f"repro.{k}"] for k in machine} == machine and tags["repro.cpu_capability"]
     listed = Path(client.download_artifacts(trial.run_id, PACKAGES_FILE, str(tmp_path))).read_text().splitlines()
     assert listed == installed_packages() and any(line.startswith("torch==") for line in listed)
+
+
+def test_finished_trial_is_recognised_and_its_final_metrics_logged_once(tmp_path):
+    # A trial the driver closed just before it was killed is recognised on --resume from its own MLflow record:
+    # its metrics come back instead of a re-run, and its ``final/…`` metrics are logged once.
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    sweep = SweepRun.start(uri, "exp", "exp · smoke", tags={}, params={})
+    trial = TrialRun(uri, sweep.experiment_id, sweep.run_id, "t0", "cell · seed 0", {}, load_config(None))
+    for step, cd, f1 in ((10, 60.0, 0.2), (20, 40.0, 0.35)):
+        trial.on_step(step, {"train/loss": 1.0 / step})
+        trial.on_eval(step, {"eval/cd": cd, "eval/f1": f1}, [])
+    assert finished_trial_metrics(uri, sweep.experiment_id, sweep.run_id, "t0") is None  # still RUNNING
+    assert finished_trial_metrics(uri, sweep.experiment_id, sweep.run_id, "t1") is None  # no run at all
+
+    sweep.close_trial(
+        "t0", "cell · seed 0", "FINISHED", last={"eval/cd": 40.0, "eval/f1": 0.35, "eval/f1/chair": 0.3456}
+    )
+    done = finished_trial_metrics(uri, sweep.experiment_id, sweep.run_id, "t0")
+    # The per-category score the child logged only as final/f1/chair comes back under its reported name.
+    assert done == {"train/loss": 0.05, "eval/cd": 40.0, "eval/f1": 0.35, "eval/f1/chair": 0.3456, "step": 20}
+
+    sweep.close_trial("t0", "cell · seed 0", "FINISHED")  # Tune closes it again after the resume
+    client = MlflowClient(uri)
+    history = client.get_metric_history(trial.run_id, "final/f1")
+    assert [(m.step, m.value) for m in history] == [(20, 0.35)]

@@ -1,4 +1,5 @@
-"""A finished sweep read back from MLflow: its parent run, spec and plan, and one record per trial.
+"""A finished sweep's record (:func:`sweeps.store.read.read_sweep`) as the results stage reads it: its spec
+validated, and one outcome per trial.
 
 :func:`open_sweep` finds the sweep (the experiment's latest, or a given parent run), :func:`trial_records`
 rebuilds each trial's outcome as the runner's results table reads it, and :func:`results_table` the
@@ -10,32 +11,29 @@ from __future__ import annotations
 
 import math
 import statistics
-import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from functools import cached_property
-from pathlib import Path
 from typing import Any
 
-from mlflow import MlflowClient
 from mlflow.entities import Run
+from pydantic import ValidationError
 
-from cdm.io.json import read_json
+from cdm.config import format_validation_error
 from cdm.metric_names import CD, METRICS
 from sweeps.compare.outcomes import FINISHED, TrialOutcome, sweep_order, unstarted
 from sweeps.compare.rules import settings_notes
 from sweeps.compare.table import ResultsTable, build_table
-from sweeps.execute.logged_runs import last_objects, parent_baselines, trial_metrics, trial_runs
 from sweeps.execute.settle import Round, UntilSettled
 from sweeps.plan.budget import parse_budget
 from sweeps.plan.protocol import CARD_TAG
-from sweeps.plan.spec import SpaceParam, Spec, load_spec
+from sweeps.plan.schema_base import SpecError
+from sweeps.plan.spec import SpaceParam, Spec
 from sweeps.plan.trials import SweepPlan, expand, split_label
+from sweeps.store.read import LoggedSweep, last_objects, parent_baselines, read_sweep, trial_metrics
 
 __all__ = [
-    "ReportError",
     "SweepRecord",
     "TrialRecord",
-    "UnknownExperimentError",
     "open_sweep",
     "paper_layout",
     "protocol_card_lines",
@@ -47,28 +45,11 @@ _STATUS = {"FINISHED": "ok", "FAILED": "failed"}
 """MLflow run status → :class:`TrialOutcome` status; RUNNING, SCHEDULED and KILLED runs never finished: pending."""
 
 
-class ReportError(ValueError):
-    """The experiment exists but holds no sweep this module can read; the message says what is missing."""
-
-
-class UnknownExperimentError(ReportError):
-    def __init__(self, name: str, known: list[str]):
-        super().__init__(f"no MLflow experiment named {name!r}; known: {', '.join(known) or 'none'}")
-        self.known = known
-
-
 @dataclass(frozen=True)
-class SweepRecord:
-    """One sweep as MLflow holds it: the parent run, its spec and plan, its child runs."""
+class SweepRecord(LoggedSweep):
+    """One sweep as MLflow holds it (:class:`sweeps.store.read.LoggedSweep`), its spec validated."""
 
-    client: MlflowClient
-    experiment: str
-    experiment_id: str
-    parent: Run
     spec: Spec
-    plan: dict[str, Any]
-    """``plan.json``: ``fixed`` overrides, ``sets`` and the grid's ``cells`` (label, values, seed, paper)."""
-    children: list[Run]
 
     @property
     def profile(self) -> str:
@@ -100,34 +81,15 @@ def open_sweep(uri: str, experiment: str | None = None, parent_run_id: str | Non
     """The latest sweep of ``experiment`` (or the sweep whose parent run is ``parent_run_id``).
 
     Raises:
-        UnknownExperimentError: no experiment of that name (the error lists the known ones).
-        ReportError: the experiment holds no sweep parent run, or the parent lacks its spec/plan.
+        sweeps.store.read.ReportError: no such experiment or sweep, or its spec/plan is missing or unreadable.
+        SpecError: the spec it started with no longer validates.
     """
-    client = MlflowClient(uri)
-    if parent_run_id is not None:
-        parent = client.get_run(parent_run_id)
-        exp = client.get_experiment(parent.info.experiment_id)
-    else:
-        exp = client.get_experiment_by_name(experiment)
-        if exp is None:
-            raise UnknownExperimentError(experiment, sorted(e.name for e in client.search_experiments()))
-        parents = client.search_runs([exp.experiment_id], filter_string="tags.kind = 'sweep'",
-                                     order_by=["attributes.start_time DESC"], max_results=1)
-        if not parents:
-            raise ReportError(f"experiment {experiment!r} holds no sweep (no run tagged kind=sweep)")
-        parent = parents[0]
-    run_id = parent.info.run_id
-    names = [a.path for a in client.list_artifacts(run_id)]
-    specs = [n for n in names if n.endswith((".yaml", ".yml"))]
-    if not specs or "plan.json" not in names:
-        raise ReportError(
-            f"sweep run {run_id} has no spec file or plan.json artifact (artifacts: {', '.join(names) or 'none'})"
-        )
-    with tempfile.TemporaryDirectory() as tmp:
-        spec = load_spec(client.download_artifacts(run_id, specs[0], tmp))
-        plan = read_json(Path(client.download_artifacts(run_id, "plan.json", tmp)), f"sweep run {run_id}")
-    return SweepRecord(client, exp.name, exp.experiment_id, parent, spec, plan,
-                       trial_runs(client, exp.experiment_id, run_id))
+    logged = read_sweep(uri, experiment, parent_run_id)
+    try:
+        spec = Spec.model_validate(logged.spec_file)
+    except ValidationError as exc:
+        raise SpecError(f"sweep run {logged.parent.info.run_id}'s spec: {format_validation_error(exc, Spec)}") from None
+    return SweepRecord(**{f.name: getattr(logged, f.name) for f in fields(logged)}, spec=spec)
 
 
 def _sampled(run: Run, space: dict[str, SpaceParam]) -> dict[str, Any]:

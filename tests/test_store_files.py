@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sweeps.storage import storage_location
+from sweeps.store.files import storage_location
 
 
 @pytest.mark.parametrize("sweep_dir,fs_path,location", [

@@ -1,24 +1,12 @@
-"""Where a sweep keeps its files and runs, checked before Ray starts and before any MLflow run exists.
+"""A sweep's folder: a local path or an object-store URI (``s3://``, ``gs://``, ``file://``), read through
+:mod:`cdm.io` and written through :mod:`cdm.io.write` (local) or pyarrow's file systems (object stores).
 
-- :func:`check_tracking_uri`: an MLflow store MLflow can open (``sqlite:``, ``file:``, ``http(s):``,
-  a database URL whose driver is installed), whose folder can be written (SQLite, files) or whose
-  server answers as an MLflow server (HTTP); :func:`check_parent_run`: on ``--resume``, the store
-  holds the sweep's parent run (looked up without creating a store).
-- :func:`check_storage`: a sweep folder that can be created — a local path under a writable folder,
-  or an object-store URI (``s3://``, ``gs://``, ``file://``) whose bucket exists and takes a write
-  with the credentials of this environment (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, and
-  ``AWS_ENDPOINT_URL`` for an S3-compatible server other than AWS, as pyarrow reads them; Ray's
-  processes inherit them from the driver).
-- :func:`parse_state`: a sweep's ``sweep.json`` as ``--resume`` needs it.
-- :func:`sweep_location`, :func:`exists`, :func:`read_text`, :func:`publish_files`: a sweep folder
-  named by a local path or a URI, read and written through pyarrow's file systems.
-- :func:`check_name`: a spec, profile or data set name used as one path component.
-- :func:`check_resume_trust`, :func:`record_digest`: Tune's state (pickles) is unpickled by ``--resume``
-  only from a folder no one else could have written, or matching the digest this user recorded.
-- :func:`private_folder`: a folder of this user that no one else can write (lock files and session
-  records in the shared temporary folder), refused when someone else made it or made it a link.
-
-Each refusal is a :class:`StoreError` of one line naming the URI or file and what is allowed.
+An object store takes the credentials of this environment (``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, and
+``AWS_ENDPOINT_URL`` for an S3-compatible server other than AWS, as pyarrow reads them; Ray's processes inherit
+them from the driver). Tune's state there is pickles: :func:`check_resume_trust` lets ``--resume`` unpickle it
+only from a folder no one else could have written, or matching the digests this user recorded
+(:func:`record_digest`). Each refusal is a :class:`StoreError` of one line naming the URI or file and what is
+allowed.
 """
 
 from __future__ import annotations
@@ -28,57 +16,40 @@ import json
 import os
 import stat
 import tempfile
-import urllib.error
-import urllib.parse
-import urllib.request
 import uuid
 from pathlib import Path
 from typing import Any
 
+from cdm.io.files import is_uri, read_bounded, sha256_from
 from cdm.io.json import parse_json, read_json
 from cdm.io.write import write_atomic
-from sweeps.store_retry import StoreBusy, check_not_locked
 
 __all__ = [
-    "MAX_NAME",
-    "TRACKING_SCHEMES",
-    "StoreError",
-    "check_name",
-    "check_no_links",
-    "check_parent_run",
-    "check_storage",
-    "check_tracking_uri",
-    "exists",
-    "check_resume_trust",
-    "is_uri",
-    "parse_state",
-    "private_folder",
-    "record_digest",
-    "write_file",
-    "write_private",
-    "publish_files",
-    "read_text",
-    "storage_location",
-    "sweep_location",
+    "MAX_NAME", "MAX_STATE_BYTES", "TRUST_FLAG", "StoreError", "check_name", "check_no_links", "check_resume_trust",
+    "check_storage", "exists", "is_uri", "one_line", "parse_state", "private_folder", "publish_files", "read_record",
+    "read_state", "record_digest", "storage_location", "sweep_location", "writable_folder", "write_file",
+    "write_private", "write_record",
 ]
 
 MAX_NAME = 100
 """Longest spec, profile or data set name: one path component, well under the 255 bytes of a file name."""
 
-TRACKING_SCHEMES = ("sqlite", "file", "http", "https", "postgresql", "mysql", "mssql")
-"""MLflow stores a sweep can log to."""
-
-DB_DRIVERS = {"postgresql": "psycopg2", "mysql": "MySQLdb", "mssql": "pyodbc"}
-"""SQLAlchemy's default driver module of each database scheme MLflow takes (``scheme+driver`` names another)."""
+MAX_STATE_BYTES = 16 * 2**20
+"""Most bytes of a sweep's own JSON record read back (``sweep.json``: a spec of the 1,000-trial cap is well under
+1 MiB; ``resume_retries.json``)."""
 
 _STATE_KEYS = {"spec": dict, "sets": dict, "profile": str, "tracking_uri": str, "parent_run_id": str}
 
 
 class StoreError(ValueError):
-    """A tracking URI, storage location or state file cannot be used; the message says why."""
+    """A tracking URI, storage location or record cannot be used; the message says why."""
 
 
-def _writable_folder(path: Path, what: str) -> None:
+def one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def writable_folder(path: Path, what: str) -> None:
     """``path`` (a folder to create or use) lies under an existing folder this process may write."""
     probe = path
     while not probe.exists():
@@ -97,75 +68,11 @@ def _writable_folder(path: Path, what: str) -> None:
     os.unlink(name)
 
 
-def check_tracking_uri(uri: str) -> None:
-    """Refuse an MLflow URI this sweep could not log to, before any run is created; a SQLite store that
-    another writer holds is waited on (:data:`sweeps.store_retry.BUSY_TIMEOUT_S`)."""
-    scheme = urllib.parse.urlsplit(uri).scheme.split("+")[0]
-    if scheme not in TRACKING_SCHEMES:
-        raise StoreError(f"--tracking-uri {uri}: unsupported scheme {scheme or '(none)'!r}; use one of "
-                         + ", ".join(f"{s}://" for s in TRACKING_SCHEMES))
-    if scheme == "sqlite":
-        _writable_folder(Path(uri.removeprefix("sqlite:///")).parent, "--tracking-uri")
-        try:
-            check_not_locked(Path(uri.removeprefix("sqlite:///")))
-        except StoreBusy as exc:
-            raise StoreError(f"--tracking-uri {uri}: {exc}") from None
-    elif scheme == "file":
-        _writable_folder(Path(urllib.parse.urlsplit(uri).path), "--tracking-uri")
-    elif scheme in ("http", "https"):
-        _check_mlflow_server(uri)
-    elif scheme in DB_DRIVERS:
-        import importlib.util
+def _filesystem(location: str):
+    """pyarrow's file system of ``location`` (a path or URI) and the path in it."""
+    from pyarrow import fs
 
-        dialect = urllib.parse.urlsplit(uri).scheme
-        driver = dialect.split("+", 1)[1] if "+" in dialect else DB_DRIVERS[scheme]
-        if importlib.util.find_spec(driver) is None:
-            raise StoreError(f"--tracking-uri {uri}: its database driver {driver!r} is not installed; "
-                             f"`pip install` it (or name an installed one: {scheme}+<driver>://…)")
-
-
-def _check_mlflow_server(uri: str) -> None:
-    """An HTTP(S) server that answers ``/health`` and MLflow's REST API (any server may answer ``/health``)."""
-    base = uri.rstrip("/")
-    try:
-        with urllib.request.urlopen(f"{base}/health", timeout=10):
-            pass
-    except (urllib.error.URLError, OSError) as exc:
-        reason = getattr(exc, "reason", exc)
-        raise StoreError(f"--tracking-uri {uri}: no MLflow server answers there ({reason}); start one "
-                         "(`mlflow server --host 127.0.0.1 --port 5000`) or give another URI") from None
-    try:
-        with urllib.request.urlopen(f"{base}/api/2.0/mlflow/experiments/search?max_results=1", timeout=10) as reply:
-            answer = parse_json(reply.read(1 << 20), f"--tracking-uri {uri}", "the server's answer")
-    except (urllib.error.URLError, OSError, ValueError) as exc:
-        answer = _one_line(exc)
-    if not isinstance(answer, dict):
-        raise StoreError(f"--tracking-uri {uri}: the server there answers /health but not MLflow's API "
-                         f"(experiments/search: {str(answer)[:100]}); give the URI of an MLflow server")
-
-
-def check_parent_run(uri: str, run_id: str) -> None:
-    """Refuse ``--resume`` when the store ``uri`` lacks the sweep's parent run ``run_id``; a SQLite file or
-    store folder that does not exist is not created to find out."""
-    split = urllib.parse.urlsplit(uri)
-    local = (
-        uri.removeprefix("sqlite:///") if split.scheme == "sqlite" else split.path if split.scheme == "file" else None
-    )
-    if local is not None and not Path(local).exists():
-        raise StoreError(f"--resume: the MLflow store {uri} does not exist, so it lacks the sweep's parent run "
-                         f"{run_id}; pass the --tracking-uri the sweep started with")
-    from mlflow import MlflowClient
-    from mlflow.exceptions import MlflowException
-
-    try:
-        MlflowClient(uri).get_run(run_id)
-    except MlflowException as exc:
-        raise StoreError(f"--resume: the MLflow store {uri} has no parent run {run_id} "
-                         f"({_one_line(exc)[:160]}); pass the --tracking-uri the sweep started with") from None
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
+    return fs.FileSystem.from_uri(location if is_uri(location) else str(Path(location).resolve()))
 
 
 def check_storage(sweep_dir: str) -> None:
@@ -176,16 +83,16 @@ def check_storage(sweep_dir: str) -> None:
     marker behind in the sweep's own path.
     """
     if not is_uri(sweep_dir):
-        _writable_folder(Path(sweep_dir), "--out")
+        writable_folder(Path(sweep_dir), "--out")
         return
     from pyarrow import fs
 
     try:
         filesystem, path = fs.FileSystem.from_uri(sweep_dir)
     except (ValueError, OSError) as exc:
-        raise StoreError(f"--out {sweep_dir}: {_one_line(exc)}") from None
+        raise StoreError(f"--out {sweep_dir}: {one_line(exc)}") from None
     if isinstance(filesystem, fs.LocalFileSystem):
-        _writable_folder(Path(path), "--out")
+        writable_folder(Path(path), "--out")
         return
     bucket = path.split("/", 1)[0]
     try:
@@ -198,17 +105,17 @@ def check_storage(sweep_dir: str) -> None:
         filesystem.delete_file(probe)
     except OSError as exc:
         raise StoreError(f"--out {sweep_dir}: cannot write to bucket {bucket!r} with this environment's "
-                         f"credentials ({_one_line(exc)})") from None
+                         f"credentials ({one_line(exc)})") from None
 
 
-def parse_state(text: str, where: str) -> dict[str, Any]:
+def parse_state(raw: bytes, where: str) -> dict[str, Any]:
     """The ``sweep.json`` a sweep wrote when it started: spec, ``--set`` values, profile, MLflow store, parent run.
 
     Raises:
         StoreError: not JSON, or a key missing or of the wrong type.
     """
     try:  # nesting bounded: a planted file deep enough would overflow the parser's recursion
-        state = parse_json(text.encode(errors="replace"), "--resume", Path(where))
+        state = parse_json(raw, "--resume", Path(where))
     except ValueError as exc:
         raise StoreError(f"{exc}; {where} is damaged: remove the folder to start over") from None
     if not isinstance(state, dict):
@@ -221,9 +128,28 @@ def parse_state(text: str, where: str) -> dict[str, Any]:
     return state
 
 
-def is_uri(storage: str) -> bool:
-    """``s3://…``, ``gs://…``, ``file://…``: kept as written and read through pyarrow; else a local path."""
-    return "://" in storage
+def read_record(location: str) -> bytes:
+    """The bytes of the sweep's own record file at ``location`` (a path or URI), refused past
+    :data:`MAX_STATE_BYTES` (:func:`cdm.io.files.read_bounded`)."""
+    try:
+        return read_bounded(location, "--resume", MAX_STATE_BYTES)
+    except ValueError as exc:
+        raise StoreError(f"{exc}; not a sweep's record: remove the folder to start over") from None
+
+
+def read_state(location: str) -> dict[str, Any]:
+    """The sweep's ``sweep.json`` at ``location`` (:func:`read_record`, :func:`parse_state`)."""
+    return parse_state(read_record(location), location)
+
+
+def write_record(location: str, text: str) -> None:
+    """Write ``text`` to the file ``location`` of a sweep folder: :func:`write_file` for a path, pyarrow for a URI."""
+    if not is_uri(location):
+        write_file(Path(location), text)
+        return
+    filesystem, path = _filesystem(location)
+    with filesystem.open_output_stream(path) as stream:
+        stream.write(text.encode())
 
 
 def storage_location(sweep_dir: str, fs_path: str) -> str:
@@ -250,9 +176,6 @@ def sweep_location(storage: str, spec: str, profile: str) -> str:
 
     Only ``storage`` itself is resolved (the user named it, links included); ``spec`` and ``profile`` are
     checked by :func:`check_name` and a link in their place is refused (:func:`check_no_links`).
-
-    Raises:
-        StoreError: ``spec`` or ``profile`` is not a plain name.
     """
     check_name(spec, "spec name")
     check_name(profile, "profile")
@@ -295,12 +218,7 @@ def private_folder(path: Path) -> Path:
 
 def write_file(path: Path, text: str | bytes, mode: int = 0o644) -> None:
     """Write ``text`` (or bytes) to ``path`` (made with ``mode`` if absent) through the one no-follow atomic
-    writer (:func:`cdm.io.write.write_atomic`): a symbolic link or a second name of another file (a hard
-    link) standing at ``path`` is refused, its target untouched.
-
-    Raises:
-        StoreError: naming ``path``.
-    """
+    writer (:func:`cdm.io.write.write_atomic`): a link standing at ``path`` is refused, its target untouched."""
     try:
         write_atomic(path, text, "sweep", mode=mode)
     except ValueError as exc:
@@ -315,36 +233,15 @@ def write_private(path: Path, text: str) -> None:
 def exists(location: str) -> bool:
     from pyarrow import fs
 
-    filesystem, path = fs.FileSystem.from_uri(location)
+    filesystem, path = _filesystem(location)
     return filesystem.get_file_info(path).type != fs.FileType.NotFound
-
-
-MAX_STATE_BYTES = 16 * 2**20
-"""Most bytes of ``sweep.json`` read back (a spec of the 1,000-trial cap is well under 1 MiB)."""
-
-
-def read_text(location: str) -> str:
-    """The file at ``location`` (a path or URI) as text, refused past :data:`MAX_STATE_BYTES`."""
-    from pyarrow import fs
-
-    filesystem, path = fs.FileSystem.from_uri(location)
-    size = filesystem.get_file_info(path).size
-    if size is not None and size <= MAX_STATE_BYTES:
-        with filesystem.open_input_stream(path) as stream:
-            raw = stream.read(size + 1)
-    if size is None or size > MAX_STATE_BYTES or len(raw) > MAX_STATE_BYTES:
-        raise StoreError(
-            f"--resume: {location} is over {MAX_STATE_BYTES} bytes, not a sweep's record; "
-            "remove the folder to start over"
-        )
-    return raw.decode(errors="replace")  # a damaged file fails as JSON, with its name
 
 
 def publish_files(local: Path, location: str) -> None:
     """Copy the staging folder ``local`` into the sweep folder ``location`` (a URI; local paths write in place)."""
     from pyarrow import fs
 
-    filesystem, path = fs.FileSystem.from_uri(location)
+    filesystem, path = _filesystem(location)
     filesystem.create_dir(path, recursive=True)
     fs.copy_files(str(local), path, source_filesystem=fs.LocalFileSystem(), destination_filesystem=filesystem)
 
@@ -381,22 +278,20 @@ def _tune_state_digests(sweep_dir: str) -> dict[str, str]:
     by their path below the folder."""
     from pyarrow import fs
 
-    filesystem, root = fs.FileSystem.from_uri(sweep_dir)
+    filesystem, root = _filesystem(sweep_dir)
     digests = {}
     for info in filesystem.get_file_info(fs.FileSelector(root, recursive=True, allow_not_found=True)):
         rel = info.path[len(root):].lstrip("/")
         if info.type != fs.FileType.File or any(part.startswith("checkpoint_") for part in rel.split("/")[:-1]):
             continue
-        with filesystem.open_input_stream(info.path) as stream:
-            digests[rel] = hashlib.sha256(stream.readall()).hexdigest()
+        digests[rel] = sha256_from(filesystem, info.path, "--resume")
     return digests
 
 
 def record_digest(sweep_dir: str) -> None:
     """Note, where only this user writes, the digests of an object-store sweep's Tune state as this driver
     leaves it, so the next ``--resume`` can tell it untouched (:func:`check_resume_trust`)."""
-    record = _digest_file(sweep_dir)
-    write_private(record, json.dumps(_tune_state_digests(sweep_dir)))
+    write_private(_digest_file(sweep_dir), json.dumps(_tune_state_digests(sweep_dir)))
 
 
 def check_resume_trust(sweep_dir: str) -> None:

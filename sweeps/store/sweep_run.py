@@ -1,143 +1,41 @@
-"""MLflow tracking of a sweep, driver side: the tracking store, the UI links, and the sweep's parent run.
+"""The sweep's parent run, written from the Ray driver: opened with the spec, expanded grid and results table as
+artifacts, each child closed with Tune's verdict (finished, stopped early, failed + reason), the baselines logged
+once per evaluation set. The child run itself is written by the trial (:class:`sweeps.store.trial_run.TrialRun`).
 
-The driver opens the parent run (spec, expanded grid and results table as artifacts) and closes
-each child with Tune's verdict (finished, stopped early, failed + reason). The child run itself is
-written by the trial (:class:`sweeps.execute.trial_tracking.TrialRun`); runs are read back through
-:mod:`sweeps.execute.logged_runs`.
-
-All calls go through an explicit :class:`mlflow.MlflowClient` (no global active run), so a Ray actor
-reused for the next trial carries nothing over.
+All calls go through an explicit client (:func:`sweeps.store.tracking.client`; no global active run), so a Ray
+actor reused for the next trial carries nothing over.
 """
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from mlflow import MlflowClient
-from mlflow.entities import Metric, Param
+from mlflow.entities import Metric
 
 from cdm.metric_names import CD, object_column
 from cdm.provenance import code_version
-from sweeps.compare.outcomes import TrialOutcome
-from sweeps.execute.logged_runs import find_trial_run, is_per_category, last_objects
-from sweeps.store_retry import PatientClient
+from sweeps.store.read import find_trial_run, is_per_category, last_objects
+from sweeps.store.tracking import EXPERIMENT_KIND, client, experiment, log_params, source_tags
 
-__all__ = [
-    "EXPERIMENT_KIND",
-    "SOURCE_NAME",
-    "WORKFLOW",
-    "SweepRun",
-    "artifact_location",
-    "as_params",
-    "baselines_by_eval_set",
-    "log_params",
-    "resolve_tracking_uri",
-    "source_tags",
-    "ui_command",
-    "ui_link",
-    "with_logged_baselines",
-]
+__all__ = ["SweepRun", "baselines_by_eval_set", "with_logged_baselines"]
 
-_BATCH = 100  # MLflow's limit of params per log_batch call
-_BATCH_METRICS = 1000  # and of metrics
+_BATCH_METRICS = 1000  # MLflow's limit of metrics per log_batch call
 
 
-def resolve_tracking_uri(cli: str | None, cwd: Path | None = None) -> str:
-    """``--tracking-uri``, else ``MLFLOW_TRACKING_URI``, else ``sqlite:///<cwd>/mlflow.db``; always absolute.
-
-    A relative SQLite path would resolve inside each Ray trial's own working directory, so it is
-    made absolute against ``cwd`` here, on the driver.
-    """
-    cwd = (cwd or Path.cwd()).resolve()
-    uri = cli or os.environ.get("MLFLOW_TRACKING_URI") or "sqlite:///mlflow.db"
-    if uri.startswith("sqlite:///") and not uri.startswith("sqlite:////"):
-        uri = f"sqlite:///{cwd / uri.removeprefix('sqlite:///')}"
-    return uri
-
-
-def ui_command(uri: str) -> str:
-    """The command that shows this tracking store in a browser, bound to loopback only."""
-    if uri.startswith("sqlite:"):
-        return f"mlflow ui --backend-store-uri {uri} --host 127.0.0.1 --port 5000"
-    return f"open {uri} in a browser"
-
-
-EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
-"""The experiment tag MLflow 3 keeps an experiment's kind in (its UI's kind selector writes it: "Machine
-learning", not "GenAI apps & agents"). MLflow 3.17's own UI chooses its workflow per browser instead
-(``localStorage`` ``mlflow.workflowType``, default GenAI; the URL's ``workflowType`` wins), so every link
-the runner prints also carries :data:`WORKFLOW`."""
-
-WORKFLOW = "workflowType=machine_learning"
-"""The URL parameter that opens MLflow 3's model-training workflow (Runs, Models) whatever the browser
-chose before: no Sessions, Judges, Prompts or AI Gateway, the runs under "Runs", not "Evaluation runs"."""
-
-
-def ui_link(path: str) -> str:
-    """``path`` of the MLflow UI (``#/experiments/…``) opening in the model-training workflow (:data:`WORKFLOW`)."""
-    return path + ("&" if "?" in path else "?") + WORKFLOW
-
-
-def artifact_location(uri: str, name: str) -> str | None:
-    """Where a new experiment ``name`` of the store ``uri`` keeps its artifacts: beside a SQLite database
-    (``<its folder>/mlruns/<name>``) rather than in whatever directory the driver ran from; None: the store's
-    own default (a tracking server's artifact store)."""
-    if uri.startswith("sqlite:///"):
-        return (Path(uri.removeprefix("sqlite:///")).parent / "mlruns" / name).as_uri()
-    return None
-
-
-def _experiment(client: MlflowClient, name: str, uri: str) -> str:
-    """The experiment ``name``'s id, created if needed, tagged a model-training one (:data:`EXPERIMENT_KIND`),
-    also when an older sweep created it."""
-    found = client.get_experiment_by_name(name)
-    if found is not None:
-        experiment_id = found.experiment_id
-    else:
-        experiment_id = client.create_experiment(name, artifact_location=artifact_location(uri, name))
-    client.set_experiment_tag(experiment_id, *EXPERIMENT_KIND)
-    return experiment_id
-
-
-def log_params(client: MlflowClient, run_id: str, params: list[Param]) -> None:
-    """``params`` in batches of MLflow's limit."""
-    for i in range(0, len(params), _BATCH):
-        client.log_batch(run_id, params=params[i:i + _BATCH])
-
-
-def as_params(values: dict[str, Any]) -> list[Param]:
-    """``values`` as MLflow params (MLflow keeps a param as text)."""
-    return [Param(k, str(v)) for k, v in values.items()]
-
-
-SOURCE_NAME = "sweeps/run.py"
-"""MLflow's ``mlflow.source.name`` of a sweep's runs, parent and children: the entry point that starts a sweep
-(``cdm-lab sweep`` runs it), from the checkout ``mlflow.source.git.commit`` names."""
-
-
-def source_tags(git_commit: str) -> dict[str, str]:
-    """MLflow's own source tags (what ``mlflow.start_run`` sets from its context, which a run created through
-    :class:`MlflowClient` lacks): the entry point, ``LOCAL``, and the commit where the checkout has one
-    (``git_commit`` of :func:`cdm.provenance.code_version`; ``unknown`` outside git: no commit tag then).
-    The ``repro.git_commit`` tag stays beside it: ``rerun`` reads the ``repro.*`` record whole."""
-    tags = {"mlflow.source.name": SOURCE_NAME, "mlflow.source.type": "LOCAL"}
-    return tags | ({"mlflow.source.git.commit": git_commit} if git_commit != "unknown" else {})
-
-
-def _eval_set(outcome: TrialOutcome) -> str:
-    """The fingerprint of the evaluation set ``outcome`` was scored on; ``""`` without per-object rows."""
+def _eval_set(outcome: Any) -> str:
+    """The fingerprint of the evaluation set a :class:`sweeps.compare.outcomes.TrialOutcome` was scored on;
+    ``""`` without per-object rows."""
     return str(outcome.objects[0].get("eval_set", "")) if outcome.objects else ""
 
 
-def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[str, float]]:
+def baselines_by_eval_set(outcomes: Sequence[Any]) -> dict[str, dict[str, float]]:
     """Evaluation-set fingerprint → the ``baseline/…`` metrics scored on it (the same in every trial on it):
-    the first finished trial's, as :meth:`SweepRun.log_results` logs them. A trial without per-object rows
-    files its baselines under ``""``."""
+    the first finished trial's (``outcomes``: :class:`sweeps.compare.outcomes.TrialOutcome`), as
+    :meth:`SweepRun.log_results` logs them. A trial without per-object rows files its baselines under ``""``."""
     out: dict[str, dict[str, float]] = {}
     for o in (o for o in outcomes if o.finished):
         found = {k: v for k, v in o.metrics.items() if k.startswith("baseline/")}
@@ -146,13 +44,12 @@ def baselines_by_eval_set(outcomes: Sequence[TrialOutcome]) -> dict[str, dict[st
     return out
 
 
-def with_logged_baselines(outcomes: Sequence[TrialOutcome], baselines: Mapping[str, Mapping[str, float]]
-                          ) -> list[TrialOutcome]:
+def with_logged_baselines(outcomes: Sequence[Any], baselines: Mapping[str, Mapping[str, float]]) -> list[Any]:
     """``outcomes``, each finished one holding the baselines of its evaluation set as the parent run logs them
     (``baselines``: :func:`baselines_by_eval_set`) in place of its own: the numbers the report reads back
-    (:func:`sweeps.execute.logged_runs.parent_baselines`), so the runner's ``results.csv`` and the report's are
+    (:func:`sweeps.store.read.parent_baselines`), so the runner's ``results.csv`` and the report's are
     written from the same floats even where two trials' baselines differed in the last bit."""
-    def held(o: TrialOutcome) -> TrialOutcome:
+    def held(o: Any) -> Any:
         own = {k: v for k, v in o.metrics.items() if not k.startswith("baseline/")}
         return replace(o, metrics={**own, **baselines.get(_eval_set(o), {})})
 
@@ -164,25 +61,25 @@ class SweepRun:
 
     def __init__(self, uri: str, experiment_id: str, run_id: str):
         self.uri, self.experiment_id, self.run_id = uri, experiment_id, run_id
-        self.client = PatientClient(uri)
+        self.client = client(uri)
 
     @classmethod
-    def start(cls, uri: str, experiment: str, run_name: str, tags: dict[str, str], params: dict[str, Any]) -> SweepRun:
-        """Create the experiment if needed and open a new parent run."""
-        client = PatientClient(uri)
-        experiment_id = _experiment(client, experiment, uri)
+    def start(cls, uri: str, name: str, run_name: str, tags: dict[str, str], params: dict[str, Any]) -> SweepRun:
+        """Create the experiment ``name`` if needed and open a new parent run."""
+        store = client(uri)
+        experiment_id = experiment(store, name, uri)
         source = source_tags(code_version()["git_commit"])
-        run = client.create_run(experiment_id, run_name=run_name, tags={"kind": "sweep", **source, **tags})
-        client.log_batch(run.info.run_id, params=as_params(params))
+        run = store.create_run(experiment_id, run_name=run_name, tags={"kind": "sweep", **source, **tags})
+        log_params(store, run.info.run_id, params)
         return cls(uri, experiment_id, run.info.run_id)
 
     @classmethod
     def reopen(cls, uri: str, run_id: str) -> SweepRun:
         """The parent run of an interrupted sweep, marked running again."""
-        client = PatientClient(uri)
-        run = client.get_run(run_id)
-        client.set_experiment_tag(run.info.experiment_id, *EXPERIMENT_KIND)  # a sweep begun before the tag
-        client.update_run(run_id, status="RUNNING")
+        store = client(uri)
+        run = store.get_run(run_id)
+        store.set_experiment_tag(run.info.experiment_id, *EXPERIMENT_KIND)  # a sweep begun before the tag
+        store.update_run(run_id, status="RUNNING")
         return cls(uri, run.info.experiment_id, run_id)
 
     def __getstate__(self) -> dict[str, str]:
