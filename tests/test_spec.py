@@ -466,33 +466,31 @@ def test_a_remote_cluster_that_could_never_fit_a_trial_is_refused():
 
 # The local profile's overrides as sweeps/profiles.yaml wrote them out before it named configs/quick.yaml as
 # its recipe (ef8ae6d): the main job's cells must resolve to the same configs.
-LOCAL_RECIPE = {
+LOCAL_BEFORE_THE_RECIPE = {
     "data.image_size": 64, "data.num_points": 512, "data.train_objects": 256, "data.val_objects": 16,
     "model.feature_dim": 32, "model.widths": [32, 64, 128], "model.voxel_resolutions": [16, 8, 8],
     "model.voxel_backend": "sparse", "diffusion.prediction": "x0", "diffusion.sample_steps": 10,
-    "diffusion.timestep_spacing": "linspace", "diffusion.clip_x0": None, "priors.render_kind": "planar",
-    "priors.lambda_3d": 0.849, "priors.render_size": 64, "train.batch_size": 16, "train.lr": 9.61e-4,
-    "train.betas": [0.9, 0.99], "train.warmup_steps": 50, "train.ema_decay": 0.995, "train.log_every": 100,
-    "eval.num_objects": 16, "eval.num_points": 512, "eval.save_clouds": 8,
+    "diffusion.timestep_spacing": "trailing", "priors.render_kind": "planar", "priors.lambda_3d": 0.1,
+    "priors.render_size": 64, "train.batch_size": 4, "train.lr": 1.0e-3, "train.betas": [0.9, 0.99],
+    "train.warmup_steps": 150, "train.log_every": 100, "eval.num_objects": 16, "eval.num_points": 512,
+    "eval.save_clouds": 8,
 }
-"""The main job's cells: the quick config's sizes and network, with the recipe sweeps/local_recipe.yaml found
-(docs/local-results.md, "The local recipe search")."""
 
 
-def test_the_local_profile_starts_from_the_quick_config_and_resolves_the_main_job_as_searched():
+def test_the_local_profile_starts_from_the_quick_config_and_resolves_the_main_job_as_before():
     recipe = SHARED["local"].overrides
     assert {k: recipe[k] for k in ("data.image_size", "priors.lambda_3d", "model.widths")} == {
-        "data.image_size": 64, "priors.lambda_3d": 0.849, "model.widths": [32, 64, 128]}
+        "data.image_size": 64, "priors.lambda_3d": 0.1, "model.widths": [32, 64, 128]}
     assert not {"train.steps", "train.eval_every", "train.threads", "train.out_dir"} & set(recipe)
     for cell in expand(load_spec(SWEEPS / "point_size.yaml"), "local").cells:
         flat, default = cell.config.flat(), Config().flat()
-        assert {k: flat[k] for k in LOCAL_RECIPE} == LOCAL_RECIPE
-        assert (flat["train.steps"], flat["train.eval_every"], flat["train.threads"]) == (580, 580, 1)
+        assert {k: flat[k] for k in LOCAL_BEFORE_THE_RECIPE} == LOCAL_BEFORE_THE_RECIPE
+        assert (flat["train.steps"], flat["train.eval_every"], flat["train.threads"]) == (2000, 2000, 1)
         assert flat["train.out_dir"] == default["train.out_dir"]
-        # Nothing else differs from the defaults: the recipe brought no field the profile does not set.
+        # Nothing else differs from the defaults: the recipe brought no field the profile did not set before.
         changed = {k for k in flat if flat[k] != default[k]} - {"priors.point_size"}
-        assert changed == {k for k, v in LOCAL_RECIPE.items() if v != default[k]} | {
-            "train.steps", "train.eval_every", "train.threads"}
+        before = {k for k, v in LOCAL_BEFORE_THE_RECIPE.items() if v != default[k]}
+        assert changed == before | {"train.steps", "train.eval_every", "train.threads"}
 
 
 def test_a_recipe_is_one_home_read_by_the_profile_and_checked_like_a_config(tmp_path):
@@ -515,7 +513,7 @@ def test_a_recipe_is_one_home_read_by_the_profile_and_checked_like_a_config(tmp_
 def test_lambda_source_names_the_profile_that_sets_it():
     spec = load_spec(SWEEPS / "point_size.yaml")
     local, smoke = expand(spec, "local"), expand(spec, "smoke")
-    assert {c.config.priors.lambda_3d for c in local.cells} == {0.849}
+    assert {c.config.priors.lambda_3d for c in local.cells} == {0.1}
     assert lambda_source(spec, "local", local.fixed, local.sets) == "profile local"
     assert lambda_source(spec, "smoke", smoke.fixed, smoke.sets) == "the config default"
     assert lambda_source(spec, "smoke", smoke.fixed, {"priors.lambda_3d": 0.5}) == "--set"
@@ -581,8 +579,7 @@ def test_the_small_profiles_leave_x0_unclamped_on_data_sets_whose_frames_pass_un
 
     root = make_co3d(tmp_path / "co3d", categories=("teddybear",), frames=3).root
     spec = load_spec(SWEEPS / "point_size.yaml")
-    assert expand(spec, "smoke").cells[0].config.diffusion.clip_x0 == 1.0  # the procedural frame fits [-1, 1]³
-    assert expand(spec, "local").cells[0].config.diffusion.clip_x0 is None  # the searched recipe (profiles.yaml)
+    assert expand(spec, "local").cells[0].config.diffusion.clip_x0 == 1.0  # the procedural frame fits [-1, 1]³
     for profile in ("smoke", "local"):
         on_co3d = expand(spec, profile, {"data.kind": "co3d", "data.root": str(root), "data.categories": ["teddybear"]})
         assert on_co3d.cells[0].config.diffusion.clip_x0 is None  # Co3D's world units
