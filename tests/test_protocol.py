@@ -386,9 +386,9 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     import json
 
     from sweeps.compare.table import build_table
-    from sweeps.execute.tracking import SweepRun
     from sweeps.plan.protocol import CARD_TAG
-    from sweeps.results import finished
+    from sweeps.results.sweep import open_sweep, protocol_card_lines, results_table
+    from sweeps.store.sweep_run import SweepRun
 
     spec_file = SWEEPS / "co3d.yaml"
     plan = expand(load_spec(spec_file), "smoke")
@@ -401,14 +401,14 @@ def test_the_card_travels_with_the_parent_run_into_the_report_and_the_results_ta
     plan_file.write_text(json.dumps({"fixed": plan.fixed, "sets": {}, "cells": []}, default=str))
     sweep.log_artifacts([spec_file, plan_file])
     sweep.end()
-    record_ = finished.open_sweep(uri, plan.spec.name)
-    assert finished.protocol_card_lines(record_) == lines
+    record_ = open_sweep(uri, plan.spec.name)
+    assert protocol_card_lines(record_) == lines
     assert (
         lines[0]
         == "deviation: data set: the procedural data set stands in for Co3D v2; procedural bottle, mug and sofa "
         "stand in for hydrant, teddybear and toytruck"
     )
-    theirs = finished.results_table(record_, []).notes
+    theirs = results_table(record_, []).notes
     ours = build_table([], plan.spec.metric.name, plan.spec.metric.mode, "t", "", settings=table_settings(plan)).notes
     assert [n for n in theirs if n.startswith("protocol: ")] == [n for n in ours if n.startswith("protocol: ")] == [
         f"protocol: {line}" for line in lines]
