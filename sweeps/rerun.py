@@ -34,7 +34,7 @@ from cdm.io.files import is_uri, read_text
 from cdm.metric_names import CD, METRICS
 from cdm.provenance import MACHINE_KEYS, code_version, config_hash, installed_packages, machine_record
 from cdm.train import Callback, fit
-from sweeps.store.files import StoreError
+from sweeps.store.files import StoreError, one_line
 from sweeps.store.tracking import check_tracking_uri, resolve_tracking_uri
 from sweeps.store.tracking import client as store_client
 from sweeps.store.trial_run import PACKAGES_FILE, TrialRun
@@ -161,7 +161,7 @@ def _recorded_config(client: MlflowClient, run_id: str, out: Path) -> Config:
             return load_config(client.download_artifacts(run_id, "config.yaml", tmp), {"train.out_dir": str(out)})
         except (MlflowException, OSError) as exc:
             raise RerunError(
-                f"rerun: run {run_id} has no readable config.yaml ({' '.join(str(exc).split())[:200]})"
+                f"rerun: run {run_id} has no readable config.yaml ({one_line(exc)[:200]})"
             ) from None
         except ValueError as exc:  # ConfigError: a recorded value this code no longer accepts
             raise RerunError(f"rerun: run {run_id}'s config.yaml: {exc}") from None

@@ -73,7 +73,7 @@ the trials run, so ``execute/`` and ``results/`` build on it, and it on ``plan/`
 
 def _stage(module: str) -> int | None:
     """Height of a ``sweeps`` module's stage in :data:`STAGES`; None for the entry points and the
-    storage modules every stage shares (``sweeps.run``, ``sweeps.report``, ``sweeps.rerun``, ``sweeps.storage``, …)."""
+    storage modules every stage shares (``sweeps.run``, ``sweeps.report``, ``sweeps.rerun``, ``sweeps.store``, …)."""
     parts = module.split(".")
     return STAGES.index(parts[1]) if len(parts) > 2 and parts[0] == "sweeps" and parts[1] in STAGES else None
 

@@ -36,7 +36,7 @@ from sweeps.execute import driver, local_cluster, stopping
 from sweeps.execute.claim import ClaimError, claim, claims_folder
 from sweeps.plan.spec import load_spec
 from sweeps.plan.trials import expand
-from sweeps.store import tracking as store_retry
+from sweeps.store import tracking
 from sweeps.store.files import StoreError, check_name, check_resume_trust, private_folder, record_digest, sweep_location
 from sweeps.store.sweep_run import SweepRun
 from sweeps.store.trial_run import TrialRun
@@ -492,9 +492,9 @@ def test_a_dataset_two_trials_insert_at_once_is_retried_and_the_retry_links_the_
 
     race = _LockedThenFree(1, "(sqlite3.IntegrityError) UNIQUE constraint failed: datasets.experiment_id, "
                               "datasets.name, datasets.digest")
-    assert store_retry.retry_when_busy(race, 7) == 7 and race.calls == 2
+    assert tracking.retry_when_busy(race, 7) == 7 and race.calls == 2
     # What the retry meets in a real store: the other trial's row, which it links instead of inserting.
-    client = store_retry.PatientClient(f"sqlite:///{tmp_path}/m.db")
+    client = tracking.PatientClient(f"sqlite:///{tmp_path}/m.db")
     experiment = client.create_experiment("race")
     runs = [client.create_run(experiment).info.run_id for _ in range(2)]
     for run_id in runs:
@@ -508,21 +508,21 @@ def test_an_mlflow_call_refused_as_locked_is_retried_with_back_off_until_the_wai
 
     call = _LockedThenFree(3)
     started = time.perf_counter()
-    assert store_retry.retry_when_busy(call, 7) == 7 and call.calls == 4
+    assert tracking.retry_when_busy(call, 7) == 7 and call.calls == 4
     assert time.perf_counter() - started >= 0.1 + 0.2 + 0.4  # the pauses between the four calls
     other = _LockedThenFree(1, "RESOURCE_DOES_NOT_EXIST: run 0 not found")
     with pytest.raises(MlflowException, match="not found"):
-        store_retry.retry_when_busy(other, 7)
+        tracking.retry_when_busy(other, 7)
     assert other.calls == 1  # other errors are not waited on
-    monkeypatch.setattr(store_retry, "BUSY_TIMEOUT_S", 0.5)
+    monkeypatch.setattr(tracking, "BUSY_TIMEOUT_S", 0.5)
     stuck = _LockedThenFree(100)
     with pytest.raises(MlflowException, match="database is locked"):
-        store_retry.retry_when_busy(stuck, 7)
+        tracking.retry_when_busy(stuck, 7)
     assert stuck.calls == 3  # after 0.1 + 0.2 s; a third pause of 0.4 s would pass the 0.5 s wait
-    client = store_retry.PatientClient(f"sqlite:///{tmp_path}/m.db")
+    client = tracking.PatientClient(f"sqlite:///{tmp_path}/m.db")
     assert client.tracking_uri == f"sqlite:///{tmp_path}/m.db"
     assert [e.name for e in client.search_experiments()] == ["Default"]
-    store_retry.wait_when_busy()  # MLflow's traceback of each retried "database is locked" is not printed
+    tracking.wait_when_busy()  # MLflow's traceback of each retried "database is locked" is not printed
     mlflow_db = logging.getLogger("mlflow.store.db.utils")
     seen = logging.handlers.BufferingHandler(10)
     mlflow_db.addHandler(seen)
@@ -536,7 +536,7 @@ def test_an_mlflow_call_refused_as_locked_is_retried_with_back_off_until_the_wai
 
 def test_a_store_locked_at_start_is_waited_on_then_refused_in_one_line(in_tmp, capsys, monkeypatch):
     SweepRun.start(f"sqlite:///{in_tmp}/m.db", "other", "other", tags={}, params={}).end("FINISHED")
-    monkeypatch.setattr(store_retry, "BUSY_TIMEOUT_S", 2.0)
+    monkeypatch.setattr(tracking, "BUSY_TIMEOUT_S", 2.0)
     capsys.readouterr()
     holder = _lock_store(in_tmp / "m.db", 30.0)
     try:

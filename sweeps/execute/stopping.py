@@ -8,13 +8,10 @@ import shlex
 import shutil
 from pathlib import Path
 
-from sweeps.store.files import is_uri
+from sweeps.store.files import is_uri, one_line
 
 __all__ = ["discard_start", "kill_running_children", "no_space_left", "one_line", "resume_command"]
 
-
-def one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
 
 def no_space_left(exc: BaseException) -> bool:
     """``exc`` or one it was raised from is a full disk: ``ENOSPC``, or torch's ``PytorchStreamWriter``

@@ -26,9 +26,9 @@ from cdm.io.write import write_atomic
 
 __all__ = [
     "MAX_NAME", "MAX_STATE_BYTES", "TRUST_FLAG", "StoreError", "check_name", "check_no_links", "check_resume_trust",
-    "check_storage", "exists", "is_uri", "one_line", "parse_state", "private_folder", "publish_files", "read_record",
-    "read_state", "record_digest", "storage_location", "sweep_location", "writable_folder", "write_file",
-    "write_private", "write_record",
+    "check_storage", "exists", "is_uri", "location_filesystem", "one_line", "parse_state", "private_folder",
+    "publish_files", "read_record", "read_state", "record_digest", "storage_location", "sweep_location",
+    "writable_folder", "write_file", "write_private", "write_record",
 ]
 
 MAX_NAME = 100
@@ -46,6 +46,7 @@ class StoreError(ValueError):
 
 
 def one_line(exc: BaseException) -> str:
+    """``exc``'s message on one line, its whitespace runs collapsed to single spaces."""
     return " ".join(str(exc).split())
 
 
@@ -68,7 +69,7 @@ def writable_folder(path: Path, what: str) -> None:
     os.unlink(name)
 
 
-def _filesystem(location: str):
+def location_filesystem(location: str):
     """pyarrow's file system of ``location`` (a path or URI) and the path in it."""
     from pyarrow import fs
 
@@ -147,7 +148,7 @@ def write_record(location: str, text: str) -> None:
     if not is_uri(location):
         write_file(Path(location), text)
         return
-    filesystem, path = _filesystem(location)
+    filesystem, path = location_filesystem(location)
     with filesystem.open_output_stream(path) as stream:
         stream.write(text.encode())
 
@@ -233,7 +234,7 @@ def write_private(path: Path, text: str) -> None:
 def exists(location: str) -> bool:
     from pyarrow import fs
 
-    filesystem, path = _filesystem(location)
+    filesystem, path = location_filesystem(location)
     return filesystem.get_file_info(path).type != fs.FileType.NotFound
 
 
@@ -241,7 +242,7 @@ def publish_files(local: Path, location: str) -> None:
     """Copy the staging folder ``local`` into the sweep folder ``location`` (a URI; local paths write in place)."""
     from pyarrow import fs
 
-    filesystem, path = _filesystem(location)
+    filesystem, path = location_filesystem(location)
     filesystem.create_dir(path, recursive=True)
     fs.copy_files(str(local), path, source_filesystem=fs.LocalFileSystem(), destination_filesystem=filesystem)
 
@@ -278,7 +279,7 @@ def _tune_state_digests(sweep_dir: str) -> dict[str, str]:
     by their path below the folder."""
     from pyarrow import fs
 
-    filesystem, root = _filesystem(sweep_dir)
+    filesystem, root = location_filesystem(sweep_dir)
     digests = {}
     for info in filesystem.get_file_info(fs.FileSelector(root, recursive=True, allow_not_found=True)):
         rel = info.path[len(root):].lstrip("/")

@@ -24,7 +24,7 @@ from cdm.io.write import write_atomic
 from sweeps.execute.settle.rule import BUDGET_TAG, Round, next_round, object_scores
 from sweeps.plan.budget import SeedBudget
 from sweeps.plan.trials import SweepPlan
-from sweeps.store.files import StoreError
+from sweeps.store.files import StoreError, location_filesystem
 from sweeps.store.read import last_objects
 from sweeps.store.sweep_run import SweepRun
 
@@ -75,7 +75,7 @@ def check_searcher_state(sweep_dir: str, plan: SweepPlan) -> None:
     """
     from pyarrow import fs
 
-    filesystem, folder = fs.FileSystem.from_uri(sweep_dir if "://" in sweep_dir else str(Path(sweep_dir).resolve()))
+    filesystem, folder = location_filesystem(sweep_dir)
     found = sorted(i.path for i in filesystem.get_file_info(fs.FileSelector(folder, allow_not_found=True))
                    if i.type == fs.FileType.File and Path(i.path).match(_STATE_GLOB))
     if not found:
